@@ -1,0 +1,154 @@
+"""Typed, validated options, and their mapping from TOML files.
+
+Each pipeline stage declares its options as a frozen dataclass deriving from ``Options``; every
+field has a default with a comment saying what it means, and a ``check()`` method that raises
+``OptionsError`` naming the field. Construction runs the check, so an options object that exists is
+valid. ``from_mapping`` builds one from a (TOML) mapping and rejects unknown keys.
+
+There is no global configuration: options objects are passed explicitly to the stage that uses
+them, as COLMAP's ``mvs`` option structs are kept apart from the problem data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tomllib
+import typing
+from typing import Any, Mapping, TypeVar
+
+from .errors import InputError, OptionsError
+
+T = TypeVar("T", bound="Options")
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """Base of all option dataclasses: validation on construction and mapping from TOML."""
+
+    def __post_init__(self) -> None:
+        self._check_types()
+        self.check()
+
+    def check(self) -> None:
+        """Raise OptionsError naming the field when a value is out of range. Override per stage."""
+
+    # -- helpers for subclasses' check() -------------------------------------------------------
+    def _require(self, ok: bool, field: str, why: str) -> None:
+        if not ok:
+            raise OptionsError(f"{type(self).__name__}.{field} = {getattr(self, field)!r}: {why}")
+
+    def _check_types(self) -> None:
+        hints = typing.get_type_hints(type(self))
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            expected = hints.get(f.name)
+            if not _matches(value, expected):
+                raise OptionsError(
+                    f"{type(self).__name__}.{f.name} = {value!r}: expected {_type_name(expected)}"
+                )
+
+    # -- construction from mappings ------------------------------------------------------------
+    @classmethod
+    def from_mapping(cls: type[T], data: Mapping[str, Any], *, source: str = "options") -> T:
+        """Build from a mapping (e.g. a TOML table); unknown keys and wrong types are errors."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise OptionsError(
+                f"{source}: unknown key(s) {', '.join(unknown)} for {cls.__name__} "
+                f"(known: {', '.join(sorted(names))})"
+            )
+        hints = typing.get_type_hints(cls)
+        values = {}
+        for key, value in data.items():
+            expected = hints.get(key)
+            # TOML has no tuples: accept a list where a tuple is declared.
+            if isinstance(value, list) and typing.get_origin(expected) is tuple:
+                value = tuple(value)
+            # TOML integers are acceptable where a float is declared.
+            if expected is float and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            values[key] = value
+        return cls(**values)
+
+    def replace(self: T, **changes: Any) -> T:
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+
+def load_toml(path: str | os.PathLike) -> dict[str, Any]:
+    """Read a TOML file into a dict; a missing or malformed file is an InputError naming it."""
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise InputError(path, "config file does not exist") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(path, f"not valid TOML: {exc}") from None
+
+
+def dumps_toml(tables: Mapping[str, Mapping[str, Any]]) -> str:
+    """Serialise {table: {key: value}} of plain values (numbers, strings, bools, lists) as TOML."""
+    lines: list[str] = []
+    for table, values in tables.items():
+        lines.append(f"[{table}]")
+        for key, value in values.items():
+            if value is None:
+                lines.append(f"# {key} is unset")
+                continue
+            lines.append(f"{key} = {_toml_value(value)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"')
+        return f'"{escaped}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {value!r} as TOML")
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _matches(value: Any, expected: Any) -> bool:
+    if expected is None or expected is Any:
+        return True
+    origin = typing.get_origin(expected)
+    if origin is typing.Union or (origin is not None and str(origin) == "<class 'types.UnionType'>"):
+        return any(_matches(value, arg) for arg in typing.get_args(expected))
+    if origin is typing.Literal:
+        return value in typing.get_args(expected)
+    if expected is type(None):
+        return value is None
+    if origin is tuple:
+        args = typing.get_args(expected)
+        if not isinstance(value, tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_matches(v, args[0]) for v in value)
+        return len(args) == len(value) and all(_matches(v, a) for v, a in zip(value, args))
+    if expected is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if expected is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if isinstance(expected, type):
+        return isinstance(value, expected)
+    return True
+
+
+def _type_name(expected: Any) -> str:
+    return getattr(expected, "__name__", None) or str(expected).replace("typing.", "")
