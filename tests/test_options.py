@@ -1,0 +1,68 @@
+"""The Options base: validation on construction, TOML mapping, unknown keys."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import pytest
+
+from satsweep.errors import InputError, OptionsError
+from satsweep.options import Options, dumps_toml, load_toml
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoOptions(Options):
+    radius: int = 3  # a window radius in pixels
+    eps: float = 1e-3  # a regulariser
+    window: tuple[int, int] = (7, 9)  # a window size
+    mode: Literal["a", "b"] = "a"  # a choice
+    budget: int | None = None  # optional
+
+    def check(self) -> None:
+        self._require(self.radius >= 0, "radius", "must be >= 0")
+        self._require(self.eps > 0, "eps", "must be > 0")
+
+
+def test_defaults_are_valid_and_frozen():
+    o = DemoOptions()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        o.radius = 4  # type: ignore[misc]
+
+
+def test_check_names_the_field():
+    with pytest.raises(OptionsError, match=r"DemoOptions\.radius = -1: must be >= 0"):
+        DemoOptions(radius=-1)
+
+
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [({"radius": 2.5}, "radius"), ({"eps": "x"}, "eps"), ({"mode": "c"}, "mode"),
+     ({"window": (7,)}, "window"), ({"radius": True}, "radius")],
+)
+def test_type_errors_name_the_field(kwargs, field):
+    with pytest.raises(OptionsError, match=rf"DemoOptions\.{field}"):
+        DemoOptions(**kwargs)
+
+
+def test_from_mapping_converts_toml_types_and_rejects_unknown_keys():
+    o = DemoOptions.from_mapping({"radius": 5, "eps": 1, "window": [3, 5]})
+    assert o == DemoOptions(radius=5, eps=1.0, window=(3, 5))
+    with pytest.raises(OptionsError, match="unknown key.*radious"):
+        DemoOptions.from_mapping({"radious": 5}, source="cfg.toml")
+
+
+def test_toml_round_trip(tmp_path):
+    o = DemoOptions(radius=4, window=(5, 5), mode="b")
+    path = tmp_path / "c.toml"
+    path.write_text(dumps_toml({"demo": o.to_dict()}))
+    assert DemoOptions.from_mapping(load_toml(path)["demo"]) == o
+
+
+def test_bad_toml_names_the_file(tmp_path):
+    path = tmp_path / "broken.toml"
+    path.write_text("radius = = 3\n")
+    with pytest.raises(InputError, match="broken.toml: not valid TOML"):
+        load_toml(path)
+    with pytest.raises(InputError, match="does not exist"):
+        load_toml(tmp_path / "absent.toml")
