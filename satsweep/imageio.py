@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import math
 import os
 import secrets
+import struct
 from typing import Iterator, Sequence
 
 import numpy as np
@@ -130,6 +132,24 @@ def _maybe_atomic(path: str | os.PathLike, atomic: bool) -> Iterator[str]:
 
 
 # -- reading -----------------------------------------------------------------------------------
+# What tifffile raises on files that are not TIFFs or are cut short (struct.error for a file cut
+# inside its header, for instance): each becomes an ImageFormatError naming the file.
+_TIFF_READ_ERRORS = (ValueError, OSError, EOFError, IndexError, KeyError, struct.error)
+
+
+@contextlib.contextmanager
+def _quiet_tifffile() -> Iterator[None]:
+    """Silence tifffile's own log lines while opening a file: a corrupt file is reported once, by
+    the ImageFormatError that names it, not also by a library log line above it."""
+    logger = logging.getLogger("tifffile")
+    previous = logger.disabled
+    logger.disabled = True
+    try:
+        yield
+    finally:
+        logger.disabled = previous
+
+
 @contextlib.contextmanager
 def _open_tiff(path: str | os.PathLike):
     """Open a TIFF and yield (TiffFile, first page); every failure is an ImageFormatError."""
@@ -141,14 +161,16 @@ def _open_tiff(path: str | os.PathLike):
     if os.path.isdir(path):
         raise ImageFormatError(path, "is a folder, not an image")
     try:
-        tif = tifffile.TiffFile(path)
-    except (tifffile.TiffFileError, ValueError, OSError, EOFError, IndexError, KeyError) as exc:
+        with _quiet_tifffile():
+            tif = tifffile.TiffFile(path)
+    except _TIFF_READ_ERRORS as exc:
         raise ImageFormatError(path, f"not a readable TIFF file ({exc})") from None
     with tif:
         try:
-            pages = tif.pages
-            page = pages.first if len(pages) else None
-        except (tifffile.TiffFileError, ValueError, OSError, EOFError, IndexError, KeyError) as exc:
+            with _quiet_tifffile():
+                pages = tif.pages
+                page = pages.first if len(pages) else None
+        except _TIFF_READ_ERRORS as exc:
             raise ImageFormatError(path, f"corrupt TIFF image directory ({exc})") from None
         if page is None:
             raise ImageFormatError(

@@ -365,3 +365,15 @@ def test_non_atomic_write_goes_straight_to_the_target(tmp_path):
     sio.write_tiff(target, np.ones((3, 3), np.uint8), atomic=False)
     np.testing.assert_array_equal(tifffile.imread(target), np.ones((3, 3), np.uint8))
     assert os.listdir(tmp_path) == ["plain.tif"]
+
+
+@pytest.mark.parametrize("n_bytes", [2, 4, 6, 12])
+def test_read_image_cut_inside_the_header(tmp_path, n_bytes, capsys):
+    whole = tmp_path / "whole.tif"
+    tifffile.imwrite(whole, _ramp((16, 16), np.uint16))
+    cut = tmp_path / "cut.tif"
+    cut.write_bytes(whole.read_bytes()[:n_bytes])
+    with pytest.raises(ImageFormatError, match="cut.tif"):
+        sio.read_image(cut)
+    # reported once, by the error: no tifffile log line besides it
+    assert "tifffile" not in capsys.readouterr().err
