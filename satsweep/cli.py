@@ -65,8 +65,116 @@ def _cmd_devices(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- cameras -----------------------------------------------------------------------------------
+def _add_cameras(sub) -> None:
+    p = sub.add_parser(
+        "cameras",
+        help="approximate each image's RPC by a perspective camera over the AOI",
+        description="Fit a pinhole camera K[R|t] to each image's RPC over the AOI cube (AOI box x "
+        "altitude range) in a local ENU frame, report its error against the RPC, and write "
+        "DIR/cameras.json (with the plane-plus-parallax 4x4 matrices the sweep uses).",
+    )
+    p.add_argument("images", nargs="+", metavar="IMAGE", help="TIFF images with an RPC (tag or sidecar)")
+    p.add_argument("--aoi", required=True, help="LON_MIN,LAT_MIN,LON_MAX,LAT_MAX (degrees) or a GeoJSON file")
+    p.add_argument("--alt-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=None,
+                   help="heights in metres above the WGS84 ellipsoid (default: from --dem, else "
+                   "a coarse guess from the RPCs)")
+    p.add_argument("--dem", default=None, metavar="FILE", help="DEM GeoTIFF giving the altitude range")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (cameras.json, images/)")
+    p.add_argument("--skew-correct", action="store_true",
+                   help="shear the images so that K has no skew; write them to DIR/images/")
+    p.add_argument("--grid", nargs=3, type=int, metavar=("NE", "NN", "NU"), default=None,
+                   help="samples of the AOI cube along east, north, up (default 100 100 20)")
+    p.add_argument("--overwrite", action="store_true", help="write into a non-empty --out folder")
+    p.set_defaults(handler=_cmd_cameras)
+
+
+def _check_out_dir(path: str, overwrite: bool) -> None:
+    """Refuse an --out that is a file, or a non-empty folder without --overwrite (writes nothing)."""
+    import os
+
+    from .errors import OptionsError, OutputExistsError
+
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise OptionsError(f"--out {path}: exists and is not a folder")
+    if os.path.isdir(path) and os.listdir(path) and not overwrite:
+        raise OutputExistsError(f"--out {path}: folder is not empty (pass --overwrite to write into it)")
+
+
+def _cmd_cameras(args: argparse.Namespace) -> int:
+    from . import camera as scam
+    from .aoi import AltitudeRange, parse_aoi, resolve_altitude_range
+    from .errors import AOIError
+    from .views import load_views
+
+    _check_out_dir(args.out, args.overwrite)
+    options = scam.CameraOptions() if args.grid is None else scam.CameraOptions(grid_size=tuple(args.grid))
+    aoi = parse_aoi(args.aoi)
+    alt = None
+    if args.alt_range is not None:
+        try:
+            alt = AltitudeRange(*args.alt_range)
+        except AOIError as exc:
+            raise AOIError(f"--alt-range {args.alt_range[0]:g} {args.alt_range[1]:g}: {exc}") from None
+    rpcs = None
+    if alt is None and args.dem is None:
+        from .rpc import RPCModel
+
+        rpcs = [RPCModel.from_image(p) for p in args.images]
+    alt = resolve_altitude_range(alt_range=alt, dem=args.dem, rpcs=rpcs, aoi=aoi)
+    views = load_views(args.images, aoi, alt)
+    cameras = scam.build_cameras(views, aoi, alt, options)
+    images = None
+    if args.skew_correct:
+        cameras, images = scam.skew_correct_set(cameras, [v.image for v in views])
+    cameras = scam.write_cameras(args.out, cameras, images)
+    f = cameras.frame
+    print(f"ENU origin: lon {f.lon0:.7f}, lat {f.lat0:.7f}, alt {f.alt0:.2f} m; UTM EPSG:{cameras.utm_epsg}; "
+          f"AOI {aoi}, altitudes {alt}; parallax plane u = {cameras.d:.2f} m")
+    print(cameras.table())
+    print(f"wrote {args.out}/cameras.json" + (f" and {len(images)} images in {args.out}/images/" if images else ""))
+    for warning in cameras.warnings:
+        print(f"satsweep: warning: {warning}", file=sys.stderr)
+    return 0
+
+
+# -- evaluate ----------------------------------------------------------------------------------
+def _add_evaluate(sub) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="score a DSM against a ground-truth DSM (IARPA MVS3DM protocol), JSON on stdout",
+        description="Resample PRED onto the grid of TRUTH (same EPSG code), search the horizontal "
+        "shift (integer truth cells up to --max-shift metres) and vertical offset (median "
+        "difference) with the least median absolute error, and print the aligned and unaligned "
+        "median_abs_error_m, completeness_1m, rmse_m and shift as JSON.",
+    )
+    p.add_argument("pred", metavar="PRED.tif", help="predicted DSM (GeoTIFF, projected CRS in metres)")
+    p.add_argument("truth", metavar="TRUTH.tif", help="ground-truth DSM (GeoTIFF, same EPSG code)")
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="also write error_map.png, error_histogram.png, error.tif, evaluation.json here")
+    p.add_argument("--max-shift", type=float, default=None, metavar="M",
+                   help="horizontal shift search radius in metres (default 2)")
+    p.add_argument("--threshold", type=float, default=None, metavar="M",
+                   help="completeness threshold in metres (default 1)")
+    p.add_argument("--resampling", choices=("nearest", "bilinear"), default=None,
+                   help="how PRED is sampled onto the truth grid (default nearest)")
+    p.set_defaults(handler=_cmd_evaluate)
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluate import EvaluateOptions, evaluate_dsm
+    from .report import to_json
+
+    given = {"max_shift_m": args.max_shift, "threshold_m": args.threshold, "resampling": args.resampling}
+    options = EvaluateOptions(**{k: v for k, v in given.items() if v is not None})
+    report = evaluate_dsm(args.pred, args.truth, options, out_dir=args.out)
+    print(to_json(report))
+    return 0
+
+
 # -- entry point -------------------------------------------------------------------------------
-_COMMANDS = [_add_devices]
+_COMMANDS = [_add_devices, _add_evaluate]
+_COMMANDS.append(_add_cameras)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,455 @@
+"""From per-view height maps to a DSM on a UTM grid.
+
+Stages (host code, float64 numpy, vectorised):
+
+1. ``height_map_to_points``: each valid reference pixel (col, row) with its surface height u (ENU
+   up, metres) becomes a 3D point: the ENU (e, n) solving ``P @ [e, n, u, 1] ~ [col, row, 1]``
+   exactly (a 2x2 linear system per pixel), then WGS84 lon/lat/ellipsoidal height.
+2. ``points_to_utm`` + ``rasterise_max``: points to UTM easting/northing, highest point per cell
+   (a DSM is the top surface: a roof point beats a wall point falling in the same cell).
+3. ``fuse_dsms``: per cell, median of the per-reference-view DSMs after discarding values farther
+   than ``outlier_m`` from their first median (a consistency filter across views).
+4. ``fill_small_holes``: optional; fills enclosed holes of a few cells and returns how many cells
+   it filled, so the caller reports it.
+
+Grid convention (``DSMGrid``): north up, square cells of ``resolution`` metres, ``x_min``/``y_max``
+the outer corner of the top-left cell (GDAL's geotransform origin, as ``imageio.write_geotiff``
+takes it); cell (i, j) (row i, column j) has its centre at
+``(x_min + (j + 0.5) * resolution, y_max - (i + 0.5) * resolution)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from typing import Literal, Sequence
+
+import numpy as np
+
+from .errors import CameraError, OptionsError
+from .options import Options
+
+# Points per AOI edge when projecting its outline to UTM: the edges of a lon/lat box are curved
+# in UTM, so the corners alone can miss the true extent by up to a few metres on large AOIs.
+AOI_EDGE_SAMPLES = 65
+
+# |det| below this (relative to the product of the row norms) marks a pixel whose 2x2 system is
+# degenerate: its viewing ray is parallel to the horizontal plane.
+DEGENERATE_RELATIVE_DET = 1e-12
+
+# fuse_dsms works on row blocks of at most this many values (views x cells): ~64 MB per float64
+# temporary, whatever the DSM size.
+FUSE_BLOCK_VALUES = 8_000_000
+
+
+@dataclasses.dataclass(frozen=True)
+class DSMOptions(Options):
+    """Options of the DSM stage (rasterisation, fusion across reference views, hole filling)."""
+
+    resolution: float = 0.5  # DSM cell size in metres (UTM)
+    subsamples: int = 1  # each reference pixel is splatted as subsamples x subsamples points over its footprint (1: centre only)
+    outlier_m: float = 2.0  # fusion: discard per-view heights farther than this (m) from the first per-cell median
+    min_views: int = 1  # fusion: cells kept by fewer reference views are left empty
+    fill_max_hole_cells: int = 0  # fill enclosed holes of at most this many cells (0: no filling)
+    fill_method: Literal["min", "median"] = "min"  # value given to a filled hole: min or median of its rim
+
+    def check(self) -> None:
+        self._require(math.isfinite(self.resolution) and self.resolution > 0.0, "resolution", "must be > 0 metres")
+        self._require(1 <= self.subsamples <= 8, "subsamples", "must be 1..8")
+        self._require(math.isfinite(self.outlier_m) and self.outlier_m > 0.0, "outlier_m", "must be > 0 metres")
+        self._require(self.min_views >= 1, "min_views", "must be >= 1")
+        self._require(self.fill_max_hole_cells >= 0, "fill_max_hole_cells", "must be >= 0 (0 disables filling)")
+
+
+# -- points ------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Points:
+    """A set of 3D points: WGS84 lon/lat (degrees), height above the ellipsoid (m), attributes."""
+
+    lon: np.ndarray  # (N,) float64 degrees
+    lat: np.ndarray  # (N,) float64 degrees
+    alt: np.ndarray  # (N,) float64 metres above the WGS84 ellipsoid
+    colors: np.ndarray | None = None  # (N, 3) uint8 RGB, or None
+    confidence: np.ndarray | None = None  # (N,) float32, or None
+
+    def __len__(self) -> int:
+        return int(self.lon.size)
+
+    @staticmethod
+    def concatenate(parts: Sequence["Points"]) -> "Points":
+        """Join point sets; colours/confidence are kept only when every part has them."""
+        parts = list(parts)
+        if not parts:
+            empty = np.zeros(0, np.float64)
+            return Points(lon=empty, lat=empty.copy(), alt=empty.copy())
+        colors = None
+        if all(p.colors is not None for p in parts):
+            colors = np.concatenate([p.colors for p in parts])
+        confidence = None
+        if all(p.confidence is not None for p in parts):
+            confidence = np.concatenate([p.confidence for p in parts])
+        return Points(
+            lon=np.concatenate([p.lon for p in parts]),
+            lat=np.concatenate([p.lat for p in parts]),
+            alt=np.concatenate([p.alt for p in parts]),
+            colors=colors,
+            confidence=confidence,
+        )
+
+
+def _rgb_of(colors: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) grey or (H, W, 3) RGB uint8 -> (H, W, 3) uint8."""
+    c = np.asarray(colors)
+    if c.dtype != np.uint8:
+        raise ValueError(f"colors must be uint8 (tone-map the image first), got {c.dtype}")
+    if c.shape == shape:
+        return np.repeat(c[..., None], 3, axis=2)
+    if c.shape == shape + (3,):
+        return c
+    raise ValueError(f"colors must have shape {shape} or {shape + (3,)}, got {c.shape}")
+
+
+def solve_ground_en(P: np.ndarray, *, col, row, u) -> tuple[np.ndarray, np.ndarray]:
+    """ENU (e, n) of the points at height ``u`` that ``P`` projects to pixels (col, row).
+
+    ``P``: 3x4 matrix mapping homogeneous ENU ``[e, n, u, 1]`` to homogeneous pixel coordinates
+    ((0, 0) = centre of the first pixel). With ``q = P @ X``, ``col * q[2] = q[0]`` and
+    ``row * q[2] = q[1]`` are two linear equations in (e, n), solved by Cramer's rule in float64.
+    Pixels whose system is degenerate (ray parallel to the plane u = const) get NaN.
+    """
+    P = np.asarray(P, dtype=np.float64)
+    if P.shape != (3, 4) or not np.all(np.isfinite(P)):
+        raise CameraError(f"projection matrix must be a finite 3x4 array, got shape {P.shape}")
+    P = P / np.linalg.norm(P)  # scale-free: keeps intermediate magnitudes near 1
+    col, row, u = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (col, row, u)))
+    a11 = P[0, 0] - col * P[2, 0]
+    a12 = P[0, 1] - col * P[2, 1]
+    a21 = P[1, 0] - row * P[2, 0]
+    a22 = P[1, 1] - row * P[2, 1]
+    b1 = -((P[0, 2] - col * P[2, 2]) * u + (P[0, 3] - col * P[2, 3]))
+    b2 = -((P[1, 2] - row * P[2, 2]) * u + (P[1, 3] - row * P[2, 3]))
+    det = a11 * a22 - a12 * a21
+    scale = np.hypot(a11, a12) * np.hypot(a21, a22)
+    ok = np.abs(det) > DEGENERATE_RELATIVE_DET * scale
+    safe = np.where(ok, det, 1.0)
+    e = np.where(ok, (b1 * a22 - a12 * b2) / safe, np.nan)
+    n = np.where(ok, (a11 * b2 - b1 * a21) / safe, np.nan)
+    return e, n
+
+
+def height_map_to_points(
+    height: np.ndarray,
+    valid: np.ndarray,
+    P: np.ndarray,
+    frame,
+    *,
+    colors: np.ndarray | None = None,
+    confidence: np.ndarray | None = None,
+    subsamples: int = 1,
+) -> Points:
+    """3D points of the valid pixels of a reference-view height map.
+
+    ``height``: (H, W) ENU up coordinate (metres) of the surface seen at each pixel of the
+    (cropped) reference image; ``valid``: (H, W) bool (non-finite heights are skipped too); ``P``:
+    the reference camera's 3x4 ENU -> pixel matrix; ``frame``: the ``geo.ENUFrame`` of P.
+    ``colors``: optional (H, W) grey or (H, W, 3) RGB uint8 image; ``confidence``: optional (H, W).
+    ``subsamples`` = s > 1 places s x s points per pixel at offsets ``(k + 0.5) / s - 0.5`` pixel
+    inside its footprint, all at the pixel's height, so that rasterising them covers the ground
+    footprint of the pixel instead of its centre only. Points are ordered row-major by pixel.
+    """
+    h = np.asarray(height, dtype=np.float64)
+    if h.ndim != 2:
+        raise ValueError(f"height must be 2D, got shape {h.shape}")
+    v = np.asarray(valid, dtype=bool)
+    if v.shape != h.shape:
+        raise ValueError(f"valid has shape {v.shape}, height has {h.shape}")
+    if not (isinstance(subsamples, int) and subsamples >= 1):
+        raise ValueError(f"subsamples = {subsamples!r}: must be a positive integer")
+    v = v & np.isfinite(h)
+    rows, cols = np.nonzero(v)
+    u = h[rows, cols]
+    s = subsamples
+    if s > 1:
+        offsets = (np.arange(s) + 0.5) / s - 0.5
+        oy, ox = np.meshgrid(offsets, offsets, indexing="ij")
+        pixel_cols = (cols[:, None] + ox.ravel()[None, :]).ravel()
+        pixel_rows = (rows[:, None] + oy.ravel()[None, :]).ravel()
+        u_all = np.repeat(u, s * s)
+    else:
+        pixel_cols, pixel_rows, u_all = cols.astype(np.float64), rows.astype(np.float64), u
+    e, n = solve_ground_en(P, col=pixel_cols, row=pixel_rows, u=u_all)
+    keep = np.isfinite(e) & np.isfinite(n)
+    lon, lat, alt = frame.to_geodetic(e=e[keep], n=n[keep], u=u_all[keep])
+    rgb = None
+    if colors is not None:
+        rgb = np.repeat(_rgb_of(colors, h.shape)[rows, cols], s * s, axis=0)[keep]
+    conf = None
+    if confidence is not None:
+        c = np.asarray(confidence, dtype=np.float32)
+        if c.shape != h.shape:
+            raise ValueError(f"confidence has shape {c.shape}, height has {h.shape}")
+        conf = np.repeat(c[rows, cols], s * s)[keep]
+    return Points(
+        lon=np.asarray(lon, np.float64).ravel(),
+        lat=np.asarray(lat, np.float64).ravel(),
+        alt=np.asarray(alt, np.float64).ravel(),
+        colors=rgb,
+        confidence=conf,
+    )
+
+
+def points_to_utm(points: Points, epsg: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(easting, northing, height) in metres: lon/lat to the UTM ``epsg``, heights unchanged."""
+    from .geo import lonlat_to_utm
+
+    x, y = lonlat_to_utm(lon=points.lon, lat=points.lat, epsg=epsg)
+    return np.asarray(x, np.float64), np.asarray(y, np.float64), np.asarray(points.alt, np.float64)
+
+
+# -- grid --------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class DSMGrid:
+    """A north-up raster grid in a projected CRS (see the module docstring for the convention)."""
+
+    epsg: int  # EPSG code of the projected CRS (UTM: 326zz / 327zz)
+    x_min: float  # west edge of the grid (outer edge of column 0), metres
+    y_max: float  # north edge of the grid (outer edge of row 0), metres
+    resolution: float  # cell size, metres
+    width: int  # number of columns
+    height: int  # number of rows
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.resolution) and self.resolution > 0.0):
+            raise OptionsError(f"DSMGrid.resolution = {self.resolution!r}: must be > 0 metres")
+        if not (math.isfinite(self.x_min) and math.isfinite(self.y_max)):
+            raise OptionsError(f"DSMGrid origin ({self.x_min!r}, {self.y_max!r}): must be finite")
+        if self.width < 1 or self.height < 1:
+            raise OptionsError(f"DSMGrid size {self.width}x{self.height}: must be at least 1x1")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, columns)."""
+        return self.height, self.width
+
+    @property
+    def x_max(self) -> float:
+        return self.x_min + self.width * self.resolution
+
+    @property
+    def y_min(self) -> float:
+        return self.y_max - self.height * self.resolution
+
+    @property
+    def geotransform(self) -> tuple[float, float, float, float, float, float]:
+        """GDAL geotransform (x_min, res, 0, y_max, 0, -res)."""
+        return (self.x_min, self.resolution, 0.0, self.y_max, 0.0, -self.resolution)
+
+    def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """(x of the column centres (width,), y of the row centres (height,)), metres."""
+        r = self.resolution
+        return self.x_min + (np.arange(self.width) + 0.5) * r, self.y_max - (np.arange(self.height) + 0.5) * r
+
+    def cell_of(self, *, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """(row, column) integer indices of the cells holding map points (may be out of range)."""
+        x = np.asarray(x, np.float64)
+        y = np.asarray(y, np.float64)
+        j = np.floor((x - self.x_min) / self.resolution)
+        i = np.floor((self.y_max - y) / self.resolution)
+        return i, j
+
+
+def dsm_grid_for_aoi(aoi, resolution: float, epsg: int | None = None) -> DSMGrid:
+    """The DSM grid covering an AOI: UTM zone of the AOI centre unless ``epsg`` is given.
+
+    The AOI outline (lon/lat box, densified with ``AOI_EDGE_SAMPLES`` points per edge) is
+    projected, and its bounding box is snapped outward to multiples of ``resolution`` metres, so
+    grids of the same zone and resolution share cell boundaries.
+    """
+    from .geo import lonlat_to_utm, utm_epsg
+
+    resolution = float(resolution)
+    if not (math.isfinite(resolution) and resolution > 0.0):
+        raise OptionsError(f"resolution = {resolution!r}: must be > 0 metres")
+    lon0, lon1 = float(aoi.lon_min), float(aoi.lon_max)
+    lat0, lat1 = float(aoi.lat_min), float(aoi.lat_max)
+    if epsg is None:
+        lon_c, lat_c = aoi.center
+        epsg = utm_epsg(lon=lon_c, lat=lat_c)
+    t = np.linspace(0.0, 1.0, AOI_EDGE_SAMPLES)
+    lons = np.concatenate([lon0 + t * (lon1 - lon0), np.full_like(t, lon1), lon1 - t * (lon1 - lon0), np.full_like(t, lon0)])
+    lats = np.concatenate([np.full_like(t, lat0), lat0 + t * (lat1 - lat0), np.full_like(t, lat1), lat1 - t * (lat1 - lat0)])
+    x, y = lonlat_to_utm(lon=lons, lat=lats, epsg=int(epsg))
+    x_min = math.floor(float(np.min(x)) / resolution) * resolution
+    x_max = math.ceil(float(np.max(x)) / resolution) * resolution
+    y_min = math.floor(float(np.min(y)) / resolution) * resolution
+    y_max = math.ceil(float(np.max(y)) / resolution) * resolution
+    return DSMGrid(
+        epsg=int(epsg), x_min=x_min, y_max=y_max, resolution=resolution,
+        width=max(1, int(round((x_max - x_min) / resolution))),
+        height=max(1, int(round((y_max - y_min) / resolution))),
+    )
+
+
+# -- rasterisation -----------------------------------------------------------------------------
+def rasterise_max(points_x, points_y, values, grid: DSMGrid) -> np.ndarray:
+    """Highest value per grid cell: (grid.height, grid.width) float32, NaN where no point fell.
+
+    ``points_x``/``points_y``: map coordinates (metres, the grid's CRS); a point belongs to the
+    cell whose half-open square ``[x0, x0 + res) x (y1 - res, y1]`` holds it (so a point on a cell
+    boundary goes to the cell east / south of it). Points outside the grid and non-finite values
+    are ignored. The maximum is taken in float64, then rounded to float32.
+    """
+    x = np.asarray(points_x, np.float64).ravel()
+    y = np.asarray(points_y, np.float64).ravel()
+    z = np.asarray(values, np.float64).ravel()
+    if not (x.size == y.size == z.size):
+        raise ValueError(f"rasterise_max: lengths differ ({x.size}, {y.size}, {z.size})")
+    i, j = grid.cell_of(x=x, y=y)
+    ok = np.isfinite(z) & (i >= 0) & (i < grid.height) & (j >= 0) & (j < grid.width)
+    flat = (i[ok].astype(np.int64) * grid.width + j[ok].astype(np.int64))
+    out = np.full(grid.width * grid.height, -np.inf)
+    np.maximum.at(out, flat, z[ok])
+    out[np.isneginf(out)] = np.nan
+    return out.reshape(grid.shape).astype(np.float32)
+
+
+def rasterise_points(points: Points, grid: DSMGrid) -> np.ndarray:
+    """DSM of one point set on ``grid``: ``points_to_utm`` then ``rasterise_max`` of the heights."""
+    x, y, z = points_to_utm(points, grid.epsg)
+    return rasterise_max(x, y, z, grid)
+
+
+# -- fusion ------------------------------------------------------------------------------------
+def _nanmedian_first_axis(stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median over axis 0 ignoring NaN (NaN where all are NaN) and the count of finite values.
+
+    Sorting puts NaN last, so the finite values of each cell are the first ``k`` of its column and
+    the median is the mean of entries ``(k - 1) // 2`` and ``k // 2``.
+    """
+    s = np.sort(stack, axis=0)
+    k = np.count_nonzero(np.isfinite(stack), axis=0)
+    lo = np.take_along_axis(s, np.maximum((k - 1) // 2, 0)[None], axis=0)[0]
+    hi = np.take_along_axis(s, np.maximum(k // 2 - (k == 0), 0)[None], axis=0)[0]
+    med = 0.5 * (lo.astype(np.float64) + hi.astype(np.float64))
+    med[k == 0] = np.nan
+    return med, k
+
+
+def fuse_dsms(
+    dsms: Sequence[np.ndarray], *, outlier_m: float = 2.0, min_views: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Robust per-cell fusion of per-reference-view DSMs on the same grid.
+
+    For each cell: m0 = median of the finite values; values with ``|v - m0| > outlier_m`` are
+    discarded; the result is the median of the rest (NaN when fewer than ``min_views`` remain).
+    With two views that disagree by more than ``2 * outlier_m`` both are discarded: neither can be
+    trusted. Returns (fused float32, count of values kept per cell as int32).
+    """
+    if not dsms:
+        raise ValueError("fuse_dsms needs at least one DSM")
+    if not (math.isfinite(outlier_m) and outlier_m > 0.0):
+        raise OptionsError(f"outlier_m = {outlier_m!r}: must be > 0 metres")
+    shape = np.asarray(dsms[0]).shape
+    if len(shape) != 2:
+        raise ValueError(f"fuse_dsms needs 2D rasters, got shape {shape}")
+    for k, d in enumerate(dsms):
+        if np.asarray(d).shape != shape:
+            raise ValueError(f"fuse_dsms: DSM {k} has shape {np.asarray(d).shape}, DSM 0 has {shape}")
+    fused = np.full(shape, np.nan, dtype=np.float32)
+    count = np.zeros(shape, dtype=np.int32)
+    # Row blocks bound the temporary memory to about FUSE_BLOCK_VALUES float64 values per copy.
+    rows_per_block = max(1, FUSE_BLOCK_VALUES // max(1, len(dsms) * int(np.prod(shape[1:], dtype=np.int64))))
+    for r0 in range(0, shape[0], rows_per_block):
+        block = slice(r0, r0 + rows_per_block)
+        stack = np.stack([np.asarray(d)[block].astype(np.float64) for d in dsms])
+        stack[~np.isfinite(stack)] = np.nan
+        m0, _ = _nanmedian_first_axis(stack)
+        with np.errstate(invalid="ignore"):
+            far = np.abs(stack - m0[None]) > outlier_m
+        stack[far] = np.nan
+        f, k = _nanmedian_first_axis(stack)
+        low = k < min_views
+        f[low] = np.nan
+        k[low] = 0
+        fused[block] = f
+        count[block] = k
+    return fused, count
+
+
+# -- hole filling ------------------------------------------------------------------------------
+def fill_small_holes(
+    dsm: np.ndarray, *, max_hole_cells: int, method: Literal["min", "median"] = "min"
+) -> tuple[np.ndarray, int]:
+    """Fill enclosed no-data holes of at most ``max_hole_cells`` 4-connected cells.
+
+    A hole is a 4-connected set of NaN cells that does not touch the raster border (a gap at the
+    border is not known to be closed). Each hole gets one value from its rim (the valid cells
+    4-adjacent to it): the minimum by default, because small holes in satellite DSMs are mostly
+    ground occluded by a wall, i.e. the lower side; or the median. Returns (filled float32 copy,
+    number of cells filled), which the caller must report.
+    """
+    from scipy import ndimage
+
+    a = np.array(dsm, dtype=np.float64)
+    if a.ndim != 2:
+        raise ValueError(f"fill_small_holes needs a 2D array, got shape {a.shape}")
+    if not (isinstance(max_hole_cells, int) and max_hole_cells >= 0):
+        raise OptionsError(f"max_hole_cells = {max_hole_cells!r}: must be an integer >= 0")
+    if method not in ("min", "median"):
+        raise OptionsError(f"fill method = {method!r}: must be 'min' or 'median'")
+    hole = ~np.isfinite(a)
+    if max_hole_cells == 0 or not hole.any() or hole.all():
+        return a.astype(np.float32), 0
+    labels, n = ndimage.label(hole)  # 4-connectivity
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    eligible = (sizes <= max_hole_cells)
+    eligible[0] = False
+    eligible[border] = False
+    if not eligible[1:].any():
+        return a.astype(np.float32), 0
+    # Rim pairs (hole label, rim value) from the four neighbour directions.
+    pair_labels, pair_values = [], []
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        lab = labels[max(dy, 0):a.shape[0] + min(dy, 0), max(dx, 0):a.shape[1] + min(dx, 0)]
+        nb = a[max(-dy, 0):a.shape[0] + min(-dy, 0), max(-dx, 0):a.shape[1] + min(-dx, 0)]
+        sel = (lab > 0) & np.isfinite(nb)
+        pair_labels.append(lab[sel])
+        pair_values.append(nb[sel])
+    pl = np.concatenate(pair_labels)
+    pv = np.concatenate(pair_values)
+    keep = eligible[pl]
+    pl, pv = pl[keep], pv[keep]
+    fill = np.full(n + 1, np.nan)
+    if method == "min":
+        fill_min = np.full(n + 1, np.inf)
+        np.minimum.at(fill_min, pl, pv)
+        fill = np.where(np.isfinite(fill_min), fill_min, np.nan)
+    else:
+        order = np.lexsort((pv, pl))
+        pl, pv = pl[order], pv[order]
+        starts = np.searchsorted(pl, np.arange(n + 1), side="left")
+        ends = np.searchsorted(pl, np.arange(n + 1), side="right")
+        cnt = ends - starts
+        has = cnt > 0
+        lo_idx = starts + np.maximum(cnt - 1, 0) // 2
+        hi_idx = starts + cnt // 2
+        lo_idx = np.minimum(lo_idx, max(pv.size - 1, 0))
+        hi_idx = np.minimum(hi_idx, max(pv.size - 1, 0))
+        if pv.size:
+            fill[has] = 0.5 * (pv[lo_idx[has]] + pv[hi_idx[has]])
+    target = eligible[labels] & np.isfinite(fill[labels])
+    a[target] = fill[labels[target]]
+    return a.astype(np.float32), int(np.count_nonzero(target))
+
+
+def write_dsm_geotiff(path: str | os.PathLike, array: np.ndarray, grid: DSMGrid) -> None:
+    """Write a raster on ``grid`` as a float32 GeoTIFF with NaN nodata (atomically)."""
+    from .imageio import write_geotiff
+
+    a = np.asarray(array)
+    if a.shape != grid.shape:
+        raise ValueError(f"array shape {a.shape} does not match the grid {grid.shape}")
+    write_geotiff(path, a.astype(np.float32), epsg=grid.epsg, x_min=grid.x_min, y_max=grid.y_max,
+                  resolution=grid.resolution, nodata=math.nan)

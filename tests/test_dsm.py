@@ -1,0 +1,279 @@
+"""DSM stage: height maps to points, grids, rasterisation, fusion, hole filling, GeoTIFF output."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from satsweep import dsm
+from satsweep.aoi import AOI
+from satsweep.errors import CameraError, OptionsError
+from satsweep.geo import ENUFrame, lonlat_to_utm
+
+# Points recovered from a height map must match the exact ray/plane intersection to this (m):
+# float64 keeps ~1e-9 m at the 600 km camera distance; ENU -> geodetic -> ENU adds ~1e-9 m.
+POINT_TOL_M = 1e-6
+# Fused heights are rounded to float32: at 2400 m its spacing is 2.4e-4 m.
+FLOAT32_HEIGHT_TOL_M = 5e-4
+
+FRAME = ENUFrame(lon0=55.65, lat0=-21.23, alt0=2340.0)  # La Reunion, as the real pair
+
+
+def _satellite_camera(width: int = 64, height: int = 48):
+    """A pinhole 600 km up, 10 degrees off nadir looking at the ENU origin, ~0.5 m pixels.
+
+    Returns (P, K, R, C): P = K R [I | -C], R ENU -> camera (x along columns, y along rows).
+    """
+    off = math.radians(10.0)
+    C = np.array([600e3 * math.tan(off) * math.sin(0.3), -600e3 * math.tan(off) * math.cos(0.3), 600e3])
+    forward = -C / np.linalg.norm(C)
+    north = np.array([0.0, 1.0, 0.0])
+    right = np.cross(forward, north)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    R = np.stack([right, down, forward])
+    f = np.linalg.norm(C) / 0.5
+    K = np.array([[f, 3.0, width / 2 + 7.3], [0.0, f * 1.0002, height / 2 - 4.1], [0.0, 0.0, 1.0]])
+    P = K @ R @ np.hstack([np.eye(3), -C[:, None]])
+    return P, K, R, C
+
+
+def _ray_plane(K, R, C, col, row, u):
+    """Exact ground point: the ray of pixel (col, row) through the camera centre, cut at height u."""
+    d = (R.T @ np.linalg.solve(K, np.stack([col, row, np.ones_like(col)])))  # ENU directions
+    lam = (u - C[2]) / d[2]
+    return C[0] + lam * d[0], C[1] + lam * d[1]
+
+
+def test_height_map_to_points_recovers_exact_enu_points():
+    P, K, R, C = _satellite_camera()
+    h, w = 48, 64
+    rng = np.random.default_rng(0)
+    height = (rng.uniform(-20.0, 40.0, (h, w))).astype(np.float32)
+    valid = rng.random((h, w)) > 0.2
+    height[5, 7] = np.nan
+    valid[5, 7] = True  # a NaN height is skipped even when flagged valid
+    colors = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    conf = rng.random((h, w)).astype(np.float32)
+    pts = dsm.height_map_to_points(height, valid, P * -3.7, FRAME, colors=colors, confidence=conf)
+    rows, cols = np.nonzero(valid & np.isfinite(height))
+    assert len(pts) == rows.size
+    e_ref, n_ref = _ray_plane(K, R, C, cols.astype(float), rows.astype(float), height[rows, cols].astype(float))
+    e, n, u = FRAME.from_geodetic(lon=pts.lon, lat=pts.lat, alt=pts.alt)
+    np.testing.assert_allclose(e, e_ref, rtol=0, atol=POINT_TOL_M)
+    np.testing.assert_allclose(n, n_ref, rtol=0, atol=POINT_TOL_M)
+    np.testing.assert_allclose(u, height[rows, cols], rtol=0, atol=POINT_TOL_M)
+    # And the points project back onto their pixels.
+    q = P @ np.stack([e, n, u, np.ones_like(e)])
+    np.testing.assert_allclose(q[0] / q[2], cols, atol=1e-6)
+    np.testing.assert_allclose(q[1] / q[2], rows, atol=1e-6)
+    np.testing.assert_array_equal(pts.colors, colors[rows, cols])
+    np.testing.assert_array_equal(pts.confidence, conf[rows, cols])
+
+
+def test_subsamples_cover_the_pixel_footprint():
+    P, K, R, C = _satellite_camera()
+    height = np.full((3, 4), 12.5, np.float32)
+    valid = np.zeros((3, 4), bool)
+    valid[1, 2] = True
+    grey = np.full((3, 4), 77, np.uint8)
+    pts = dsm.height_map_to_points(height, valid, P, FRAME, colors=grey, subsamples=2)
+    assert len(pts) == 4
+    offs = np.array([-0.25, 0.25])
+    dy, dx = np.meshgrid(offs, offs, indexing="ij")
+    e_ref, n_ref = _ray_plane(K, R, C, 2 + dx.ravel(), 1 + dy.ravel(), np.full(4, 12.5))
+    e, n, u = FRAME.from_geodetic(lon=pts.lon, lat=pts.lat, alt=pts.alt)
+    np.testing.assert_allclose(e, e_ref, atol=POINT_TOL_M)
+    np.testing.assert_allclose(n, n_ref, atol=POINT_TOL_M)
+    assert np.all(pts.colors == 77) and pts.colors.shape == (4, 3)
+
+
+def test_degenerate_or_bad_camera():
+    with pytest.raises(CameraError):
+        dsm.height_map_to_points(np.zeros((2, 2)), np.ones((2, 2), bool), np.zeros((3, 3)), FRAME)
+    # A camera whose rays are horizontal (looking along north) cannot meet a plane u = const.
+    P = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0], [0, 1.0, 0, 0]])
+    e, n = dsm.solve_ground_en(P, col=[0.5], row=[0.0], u=[0.0])
+    assert np.isnan(e).all() and np.isnan(n).all()
+
+
+def test_points_concatenate_keeps_common_attributes():
+    a = dsm.Points(lon=np.zeros(2), lat=np.zeros(2), alt=np.ones(2), colors=np.zeros((2, 3), np.uint8))
+    b = dsm.Points(lon=np.ones(3), lat=np.ones(3), alt=np.ones(3))
+    c = dsm.Points.concatenate([a, b])
+    assert len(c) == 5 and c.colors is None
+    assert len(dsm.Points.concatenate([])) == 0
+
+
+def test_dsm_grid_for_aoi_covers_the_aoi_and_snaps_to_the_resolution():
+    aoi = AOI(lon_min=55.640, lat_min=-21.240, lon_max=55.660, lat_max=-21.220)
+    grid = dsm.dsm_grid_for_aoi(aoi, 0.5)
+    assert grid.epsg == 32740  # zone 40 south
+    t = np.linspace(0, 1, 2001)
+    lons = np.concatenate([55.640 + 0.02 * t, np.full_like(t, 55.66), 55.640 + 0.02 * t, np.full_like(t, 55.64)])
+    lats = np.concatenate([np.full_like(t, -21.24), -21.24 + 0.02 * t, np.full_like(t, -21.22), -21.24 + 0.02 * t])
+    x, y = lonlat_to_utm(lon=lons, lat=lats, epsg=32740)
+    # Snapped outward to multiples of the cell size, with less than one cell of slack.
+    for edge in (grid.x_min, grid.y_max, grid.x_max, grid.y_min):
+        assert math.isclose(edge / 0.5, round(edge / 0.5), abs_tol=1e-6)
+    assert grid.x_min <= x.min() < grid.x_min + 0.5
+    assert grid.x_max - 0.5 < x.max() <= grid.x_max
+    assert grid.y_min <= y.min() < grid.y_min + 0.5
+    assert grid.y_max - 0.5 < y.max() <= grid.y_max
+    assert (grid.width, grid.height) == (round((grid.x_max - grid.x_min) / 0.5), round((grid.y_max - grid.y_min) / 0.5))
+    # An explicit EPSG is honoured; a bad resolution is an OptionsError.
+    assert dsm.dsm_grid_for_aoi(aoi, 2.0, epsg=32640).epsg == 32640
+    with pytest.raises(OptionsError, match="resolution"):
+        dsm.dsm_grid_for_aoi(aoi, 0.0)
+
+
+def test_grid_cell_convention():
+    grid = dsm.DSMGrid(epsg=32740, x_min=1000.0, y_max=5000.0, resolution=0.5, width=4, height=3)
+    xs, ys = grid.cell_centers()
+    np.testing.assert_array_equal(xs, [1000.25, 1000.75, 1001.25, 1001.75])
+    np.testing.assert_array_equal(ys, [4999.75, 4999.25, 4998.75])
+    i, j = grid.cell_of(x=xs, y=np.full(4, ys[2]))
+    np.testing.assert_array_equal(i, [2, 2, 2, 2])
+    np.testing.assert_array_equal(j, [0, 1, 2, 3])
+    assert grid.geotransform == (1000.0, 0.5, 0.0, 5000.0, 0.0, -0.5)
+    with pytest.raises(OptionsError):
+        dsm.DSMGrid(epsg=32740, x_min=0.0, y_max=0.0, resolution=0.5, width=0, height=3)
+
+
+def test_rasterise_max_matches_a_python_loop():
+    grid = dsm.DSMGrid(epsg=32740, x_min=340_000.0, y_max=7_650_000.0, resolution=0.5, width=23, height=17)
+    rng = np.random.default_rng(1)
+    n = 3000
+    x = rng.uniform(grid.x_min - 1.0, grid.x_max + 1.0, n)
+    y = rng.uniform(grid.y_min - 1.0, grid.y_max + 1.0, n)
+    x[:40] = grid.x_min + 0.5 * rng.integers(0, 24, 40)  # exactly on cell boundaries
+    y[:40] = grid.y_max - 0.5 * rng.integers(0, 18, 40)
+    z = rng.normal(2340.0, 5.0, n)
+    z[50:60] = np.nan
+    got = dsm.rasterise_max(x, y, z, grid)
+    ref = np.full((grid.height, grid.width), -np.inf)
+    for xv, yv, zv in zip(x, y, z):
+        if not math.isfinite(zv):
+            continue
+        j = math.floor((xv - grid.x_min) / grid.resolution)
+        i = math.floor((grid.y_max - yv) / grid.resolution)
+        if 0 <= i < grid.height and 0 <= j < grid.width and zv > ref[i, j]:
+            ref[i, j] = zv
+    ref[np.isinf(ref)] = np.nan
+    assert got.dtype == np.float32 and got.shape == (17, 23)
+    np.testing.assert_array_equal(got, ref.astype(np.float32))
+    assert np.isnan(got).any() and np.isfinite(got).any()
+
+
+def test_rasterise_points_goes_through_utm():
+    grid = dsm.DSMGrid(epsg=32740, x_min=338_000.0, y_max=7_651_000.0, resolution=1.0, width=10, height=10)
+    xs, ys = grid.cell_centers()
+    from satsweep.geo import utm_to_lonlat
+
+    lon, lat = utm_to_lonlat(x=xs[[1, 1, 8]], y=ys[[2, 2, 5]], epsg=32740)
+    pts = dsm.Points(lon=lon, lat=lat, alt=np.array([10.0, 30.0, 20.0]))
+    out = dsm.rasterise_points(pts, grid)
+    assert out[2, 1] == 30.0 and out[5, 8] == 20.0
+    assert np.count_nonzero(np.isfinite(out)) == 2
+
+
+@pytest.mark.parametrize("block_values", [dsm.FUSE_BLOCK_VALUES, 5 * 40 * 7])
+def test_fuse_dsms_discards_injected_outliers(block_values, monkeypatch):
+    monkeypatch.setattr(dsm, "FUSE_BLOCK_VALUES", block_values)  # also in row blocks of 7 rows
+    rng = np.random.default_rng(2)
+    base = rng.uniform(2300, 2400, (30, 40))
+    views = [base + rng.uniform(-0.2, 0.2, base.shape) for _ in range(5)]
+    outlier = np.zeros((5, 30, 40), bool)
+    outlier[0, :10] = True  # view 0 is 20 m too high on the first rows
+    outlier[3, 5:15, 20:] = True  # view 3 is 15 m too low on a block
+    views[0][outlier[0]] += 20.0
+    views[3][outlier[3]] -= 15.0
+    missing = np.zeros((5, 30, 40), bool)
+    missing[1, 20:, :5] = True
+    views[1][missing[1]] = np.nan
+    fused, count = dsm.fuse_dsms(views, outlier_m=2.0)
+    stack = np.stack(views)
+    keep = ~outlier & ~missing
+    ref = np.array([[np.median(stack[keep[:, i, j], i, j]) for j in range(40)] for i in range(30)])
+    np.testing.assert_allclose(fused, ref, atol=FLOAT32_HEIGHT_TOL_M)
+    np.testing.assert_array_equal(count, keep.sum(axis=0))
+    assert fused.dtype == np.float32 and count.dtype == np.int32
+
+
+def test_fuse_two_views_that_disagree_are_dropped_and_min_views():
+    a = np.array([[10.0, 10.0, np.nan, np.nan]])
+    b = np.array([[10.4, 20.0, 7.0, np.nan]])
+    fused, count = dsm.fuse_dsms([a, b], outlier_m=1.0)
+    np.testing.assert_allclose(fused[0, :3], [10.2, np.nan, 7.0], atol=FLOAT32_HEIGHT_TOL_M)
+    assert np.isnan(fused[0, 3])
+    np.testing.assert_array_equal(count, [[2, 0, 1, 0]])
+    fused2, count2 = dsm.fuse_dsms([a, b], outlier_m=1.0, min_views=2)
+    assert np.isnan(fused2[0, 2]) and count2[0, 2] == 0 and math.isclose(fused2[0, 0], 10.2, abs_tol=1e-4)
+    with pytest.raises(OptionsError, match="outlier_m"):
+        dsm.fuse_dsms([a], outlier_m=0.0)
+    with pytest.raises(ValueError):
+        dsm.fuse_dsms([a, np.zeros((2, 2))])
+
+
+def _holes_dsm():
+    rng = np.random.default_rng(4)
+    d = rng.uniform(100, 110, (20, 20))
+    d[5:7, 5:7] = np.nan  # 4-cell enclosed hole
+    d[12:18, 10:15] = np.nan  # 30-cell enclosed hole: too large
+    d[0:2, 15:18] = np.nan  # touches the border: never filled
+    d[9, 2] = np.nan  # 1-cell hole
+    return d
+
+
+def _rim_values(d, cells):
+    """Valid 4-neighbours of a set of cells, by a plain loop."""
+    out = []
+    for i, j in cells:
+        for di, dj in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+            a, b = i + di, j + dj
+            if 0 <= a < d.shape[0] and 0 <= b < d.shape[1] and np.isfinite(d[a, b]):
+                out.append(d[a, b])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("method", ["min", "median"])
+def test_fill_small_holes(method):
+    d = _holes_dsm()
+    filled, n = dsm.fill_small_holes(d, max_hole_cells=4, method=method)
+    assert n == 5
+    hole4 = [(5, 5), (5, 6), (6, 5), (6, 6)]
+    rim4 = _rim_values(d, hole4)
+    rim1 = _rim_values(d, [(9, 2)])
+    pick = np.min if method == "min" else np.median
+    for i, j in hole4:
+        assert math.isclose(filled[i, j], np.float32(pick(rim4)), rel_tol=0, abs_tol=1e-4)
+    assert math.isclose(filled[9, 2], np.float32(pick(rim1)), rel_tol=0, abs_tol=1e-4)
+    assert np.isnan(filled[12:18, 10:15]).all() and np.isnan(filled[0:2, 15:18]).all()
+    untouched = np.isfinite(d)
+    np.testing.assert_array_equal(filled[untouched], d[untouched].astype(np.float32))
+    same, zero = dsm.fill_small_holes(d, max_hole_cells=0)
+    assert zero == 0 and np.count_nonzero(np.isnan(same)) == np.count_nonzero(np.isnan(d))
+
+
+def test_dsm_options_are_checked():
+    assert dsm.DSMOptions().resolution == 0.5
+    with pytest.raises(OptionsError, match="DSMOptions.resolution"):
+        dsm.DSMOptions(resolution=-1.0)
+    with pytest.raises(OptionsError, match="fill_method"):
+        dsm.DSMOptions(fill_method="mean")
+
+
+def test_write_dsm_geotiff_is_read_by_rasterio_with_the_right_crs(tmp_path):
+    rasterio = pytest.importorskip("rasterio")
+    grid = dsm.DSMGrid(epsg=32740, x_min=338_000.0, y_max=7_651_000.0, resolution=0.5, width=7, height=5)
+    a = np.arange(35, dtype=np.float32).reshape(5, 7)
+    a[2, 3] = np.nan
+    path = tmp_path / "dsm.tif"
+    dsm.write_dsm_geotiff(path, a, grid)
+    with rasterio.open(path) as src:
+        assert src.crs.to_epsg() == 32740
+        assert src.transform.to_gdal() == grid.geotransform
+        assert np.isnan(src.nodata) and src.dtypes[0] == "float32"
+        np.testing.assert_array_equal(src.read(1), a)
