@@ -172,9 +172,56 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- synth -------------------------------------------------------------------------------------
+def _add_synth(sub) -> None:
+    p = sub.add_parser(
+        "synth",
+        help="generate synthetic satellite views of a known surface (RPC images + truth DSM)",
+        description="Render a seeded synthetic town seen by linear pushbroom satellites: uint16 "
+        "TIFF views with their RPC (tag 50844 and _RPC.TXT sidecars), truth_dsm.tif (UTM, 0.5 m) "
+        "and scene.json (AOI, altitude range, views' angles, pointing biases and base-to-height "
+        "ratios). A view with bias b shows ground point X at RPC(X) + b.",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
+    p.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
+    p.add_argument("--views", type=int, default=None, metavar="N", help="number of views (default 3)")
+    p.add_argument("--size", type=int, default=None, metavar="PIX", help="view width and height in pixels (default 512)")
+    p.add_argument("--gsd", type=float, default=None, metavar="M", help="ground sample distance in metres (default 0.5)")
+    p.add_argument("--bias", type=float, default=None, metavar="PX",
+                   help="max pointing bias per axis in pixels; view 0 has none (default 0)")
+    p.add_argument("--location", default=None, metavar="LON,LAT", help="scene centre in degrees (default 2.3488,48.8534; "
+                   "write --location=-70.5,-33.4 when the longitude is negative)")
+    p.add_argument("--overwrite", action="store_true", help="replace the scene in a non-empty --out folder")
+    p.set_defaults(handler=_cmd_synth)
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from .errors import OptionsError
+    from .synth import SynthOptions, generate_scene
+
+    given = {"seed": args.seed, "n_views": args.views, "size_px": args.size, "gsd_m": args.gsd,
+             "bias_px": args.bias}
+    if args.location is not None:
+        try:
+            lon, lat = (float(v) for v in args.location.split(","))
+        except ValueError:
+            raise OptionsError(f"--location {args.location}: expected LON,LAT in degrees") from None
+        given["location"] = (lon, lat)
+    options = SynthOptions(**{k: v for k, v in given.items() if v is not None})
+    scene = generate_scene(args.out, options, overwrite=args.overwrite, log=print)
+    a = scene.aoi
+    print(f"AOI {a.lon_min:.7f},{a.lat_min:.7f},{a.lon_max:.7f},{a.lat_max:.7f} "
+          f"({2 * scene.aoi_half_m:.1f} m square); altitudes {scene.alt_range[0]:.2f} .. {scene.alt_range[1]:.2f} m")
+    for i, j, bh in scene.pairs:
+        print(f"pair {i}-{j}: base-to-height {bh:.3f}")
+    print(f"wrote {scene.scene_file}")
+    return 0
+
+
 # -- entry point -------------------------------------------------------------------------------
 _COMMANDS = [_add_devices, _add_evaluate]
 _COMMANDS.append(_add_cameras)
+_COMMANDS.append(_add_synth)
 
 
 def build_parser() -> argparse.ArgumentParser:
