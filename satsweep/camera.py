@@ -671,6 +671,9 @@ class CameraSet:
     d: float  # the parallax reference plane u = d (m, ENU up), shared by all views
     views: tuple[ViewCamera, ...]
     warnings: tuple[str, ...] = ()  # views whose approximation error exceeds the warning level
+    # The bundle adjustment's report (satsweep.bundle.BundleReport.to_dict()) when the cameras
+    # were adjusted; their K/P/P4 are then the adjusted ones.
+    ba: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict (the cameras.json format; float64 values round-trip exactly)."""
@@ -714,6 +717,7 @@ class CameraSet:
             "plane_d": self.d,
             "views": views,
             "warnings": list(self.warnings),
+            **({"ba": self.ba} if self.ba is not None else {}),
         }
 
     def to_json(self) -> str:
@@ -754,7 +758,8 @@ class CameraSet:
             alt = AltitudeRange(float(data["alt_range"][0]), float(data["alt_range"][1]))
             return cls(frame=frame, utm_epsg=int(data["utm_epsg"]), aoi=aoi, alt_range=alt,
                        d=float(data["plane_d"]), views=tuple(views),
-                       warnings=tuple(str(w) for w in data.get("warnings", ())))
+                       warnings=tuple(str(w) for w in data.get("warnings", ())),
+                       ba=data.get("ba"))
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             what = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
             raise InputError(source, f"malformed cameras file: {what}") from None

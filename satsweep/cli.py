@@ -81,6 +81,10 @@ def _add_cameras(sub) -> None:
                    "a coarse guess from the RPCs)")
     p.add_argument("--dem", default=None, metavar="FILE", help="DEM GeoTIFF giving the altitude range")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (cameras.json, images/)")
+    p.add_argument("--adjust", action="store_true",
+                   help="correct RPC pointing errors: match SIFT features, triangulate and "
+                   "bundle-adjust the principal points; cameras.json gets the adjusted cameras "
+                   "and a 'ba' section")
     p.add_argument("--skew-correct", action="store_true",
                    help="shear the images so that K has no skew; write them to DIR/images/")
     p.add_argument("--grid", nargs=3, type=int, metavar=("NE", "NN", "NU"), default=None,
@@ -125,6 +129,19 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     views = load_views(args.images, aoi, alt)
     cameras = scam.build_cameras(views, aoi, alt, options)
     images = None
+    if args.adjust:
+        import dataclasses
+
+        from .bundle import adjust_principal_points
+        from .imageio import tonemap
+
+        cameras, ba = adjust_principal_points(cameras, [tonemap(v.image) for v in views])
+        cameras = dataclasses.replace(cameras, ba=ba.to_dict())
+        before, after = ba.reproj_before_px[0], ba.reproj_after_px[0]
+        print(f"bundle adjustment: {ba.n_points} points, median reprojection error "
+              f"{before:.3f} -> {after:.3f} px")
+        for name, shift in zip(ba.names, ba.principal_point_shift_px):
+            print(f"  {name}: principal point shift ({shift[0]:+.3f}, {shift[1]:+.3f}) px")
     if args.skew_correct:
         cameras, images = scam.skew_correct_set(cameras, [v.image for v in views])
     cameras = scam.write_cameras(args.out, cameras, images)
