@@ -16,4 +16,51 @@
 /* Clamp an integer coordinate into [0, n-1]. */
 inline int clamp_index(int i, int n) { return i < 0 ? 0 : (i >= n ? n - 1 : i); }
 
+/* ---- geometry and sampling helpers (plane sweep) ------------------------------------------ */
+
+/* Apply a row-major 3x3 homography H (9 floats) to the pixel (x, y): (u, v) = (H x~)_xy / (H x~)_z.
+ * Returns 0 when the homogeneous denominator is not positive (point behind the camera or at
+ * infinity), 1 otherwise. The operations are written out in a fixed order so that every device
+ * rounds the same sequence of float32 operations. */
+inline int apply_homography(__global const float *H, const float x, const float y,
+                            float *u, float *v)
+{
+    const float wz = H[6] * x + H[7] * y + H[8];
+    if (!(wz > 0.0f)) { *u = 0.0f; *v = 0.0f; return 0; }
+    *u = (H[0] * x + H[1] * y + H[2]) / wz;
+    *v = (H[3] * x + H[4] * y + H[5]) / wz;
+    return 1;
+}
+
+/* Bilinear sample of a row-major float image (w x h) at (x, y); pixel (0, 0) is the centre of the
+ * first pixel. The coordinates are clamped into [0, w-1] x [0, h-1] first (edge replication), so
+ * the result is always defined; the caller decides separately whether (x, y) was inside. */
+inline float sample_bilinear_clamped(__global const float *img, const int w, const int h,
+                                     float x, float y)
+{
+    x = fmin(fmax(x, 0.0f), (float)(w - 1));
+    y = fmin(fmax(y, 0.0f), (float)(h - 1));
+    const float fx = floor(x), fy = floor(y);
+    const int x0 = (int)fx, y0 = (int)fy;
+    const int x1 = min(x0 + 1, w - 1), y1 = min(y0 + 1, h - 1);
+    const float ax = x - fx, ay = y - fy;
+    const float top = (1.0f - ax) * img[IDX2(x0, y0, w)] + ax * img[IDX2(x1, y0, w)];
+    const float bot = (1.0f - ax) * img[IDX2(x0, y1, w)] + ax * img[IDX2(x1, y1, w)];
+    return (1.0f - ay) * top + ay * bot;
+}
+
+/* Census transform convention (census.cl and sweep.cl share it):
+ * - window of (2*CENSUS_RY+1) rows x (2*CENSUS_RX+1) columns centred on the pixel;
+ * - neighbours are visited in raster order (top row first, left to right), the centre skipped;
+ *   each appends one bit at the least significant end: code = (code << 1) | (neighbour < centre),
+ *   so the first neighbour ends in the most significant used bit;
+ * - neighbours outside the image take the value of the nearest edge pixel (clamped coordinates).
+ * CENSUS_NBITS = window area - 1 must be at most 64 (codes are ulong). */
+#if defined(CENSUS_RX) && defined(CENSUS_RY)
+#define CENSUS_NBITS ((2 * CENSUS_RX + 1) * (2 * CENSUS_RY + 1) - 1)
+#if CENSUS_NBITS > 64
+#error "census window too large for a 64-bit code"
+#endif
+#endif
+
 #endif /* SATSWEEP_COMMON_H */

@@ -1,0 +1,193 @@
+/* guided_filter.cl: box filters and the guided filter (He, Sun and Tang) of cost slices.
+ *
+ * Every kernel works on a stack of planes of a tile, row-major [plane][th][tw] (plane stride
+ * tw * th). Box windows are (2 BOX_R + 1)^2 clipped to the tile, and means divide by the number of
+ * pixels of the clipped window (not by the full window area). A tile with margin at least 2 BOX_R
+ * therefore gives, at its kept interior, the same values as the whole image.
+ *
+ * Sums are running (sliding-window) sums restarted at the start of each chunk of BOX_CHUNK rows
+ * (columns): each work-item sums its first window directly, then adds the entering and subtracts
+ * the leaving sample, so the cost per pixel is (2 BOX_R + 1) / BOX_CHUNK + 2 operations, O(1) in
+ * the radius when BOX_CHUNK >= 2 BOX_R + 1, and float32 drift is bounded by BOX_CHUNK steps.
+ *
+ * Work sizes (ncy = ceil(th / BOX_CHUNK), ncx = ceil(tw / BOX_CHUNK), each rounded up to any
+ * multiple of any local size; local = any):
+ *   box_cols_sum, gf_cols_p : global (tw, ncy, planes); work-item (x, c, p) handles rows
+ *                             [c BOX_CHUNK, (c + 1) BOX_CHUNK) of column x of plane p;
+ *   box_rows_mean, gf_rows_ab, gf_rows_q : global (ncx, th, planes); work-item (c, y, p) handles
+ *                             columns [c BOX_CHUNK, (c + 1) BOX_CHUNK) of row y of plane p;
+ *   gf_guide_fields          : global (tw, th); work-item (x, y) handles one pixel.
+ *
+ * Guided filter of a cost slice p with guide I (the reference tile), He et al. (2013), eq. 7-8:
+ *   a = (mean(I p) - mean(I) mean(p)) / (var(I) + GF_EPS),  b = mean(p) - a mean(I),
+ *   q = mean(a) I + mean(b).
+ * Host sequence: gf_guide_fields -> box_cols_sum -> box_rows_mean gives the guide means (once per
+ * tile); per batch of nb planes: gf_cols_p (p -> [colsum p | colsum I p], 2 nb planes),
+ * gf_rows_ab (-> [a | b]), box_cols_sum on the 2 nb planes, gf_rows_q (-> q, nb planes).
+ * Compile-time constants: BOX_R (radius, pixels), BOX_CHUNK, GF_EPS (float, guide units squared).
+ */
+#include "common.h"
+
+#if !defined(BOX_R) || !defined(BOX_CHUNK)
+#error "BOX_R and BOX_CHUNK must be defined"
+#endif
+
+/* Number of samples of the window [i - BOX_R, i + BOX_R] inside [0, n). */
+inline int window_count(const int i, const int n)
+{
+    return min(i + BOX_R, n - 1) - max(i - BOX_R, 0) + 1;
+}
+
+__kernel void box_cols_sum(__global const float *in, __global float *out, const int tw,
+                           const int th)
+{
+    const int x = get_global_id(0), c = get_global_id(1);
+    const size_t base = (size_t)get_global_id(2) * tw * th;
+    const int y0 = c * BOX_CHUNK;
+    if (x >= tw || y0 >= th) return;
+    const int y1 = min(y0 + BOX_CHUNK, th);
+    __global const float *col = in + base + x;
+    float s = 0.0f;
+    for (int j = max(y0 - BOX_R, 0); j <= min(y0 + BOX_R, th - 1); ++j) s += col[(size_t)j * tw];
+    for (int y = y0; y < y1; ++y) {
+        out[base + IDX2(x, y, tw)] = s;
+        if (y + BOX_R + 1 < th) s += col[(size_t)(y + BOX_R + 1) * tw];
+        if (y - BOX_R >= 0) s -= col[(size_t)(y - BOX_R) * tw];
+    }
+}
+
+__kernel void box_rows_mean(__global const float *in, __global float *out, const int tw,
+                            const int th)
+{
+    const int c = get_global_id(0), y = get_global_id(1);
+    const int x0 = c * BOX_CHUNK;
+    if (y >= th || x0 >= tw) return;
+    const int x1 = min(x0 + BOX_CHUNK, tw);
+    const size_t base = (size_t)get_global_id(2) * tw * th + (size_t)y * tw;
+    __global const float *row = in + base;
+    const int ny = window_count(y, th);
+    float s = 0.0f;
+    for (int i = max(x0 - BOX_R, 0); i <= min(x0 + BOX_R, tw - 1); ++i) s += row[i];
+    for (int x = x0; x < x1; ++x) {
+        out[base + x] = s / (float)(ny * window_count(x, tw));
+        if (x + BOX_R + 1 < tw) s += row[x + BOX_R + 1];
+        if (x - BOX_R >= 0) s -= row[x - BOX_R];
+    }
+}
+
+#ifdef GF_EPS
+/* guide_i[y][x] = I, guide_sq[0][y][x] = I and guide_sq[1][y][x] = I^2 for the tile whose origin
+ * is (tx0, ty0) in the reference image ref (ref_w wide). */
+__kernel void gf_guide_fields(__global const float *ref, const int ref_w, const int tx0,
+                              const int ty0, const int tw, const int th,
+                              __global float *guide_i, __global float *guide_sq)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= tw || y >= th) return;
+    const float v = ref[(size_t)(ty0 + y) * ref_w + tx0 + x];
+    guide_i[IDX2(x, y, tw)] = v;
+    guide_sq[IDX2(x, y, tw)] = v;
+    guide_sq[(size_t)tw * th + IDX2(x, y, tw)] = v * v;
+}
+
+/* sums[b] = column sums of p[b], sums[nb + b] = column sums of I p[b]. */
+__kernel void gf_cols_p(__global const float *p, __global const float *guide_i,
+                        __global float *sums, const int tw, const int th, const int nb)
+{
+    const int x = get_global_id(0), c = get_global_id(1), b = get_global_id(2);
+    const int y0 = c * BOX_CHUNK;
+    if (x >= tw || y0 >= th) return;
+    const int y1 = min(y0 + BOX_CHUNK, th);
+    const size_t plane = (size_t)tw * th;
+    __global const float *col = p + b * plane + x;
+    __global const float *gcol = guide_i + x;
+    float s = 0.0f, si = 0.0f;
+    for (int j = max(y0 - BOX_R, 0); j <= min(y0 + BOX_R, th - 1); ++j) {
+        const float v = col[(size_t)j * tw];
+        s += v;
+        si += gcol[(size_t)j * tw] * v;
+    }
+    for (int y = y0; y < y1; ++y) {
+        sums[b * plane + IDX2(x, y, tw)] = s;
+        sums[(nb + b) * plane + IDX2(x, y, tw)] = si;
+        if (y + BOX_R + 1 < th) {
+            const size_t k = (size_t)(y + BOX_R + 1) * tw;
+            s += col[k];
+            si += gcol[k] * col[k];
+        }
+        if (y - BOX_R >= 0) {
+            const size_t k = (size_t)(y - BOX_R) * tw;
+            s -= col[k];
+            si -= gcol[k] * col[k];
+        }
+    }
+}
+
+/* From column sums [p | I p] and the guide means [mean I | mean I^2]: ab[b] = a, ab[nb + b] = b. */
+__kernel void gf_rows_ab(__global const float *sums, __global const float *guide_mean,
+                         __global float *ab, const int tw, const int th, const int nb)
+{
+    const int c = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
+    const int x0 = c * BOX_CHUNK;
+    if (y >= th || x0 >= tw) return;
+    const int x1 = min(x0 + BOX_CHUNK, tw);
+    const size_t plane = (size_t)tw * th;
+    const size_t row = (size_t)y * tw;
+    __global const float *rp = sums + b * plane + row;
+    __global const float *rip = sums + (nb + b) * plane + row;
+    const int ny = window_count(y, th);
+    float s = 0.0f, si = 0.0f;
+    for (int i = max(x0 - BOX_R, 0); i <= min(x0 + BOX_R, tw - 1); ++i) {
+        s += rp[i];
+        si += rip[i];
+    }
+    for (int x = x0; x < x1; ++x) {
+        const float n = (float)(ny * window_count(x, tw));
+        const float mp = s / n, mip = si / n;
+        const float mi = guide_mean[row + x], mii = guide_mean[plane + row + x];
+        const float a = (mip - mi * mp) / (mii - mi * mi + GF_EPS);
+        ab[b * plane + row + x] = a;
+        ab[(nb + b) * plane + row + x] = mp - a * mi;
+        if (x + BOX_R + 1 < tw) {
+            s += rp[x + BOX_R + 1];
+            si += rip[x + BOX_R + 1];
+        }
+        if (x - BOX_R >= 0) {
+            s -= rp[x - BOX_R];
+            si -= rip[x - BOX_R];
+        }
+    }
+}
+
+/* From column sums [a | b]: q[b] = mean(a) I + mean(b). */
+__kernel void gf_rows_q(__global const float *sums, __global const float *guide_i,
+                        __global float *q, const int tw, const int th, const int nb)
+{
+    const int c = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
+    const int x0 = c * BOX_CHUNK;
+    if (y >= th || x0 >= tw) return;
+    const int x1 = min(x0 + BOX_CHUNK, tw);
+    const size_t plane = (size_t)tw * th;
+    const size_t row = (size_t)y * tw;
+    __global const float *ra = sums + b * plane + row;
+    __global const float *rb = sums + (nb + b) * plane + row;
+    const int ny = window_count(y, th);
+    float sa = 0.0f, sb = 0.0f;
+    for (int i = max(x0 - BOX_R, 0); i <= min(x0 + BOX_R, tw - 1); ++i) {
+        sa += ra[i];
+        sb += rb[i];
+    }
+    for (int x = x0; x < x1; ++x) {
+        const float n = (float)(ny * window_count(x, tw));
+        q[b * plane + row + x] = (sa / n) * guide_i[row + x] + sb / n;
+        if (x + BOX_R + 1 < tw) {
+            sa += ra[x + BOX_R + 1];
+            sb += rb[x + BOX_R + 1];
+        }
+        if (x - BOX_R >= 0) {
+            sa -= ra[x - BOX_R];
+            sb -= rb[x - BOX_R];
+        }
+    }
+}
+#endif

@@ -1,0 +1,191 @@
+/* sweep.cl: plane-sweep matching cost of a reference tile against NSRC source views.
+ *
+ * For a batch of planes and every pixel of a reference tile, each source view is warped into the
+ * reference view by the plane's homography, a census code is compared with the reference code
+ * (Hamming distance, in bits) and the per-source costs are aggregated by the mean of the NBEST
+ * lowest costs among the sources in which the pixel is valid (robust to occlusion in the others).
+ *
+ * Shared arguments:
+ *   src_offset[s]  first element of source s in the concatenated source buffer (row-major);
+ *   src_size[2s], src_size[2s+1]  width and height of source s;
+ *   homography     [n_planes][NSRC][9] row-major 3x3 maps from TILE-LOCAL reference pixels
+ *                  (x - tx0, y - ty0) to source pixels (pixel (0,0) = centre of the first pixel);
+ *   ref_code       [th][tw] census codes of the reference tile;
+ *   tw, th         tile size; tx0, ty0 its origin in the reference image; ref_w, ref_h the
+ *                  reference image size; plane0 the first plane of the batch;
+ *   cost           [batch][th][tw] output, batch = global size 2.
+ * A source is valid at a pixel when the pixel maps (positive homogeneous denominator) into
+ * [0, w-1] x [0, h-1] of the source. The aggregated cost is the mean of the min(NBEST, n_valid)
+ * lowest valid costs; with no valid source it is INVALID_COST = CENSUS_NBITS (the worst cost, so
+ * that filtering never favours such planes; wta.cl marks the pixel invalid geometrically).
+ *
+ * Compile-time constants: CENSUS_RX, CENSUS_RY, NSRC (number of sources, 1..32), NBEST (1..NSRC),
+ *   WG_X, WG_Y (work-group size of sweep_census_cost).
+ */
+#include "common.h"
+
+#if !defined(CENSUS_RX) || !defined(CENSUS_RY) || !defined(NSRC) || !defined(NBEST)
+#error "CENSUS_RX, CENSUS_RY, NSRC and NBEST must be defined"
+#endif
+
+#define INVALID_COST ((float)CENSUS_NBITS)
+/* Per-source marker of "pixel not seen by this source" (costs are 0..64). */
+#define SWEEP_NOT_SEEN ((uchar)255)
+
+/* Mean of the NBEST lowest costs among the valid sources (bit s of valid set). */
+inline float aggregate_best(const float *cst, const uint valid)
+{
+    uint used = 0u;
+    float acc = 0.0f;
+    int taken = 0;
+    for (int t = 0; t < NBEST; ++t) {
+        int best = -1;
+        float bc = 0.0f;
+        for (int s = 0; s < NSRC; ++s) {
+            const uint bit = 1u << s;
+            if ((valid & bit) && !(used & bit) && (best < 0 || cst[s] < bc)) { best = s; bc = cst[s]; }
+        }
+        if (best < 0) break;
+        used |= 1u << best;
+        acc += bc;
+        ++taken;
+    }
+    if (taken == 0) return INVALID_COST;
+    return taken == 1 ? acc : acc / (float)taken;
+}
+
+/* Validity of the tile-local reference pixel (x, y) in source s (see above). */
+inline int source_valid(__global const float *H, const float x, const float y,
+                        const int sw, const int sh)
+{
+    float u, v;
+    if (!apply_homography(H, x, y, &u, &v)) return 0;
+    return u >= 0.0f && u <= (float)(sw - 1) && v >= 0.0f && v <= (float)(sh - 1);
+}
+
+#if defined(WG_X) && defined(WG_Y)
+#define PATCH_W (WG_X + 2 * CENSUS_RX)
+#define PATCH_H (WG_Y + 2 * CENSUS_RY)
+
+/* sweep_census_cost: census of the WARPED SOURCE IMAGE versus the reference census.
+ * The warped image at reference pixel q is the bilinear sample (clamped coordinates) of the source
+ * at H q; its census uses the warped image at the neighbours of q, the neighbours being clamped
+ * into the REFERENCE image (the border rule of census.cl applied in the reference view), so the
+ * result at any tile pixel equals that of a whole-image computation. Where the denominator is not
+ * positive the warped value is 0.
+ * Work size: global = (ceil(tw / WG_X) * WG_X, ceil(th / WG_Y) * WG_Y, batch); local = (WG_X,
+ *   WG_Y, 1) exactly. Each work-group stages the warped (WG_X + 2 CENSUS_RX) x (WG_Y + 2 CENSUS_RY)
+ *   neighbourhood of its block in local memory once per source; each work-item then computes the
+ *   census and Hamming cost of its pixel for plane plane0 + get_global_id(2) and writes the
+ *   aggregated cost. Items outside the tile help staging and write nothing. */
+__kernel __attribute__((reqd_work_group_size(WG_X, WG_Y, 1)))
+void sweep_census_cost(__global const float *src_img, __global const long *src_offset,
+                       __global const int *src_size, __global const float *homography,
+                       __global const ulong *ref_code, const int tw, const int th,
+                       const int tx0, const int ty0, const int ref_w, const int ref_h,
+                       const int plane0, __global float *cost)
+{
+    __local float patch[PATCH_W * PATCH_H];
+    /* Per-item, per-source Hamming cost (0..64), or SWEEP_NOT_SEEN. Kept in local memory rather
+     * than in private variables across the barriers of the source loop: PoCL 3.1 mis-compiled
+     * private state (a validity bit mask) carried across barriers inside this loop. */
+    __local uchar item_cost[NSRC * WG_X * WG_Y];
+    const int lx = get_local_id(0), ly = get_local_id(1);
+    const int item = ly * WG_X + lx;
+    const int bx = get_group_id(0) * WG_X, by = get_group_id(1) * WG_Y;
+    const int plane = plane0 + get_global_id(2);
+    for (int s = 0; s < NSRC; ++s) {
+        __global const float *H = homography + (plane * NSRC + s) * 9;
+        __global const float *img = src_img + src_offset[s];
+        const int sw = src_size[2 * s], sh = src_size[2 * s + 1];
+        barrier(CLK_LOCAL_MEM_FENCE);
+        for (int i = item; i < PATCH_W * PATCH_H; i += WG_X * WG_Y) {
+            const int px = i % PATCH_W, py = i / PATCH_W;
+            const int rx = clamp_index(tx0 + bx - CENSUS_RX + px, ref_w) - tx0;
+            const int ry = clamp_index(ty0 + by - CENSUS_RY + py, ref_h) - ty0;
+            float u, v;
+            patch[i] = apply_homography(H, (float)rx, (float)ry, &u, &v)
+                           ? sample_bilinear_clamped(img, sw, sh, u, v) : 0.0f;
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+        const int x = bx + lx, y = by + ly;
+        uchar c_s = SWEEP_NOT_SEEN;
+        if (x < tw && y < th && source_valid(H, (float)x, (float)y, sw, sh)) {
+            const int base = (ly + CENSUS_RY) * PATCH_W + lx + CENSUS_RX;
+            const float c = patch[base];
+            ulong code = 0;
+            for (int dy = -CENSUS_RY; dy <= CENSUS_RY; ++dy) {
+                for (int dx = -CENSUS_RX; dx <= CENSUS_RX; ++dx) {
+                    if (dx == 0 && dy == 0) continue;
+                    code = (code << 1) | (ulong)(patch[base + dy * PATCH_W + dx] < c);
+                }
+            }
+            c_s = (uchar)popcount(code ^ ref_code[IDX2(x, y, tw)]);
+        }
+        item_cost[s * WG_X * WG_Y + item] = c_s;
+    }
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= tw || y >= th) return;
+    float cst[NSRC];
+    uint valid = 0u;
+    for (int s = 0; s < NSRC; ++s) {
+        const uchar c_s = item_cost[s * WG_X * WG_Y + item];
+        cst[s] = (float)c_s;
+        if (c_s != SWEEP_NOT_SEEN) valid |= 1u << s;
+    }
+    cost[(size_t)get_global_id(2) * tw * th + IDX2(x, y, tw)] = aggregate_best(cst, valid);
+}
+#endif
+
+/* sweep_code_cost: census codes of the SOURCE sampled at the warped position (nearest pixel,
+ * floor(u + 0.5)) versus the reference census. src_code holds every source's codes (census.cl on
+ * the whole source image) concatenated like the images.
+ * Work size: global = (tw, th, batch), each of the first two rounded up to any multiple; local =
+ *   any. Work-item (x, y, b) writes the aggregated cost of tile pixel (x, y) for plane
+ *   plane0 + b. */
+__kernel void sweep_code_cost(__global const ulong *src_code, __global const long *src_offset,
+                              __global const int *src_size, __global const float *homography,
+                              __global const ulong *ref_code, const int tw, const int th,
+                              const int plane0, __global float *cost)
+{
+    const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
+    if (x >= tw || y >= th) return;
+    const int plane = plane0 + b;
+    const ulong rc = ref_code[IDX2(x, y, tw)];
+    float cst[NSRC];
+    uint valid = 0u;
+    for (int s = 0; s < NSRC; ++s) {
+        __global const float *H = homography + (plane * NSRC + s) * 9;
+        const int sw = src_size[2 * s], sh = src_size[2 * s + 1];
+        float u, v;
+        cst[s] = 0.0f;
+        if (apply_homography(H, (float)x, (float)y, &u, &v)
+            && u >= 0.0f && u <= (float)(sw - 1) && v >= 0.0f && v <= (float)(sh - 1)) {
+            const int ix = min((int)floor(u + 0.5f), sw - 1);
+            const int iy = min((int)floor(v + 0.5f), sh - 1);
+            cst[s] = (float)popcount(src_code[src_offset[s] + IDX2(ix, iy, sw)] ^ rc);
+            valid |= 1u << s;
+        }
+    }
+    cost[(size_t)b * tw * th + IDX2(x, y, tw)] = aggregate_best(cst, valid);
+}
+
+/* warp_image: a source image resampled onto the reference grid by one homography (the warp that
+ * sweep_census_cost performs before its census), for inspection and tests.
+ * out[y][x] = bilinear sample (clamped coordinates) of src (sw x sh) at H (x, y), or 0 where the
+ *   homogeneous denominator is not positive; seen[y][x] = 1 when H (x, y) lies inside the source.
+ * Work size: global = (out_w, out_h), each rounded up to any multiple; local = any. One pixel per
+ *   work-item. Needs only common.h (the sweep constants must still be defined to build the file).
+ */
+__kernel void warp_image(__global const float *src, const int sw, const int sh,
+                         __global const float *homography, const int out_w, const int out_h,
+                         __global float *out, __global uchar *seen)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= out_w || y >= out_h) return;
+    float u, v;
+    const int ok = apply_homography(homography, (float)x, (float)y, &u, &v);
+    out[IDX2(x, y, out_w)] = ok ? sample_bilinear_clamped(src, sw, sh, u, v) : 0.0f;
+    seen[IDX2(x, y, out_w)] = (uchar)(ok && u >= 0.0f && u <= (float)(sw - 1) && v >= 0.0f
+                                      && v <= (float)(sh - 1));
+}

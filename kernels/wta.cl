@@ -1,0 +1,140 @@
+/* wta.cl: streaming winner-take-all over the planes of a (filtered) cost volume.
+ *
+ * Planes arrive in batches, in increasing plane order; a per-pixel state of WTA_NSTATE floats
+ * (layout [field][iw * ih]) holds what is needed to finish without keeping the volume:
+ *   M1 best local-minimum cost, I1 its plane (first one on ties), M1P / M1N the costs of the planes
+ *   before / after it, M2 the second-lowest local minimum, PREV / PREV2 the costs of the last two
+ *   planes seen, MAX the largest cost seen.
+ * Plane j with cost c_j is a local minimum when c_j < c_{j-1} and c_j <= c_{j+1}, where the
+ * missing neighbours of the first and last planes count as +infinity (a plateau counts once, at
+ * its first plane). The global argmin (first one) is always such a minimum.
+ *
+ * Work sizes: every kernel has global = (iw, ih), each rounded up to any multiple of the local
+ * size; local = any. Work-item (x, y) handles interior pixel (x, y), i.e. tile pixel
+ * (mx + x, my + y) of a tile of width tw (the interior excludes the tile's filter margin).
+ *   wta_init     : resets the state;
+ *   wta_update   : consumes planes plane0 .. plane0 + nb - 1 from cost[nb][th][tw];
+ *   wta_finalize : after the last of n_planes planes: fractional plane index (parabola through the
+ *                  best plane and its neighbours, offset clamped to [-0.5, 0.5], none at the first
+ *                  and last planes), confidence = (c2 - M1) / CENSUS_NBITS clamped to [0, 1]
+ *                  where c2 is the second-lowest local minimum (MAX when there is none), the best
+ *                  cost, and validity: the pixel maps into at least one source at the best plane
+ *                  (same rule as sweep.cl) and, when reject_edges != 0, the best plane is neither
+ *                  the first nor the last.
+ * Compile-time constants: NSRC, CENSUS_RX, CENSUS_RY (for CENSUS_NBITS).
+ */
+#include "common.h"
+
+#if !defined(NSRC) || !defined(CENSUS_RX) || !defined(CENSUS_RY)
+#error "NSRC, CENSUS_RX and CENSUS_RY must be defined"
+#endif
+
+#define WTA_BIG 3.0e38f
+#define S_M1 0
+#define S_I1 1
+#define S_M1P 2
+#define S_M1N 3
+#define S_M2 4
+#define S_PREV 5
+#define S_PREV2 6
+#define S_MAX 7
+#define WTA_NSTATE 8
+
+__kernel void wta_init(__global float *state, const int iw, const int ih)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= iw || y >= ih) return;
+    const size_t n = (size_t)iw * ih, k = IDX2(x, y, iw);
+    state[S_M1 * n + k] = WTA_BIG;
+    state[S_I1 * n + k] = -1.0f;
+    state[S_M1P * n + k] = WTA_BIG;
+    state[S_M1N * n + k] = WTA_BIG;
+    state[S_M2 * n + k] = WTA_BIG;
+    state[S_PREV * n + k] = WTA_BIG;
+    state[S_PREV2 * n + k] = WTA_BIG;
+    state[S_MAX * n + k] = -WTA_BIG;
+}
+
+/* Plane j (cost cj, neighbours cjm, cjp) is tested as a local minimum and merged in the state. */
+inline void consider(const int j, const float cjm, const float cj, const float cjp, float *m1,
+                     float *i1, float *m1p, float *m1n, float *m2)
+{
+    if (!(cj < cjm && cj <= cjp)) return;
+    if (cj < *m1) {
+        *m2 = *m1;
+        *m1 = cj;
+        *i1 = (float)j;
+        *m1p = cjm;
+        *m1n = cjp;
+    } else if (cj < *m2) {
+        *m2 = cj;
+    }
+}
+
+__kernel void wta_update(__global const float *cost, const int tw, const int th, const int mx,
+                         const int my, const int iw, const int ih, const int nb,
+                         const int plane0, __global float *state)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= iw || y >= ih) return;
+    const size_t n = (size_t)iw * ih, k = IDX2(x, y, iw);
+    float m1 = state[S_M1 * n + k], i1 = state[S_I1 * n + k];
+    float m1p = state[S_M1P * n + k], m1n = state[S_M1N * n + k], m2 = state[S_M2 * n + k];
+    float prev = state[S_PREV * n + k], prev2 = state[S_PREV2 * n + k];
+    float cmax = state[S_MAX * n + k];
+    const size_t plane = (size_t)tw * th, pix = IDX2(mx + x, my + y, tw);
+    for (int b = 0; b < nb; ++b) {
+        const int p = plane0 + b;
+        const float c = cost[b * plane + pix];
+        if (p >= 1) consider(p - 1, prev2, prev, c, &m1, &i1, &m1p, &m1n, &m2);
+        prev2 = prev;
+        prev = c;
+        cmax = fmax(cmax, c);
+    }
+    state[S_M1 * n + k] = m1;
+    state[S_I1 * n + k] = i1;
+    state[S_M1P * n + k] = m1p;
+    state[S_M1N * n + k] = m1n;
+    state[S_M2 * n + k] = m2;
+    state[S_PREV * n + k] = prev;
+    state[S_PREV2 * n + k] = prev2;
+    state[S_MAX * n + k] = cmax;
+}
+
+__kernel void wta_finalize(__global const float *state, const int iw, const int ih,
+                           const int n_planes, const int mx, const int my,
+                           __global const float *homography, __global const int *src_size,
+                           const int reject_edges, __global float *plane_index,
+                           __global float *confidence, __global float *best_cost,
+                           __global uchar *valid)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= iw || y >= ih) return;
+    const size_t n = (size_t)iw * ih, k = IDX2(x, y, iw);
+    float m1 = state[S_M1 * n + k], i1 = state[S_I1 * n + k];
+    float m1p = state[S_M1P * n + k], m1n = state[S_M1N * n + k], m2 = state[S_M2 * n + k];
+    const float prev = state[S_PREV * n + k], prev2 = state[S_PREV2 * n + k];
+    const float cmax = state[S_MAX * n + k];
+    consider(n_planes - 1, prev2, prev, WTA_BIG, &m1, &i1, &m1p, &m1n, &m2);
+    const int ib = (int)i1;
+    float offset = 0.0f;
+    if (ib > 0 && ib < n_planes - 1) {
+        const float denom = m1p - 2.0f * m1 + m1n;
+        if (denom > 0.0f) offset = fmin(fmax(0.5f * (m1p - m1n) / denom, -0.5f), 0.5f);
+    }
+    const float c2 = m2 < WTA_BIG ? m2 : cmax;
+    int ok = 0;
+    for (int s = 0; s < NSRC; ++s) {
+        float u, v;
+        __global const float *H = homography + (ib * NSRC + s) * 9;
+        if (apply_homography(H, (float)(mx + x), (float)(my + y), &u, &v)
+            && u >= 0.0f && u <= (float)(src_size[2 * s] - 1)
+            && v >= 0.0f && v <= (float)(src_size[2 * s + 1] - 1))
+            ok = 1;
+    }
+    if (reject_edges && (ib == 0 || ib == n_planes - 1)) ok = 0;
+    plane_index[k] = (float)ib + offset;
+    confidence[k] = fmin(fmax((c2 - m1) / (float)CENSUS_NBITS, 0.0f), 1.0f);
+    best_cost[k] = m1;
+    valid[k] = (uchar)ok;
+}

@@ -1,0 +1,359 @@
+"""Every plane-sweep kernel against its numpy reference (tests/reference_sweep.py), on small
+random inputs, on every usable OpenCL device (the ``cl_device`` fixture).
+
+Exact comparisons (census codes, Hamming costs, argmin) use inputs on which float32 arithmetic
+is exact: images quantised to multiples of 1/256 and homographies that translate by multiples of
+1/4 pixel, so bilinear weights and samples are exactly representable. General homographies are
+compared with tolerances derived from float32 rounding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+import pytest
+
+import reference_sweep as ref
+from satsweep.sweep import PlaneSweep, SweepOptions, box_chunk
+
+F32_EPS = float(np.finfo(np.float32).eps)
+# Bilinear warp of a [0, 1] image with a general homography: the float32 evaluation of the
+# homography at coordinates <= 128 px is off by a few ulp (~1e-5 px); with image gradients below
+# 1 per pixel and the bilinear rounding this bounds the value error well below 1e-4.
+WARP_ATOL = 1e-4
+# Box means of values up to 64 (census costs) over <= 15x15 windows: float32 sliding sums of at
+# most BOX_CHUNK + window steps, relative error ~ 50 eps of the largest partial sum.
+BOX_ATOL = 64 * 100 * F32_EPS
+# Guided filter of costs in [0, 64] with a [0, 1] guide: the covariance and variance are
+# differences of float32 means (cancellation), divided by var + eps with eps >= 1e-3 here, so the
+# output error is ~ 64 * 1e3 * (rounding of the means ~ 1e-6); measured errors are ~1e-3.
+GF_ATOL = 2e-2
+# The best-k mean divides an integer sum by k on the device: OpenCL allows 2.5 ulp for division.
+DIV_RTOL = 3 * F32_EPS
+# The parabola offset is a ratio of float32 differences of costs up to 64: a few ulp of 64
+# relative to a denominator >= 1/256 (quantised inputs below).
+PARABOLA_ATOL = 1e-3
+
+
+def _quantised(rng, shape, levels=256):
+    """Random image with values k / levels: exact in float32 products with quarter weights."""
+    return (rng.integers(0, levels, shape) / levels).astype(np.float32)
+
+
+def _buf(dev, arr):
+    mf = cl.mem_flags
+    return cl.Buffer(dev.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(arr))
+
+
+def _empty(dev, nbytes):
+    return cl.Buffer(dev.context, cl.mem_flags.READ_WRITE, max(int(nbytes), 4))
+
+
+def _read(dev, buf, shape, dtype):
+    out = np.empty(shape, dtype)
+    cl.enqueue_copy(dev.queue, out, buf)
+    dev.queue.finish()
+    return out
+
+
+def _census_dev(dev, img, rx, ry, x0=0, y0=0, out_w=None, out_h=None):
+    h, w = img.shape
+    out_w = w if out_w is None else out_w
+    out_h = h if out_h is None else out_h
+    prg = dev.build("census", {"CENSUS_RX": rx, "CENSUS_RY": ry})
+    out = _empty(dev, 8 * out_w * out_h)
+    i32 = np.int32
+    cl.Kernel(prg, "census_transform")(dev.queue, (out_w, out_h), None, _buf(dev, img), i32(w),
+                                       i32(h), i32(x0), i32(y0), i32(out_w), i32(out_h), out)
+    return _read(dev, out, (out_h, out_w), np.uint64)
+
+
+def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16, 16),
+               tile=None):
+    """Run one sweep kernel over all planes of hom (n_planes, n_src, 3, 3) on a tile.
+
+    tile = (tx0, ty0, tw, th) of ref_img (default: the whole image); hom maps tile-local pixels.
+    """
+    h, w = ref_img.shape
+    tx0, ty0, tw, th = tile if tile is not None else (0, 0, w, h)
+    n_planes, n_src = hom.shape[:2]
+    defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": k}
+    if mode == "warped_census":
+        defs.update({"WG_X": wg[0], "WG_Y": wg[1]})
+    prg = dev.build("sweep", defs)
+    codes = _census_dev(dev, ref_img, rx, ry, tx0, ty0, tw, th)
+    sizes = np.array([[s.shape[1], s.shape[0]] for s in srcs], np.int32).ravel()
+    offsets = np.concatenate([[0], np.cumsum([s.size for s in srcs])[:-1]]).astype(np.int64)
+    hom32 = np.ascontiguousarray(hom.reshape(n_planes, n_src, 9), np.float32)
+    out = _empty(dev, 4 * n_planes * tw * th)
+    i32 = np.int32
+    if mode == "warped_census":
+        data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
+        gx = -(-tw // wg[0]) * wg[0]
+        gy = -(-th // wg[1]) * wg[1]
+        cl.Kernel(prg, "sweep_census_cost")(
+            dev.queue, (gx, gy, n_planes), (wg[0], wg[1], 1), _buf(dev, data), _buf(dev, offsets),
+            _buf(dev, sizes), _buf(dev, hom32), _buf(dev, codes), i32(tw), i32(th), i32(tx0),
+            i32(ty0), i32(w), i32(h), i32(0), out)
+    else:
+        data = np.concatenate([ref.census(s, rx, ry).ravel() for s in srcs])
+        cl.Kernel(prg, "sweep_code_cost")(
+            dev.queue, (tw, th, n_planes), None, _buf(dev, data), _buf(dev, offsets),
+            _buf(dev, sizes), _buf(dev, hom32), _buf(dev, codes), i32(tw), i32(th), i32(0), out)
+    return _read(dev, out, (n_planes, th, tw), np.float32)
+
+
+def _translations(shifts):
+    """(n_planes, n_src, 3, 3) pure translations from shifts (n_planes, n_src, 2)."""
+    shifts = np.asarray(shifts, np.float64)
+    hom = np.tile(np.eye(3), shifts.shape[:2] + (1, 1))
+    hom[..., 0, 2] = shifts[..., 0]
+    hom[..., 1, 2] = shifts[..., 1]
+    return hom
+
+
+# -- census ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("window", [(7, 9), (5, 5), (3, 7), (9, 7)])
+def test_census_matches_reference_bit_for_bit(cl_device, window):
+    rng = np.random.default_rng(1)
+    # Few levels so that ties (neighbour == centre, bit 0) occur often.
+    img = _quantised(rng, (37, 53), levels=8)
+    rx, ry = window[1] // 2, window[0] // 2
+    got = _census_dev(cl_device, img, rx, ry)
+    np.testing.assert_array_equal(got, ref.census(img, rx, ry))
+
+
+def test_census_of_a_tile_is_the_crop_of_the_whole_image(cl_device):
+    rng = np.random.default_rng(2)
+    img = rng.random((40, 45)).astype(np.float32)
+    full = ref.census(img, 4, 3)
+    got = _census_dev(cl_device, img, 4, 3, x0=30, y0=1, out_w=15, out_h=39)
+    np.testing.assert_array_equal(got, full[1:40, 30:45])
+
+
+def test_census_bit_order_and_border_rule(cl_device):
+    """The documented convention on a hand-made case: raster order, first neighbour in the most
+    significant bit, bit = neighbour < centre, neighbours outside the image edge-replicated."""
+    img = np.array([[0.0, 1.0, 0.0], [0.0, 0.5, 0.0], [1.0, 1.0, 1.0]], np.float32)
+    codes = _census_dev(cl_device, img, 1, 1)
+    np.testing.assert_array_equal(codes, ref.census(img, 1, 1))
+    # Centre (1, 1) = 0.5; neighbours in raster order 0, 1, 0, 0, 0, 1, 1, 1.
+    assert codes[1, 1] == 0b10111000
+    # Pixel (2, 0) = 0.0 (top right): the clamped window is 0,0,0 / 1,_,1 / 0,0,0 with the
+    # centre 0.0 never greater: code 0. Pixel (1, 2) = 1.0 (bottom middle): window rows
+    # 0,0.5,0 / 1,_,1 / 1,1,1 (the bottom row replicated): bits 1,1,1, 0,0, 0,0,0.
+    assert codes[0, 2] == 0
+    assert codes[2, 1] == 0b11100000
+
+
+# -- sweep costs -------------------------------------------------------------------------------------
+def test_warped_census_cost_exact_for_dyadic_translations(cl_device):
+    rng = np.random.default_rng(3)
+    h, w = 45, 61
+    ref_img = _quantised(rng, (h, w))
+    src = _quantised(rng, (h + 4, w - 3))
+    # Quarter-pixel shifts, some large enough to push part of the view outside the source.
+    shifts = np.array([[[0.25, -0.5]], [[3.75, 1.25]], [[-6.5, 0.0]], [[0.0, 12.25]]])
+    hom = _translations(shifts)
+    got = _sweep_dev(cl_device, ref_img, [src], hom, 4, 3, 1)
+    codes = ref.census(ref_img, 4, 3)
+    for p in range(hom.shape[0]):
+        cost, valid = ref.warped_census_cost(codes, src, hom[p, 0], 4, 3)
+        want = np.where(valid, cost, 62)
+        np.testing.assert_array_equal(got[p], want)
+    assert (got == 62).any() and (got < 62).any()
+
+
+def test_warped_census_cost_on_a_tile_equals_the_whole_image(cl_device):
+    """Census neighbours are clamped to the reference image, not to the tile."""
+    rng = np.random.default_rng(4)
+    ref_img = _quantised(rng, (40, 50))
+    src = _quantised(rng, (40, 50))
+    hom = _translations([[[0.75, -0.25]], [[-1.5, 2.0]]])
+    whole = _sweep_dev(cl_device, ref_img, [src], hom, 4, 3, 1)
+    tx0, ty0, tw, th = 7, 5, 30, 33
+    shift = np.eye(3)
+    shift[0, 2], shift[1, 2] = tx0, ty0
+    local = hom @ shift
+    tile = _sweep_dev(cl_device, ref_img, [src], local, 4, 3, 1, wg=(8, 8), tile=(tx0, ty0, tw, th))
+    np.testing.assert_array_equal(tile, whole[:, ty0:ty0 + th, tx0:tx0 + tw])
+
+
+def test_warp_image_matches_bilinear_reference(cl_device):
+    rng = np.random.default_rng(5)
+    src = rng.random((50, 60)).astype(np.float32)
+    prg = cl_device.build("sweep", {"CENSUS_RX": 1, "CENSUS_RY": 1, "NSRC": 1, "NBEST": 1})
+    # A perspective homography (rotation, scale, shear, mild projective terms).
+    hom = np.array([[0.93, 0.21, 4.3], [-0.17, 1.08, -2.6], [2.1e-4, -1.3e-4, 1.0]])
+    out_h, out_w = 44, 57
+    out = _empty(cl_device, 4 * out_h * out_w)
+    seen = _empty(cl_device, out_h * out_w)
+    i32 = np.int32
+    cl.Kernel(prg, "warp_image")(cl_device.queue, (out_w, out_h), None, _buf(cl_device, src),
+                                 i32(60), i32(50), _buf(cl_device, hom.astype(np.float32).ravel()),
+                                 i32(out_w), i32(out_h), out, seen)
+    got = _read(cl_device, out, (out_h, out_w), np.float32)
+    got_seen = _read(cl_device, seen, (out_h, out_w), np.uint8).astype(bool)
+    want, want_seen = ref.warp_image(src, hom.astype(np.float32), (out_h, out_w))
+    np.testing.assert_allclose(got, want, atol=WARP_ATOL, rtol=0)
+    assert want_seen.any() and (~want_seen).any()
+    # Membership may only differ for points within rounding of the source border.
+    u, v, _ = ref.map_points(hom.astype(np.float32), (out_h, out_w))
+    near_border = (np.abs(u) < 1e-3) | (np.abs(u - 59) < 1e-3) | (np.abs(v) < 1e-3) | (np.abs(v - 49) < 1e-3)
+    assert ((got_seen != want_seen) <= near_border).all()
+
+
+def test_warped_census_cost_general_homography_within_rounding(cl_device):
+    """With a general warp, a census bit may only differ where the reference comparison is
+    within the warp tolerance: |cost - reference| <= number of such ambiguous comparisons."""
+    rng = np.random.default_rng(6)
+    ref_img = rng.random((48, 52)).astype(np.float32)
+    src = rng.random((50, 56)).astype(np.float32)
+    hom = np.array([[[[1.02, 0.05, 1.3], [-0.04, 0.98, 0.7], [1e-4, -2e-4, 1.0]]],
+                    [[[0.97, -0.03, -0.6], [0.02, 1.01, 2.2], [-1e-4, 1e-4, 1.0]]]])
+    hom32 = hom.astype(np.float32).astype(np.float64)
+    got = _sweep_dev(cl_device, ref_img, [src], hom32, 4, 3, 1)
+    codes = ref.census(ref_img, 4, 3)
+    for p in range(hom.shape[0]):
+        warped, valid = ref.warp_image(src, hom32[p, 0], ref_img.shape)
+        cost = ref.hamming(codes, ref.census(warped.astype(np.float32), 4, 3))
+        slack = ref.census_ambiguity(warped, 4, 3, 2 * WARP_ATOL)
+        # Pixels within rounding of the source border may differ in validity: skip those.
+        u, v, _ = ref.map_points(hom32[p, 0], ref_img.shape)
+        border = (np.abs(u) < 1e-3) | (np.abs(u - 55) < 1e-3) | (np.abs(v) < 1e-3) | (np.abs(v - 49) < 1e-3)
+        sel = valid & ~border
+        assert sel.mean() > 0.8
+        assert (np.abs(got[p][sel] - cost[sel]) <= slack[sel]).all()
+        assert (got[p][~valid & ~border] == 62).all()
+
+
+def test_sampled_codes_cost_exact(cl_device):
+    rng = np.random.default_rng(7)
+    ref_img = _quantised(rng, (33, 47))
+    src = _quantised(rng, (36, 44))
+    # Quarter shifts never land on a rounding tie (x.5).
+    hom = _translations([[[0.25, -0.75]], [[2.75, 1.25]], [[-5.25, 3.0]]])
+    got = _sweep_dev(cl_device, ref_img, [src], hom, 4, 3, 1, mode="sampled_codes")
+    codes = ref.census(ref_img, 4, 3)
+    src_codes = ref.census(src, 4, 3)
+    for p in range(hom.shape[0]):
+        cost, valid = ref.sampled_codes_cost(codes, src_codes, hom[p, 0])
+        np.testing.assert_array_equal(got[p], np.where(valid, cost, 62))
+
+
+@pytest.mark.parametrize("mode", ["warped_census", "sampled_codes"])
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_best_k_aggregation_over_sources(cl_device, mode, k):
+    rng = np.random.default_rng(8 + k)
+    h, w = 32, 40
+    ref_img = _quantised(rng, (h, w))
+    # Source 0 is the reference itself (cost 0 at zero shift); sources 1-2 are noise. Shifts
+    # push each source partly outside so that 0, 1, 2 or 3 sources are valid across the image.
+    srcs = [ref_img.copy(), _quantised(rng, (h, w)), _quantised(rng, (h, w))]
+    shifts = np.array([[[0.0, 0.0], [9.25, 0.0], [0.0, -7.75]],
+                       [[-12.25, 0.0], [20.0, 0.5], [0.25, 16.0]],
+                       [[45.0, 0.0], [-45.0, 0.0], [0.0, 40.0]]])
+    hom = _translations(shifts)
+    got = _sweep_dev(cl_device, ref_img, srcs, hom, 4, 3, k, mode=mode)
+    codes = ref.census(ref_img, 4, 3)
+    src_codes = [ref.census(s, 4, 3) for s in srcs]
+    for p in range(hom.shape[0]):
+        cs, vs = [], []
+        for s in range(3):
+            if mode == "warped_census":
+                c, v = ref.warped_census_cost(codes, srcs[s], hom[p, s], 4, 3)
+            else:
+                c, v = ref.sampled_codes_cost(codes, src_codes[s], hom[p, s])
+            cs.append(c)
+            vs.append(v)
+        want = ref.aggregate_best_k(np.stack(cs), np.stack(vs), k, 62.0)
+        np.testing.assert_allclose(got[p], want, rtol=DIV_RTOL, atol=0)
+    # The last plane maps the whole reference outside every source: all invalid.
+    assert (got[2] == 62).all()
+    # Zero shift of source 0 gives cost 0 with k = 1 wherever source 0 is valid.
+    if k == 1:
+        assert (got[0] == 0).all()
+
+
+# -- box and guided filters ----------------------------------------------------------------------
+@pytest.mark.parametrize("radius", [0, 1, 3, 7])
+def test_box_filter_matches_float64_reference(cl_device, radius):
+    rng = np.random.default_rng(10 + radius)
+    # 70 columns > BOX_CHUNK = 32: several chunks per row with restarted sums.
+    vol = (rng.random((3, 45, 70)) * 62).astype(np.float32)
+    guide = rng.random((45, 70)).astype(np.float32)
+    sweep = PlaneSweep(cl_device, SweepOptions(cost_filter="box", box_radius=radius))
+    got = sweep.filter_volume(vol, guide)
+    np.testing.assert_allclose(got, ref.box_mean(vol, radius), atol=BOX_ATOL, rtol=0)
+    assert box_chunk(radius) >= 2 * radius + 1
+
+
+@pytest.mark.parametrize("radius,eps", [(1, 1e-3), (4, 1e-3), (6, 1e-2)])
+def test_guided_filter_matches_float64_reference(cl_device, radius, eps):
+    rng = np.random.default_rng(20 + radius)
+    guide = ref.smooth_noise((41, 67), 1.5, rng).astype(np.float32)
+    vol = (rng.random((4, 41, 67)) * 62).astype(np.float32)
+    sweep = PlaneSweep(cl_device, SweepOptions(cost_filter="guided", gf_radius=radius, gf_eps=eps))
+    got = sweep.filter_volume(vol, guide)
+    want = ref.guided_filter(vol, guide, radius, eps)
+    np.testing.assert_allclose(got, want, atol=GF_ATOL, rtol=0)
+    # The filter is edge-aware: it differs from a plain box mean of the same radius.
+    assert np.abs(want - ref.box_mean(vol, radius)).max() > 100 * GF_ATOL
+
+
+# -- winner-take-all ----------------------------------------------------------------------------------
+def _wta_dev(dev, vol, hom, src_shapes, nb, reject_edges, rx=4, ry=3):
+    """Stream vol (n_planes, h, w) through wta_update in batches of nb, then finalize."""
+    n_planes, h, w = vol.shape
+    n_src = len(src_shapes)
+    prg = dev.build("wta", {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry})
+    i32 = np.int32
+    q = dev.queue
+    state = _empty(dev, 4 * 8 * h * w)
+    cl.Kernel(prg, "wta_init")(q, (w, h), None, state, i32(w), i32(h))
+    upd = cl.Kernel(prg, "wta_update")
+    for p0 in range(0, n_planes, nb):
+        n = min(nb, n_planes - p0)
+        upd(q, (w, h), None, _buf(dev, vol[p0:p0 + n]), i32(w), i32(h), i32(0), i32(0), i32(w),
+            i32(h), i32(n), i32(p0), state)
+    sizes = np.array([[s[1], s[0]] for s in src_shapes], np.int32).ravel()
+    outs = [_empty(dev, 4 * h * w) for _ in range(3)] + [_empty(dev, h * w)]
+    cl.Kernel(prg, "wta_finalize")(
+        q, (w, h), None, state, i32(w), i32(h), i32(n_planes), i32(0), i32(0),
+        _buf(dev, np.ascontiguousarray(hom.reshape(n_planes, n_src, 9), np.float32)),
+        _buf(dev, sizes), i32(1 if reject_edges else 0), *outs)
+    return (*(_read(dev, o, (h, w), np.float32) for o in outs[:3]),
+            _read(dev, outs[3], (h, w), np.uint8).astype(bool))
+
+
+@pytest.mark.parametrize("nb", [1, 3, 16])
+def test_wta_streaming_matches_reference(cl_device, nb):
+    rng = np.random.default_rng(30 + nb)
+    n_planes, h, w = 11, 23, 29
+    # Costs on a 1/4 grid: many ties and plateaus exercise the first-argmin and minimum rules.
+    vol = (rng.integers(0, 40, (n_planes, h, w)) / 4).astype(np.float32)
+    vol[:, :3, :3] = 5.0  # constant: a single (first-plane) minimum
+    hom = _translations(np.zeros((n_planes, 1, 2)))
+    index, conf, best, valid = _wta_dev(cl_device, vol, hom, [(h, w)], nb, reject_edges=False)
+    i1, frac, want_conf, m1 = ref.wta(vol, 62)
+    # The fractional index lies within half a plane of the first argmin and matches the parabola.
+    assert (np.abs(index - i1) <= 0.5).all()
+    np.testing.assert_allclose(index, frac, atol=PARABOLA_ATOL, rtol=0)
+    assert (index != np.round(index)).any()  # refinement happened somewhere
+    np.testing.assert_array_equal(best, m1)
+    np.testing.assert_allclose(conf, want_conf, atol=1e-6, rtol=0)
+    assert valid.all()
+    assert (index[:3, :3] == 0).all()
+
+
+def test_wta_validity_from_geometry_and_range_edges(cl_device):
+    n_planes, h, w = 6, 20, 30
+    rng = np.random.default_rng(40)
+    vol = rng.random((n_planes, h, w)).astype(np.float32)
+    # Plane p shifts the source by 5 p pixels: at higher planes more columns fall outside.
+    hom = _translations(np.stack([np.array([[5.0 * p, 0.0]]) for p in range(n_planes)]))
+    for reject in (False, True):
+        _, _, _, valid = _wta_dev(cl_device, vol, hom, [(h, w)], 4, reject_edges=reject)
+        best = np.argmin(vol, axis=0)
+        np.testing.assert_array_equal(valid, ref.valid_at_plane(best, hom, [(h, w)], reject))
+        assert valid.any() and (~valid).any()

@@ -1,0 +1,125 @@
+#!/usr/bin/env python3
+"""Benchmark of the OpenCL plane sweep (census + sweep + guided filter + argmin).
+
+Measures voxels per second (reference pixels x planes x sources) of the whole engine on one
+device, the time of each stage, and the same maths in vectorised numpy (tests/reference_sweep.py)
+in the same run; prints the ratio. The issue's figure is a 1024 x 1024 reference with 2 sources
+and 128 planes (the defaults). The numpy reference is slow: it is measured on --numpy-planes
+planes and scaled linearly to all planes (the per-plane work is the same; the output says so).
+
+    python tools/bench_sweep.py                     # 1024^2, 2 sources, 128 planes
+    python tools/bench_sweep.py --size 256 --planes 32 --json out.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests"))  # the numpy references live with the tests
+
+import reference_sweep as ref  # noqa: E402
+
+from satsweep.device import open_device  # noqa: E402
+from satsweep.sweep import PlaneSweep, SweepOptions, translation_homographies  # noqa: E402
+
+
+def _scene(size: int, n_src: int, n_planes: int, seed: int = 0):
+    """Smooth-noise images and translation homographies (content does not change the work)."""
+    rng = np.random.default_rng(seed)
+    ref_img = ref.smooth_noise((size, size), 1.0, rng).astype(np.float32)
+    srcs = [ref.smooth_noise((size, size), 1.0, rng).astype(np.float32) for _ in range(n_src)]
+    angles = np.linspace(0.0, np.pi, n_src, endpoint=False)
+    shifts = 0.5 * np.stack([np.cos(angles), np.sin(angles)], axis=1)  # 0.5 px per plane
+    heights = np.arange(n_planes, dtype=np.float64)
+    return ref_img, srcs, translation_homographies(shifts, heights), heights
+
+
+def _numpy_reference(ref_img, srcs, hom, heights, options: SweepOptions, n_sub: int) -> float:
+    """Seconds of the numpy pipeline on n_sub planes (cost volume, filter, WTA)."""
+    rx, ry = options.census_radii
+    sub = hom[:n_sub].astype(np.float32).astype(np.float64)
+    t0 = time.perf_counter()
+    vol = ref.sweep_volume(ref_img, srcs, sub, rx, ry, options.best_k(len(srcs)))
+    if options.cost_filter == "guided":
+        vol = ref.guided_filter(vol, ref_img, options.gf_radius, options.gf_eps)
+    elif options.cost_filter == "box":
+        vol = ref.box_mean(vol, options.box_radius)
+    ref.wta(vol, options.census_bits)
+    return time.perf_counter() - t0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--size", type=int, default=1024, help="reference width = height (pixels)")
+    p.add_argument("--planes", type=int, default=128)
+    p.add_argument("--sources", type=int, default=2)
+    p.add_argument("--filter", choices=["guided", "box", "none"], default="guided")
+    p.add_argument("--device", default=None, help="auto|cpu|gpu|PLATFORM:DEVICE")
+    p.add_argument("--repeat", type=int, default=2, help="timed runs (the best is kept)")
+    p.add_argument("--numpy-planes", type=int, default=4,
+                   help="planes of the numpy reference run, scaled to --planes (0: skip)")
+    p.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    args = p.parse_args(argv)
+
+    device = open_device(args.device)
+    options = SweepOptions(cost_filter=args.filter)
+    ref_img, srcs, hom, heights = _scene(args.size, args.sources, args.planes)
+    voxels = args.size * args.size * args.planes * args.sources
+
+    # Warm-up on a crop: builds (or loads from the cache) every program.
+    PlaneSweep(device, options).run(ref_img[:64, :64], [s[:64, :64] for s in srcs], hom[:4], heights[:4])
+
+    best = np.inf
+    for _ in range(args.repeat):
+        t0 = time.perf_counter()
+        res = PlaneSweep(device, options).run(ref_img, srcs, hom, heights)
+        best = min(best, time.perf_counter() - t0)
+    prof = PlaneSweep(device, options, profile=True)
+    prof.run(ref_img, srcs, hom, heights)
+    stages = dict(sorted(prof.stage_seconds.items()))
+
+    out = {
+        "device": device.info.label,
+        "size": args.size, "planes": args.planes, "sources": args.sources,
+        "filter": args.filter, "voxels": voxels,
+        "tiles": res.n_tiles, "batches": res.n_batches, "peak_device_bytes": res.peak_device_bytes,
+        "engine_seconds": best, "engine_gvoxel_per_s": voxels / best / 1e9,
+        "stage_seconds": stages,
+        "stage_gvoxel_per_s": {k: voxels / v / 1e9 for k, v in stages.items() if v > 0},
+    }
+    print(f"device: {out['device']}")
+    print(f"reference {args.size}x{args.size}, {args.sources} sources, {args.planes} planes, "
+          f"filter {args.filter}: {voxels / 1e9:.3f} Gvoxel, {res.n_tiles} tile(s), "
+          f"{res.n_batches} batch(es), peak {res.peak_device_bytes / 2**20:.0f} MiB on the device")
+    print(f"engine (upload, census, sweep, filter, argmin, download): {best:.3f} s = "
+          f"{out['engine_gvoxel_per_s']:.3f} Gvoxel/s (best of {args.repeat})")
+    for k, v in stages.items():
+        print(f"  stage {k:7s}: {v:8.3f} s = {voxels / v / 1e9:9.3f} Gvoxel/s (queue drained per stage)")
+    if args.numpy_planes > 0:
+        n_sub = min(args.numpy_planes, args.planes)
+        t_sub = _numpy_reference(ref_img, srcs, hom, heights, options, n_sub)
+        t_np = t_sub * args.planes / n_sub
+        out.update({"numpy_planes_measured": n_sub, "numpy_seconds_measured": t_sub,
+                    "numpy_seconds_scaled": t_np, "numpy_gvoxel_per_s": voxels / t_np / 1e9,
+                    "speedup_vs_numpy": t_np / best})
+        print(f"numpy reference: {t_sub:.2f} s for {n_sub} planes, scaled to {args.planes} planes: "
+              f"{t_np:.1f} s = {out['numpy_gvoxel_per_s']:.4f} Gvoxel/s")
+        print(f"speed-up of the engine over numpy: {out['speedup_vs_numpy']:.1f}x")
+    if args.json:
+        tmp = args.json + ".tmp"
+        with open(tmp, "w") as fh:
+            json.dump(out, fh, indent=2)
+        os.replace(tmp, args.json)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
