@@ -156,6 +156,9 @@ class SweepResult:
     n_tiles: int = 1
     n_batches: int = 1
     peak_device_bytes: int = 0
+    # The filtered cost volume (n_planes, H, W) float32 in census bits, only when the sweep was
+    # asked for it (``keep_volume``: an MRF refinement needs every plane's cost); None otherwise.
+    volume: np.ndarray | None = None
     altitude: np.ndarray | None = None  # heights above the WGS84 ellipsoid (sweep_views + frame)
 
 
@@ -457,11 +460,15 @@ class PlaneSweep:
         return int(o.memory_fraction * self.device.global_mem_bytes)
 
     # -- public entry point ---------------------------------------------------------------------
-    def run(self, ref_image, src_images: Sequence, homographies, heights) -> SweepResult:
+    def run(self, ref_image, src_images: Sequence, homographies, heights, *,
+            keep_volume: bool = False) -> SweepResult:
         """Sweep ``ref_image`` against ``src_images`` over the planes ``heights``.
 
         homographies: (n_planes, n_src, 3, 3), plane p and source s mapping homogeneous reference
         pixels to source pixels; heights: (n_planes,) strictly monotonic plane heights (metres).
+        keep_volume: also copy the filtered cost of every plane back to the host
+        (``SweepResult.volume``) for an MRF refinement; off in the plain WTA path, where the cost
+        volume never leaves the device.
         """
         ref = _check_image("ref_image", ref_image)
         srcs = [_check_image(f"src_images[{i}]", s) for i, s in enumerate(src_images)]
@@ -480,7 +487,7 @@ class PlaneSweep:
             d = np.diff(hts)
             if not ((d > 0).all() or (d < 0).all()):
                 raise InputError(None, "heights: must be strictly monotonic")
-        result = self._sweep(ref, srcs, hom, hts)
+        result = self._sweep(ref, srcs, hom, hts, keep_volume=keep_volume)
         if self.options.lr_check:
             self._lr_check(result, ref, srcs, hom, hts)
         return result
@@ -520,7 +527,7 @@ class PlaneSweep:
 
     # -- implementation -------------------------------------------------------------------------
     def _sweep(self, ref: np.ndarray, srcs: list[np.ndarray], hom: np.ndarray,
-               hts: np.ndarray) -> SweepResult:
+               hts: np.ndarray, *, keep_volume: bool = False) -> SweepResult:
         import pyopencl as cl  # noqa: PLC0415
 
         o = self.options
@@ -564,6 +571,7 @@ class PlaneSweep:
         out_conf = np.zeros((h_img, w_img), np.float32)
         out_cost = np.zeros((h_img, w_img), np.float32)
         out_valid = np.zeros((h_img, w_img), np.uint8)
+        volume = np.empty((n_planes, h_img, w_img), np.float32) if keep_volume else None
         n_batches = 0
         m = plan.margin
         for iy0 in range(0, h_img, plan.tile_h):
@@ -575,7 +583,7 @@ class PlaneSweep:
                 n_batches += self._sweep_tile(
                     tile, plan.planes_per_batch, hom, n_planes, bufs, ref_buf, src_buf, off_buf,
                     size_buf, census_k, sweep_k, filt_prg, wta_prg, (w_img, h_img),
-                    (out_index, out_conf, out_cost, out_valid), (ix0, iy0))
+                    (out_index, out_conf, out_cost, out_valid), (ix0, iy0), volume)
         bufs.free(ref_buf, src_buf, off_buf, size_buf)
         index = out_index
         if not o.subplane:
@@ -586,10 +594,11 @@ class PlaneSweep:
         height[~valid] = np.nan
         return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
                            cost_min=out_cost, n_tiles=plan.n_tiles, n_batches=n_batches,
-                           peak_device_bytes=bufs.peak)
+                           peak_device_bytes=bufs.peak, volume=volume)
 
     def _sweep_tile(self, tile, nb_max, hom, n_planes, bufs, ref_buf, src_buf, off_buf, size_buf,
-                    census_k, sweep_k, filt_prg, wta_prg, ref_size, outs, interior_origin) -> int:
+                    census_k, sweep_k, filt_prg, wta_prg, ref_size, outs, interior_origin,
+                    volume=None) -> int:
         import pyopencl as cl  # noqa: PLC0415
 
         o = self.options
@@ -644,6 +653,12 @@ class PlaneSweep:
                             code_buf, i32(tw), i32(th), i32(p0), vol_a)
             with self._stage("filter"):
                 self._filter(filt_prg, tile, nb, vol_a, vol_b, guide_i, guide_mean)
+            if volume is not None:  # MRF path only: the filtered planes' interior to the host
+                batch = np.empty((nb, th, tw), np.float32)
+                cl.enqueue_copy(queue, batch, vol_a)
+                ix0, iy0 = interior_origin
+                volume[p0:p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
+                    batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
             with self._stage("wta"):
                 _launch(wta_update, queue, (iw, ih), vol_a, i32(tw), i32(th), i32(tile.mx),
                         i32(tile.my), i32(iw), i32(ih), i32(nb), i32(p0), state)
@@ -814,7 +829,8 @@ def ellipsoid_heights(height: np.ndarray, ref_proj, frame) -> np.ndarray:
 
 def sweep_views(device: Device, ref_image, src_images: Sequence, ref_proj, src_projs: Sequence, *,
                 heights=None, alt_range: tuple[float, float] | None = None,
-                options: SweepOptions | None = None, frame=None) -> tuple[SweepResult, np.ndarray]:
+                options: SweepOptions | None = None, keep_volume: bool = False,
+                frame=None) -> tuple[SweepResult, np.ndarray]:
     """Sweep with projections from ``satsweep.camera`` (homographies by ``plane_homography``).
 
     Either ``heights`` (ENU up, metres) or ``alt_range`` (then spaced by ``plane_heights``) is
@@ -835,7 +851,8 @@ def sweep_views(device: Device, ref_image, src_images: Sequence, ref_proj, src_p
     heights = np.asarray(heights, dtype=np.float64)
     hom = np.stack([np.asarray(plane_homography(ref_proj, p, heights)).reshape(-1, 3, 3)
                     for p in src_projs], axis=1)
-    result = PlaneSweep(device, opts).run(ref_image, src_images, hom, heights)
+    result = PlaneSweep(device, opts).run(ref_image, src_images, hom, heights,
+                                          keep_volume=keep_volume)
     if frame is not None:
         result.altitude = ellipsoid_heights(result.height, ref_proj, frame)
     return result, heights

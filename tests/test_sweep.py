@@ -320,3 +320,29 @@ def test_sweep_views_with_plane_parallax_projections(cl_device):
     assert np.nanmedian(np.abs(res.height[inner] - ground)) < MEDIAN_ERROR_MAX_M
     # Near the frame origin the ellipsoidal height is alt0 + u (curvature < 1 mm over 16 m).
     np.testing.assert_allclose(res.altitude[res.valid], 100.0 + res.height[res.valid], atol=1e-3)
+
+
+def test_kept_volume_matches_the_wta_and_does_not_depend_on_tiling(cl_device):
+    """keep_volume (the MRF path) returns the filtered cost of every plane: its per-pixel argmin
+    is the WTA's best plane, and a tiled run returns the same volume as a single-tile run."""
+    rng = np.random.default_rng(5)
+    ref = rng.random((40, 52)).astype(np.float32)
+    src = np.roll(ref, 2, axis=1) + 0.01 * rng.random(ref.shape).astype(np.float32)
+    heights = np.linspace(0.0, 10.0, 12)
+    hom = translation_homographies(np.array([[0.5, 0.0]]), heights)
+    whole = PlaneSweep(cl_device, SweepOptions(cost_filter="box")).run(
+        ref, [src], hom, heights, keep_volume=True)
+    assert whole.volume.shape == (heights.size, *ref.shape)
+    best = np.argmin(whole.volume, axis=0)
+    ok = whole.valid
+    # the parabola moves the index by at most half a plane from the volume's argmin
+    assert ok.mean() > 0.5
+    assert np.max(np.abs(whole.plane_index[ok] - best[ok])) <= 0.5
+    budget = 4 * 2 * ref.size + 300_000  # the images plus room for a few tiles
+    tiled = PlaneSweep(cl_device, SweepOptions(cost_filter="box", memory_budget_bytes=budget,
+                                               max_planes_per_batch=4)).run(
+        ref, [src], hom, heights, keep_volume=True)
+    assert tiled.n_tiles > 1
+    np.testing.assert_array_equal(tiled.volume, whole.volume)
+    plain = PlaneSweep(cl_device, SweepOptions(cost_filter="box")).run(ref, [src], hom, heights)
+    assert plain.volume is None
