@@ -1,0 +1,98 @@
+"""The whole pipeline's configuration: one frozen options object per stage, and its TOML form.
+
+A TOML file holds one table per stage (``[reconstruct]``, ``[camera]``, ``[sparse]``,
+``[bundle]``, ``[views]``, ``[sweep]``, ``[mrf]``, ``[dsm]``); each table's keys are that stage's
+option fields. Unknown tables and unknown keys are errors naming the file. The command line
+overrides the file, and the configuration actually used is written beside the outputs
+(``config.toml``), so a run can be repeated exactly with ``--config DIR/config.toml``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Any, Literal, Mapping
+
+from .bundle import BundleOptions
+from .camera import CameraOptions
+from .dsm import DSMOptions
+from .errors import OptionsError
+from .mrf import MRFOptions
+from .options import Options, dumps_toml, load_toml
+from .sparse import SparseOptions
+from .sweep import SweepOptions
+from .viewselect import ViewSelectionOptions
+
+
+@dataclasses.dataclass(frozen=True)
+class ReconstructOptions(Options):
+    """Options of the orchestration itself (the stages have their own tables)."""
+
+    device: str | None = None  # OpenCL device: auto | cpu | gpu | PLATFORM:DEVICE; unset: the
+    # SATSWEEP_DEVICE environment variable, else auto (a GPU if one builds kernels, else a CPU)
+    adjust: Literal["auto", "on", "off"] = "auto"  # bundle adjustment of principal points:
+    # auto = on with 3+ views, and on with 2 views when the features match (else skipped, reported)
+    skew_correct: bool = True  # shear images so that K has no skew before the sweep
+    crop_margin_px: int = 32  # margin around the AOI footprint when cropping the images
+    write_cloud: bool = True  # write cloud.ply (all reference views' points, UTM, with colour)
+
+    def check(self) -> None:
+        self._require(self.device is None or bool(self.device.strip()), "device",
+                      "must be auto|cpu|gpu|PLATFORM:DEVICE")
+        self._require(0 <= self.crop_margin_px <= 4096, "crop_margin_px", "must be in [0, 4096]")
+
+
+SECTIONS: dict[str, type[Options]] = {
+    "reconstruct": ReconstructOptions,
+    "camera": CameraOptions,
+    "sparse": SparseOptions,
+    "bundle": BundleOptions,
+    "views": ViewSelectionOptions,
+    "sweep": SweepOptions,
+    "mrf": MRFOptions,
+    "dsm": DSMOptions,
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineConfig:
+    """All stages' options. Every field has its stage's defaults."""
+
+    reconstruct: ReconstructOptions = ReconstructOptions()
+    camera: CameraOptions = CameraOptions()
+    sparse: SparseOptions = SparseOptions()
+    bundle: BundleOptions = BundleOptions()
+    views: ViewSelectionOptions = ViewSelectionOptions()
+    sweep: SweepOptions = SweepOptions()
+    mrf: MRFOptions = MRFOptions()
+    dsm: DSMOptions = DSMOptions()
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any], *, source: str = "config") -> "PipelineConfig":
+        unknown = sorted(set(data) - set(SECTIONS))
+        if unknown:
+            raise OptionsError(f"{source}: unknown table(s) [{'], ['.join(unknown)}] "
+                               f"(known: {', '.join(SECTIONS)})")
+        values = {}
+        for name, table in data.items():
+            if not isinstance(table, Mapping):
+                raise OptionsError(f"{source}: '{name}' must be a table ([{name}])")
+            values[name] = SECTIONS[name].from_mapping(table, source=f"{source} [{name}]")
+        return cls(**values)
+
+    @classmethod
+    def from_toml(cls, path: str | os.PathLike) -> "PipelineConfig":
+        return cls.from_mapping(load_toml(path), source=os.fspath(path))
+
+    def override(self, section: str, **changes: Any) -> "PipelineConfig":
+        """A copy with some fields of one section changed (None values are ignored)."""
+        changes = {k: v for k, v in changes.items() if v is not None}
+        if not changes:
+            return self
+        return dataclasses.replace(self, **{section: getattr(self, section).replace(**changes)})
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return {name: getattr(self, name).to_dict() for name in SECTIONS}
+
+    def to_toml(self) -> str:
+        return "# satsweep configuration (as used by this run)\n" + dumps_toml(self.to_dict())

@@ -1,0 +1,343 @@
+"""End to end: images + AOI -> DSM, point cloud and report (``satsweep reconstruct``).
+
+Stages (each timed in the report):
+  views     read the images and their RPCs, crop each to the AOI cube's footprint, tonemap
+  cameras   perspective approximation of every RPC over the AOI (satsweep.camera)
+  adjust    bundle adjustment of principal points (satsweep.bundle), per ``reconstruct.adjust``
+  skew      shear images so that K has no skew (satsweep.camera.skew_correct_set)
+  select    reference views and their sources (satsweep.viewselect)
+  sweep     OpenCL plane sweep per reference view (satsweep.sweep), then the MRF (satsweep.mrf)
+  dsm       height maps -> points (ENU -> lon/lat/alt -> UTM) -> per-view rasters -> fusion
+  outputs   dsm.tif, confidence.tif, cloud.ply, dsm.png, cameras.json, config.toml, report.json
+
+Outputs are first written into a hidden staging folder inside DIR and renamed into DIR only
+when every stage has succeeded: a failed run leaves what DIR held before untouched.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .aoi import AOI, AltitudeRange, resolve_altitude_range
+from .config import PipelineConfig
+from .errors import CameraError, OptionsError, OutputExistsError, SatsweepError
+from .report import RunReport, to_json
+
+
+@dataclasses.dataclass(frozen=True)
+class ReconstructResult:
+    out_dir: Path
+    dsm_path: Path
+    report: dict
+    evaluation: dict | None
+
+
+class OutputFolder:
+    """Stage outputs in a hidden folder inside ``out_dir``; move them in place on ``commit``.
+
+    ``out_dir`` may not exist (it is created) or be empty; a non-empty one needs ``overwrite``
+    (then only the files this run writes are replaced). ``abort`` removes the staging folder, and
+    ``out_dir`` too when this run created it.
+    """
+
+    def __init__(self, out_dir: str | os.PathLike, *, overwrite: bool):
+        self.out_dir = Path(out_dir)
+        self.check(self.out_dir, overwrite=overwrite)
+        self.created = not self.out_dir.exists()
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.staging = Path(tempfile.mkdtemp(prefix=".satsweep-partial-", dir=self.out_dir))
+
+    @staticmethod
+    def check(out_dir: Path, *, overwrite: bool) -> None:
+        """Refuse a path that is a file, or a non-empty folder without ``overwrite``."""
+        if out_dir.exists() and not out_dir.is_dir():
+            raise OptionsError(f"--out {out_dir}: exists and is not a folder")
+        if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+            raise OutputExistsError(
+                f"--out {out_dir}: folder is not empty (pass --overwrite to write into it)")
+
+    def path(self, name: str) -> Path:
+        p = self.staging / name
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+    def commit(self) -> list[Path]:
+        moved = []
+        for src in sorted(self.staging.rglob("*")):
+            if src.is_file():
+                dst = self.out_dir / src.relative_to(self.staging)
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(src, dst)
+                moved.append(dst)
+        shutil.rmtree(self.staging, ignore_errors=True)
+        return moved
+
+    def abort(self) -> None:
+        shutil.rmtree(self.staging, ignore_errors=True)
+        if self.created:
+            shutil.rmtree(self.out_dir, ignore_errors=True)
+
+
+def enu_height_range(frame, aoi: AOI, alt_range: AltitudeRange) -> tuple[float, float]:
+    """ENU ``u`` range spanned by the AOI cube (the AOI box x the altitude range).
+
+    Earth curvature makes a constant altitude sag below u = alt - alt0 away from the origin
+    (about 7 mm at 300 m), so the range is taken over the box's corners and edge midpoints."""
+    lons = np.array([aoi.lon_min, aoi.lon_max, aoi.lon_min, aoi.lon_max, aoi.center[0]])
+    lats = np.array([aoi.lat_min, aoi.lat_min, aoi.lat_max, aoi.lat_max, aoi.center[1]])
+    lo = frame.from_geodetic(lon=lons, lat=lats, alt=np.full(5, alt_range.min))[2]
+    hi = frame.from_geodetic(lon=lons, lat=lats, alt=np.full(5, alt_range.max))[2]
+    return float(np.min(lo)), float(np.max(hi))
+
+
+def _fill_nan(image: np.ndarray) -> np.ndarray:
+    """Skew correction leaves NaN where the sheared image has no source pixel: use 0 there (those
+    pixels are in the crop margin, outside the AOI footprint)."""
+    out = np.asarray(image, dtype=np.float32)
+    return np.where(np.isfinite(out), out, np.float32(0.0)).astype(np.float32)
+
+
+def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os.PathLike, *,
+                alt_range: AltitudeRange | None = None, dem: str | os.PathLike | None = None,
+                config: PipelineConfig = PipelineConfig(), overwrite: bool = False,
+                truth: str | os.PathLike | None = None, verbose: bool = True,
+                command: str = "reconstruct") -> ReconstructResult:
+    """Run the whole pipeline; see the module docstring for the stages and outputs."""
+    # Everything that can be checked cheaply is checked before anything is written.
+    paths = [os.fspath(p) for p in images]
+    if len(paths) < 2:
+        raise OptionsError(f"need at least two images, got {len(paths)}")
+    if truth is not None and not Path(truth).is_file():
+        from .errors import InputError
+
+        raise InputError(truth, "truth DSM does not exist")
+    out = OutputFolder(out_dir, overwrite=overwrite)
+    try:
+        result = _reconstruct(paths, aoi, out, alt_range=alt_range, dem=dem, config=config,
+                              truth=truth, verbose=verbose, command=command)
+    except BaseException:
+        out.abort()
+        raise
+    out.commit()
+    return result
+
+
+def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: PipelineConfig,
+                 truth, verbose: bool, command: str) -> ReconstructResult:
+    from . import camera as scam
+    from .bundle import adjust_principal_points
+    from .device import open_device
+    from .imageio import tonemap
+    from .rpc import RPCModel
+    from .views import load_views
+    from .viewselect import select_views
+
+    rep = RunReport(command, verbose=verbose)
+    rep["settings"] = config.to_dict()
+    rep["inputs"] = {"images": paths, "aoi": dataclasses.asdict(aoi), "dem": dem and os.fspath(dem),
+                     "truth": truth and os.fspath(truth)}
+
+    device = open_device(config.reconstruct.device)
+    rep["device"] = device.info.as_dict()
+    rep.log(f"device: {device.info.label}")
+
+    with rep.stage("views"):
+        rpcs = None
+        if alt_range is None and dem is None:
+            rpcs = [RPCModel.from_image(p) for p in paths]
+        alt = resolve_altitude_range(alt_range=alt_range, dem=dem, rpcs=rpcs, aoi=aoi)
+        rep["altitude_range"] = {"min": alt.min, "max": alt.max,
+                                 "source": "user" if alt_range is not None else ("dem" if dem else "rpc (coarse)")}
+        views = load_views(paths, aoi, alt, margin_px=config.reconstruct.crop_margin_px)
+        images = [tonemap(v.image) for v in views]
+        rep["views"] = [{"image": v.path, "crop": [int(v.x0), int(v.y0), int(v.width), int(v.height)]}
+                        for v in views]
+    names = [Path(p).name for p in paths]
+
+    with rep.stage("cameras"):
+        cameras = scam.build_cameras(views, aoi, alt, config.camera)
+        rep["cameras"] = {
+            "approx_error_px": {n: v.camera.error.to_dict() for n, v in zip(names, cameras.views)},
+            "warnings": list(cameras.warnings),
+        }
+        for w in cameras.warnings:
+            rep.log(f"warning: {w}")
+
+    mode = config.reconstruct.adjust
+    if mode == "off":
+        rep["ba"] = {"skipped": "reconstruct.adjust = off"}
+    else:
+        with rep.stage("adjust"):
+            try:
+                cameras, ba = adjust_principal_points(cameras, images, config.bundle, config.sparse,
+                                                     names=names)
+                rep["ba"] = ba.to_dict()
+            except CameraError as exc:
+                if mode == "on" or len(views) >= 3:
+                    raise
+                rep["ba"] = {"skipped": f"not enough matches for the adjustment: {exc}"}
+                rep.log(f"warning: bundle adjustment skipped: {exc}")
+
+    if config.reconstruct.skew_correct:
+        with rep.stage("skew"):
+            cameras, images = scam.skew_correct_set(cameras, images)
+            images = [_fill_nan(im) for im in images]
+
+    frame = cameras.frame
+    u_range = enu_height_range(frame, aoi, alt)
+    with rep.stage("select"):
+        selection = select_views([v.camera for v in cameras.views],
+                                 mid_height=0.5 * (u_range[0] + u_range[1]),
+                                 options=config.views, names=names)
+        rep["view_selection"] = selection.to_dict(names)
+        for w in selection.warnings:
+            rep.log(f"warning: {w}")
+
+    per_view = _sweep_references(device, cameras, images, selection, u_range, config, rep, names)
+
+    dsm_path, evaluation = _make_dsm(per_view, cameras, images, aoi, config, rep, out, truth, names)
+
+    with rep.stage("outputs"):
+        scam.write_cameras(out.staging, cameras)
+        out.path("config.toml").write_text(config.to_toml(), encoding="utf-8")
+    report = rep.finish()
+    out.path("report.json").write_text(rep.to_json() + "\n", encoding="utf-8")
+    return ReconstructResult(out_dir=out.out_dir, dsm_path=out.out_dir / dsm_path.name,
+                             report=report, evaluation=evaluation)
+
+
+def _sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
+                      rep: RunReport, names) -> list[dict]:
+    """Sweep every reference view against its sources; MRF refinement per the options."""
+    from .sweep import sweep_views
+
+    per_view, sweeps = [], []
+    progress = rep.progress("sweep", len(selection.references))
+    with_mrf = config.mrf.method != "none"
+    for k, r in enumerate(selection.references):
+        srcs = list(selection.sources[r])
+        with rep.stage("sweep"):
+            result, heights = sweep_views(
+                device, images[r], [images[s] for s in srcs],
+                cameras.views[r].projection, [cameras.views[s].projection for s in srcs],
+                alt_range=u_range, options=config.sweep, keep_volume=with_mrf)
+        mrf_info = None
+        if with_mrf:
+            with rep.stage("mrf"):
+                result, mrf_info = _refine(device, result, heights, images[r], config)
+        progress.update(k + 1, names[r])
+        valid = np.asarray(result.valid, bool)
+        sweeps.append({
+            "reference": names[r], "sources": [names[s] for s in srcs],
+            "planes": int(len(heights)),
+            "plane_step_m": float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
+            "valid_fraction": float(valid.mean()), "tiles": int(result.n_tiles),
+            "mrf": mrf_info,
+        })
+        per_view.append({"index": r, "height": result.height, "valid": valid,
+                         "confidence": result.confidence})
+    rep["sweep"] = sweeps
+    return per_view
+
+
+def _refine(device, result, heights, ref_image, config: PipelineConfig):
+    """MRF refinement (satsweep.mrf) of one reference view's filtered cost volume."""
+    from .mrf import refine
+    from .sweep import SweepResult
+
+    initial = np.clip(np.rint(result.plane_index), 0, len(heights) - 1).astype(np.int32)
+    m = refine(device, result.volume, ref_image, heights, config.mrf,
+               cost_scale=float(config.sweep.census_bits),
+               reject_range_edges=config.sweep.reject_range_edges, initial_labels=initial)
+    # Pixels the sweep found unseen by every source stay invalid.
+    valid = m.valid & result.valid
+    height = np.where(valid, m.height, np.nan)
+    refined = SweepResult(height=height, plane_index=m.plane_index, confidence=m.confidence,
+                          valid=valid, cost_min=m.cost_min, n_tiles=result.n_tiles,
+                          n_batches=result.n_batches, peak_device_bytes=result.peak_device_bytes)
+    return refined, {"method": config.mrf.method, "seconds": m.seconds,
+                     "valid_fraction": float(np.mean(valid))}
+
+
+def _nanmean_stack(arrays: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
+    """Per-cell mean over the arrays that have a value there; NaN where none has one."""
+    if not arrays:
+        return np.full(shape, np.nan, np.float32)
+    stack = np.stack(arrays).astype(np.float64)
+    have = np.isfinite(stack)
+    n = have.sum(axis=0)
+    total = np.where(have, stack, 0.0).sum(axis=0)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan).astype(np.float32)
+
+
+def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunReport,
+              out: OutputFolder, truth, names):
+    from .dsm import (dsm_grid_for_aoi, fill_small_holes, fuse_dsms, height_map_to_points,
+                      points_to_utm, rasterise_max, write_dsm_geotiff)
+    from .imageio import write_geotiff
+    from .ply import write_ply
+    from .render import height_png
+
+    d = config.dsm
+    with rep.stage("dsm"):
+        grid = dsm_grid_for_aoi(aoi, d.resolution, epsg=cameras.utm_epsg)
+        rasters, conf_rasters, clouds = [], [], []
+        for pv in per_view:
+            r = pv["index"]
+            height = np.where(pv["valid"], pv["height"], np.nan)
+            gray = np.clip(np.nan_to_num(images[r]) * 255.0, 0, 255).astype(np.uint8)
+            pts = height_map_to_points(height, pv["valid"] & np.isfinite(height),
+                                       cameras.views[r].camera.P, cameras.frame,
+                                       colors=gray, confidence=pv["confidence"],
+                                       subsamples=d.subsamples)
+            x, y, z = points_to_utm(pts, grid.epsg)
+            rasters.append(rasterise_max(x, y, z, grid))
+            if pts.confidence is not None:
+                conf_rasters.append(rasterise_max(x, y, pts.confidence, grid))
+            clouds.append((x, y, z, pts.colors))
+        fused, count = fuse_dsms(rasters, outlier_m=d.outlier_m, min_views=d.min_views)
+        filled = 0
+        if d.fill_max_hole_cells > 0:
+            fused, filled = fill_small_holes(fused, max_hole_cells=d.fill_max_hole_cells,
+                                             method=d.fill_method)
+        conf = _nanmean_stack(conf_rasters, grid.shape)
+        valid_cells = np.isfinite(fused)
+        rep["dsm"] = {
+            "epsg": grid.epsg, "resolution_m": grid.resolution, "width": grid.width,
+            "height": grid.height, "x_min": grid.x_min, "y_max": grid.y_max,
+            "filled_fraction": float(valid_cells.mean()),
+            "holes_filled_cells": int(filled),
+            "per_view_filled_fraction": [float(np.isfinite(a).mean()) for a in rasters],
+        }
+    with rep.stage("outputs"):
+        dsm_path = out.path("dsm.tif")
+        write_dsm_geotiff(dsm_path, fused.astype(np.float32), grid)
+        write_geotiff(out.path("confidence.tif"), conf.astype(np.float32), epsg=grid.epsg,
+                      x_min=grid.x_min, y_max=grid.y_max, resolution=grid.resolution)
+        height_png(out.path("dsm.png"), fused, title="satsweep DSM (m above WGS84 ellipsoid)")
+        if config.reconstruct.write_cloud:
+            xs = np.concatenate([c[0] for c in clouds])
+            ys = np.concatenate([c[1] for c in clouds])
+            zs = np.concatenate([c[2] for c in clouds])
+            colors = (np.concatenate([c[3] for c in clouds]) if all(c[3] is not None for c in clouds)
+                      else None)
+            write_ply(out.path("cloud.ply"), xs, ys, zs, colors=colors,
+                      comments=(f"crs EPSG:{grid.epsg}", "generated by satsweep"))
+    evaluation = None
+    if truth is not None:
+        from .evaluate import evaluate_dsm
+
+        with rep.stage("evaluate"):
+            evaluation = evaluate_dsm(dsm_path, truth, out_dir=out.path("evaluation"))
+            evaluation["prediction"] = os.fspath(out.out_dir / dsm_path.name)  # its final name
+            out.path("evaluation/evaluation.json").write_text(to_json(evaluation) + "\n",
+                                                              encoding="utf-8")
+            rep["evaluation"] = evaluation
+    return dsm_path, evaluation
