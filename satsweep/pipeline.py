@@ -301,7 +301,11 @@ def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunRe
             rasters.append(rasterise_max(x, y, z, grid))
             if pts.confidence is not None:
                 conf_rasters.append(rasterise_max(x, y, pts.confidence, grid))
-            clouds.append((x, y, z, pts.colors))
+            # The cloud covers the AOI's DSM grid, like the DSM (the crops extend beyond it).
+            keep = ((x >= grid.x_min) & (x <= grid.x_min + grid.width * grid.resolution)
+                    & (y <= grid.y_max) & (y >= grid.y_max - grid.height * grid.resolution))
+            clouds.append((x[keep], y[keep], z[keep],
+                           None if pts.colors is None else pts.colors[keep]))
         fused, count = fuse_dsms(rasters, outlier_m=d.outlier_m, min_views=d.min_views)
         filled = 0
         if d.fill_max_hole_cells > 0:

@@ -1,0 +1,219 @@
+"""End to end: `satsweep reconstruct` / `satsweep demo` on a tiny synthetic scene with exact truth,
+the configuration file, and the bad-input cases of the command line."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+
+from satsweep.aoi import AltitudeRange
+from satsweep.cli import main
+from satsweep.config import PipelineConfig
+from satsweep.errors import OptionsError, OutputExistsError
+from satsweep.pipeline import reconstruct
+from satsweep.ply import read_ply
+from satsweep.synth import SynthOptions, generate_scene
+
+# A small camera-fit grid keeps the test fast; the approximation error stays far below 0.01 px.
+FAST_CAMERA = {"camera": {"grid_size": [20, 20, 6]}}
+# Accuracy bounds on the tiny scene (96 m square at 0.5 m, 2 views, B/H 0.2). The issue's
+# targets (0.10 m, 93%) are measured on larger scenes by tools/bench_e2e.py; a 96 m scene is
+# mostly building edges and image borders, so the bounds here only catch a broken pipeline
+# (a wrong frame or axis, a lost half-pixel, a swapped view would give metres of error).
+MAX_MEDIAN_ABS_ERROR_M = 0.5
+MIN_COMPLETENESS_1M = 0.6
+# The synthetic scene's altitude range, widened so that the true surface is never at its edge.
+ALT_MARGIN_M = 5.0
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    out = tmp_path_factory.mktemp("scene")
+    return generate_scene(out / "scene", SynthOptions(seed=3, n_views=2, size_px=192, gsd_m=0.5))
+
+
+def _alt(scene) -> AltitudeRange:
+    lo, hi = scene.alt_range
+    return AltitudeRange(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M)
+
+
+def _aoi_arg(scene) -> str:
+    a = scene.aoi
+    return f"{a.lon_min},{a.lat_min},{a.lon_max},{a.lat_max}"
+
+
+@pytest.fixture(scope="module")
+def reconstruction(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("rec") / "out"
+    config = PipelineConfig.from_mapping(FAST_CAMERA)
+    return reconstruct([v.image for v in scene.views], scene.aoi, out, alt_range=_alt(scene),
+                       config=config, truth=scene.truth_dsm, verbose=False)
+
+
+def test_reconstruct_writes_every_output(reconstruction):
+    out = reconstruction.out_dir
+    names = {p.name for p in out.iterdir()}
+    assert {"dsm.tif", "confidence.tif", "cloud.ply", "dsm.png", "cameras.json", "config.toml",
+            "report.json", "evaluation"} <= names
+    assert not [n for n in names if n.startswith(".satsweep-partial")]
+
+
+def test_dsm_georeferencing_read_by_gdal(reconstruction, scene):
+    """rasterio (GDAL) reads dsm.tif with the scene's UTM CRS, its 0.5 m north-up transform on
+    the same cell lattice as the truth, and NaN nodata."""
+    with rasterio.open(reconstruction.out_dir / "dsm.tif") as pred, rasterio.open(scene.truth_dsm) as truth:
+        assert pred.crs.to_epsg() == truth.crs.to_epsg() == scene.dsm_grid.epsg
+        assert pred.dtypes[0] == "float32" and np.isnan(pred.nodata)
+        a, t = pred.transform, truth.transform
+        assert (a.a, a.e, a.b, a.d) == (0.5, -0.5, 0.0, 0.0)
+        # both grids snap to multiples of the cell size: same lattice
+        assert ((a.c - t.c) / 0.5) == pytest.approx(round((a.c - t.c) / 0.5), abs=1e-9)
+        assert ((a.f - t.f) / 0.5) == pytest.approx(round((a.f - t.f) / 0.5), abs=1e-9)
+        data = pred.read(1)
+    assert np.isfinite(data).mean() > MIN_COMPLETENESS_1M
+
+
+def test_accuracy_against_the_exact_truth(reconstruction):
+    ev = reconstruction.evaluation
+    a = ev["aligned"]
+    assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M, ev
+    assert a["completeness_1m"] >= MIN_COMPLETENESS_1M, ev
+    # The estimated cameras put the DSM in place: the best alignment shift is at most one cell.
+    assert abs(a["shift"]["dx_m"]) <= 0.5 and abs(a["shift"]["dy_m"]) <= 0.5
+
+
+def test_report_records_settings_device_timings_and_views(reconstruction):
+    rep = json.loads((reconstruction.out_dir / "report.json").read_text())
+    for stage in ("views", "cameras", "select", "sweep", "dsm", "outputs", "evaluate", "total"):
+        assert rep["timings_s"][stage] >= 0
+    assert rep["device"]["can_build"] is True
+    assert rep["settings"]["camera"]["grid_size"] == [20, 20, 6]
+    refs = rep["view_selection"]["references"]
+    assert sorted(r["reference"] for r in refs) == ["view_00.tif", "view_01.tif"]  # 2 views: each once
+    assert rep["evaluation"]["prediction"] == str(reconstruction.out_dir / "dsm.tif")
+
+
+def test_config_written_is_the_config_used(reconstruction):
+    again = PipelineConfig.from_toml(reconstruction.out_dir / "config.toml")
+    assert again == PipelineConfig.from_mapping(FAST_CAMERA)
+
+
+def test_point_cloud_is_utm_with_colour_and_epsg(reconstruction, scene):
+    ply = read_ply(reconstruction.out_dir / "cloud.ply")
+    assert any(f"EPSG:{scene.dsm_grid.epsg}" in c for c in ply["comments"])
+    x, y, z = ply["x"], ply["y"], ply["z"]
+    assert x.dtype == np.float64 and len(x) > 1000
+    with rasterio.open(scene.truth_dsm) as truth:
+        b = truth.bounds
+        lo, hi = scene.alt_range
+    # the cloud covers the AOI's grid (the truth grid is the same AOI's)
+    assert x.min() >= b.left - 0.5 and x.max() <= b.right + 0.5
+    assert y.min() >= b.bottom - 0.5 and y.max() <= b.top + 0.5
+    assert lo - ALT_MARGIN_M <= np.median(z) <= hi + ALT_MARGIN_M
+    assert {"red", "green", "blue"} <= set(ply)
+
+
+def test_existing_output_is_refused_and_left_untouched(scene, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep")
+    rc = main(["reconstruct", *map(str, (v.image for v in scene.views)), "--aoi", _aoi_arg(scene),
+               "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "not empty" in err and "--overwrite" in err
+    assert [p.name for p in out.iterdir()] == ["mine.txt"]
+
+
+def test_failing_run_writes_nothing(scene, tmp_path):
+    """A failure after the outputs' folder was created (here: a device that does not exist,
+    found before any stage) removes what the run created."""
+    out = tmp_path / "new"
+    config = PipelineConfig.from_mapping({"reconstruct": {"device": "9:9"}})
+    with pytest.raises(Exception):
+        reconstruct([v.image for v in scene.views], scene.aoi, out, alt_range=_alt(scene),
+                    config=config, verbose=False)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "table, needle",
+    [
+        ({"sweep": {"gf_radius": -1}}, "SweepOptions.gf_radius"),
+        ({"sweep": {"gf_radus": 3}}, "unknown key(s) gf_radus"),
+        ({"sweeps": {}}, "unknown table(s) [sweeps]"),
+        ({"mrf": {"method": "magic"}}, "MRFOptions.method"),
+        ({"dsm": {"resolution": "half"}}, "DSMOptions.resolution"),
+    ],
+)
+def test_config_errors_name_the_key(table, needle):
+    with pytest.raises(OptionsError) as info:
+        PipelineConfig.from_mapping(table, source="my.toml")
+    assert needle in str(info.value)
+
+
+def test_cli_overrides_the_config_file(tmp_path):
+    from satsweep.cli import _pipeline_config, build_parser
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[mrf]\nmethod = "graphcut"\n[dsm]\nresolution = 1.0\n')
+    args = build_parser().parse_args(["reconstruct", "a.tif", "b.tif", "--aoi", "0,0,1,1", "--out",
+                                      "o", "--config", str(cfg), "--mrf", "none"])
+    config = _pipeline_config(args)
+    assert config.mrf.method == "none" and config.dsm.resolution == 1.0
+
+
+def _cli_error(capsys, args) -> str:
+    rc = main(args)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("satsweep: error:"), err
+    return lines[0]
+
+
+def test_cli_bad_inputs(scene, tmp_path, capsys):
+    imgs = [str(v.image) for v in scene.views]
+    aoi = _aoi_arg(scene)
+    out = tmp_path / "out"
+    not_tiff = tmp_path / "notes.tif"
+    not_tiff.write_text("hello")
+    cases = [
+        (["reconstruct", imgs[0], "--aoi", aoi, "--out", str(out)], "at least two images"),
+        (["reconstruct", *imgs, "--aoi", "3,1,2,2", "--out", str(out)], "lon_min = 3.0 >= lon_max"),
+        (["reconstruct", *imgs, "--aoi", aoi, "--alt-range", "200", "100", "--out", str(out)],
+         "--alt-range 200 100"),
+        (["reconstruct", str(not_tiff), imgs[1], "--aoi", aoi, "--alt-range", "90", "160", "--out",
+          str(out)], "notes.tif"),
+        (["reconstruct", *imgs, "--aoi", aoi, "--out", str(out), "--config", str(tmp_path / "no.toml")],
+         "no.toml"),
+        (["reconstruct", *imgs, "--aoi", aoi, "--out", str(out), "--device", "7:7"], "7:7"),
+    ]
+    for args, needle in cases:
+        line = _cli_error(capsys, args + ["--quiet"])
+        assert needle in line, (args, line)
+        assert not out.exists(), args
+
+
+def test_demo_command(tmp_path, capsys):
+    """The README's first command ends with `satsweep demo`: it must run and print the metrics."""
+    rc = main(["demo", "--out", str(tmp_path / "demo"), "--size", "128", "--quiet",
+               "--config", str(_fast_config(tmp_path))])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "median |error|" in out and "completeness_1m" in out
+    assert (tmp_path / "demo" / "reconstruction" / "dsm.tif").is_file()
+    assert (tmp_path / "demo" / "scene" / "truth_dsm.tif").is_file()
+    with pytest.raises(OutputExistsError):
+        from satsweep.demo import run_demo
+
+        run_demo(tmp_path / "demo", verbose=False)
+
+
+def _fast_config(tmp_path: Path) -> Path:
+    path = tmp_path / "fast.toml"
+    path.write_text("[camera]\ngrid_size = [20, 20, 6]\n")
+    return path
