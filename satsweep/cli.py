@@ -93,25 +93,15 @@ def _add_cameras(sub) -> None:
     p.set_defaults(handler=_cmd_cameras)
 
 
-def _check_out_dir(path: str, overwrite: bool) -> None:
-    """Refuse an --out that is a file, or a non-empty folder without --overwrite (writes nothing)."""
-    import os
-
-    from .errors import OptionsError, OutputExistsError
-
-    if os.path.exists(path) and not os.path.isdir(path):
-        raise OptionsError(f"--out {path}: exists and is not a folder")
-    if os.path.isdir(path) and os.listdir(path) and not overwrite:
-        raise OutputExistsError(f"--out {path}: folder is not empty (pass --overwrite to write into it)")
-
-
 def _cmd_cameras(args: argparse.Namespace) -> int:
     from . import camera as scam
     from .aoi import AltitudeRange, parse_aoi, resolve_altitude_range
     from .errors import AOIError
     from .views import load_views
 
-    _check_out_dir(args.out, args.overwrite)
+    from .imageio import check_output_dir
+
+    check_output_dir(args.out, overwrite=args.overwrite)
     options = scam.CameraOptions() if args.grid is None else scam.CameraOptions(grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
     alt = None

@@ -100,6 +100,19 @@ class GeoInfo:
 
 
 # -- atomic outputs ----------------------------------------------------------------------------
+def check_output_dir(path: str | os.PathLike, *, overwrite: bool) -> None:
+    """Refuse an output folder that is a file, or a non-empty folder without ``overwrite``.
+
+    Called before anything is computed, so that a refused run writes nothing."""
+    from .errors import OutputExistsError
+
+    path = os.fspath(path)
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise OptionsError(f"--out {path}: exists and is not a folder")
+    if os.path.isdir(path) and os.listdir(path) and not overwrite:
+        raise OutputExistsError(f"--out {path}: folder is not empty (pass --overwrite to write into it)")
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike) -> Iterator[str]:
     """Yield a temporary path beside ``path``; rename it to ``path`` on success, remove it on error.

@@ -27,7 +27,7 @@ import numpy as np
 
 from .aoi import AOI, AltitudeRange, resolve_altitude_range
 from .config import PipelineConfig
-from .errors import CameraError, OptionsError, OutputExistsError, SatsweepError
+from .errors import CameraError, OptionsError
 from .report import RunReport, to_json
 
 
@@ -57,11 +57,9 @@ class OutputFolder:
     @staticmethod
     def check(out_dir: Path, *, overwrite: bool) -> None:
         """Refuse a path that is a file, or a non-empty folder without ``overwrite``."""
-        if out_dir.exists() and not out_dir.is_dir():
-            raise OptionsError(f"--out {out_dir}: exists and is not a folder")
-        if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-            raise OutputExistsError(
-                f"--out {out_dir}: folder is not empty (pass --overwrite to write into it)")
+        from .imageio import check_output_dir
+
+        check_output_dir(out_dir, overwrite=overwrite)
 
     def path(self, name: str) -> Path:
         p = self.staging / name

@@ -41,7 +41,8 @@ from . import __version__
 from .aoi import AOI
 from .errors import InputError, OptionsError, OutputExistsError
 from .geo import ENUFrame, lonlat_to_utm, utm_epsg, utm_to_lonlat
-from .imageio import atomic_output, write_geotiff, write_tiff
+from .dsm import DSMGrid, dsm_grid_for_aoi
+from .imageio import atomic_output, check_output_dir, write_geotiff, write_tiff
 from .options import Options
 from .pushbroom import PushbroomCamera, base_to_height
 from .rpc import RPCModel, rpc_tiff_extratag, write_rpc_txt
@@ -314,32 +315,6 @@ def fit_view_rpc(camera: PushbroomCamera, frame: ENUFrame, *, lon_range: tuple[f
 # ---------------------------------------------------------------------------------------------
 # Truth DSM
 # ---------------------------------------------------------------------------------------------
-@dataclasses.dataclass(frozen=True)
-class DSMGrid:
-    """A north-up UTM grid: outer corner (x_min, y_max), square cells, width x height."""
-
-    epsg: int
-    x_min: float
-    y_max: float
-    resolution: float
-    width: int
-    height: int
-
-
-def dsm_grid_for(aoi: AOI, *, resolution: float) -> DSMGrid:
-    """UTM grid covering the AOI, with edges on multiples of ``resolution``."""
-    lon_c, lat_c = aoi.center
-    epsg = utm_epsg(lon=lon_c, lat=lat_c)
-    lon, lat = aoi.boundary()
-    x, y = lonlat_to_utm(lon=lon, lat=lat, epsg=epsg)
-    x_min = math.floor(float(x.min()) / resolution) * resolution
-    y_min = math.floor(float(y.min()) / resolution) * resolution
-    x_max = math.ceil(float(x.max()) / resolution) * resolution
-    y_max = math.ceil(float(y.max()) / resolution) * resolution
-    return DSMGrid(epsg=epsg, x_min=x_min, y_max=y_max, resolution=resolution,
-                   width=int(round((x_max - x_min) / resolution)), height=int(round((y_max - y_min) / resolution)))
-
-
 def surface_altitude(grid: SurfaceGrid, frame: ENUFrame, *, lon, lat,
                      z_range: tuple[float, float] = NOMINAL_Z_RANGE) -> np.ndarray:
     """Ellipsoidal altitude (m) of the surface at (lon, lat) (degrees); NaN off the grid.
@@ -499,13 +474,6 @@ def _scene_from_doc(directory: Path, doc: dict) -> Scene:
     )
 
 
-def _check_output_dir(out_dir: Path, overwrite: bool) -> None:
-    if out_dir.exists() and not out_dir.is_dir():
-        raise OutputExistsError(f"{out_dir}: exists and is not a folder")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise OutputExistsError(f"{out_dir}: output folder is not empty (use --overwrite to replace its scene)")
-
-
 def view_name(index: int) -> str:
     return f"view_{index:02d}"
 
@@ -521,7 +489,7 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
     """
     options = options if options is not None else SynthOptions()
     out_dir = Path(out_dir)
-    _check_output_dir(out_dir, overwrite)
+    check_output_dir(out_dir, overwrite=overwrite)
     say = log if log is not None else (lambda _msg: None)
     design = design_scene(options)
     frame = design.frame
@@ -573,7 +541,7 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
             f"({time.perf_counter() - t1:.1f} s)")
 
     t1 = time.perf_counter()
-    dsm_grid = dsm_grid_for(aoi, resolution=options.dsm_resolution_m)
+    dsm_grid = dsm_grid_for_aoi(aoi, options.dsm_resolution_m)
     dsm = truth_dsm(grid, frame, dsm_grid)
     write_geotiff(out_dir / TRUTH_DSM_FILE, dsm, epsg=dsm_grid.epsg, x_min=dsm_grid.x_min,
                   y_max=dsm_grid.y_max, resolution=dsm_grid.resolution, nodata=math.nan)
