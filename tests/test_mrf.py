@@ -1,0 +1,431 @@
+"""MRF refinement (satsweep.mrf): SGM kernels against the numpy reference on every device, the
+graph-cut expansion move against brute force, and both MRFs against winner-take-all where the
+texture is weak: a synthetic cost volume with a large flat roof, and the census costs of a
+rendered scene with a plain plaza, both with exact ground truth."""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from satsweep import mrf
+from satsweep.errors import InputError, OptionsError
+from satsweep.sweep import translation_homographies
+
+import reference_sweep
+from reference_sgm import aggregate as reference_aggregate
+
+# PoCL rounds the same float32 operation sequence as the numpy reference (bit-exact); a GPU may
+# round the division in P2' by a few ulp differently, which adds up along a path: allow 1e-5 of
+# the largest aggregated value (about 100 ulp of it).
+SGM_REL_TOL = 1e-5
+# Fractional plane indices and confidences are computed from float32 costs on the device and in
+# float64 numpy here: they agree to float32 precision of values of order 1.
+INDEX_TOL = 1e-4
+CONF_TOL = 1e-5
+# Labels are compared only where the best aggregated cost beats the second best by more than
+# this fraction of the volume's maximum (ties may resolve differently under device rounding).
+ARGMIN_MARGIN = 1e-4
+# Graph-cut energies are float64 sums of a few hundred float32 terms.
+ENERGY_TOL = 1e-6
+# Weak-texture roof: WTA finds the roof plane for about 14 % of its pixels and has a median
+# error of 4.5 m; an MRF must get at least this many more roof pixels within 1 m ...
+ROOF_COMPLETENESS_GAIN = 0.4
+# ... and at most this fraction of the WTA's median error on the roof ...
+ROOF_MEDIAN_RATIO = 0.25
+# ... without losing the textured terrain around it, which WTA gets entirely right.
+TERRAIN_MIN_COMPLETENESS = 0.99
+# Completeness threshold of the issue (|error| < 1 m, planes 0.5 m apart).
+COMPLETENESS_M = 1.0
+# Rendered plaza, census costs (guided filter): WTA gets 41 % (seed 1) to 56 % (seed 0) of the
+# plaza within 1 m; an MRF must add at least this fraction ...
+PLAZA_COMPLETENESS_GAIN = 0.2
+# ... and bring the plaza's median error to at most this fraction of the WTA's (measured: 0.15
+# to 0.6 over seeds and methods).
+PLAZA_MEDIAN_RATIO = 0.75
+
+SMALL = (16, 24, 31)  # labels, rows, columns of the volumes checked against the reference
+
+
+def _random_volume(seed: int, shape=SMALL, scale: float = 24.0):
+    rng = np.random.default_rng(seed)
+    n_labels, h, w = shape
+    cost = rng.uniform(0.0, scale, shape).astype(np.float32)
+    cost[:, 3, 4] = mrf.SATSWEEP_INVALID        # a pixel no source sees: filled by smoothness
+    cost[n_labels // 2, h - 2, w - 3] = mrf.SATSWEEP_INVALID  # one missing plane
+    cost[1, h - 1, 0] = np.nan                  # NaN reads as missing too
+    guide = rng.uniform(0.0, 1.0, (h, w)).astype(np.float32)
+    guide[:, w // 2:] += 0.5                    # a strong edge where P2 drops
+    return cost, guide
+
+
+# ---------------------------------------------------------------------------------------------
+# SGM
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("paths", [4, 8])
+@pytest.mark.parametrize("work_group", [1, 8])
+def test_sgm_aggregate_matches_reference(cl_device, paths, work_group):
+    scale = 24.0
+    cost, guide = _random_volume(1, scale=scale)
+    opts = mrf.MRFOptions(sgm_paths=paths, sgm_work_group=work_group, sgm_p1=0.08,
+                          sgm_p2=0.6, sgm_p2_sigma=0.2)
+    got = mrf.sgm_aggregate(cl_device, cost, guide, opts, cost_scale=scale).get()
+    want = reference_aggregate(cost, guide, n_paths=paths, p1=0.08 * scale, p2=0.6 * scale,
+                               inv_sigma=1.0 / 0.2, missing_cost=scale)
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
+
+
+def test_sgm_without_p2_adaptation_matches_reference(cl_device):
+    cost, guide = _random_volume(2, shape=(5, 9, 7), scale=1.0)
+    opts = mrf.MRFOptions(sgm_p2_sigma=0.0, sgm_p1=0.2, sgm_p2=0.7)
+    got = mrf.sgm_aggregate(cl_device, cost, guide, opts).get()
+    want = reference_aggregate(cost, guide, n_paths=8, p1=0.2, p2=0.7, inv_sigma=0.0,
+                               missing_cost=1.0)
+    np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
+
+
+def test_sgm_accepts_device_arrays_and_buffers(cl_device):
+    import pyopencl.array as cla
+
+    cost, guide = _random_volume(3)
+    opts = mrf.MRFOptions()
+    from_host = mrf.sgm_aggregate(cl_device, cost, guide, opts, cost_scale=24.0).get()
+    arr = cla.to_device(cl_device.queue, cost)
+    from_array = mrf.sgm_aggregate(cl_device, arr, guide, opts, cost_scale=24.0).get()
+    from_buffer = mrf.sgm_aggregate(cl_device, arr.data, guide, opts, cost_scale=24.0,
+                                    shape=cost.shape).get()
+    np.testing.assert_array_equal(from_array, from_host)
+    np.testing.assert_array_equal(from_buffer, from_host)
+    with pytest.raises(InputError, match="shape"):
+        mrf.sgm_aggregate(cl_device, arr.data, guide, opts)
+
+
+def _numpy_wta(vol: np.ndarray):
+    """Independent WTA of the sweep's rules: first argmin, parabola, second local minimum."""
+    v = vol.astype(np.float64)
+    n_labels = v.shape[0]
+    best = np.argmin(v, axis=0)
+    pad = np.concatenate([np.full((1,) + v.shape[1:], np.inf), v,
+                          np.full((1,) + v.shape[1:], np.inf)])
+    local_min = (v < pad[:-2]) & (v <= pad[2:])
+    local_min &= np.arange(n_labels)[:, None, None] != best[None]
+    c1 = np.take_along_axis(v, best[None], 0)[0]
+    c2 = np.where(local_min, v, np.inf).min(axis=0)
+    c2 = np.where(np.isfinite(c2), c2, v.max(axis=0))
+    cm = np.take_along_axis(v, np.maximum(best - 1, 0)[None], 0)[0]
+    cp = np.take_along_axis(v, np.minimum(best + 1, n_labels - 1)[None], 0)[0]
+    denom = cm - 2 * c1 + cp
+    inner = (best > 0) & (best < n_labels - 1) & (denom > 0)
+    off = np.where(inner, np.clip(0.5 * (cm - cp) / np.where(inner, denom, 1.0), -0.5, 0.5), 0.0)
+    order = np.sort(v, axis=0)
+    margin = order[1] - order[0]
+    return best, off, c1, c2, margin
+
+
+def test_sgm_refine_matches_numpy_wta(cl_device):
+    scale = 24.0
+    cost, guide = _random_volume(4, scale=scale)
+    n_labels, h, w = cost.shape
+    heights = 250.0 - 0.75 * np.arange(n_labels)           # decreasing heights are allowed
+    rng = np.random.default_rng(5)
+    visible = rng.uniform(size=cost.shape) > 0.2           # per-plane visibility
+    opts = mrf.MRFOptions(sgm_paths=8)
+    res = mrf.sgm_refine(cl_device, cost, guide, heights, opts, cost_scale=scale,
+                         visible=visible, reject_range_edges=True)
+    agg = reference_aggregate(cost, guide, n_paths=8, p1=opts.sgm_p1 * scale,
+                              p2=opts.sgm_p2 * scale, inv_sigma=1.0 / opts.sgm_p2_sigma,
+                              missing_cost=scale)
+    best, off, c1, c2, margin = _numpy_wta(agg)
+    sure = margin > ARGMIN_MARGIN * float(agg.max())
+    assert sure.mean() > 0.9
+    np.testing.assert_array_equal(res.labels[sure], best[sure])
+    np.testing.assert_allclose(res.plane_index[sure], (best + off)[sure], atol=INDEX_TOL)
+    conf = np.clip((c2 - c1) / (8 * scale), 0, 1)
+    np.testing.assert_allclose(res.confidence[sure], conf[sure], atol=CONF_TOL)
+    want_valid = np.take_along_axis(visible, best[None], 0)[0] & (best > 0) & (best < n_labels - 1)
+    np.testing.assert_array_equal(res.valid[sure], want_valid[sure])
+    want_h = np.interp(best + off, np.arange(n_labels), heights)
+    ok = sure & want_valid
+    np.testing.assert_allclose(res.height[ok], want_h[ok], atol=INDEX_TOL * 0.75)
+    assert np.isnan(res.height[~res.valid]).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# graph cut
+# ---------------------------------------------------------------------------------------------
+def _naive_energy(cost, guide, labels, lam, sigma, trunc):
+    """E(l) with explicit loops over pixels and 4-connected pairs."""
+    n_labels, h, w = cost.shape
+    e = 0.0
+    for y in range(h):
+        for x in range(w):
+            e += float(cost[labels[y, x], y, x])
+            for yy, xx in ((y, x + 1), (y + 1, x)):
+                if yy < h and xx < w:
+                    d = float(guide[y, x]) - float(guide[yy, xx])
+                    wgt = lam * math.exp(-d * d / (2 * sigma * sigma))
+                    e += wgt * min(abs(int(labels[y, x]) - int(labels[yy, xx])), trunc)
+    return e
+
+
+def test_energy_matches_naive_sum():
+    rng = np.random.default_rng(6)
+    cost = rng.uniform(0, 10, (7, 5, 6)).astype(np.float32)
+    guide = rng.uniform(0, 1, (5, 6)).astype(np.float32)
+    labels = rng.integers(0, 7, (5, 6))
+    opts = mrf.MRFOptions(gc_smoothness=0.3, gc_edge_sigma=0.2, gc_truncation_labels=2)
+    got = mrf.mrf_energy(cost, guide, labels, opts, cost_scale=10.0)
+    want = _naive_energy(cost, guide, labels, 3.0, 0.2, 2)
+    assert got == pytest.approx(want, rel=ENERGY_TOL)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_expansion_move_is_the_best_expansion(seed):
+    """The min cut equals the brute-force best of all 2^n expansion moves on a 3x4 grid."""
+    rng = np.random.default_rng(seed)
+    n_labels, h, w, trunc = 8, 3, 4, 5
+    alpha = int(rng.integers(2, n_labels - 2))
+    # Labels around alpha, so that the pairwise terms are mostly below the truncation, and data
+    # costs that favour the current labels about as much as alpha: the best move is mixed.
+    labels = np.clip(alpha + rng.integers(-3, 4, h * w), 0, n_labels - 1)
+    cost = rng.uniform(4, 10, (n_labels, h * w))
+    cost[labels, np.arange(h * w)] = rng.uniform(0, 4, h * w)
+    cost[alpha] = rng.uniform(0, 5, h * w)
+    cost = cost.reshape(n_labels, h, w).astype(np.float32)
+    guide = rng.uniform(0, 1, (h, w)).astype(np.float32)
+    opts = mrf.MRFOptions(gc_smoothness=0.1, gc_edge_sigma=0.3, gc_truncation_labels=trunc)
+    wh, wv = mrf.edge_weights(guide, opts, 10.0)
+    fixed = rng.uniform(size=h * w) < 0.25                  # pixels outside the move's window
+    free = np.flatnonzero(~fixed)
+    grid = mrf._ExpansionGrid(cost, wh, wv, opts.gc_truncation_labels)
+    moved = labels.copy()
+    grid.move(moved, alpha, free)
+    assert np.all(moved[fixed] == labels[fixed])
+    assert np.all((moved == labels) | (moved == alpha))
+    best = math.inf
+    for choice in itertools.product((False, True), repeat=free.size):
+        cand = labels.copy()
+        cand[free[np.array(choice, bool)]] = alpha
+        best = min(best, _naive_energy(cost, guide, cand.reshape(h, w), 1.0, 0.3, trunc))
+    got = _naive_energy(cost, guide, moved.reshape(h, w), 1.0, 0.3, trunc)
+    assert got == pytest.approx(best, rel=ENERGY_TOL)
+
+
+def test_graphcut_lowers_the_energy_of_its_start_within_windows():
+    rng = np.random.default_rng(7)
+    n_labels, h, w = 12, 20, 26
+    cost = rng.uniform(0, 1, (n_labels, h, w)).astype(np.float32)
+    guide = rng.uniform(0, 1, (h, w)).astype(np.float32)
+    start = rng.integers(0, n_labels, (h, w)).astype(np.int32)
+    opts = mrf.MRFOptions(gc_levels=0, gc_label_window=2, gc_tile=16, gc_tile_overlap=4)
+    res = mrf.graphcut_refine(cost, guide, np.arange(n_labels) * 0.5, opts,
+                              initial_labels=start)
+    assert np.abs(res.labels - start).max() <= opts.gc_label_window
+    e_start = mrf.mrf_energy(cost, guide, start, opts)
+    assert res.energy == pytest.approx(mrf.mrf_energy(cost, guide, res.labels, opts))
+    assert res.energy < e_start
+
+
+def test_graphcut_validity_and_range_edges():
+    n_labels, h, w = 6, 4, 5
+    cost = np.ones((n_labels, h, w), np.float32)
+    truth = np.full((h, w), 3)
+    truth[:, 0] = 0                                          # at the first plane
+    cost[truth, np.arange(h)[:, None], np.arange(w)[None]] = 0.0
+    guide = np.zeros((h, w), np.float32)
+    visible = np.ones((h, w), bool)
+    visible[2, 3] = False
+    opts = mrf.MRFOptions(gc_smoothness=0.0)                 # pure data: labels = truth
+    heights = np.arange(n_labels) * 2.0
+    res = mrf.graphcut_refine(cost, guide, heights, opts, visible=visible)
+    np.testing.assert_array_equal(res.labels, truth)
+    want = visible & (truth > 0)
+    np.testing.assert_array_equal(res.valid, want)
+    np.testing.assert_allclose(res.height[want], heights[truth[want]])
+    assert np.isnan(res.height[~want]).all()
+    kept = mrf.graphcut_refine(cost, guide, heights, opts, visible=visible,
+                               reject_range_edges=False)
+    np.testing.assert_array_equal(kept.valid, visible)
+
+
+# ---------------------------------------------------------------------------------------------
+# both MRFs on a weakly textured roof
+# ---------------------------------------------------------------------------------------------
+def _errors(height, valid, scene, mask):
+    err = np.where(valid, np.abs(height - scene.truth_height), np.inf)[mask]
+    return float(np.median(err)), float(np.mean(err < COMPLETENESS_M))
+
+
+def _check_beats_wta(res, scene):
+    wta = scene.heights[mrf.wta_labels(scene.cost)]
+    everywhere = np.ones(scene.roof.shape, bool)
+    wta_median, wta_complete = _errors(wta, everywhere, scene, scene.roof)
+    median, complete = _errors(res.height, res.valid, scene, scene.roof)
+    assert complete >= wta_complete + ROOF_COMPLETENESS_GAIN, (complete, wta_complete)
+    assert median <= ROOF_MEDIAN_RATIO * wta_median, (median, wta_median)
+    _, terrain = _errors(res.height, res.valid, scene, ~scene.roof)
+    assert terrain >= TERRAIN_MIN_COMPLETENESS
+
+
+@pytest.fixture(scope="module")
+def roof_scene():
+    return mrf.synthetic_roof_volume(seed=11)
+
+
+def test_sgm_beats_wta_on_weak_texture(cl_device, roof_scene):
+    s = roof_scene
+    res = mrf.sgm_refine(cl_device, s.cost, s.guide, s.heights, mrf.MRFOptions(),
+                         cost_scale=s.cost_scale)
+    _check_beats_wta(res, s)
+
+
+@pytest.mark.parametrize("tile", [256, 24])
+def test_graphcut_beats_wta_on_weak_texture(roof_scene, tile):
+    s = roof_scene
+    opts = mrf.MRFOptions(gc_tile=tile, gc_tile_overlap=min(16, tile // 2))
+    res = mrf.graphcut_refine(s.cost, s.guide, s.heights, opts, cost_scale=s.cost_scale)
+    _check_beats_wta(res, s)
+    assert res.energy < mrf.mrf_energy(s.cost, s.guide, mrf.wta_labels(s.cost), opts,
+                                       cost_scale=s.cost_scale)
+
+
+def test_refine_dispatch(cl_device, roof_scene):
+    s = roof_scene
+    assert mrf.refine(cl_device, s.cost, s.guide, s.heights, mrf.MRFOptions(method="none")) is None
+    small = s.cost[:, :16, :20]
+    res = mrf.refine(None, small, s.guide[:16, :20], s.heights,
+                     mrf.MRFOptions(method="graphcut"), cost_scale=s.cost_scale)
+    assert res.labels.shape == (16, 20)
+    from satsweep.errors import DeviceError
+    with pytest.raises(DeviceError):
+        mrf.refine(None, small, s.guide[:16, :20], s.heights, mrf.MRFOptions(method="sgm"))
+
+
+# ---------------------------------------------------------------------------------------------
+# both MRFs on census costs of a rendered, weakly textured plaza
+# ---------------------------------------------------------------------------------------------
+class _Plaza:
+    """Reference and two sources of a gently sloping surface whose central plaza is weakly
+    textured (texture contrast 1 % of the surroundings', under 1 % sensor noise); the parallax
+    of source s is a translation by shift_s * height. The cost volume is the reference sweep's
+    (tests/reference_sweep.py): census 7 x 9, best source per pixel, guided filter r = 4."""
+
+    SHAPE = (56, 64)
+    SHIFTS = np.array([[0.5, 0.0], [-0.3, 0.35]])   # pixels per metre
+    HEIGHTS = np.arange(0.0, 10.01, 0.5)             # planes 0.5 m apart
+    MARGIN = 6                                       # border pixels left out of the statistics
+
+    def __init__(self, seed: int):
+        from scipy import ndimage
+
+        rng = np.random.default_rng(seed)
+        h, w = self.SHAPE
+        pad = 16
+        tex = reference_sweep.smooth_noise((h + 2 * pad, w + 2 * pad), 1.0, rng)
+
+        def height(x, y):
+            bump = np.exp(-((x - 0.08 * w) ** 2 + (y - 0.1 * h) ** 2) / (2 * (0.1 * w) ** 2))
+            return 3.0 + 0.04 * (x - w / 2) + 0.03 * (y - h / 2) + 3.0 * bump
+
+        def plaza(x, y):
+            return (x > 0.2 * w) & (x < 0.85 * w) & (y > 0.2 * h) & (y < 0.8 * h)
+
+        def texture(x, y):
+            t = ndimage.map_coordinates(tex, [y + pad, x + pad], order=3, mode="nearest")
+            return np.where(plaza(x, y), 0.5 + 0.01 * (t - 0.5), t)
+
+        ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+        self.ref = (texture(xs, ys) + rng.normal(0, 0.01, (h, w))).astype(np.float32)
+        self.truth = height(xs, ys)
+        srcs = []
+        for sx, sy in self.SHIFTS:
+            gx, gy = xs.copy(), ys.copy()
+            for _ in range(40):    # ground point seen at (x, y): fixed point of a contraction
+                z = height(gx, gy)
+                gx, gy = xs - sx * z, ys - sy * z
+            srcs.append((texture(gx, gy) + rng.normal(0, 0.01, (h, w))).astype(np.float32))
+        hom = translation_homographies(self.SHIFTS, self.HEIGHTS)
+        vol = reference_sweep.sweep_volume(self.ref, srcs, hom, 4, 3, 1)
+        self.cost = reference_sweep.guided_filter(vol, self.ref, 4, 1e-4).astype(np.float32)
+        self.wta = reference_sweep.wta(self.cost, 62)
+        inner = np.zeros((h, w), bool)
+        m = self.MARGIN
+        inner[m:-m, m:-m] = True
+        self.weak = inner & plaza(xs, ys)
+        self.textured = inner & ~plaza(xs, ys)
+
+    def errors(self, height, valid, mask):
+        err = np.where(valid, np.abs(height - self.truth), np.inf)[mask]
+        return float(np.median(err)), float(np.mean(err < COMPLETENESS_M))
+
+    def check(self, res):
+        best, frac = self.wta[0], self.wta[1]
+        n = self.HEIGHTS.size
+        wta_h = np.interp(frac, np.arange(n), self.HEIGHTS)
+        wta_valid = (best > 0) & (best < n - 1)
+        wta_median, wta_complete = self.errors(wta_h, wta_valid, self.weak)
+        median, complete = self.errors(res.height, res.valid, self.weak)
+        assert complete >= wta_complete + PLAZA_COMPLETENESS_GAIN, (complete, wta_complete)
+        assert median <= PLAZA_MEDIAN_RATIO * wta_median, (median, wta_median)
+        assert self.errors(res.height, res.valid, self.textured)[1] >= TERRAIN_MIN_COMPLETENESS
+
+
+@functools.lru_cache(maxsize=None)
+def _plaza(seed: int) -> _Plaza:
+    """The scene of a seed, built once per session (deterministic)."""
+    return _Plaza(seed)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_sgm_beats_wta_on_census_costs_of_a_plain_plaza(cl_device, seed):
+    p = _plaza(seed)
+    p.check(mrf.sgm_refine(cl_device, p.cost, p.ref, p.HEIGHTS, mrf.MRFOptions(),
+                           cost_scale=62.0))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_graphcut_beats_wta_on_census_costs_of_a_plain_plaza(seed):
+    p = _plaza(seed)
+    p.check(mrf.graphcut_refine(p.cost, p.ref, p.HEIGHTS, mrf.MRFOptions(), cost_scale=62.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# options and input checks
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("field,value", [
+    ("sgm_p2", 0.01), ("sgm_work_group", 3), ("sgm_paths", 6), ("gc_tile_overlap", 200),
+    ("gc_truncation_labels", 0), ("gc_levels", 9), ("method", "belief"), ("sgm_p2_sigma", -1.0),
+])
+def test_bad_options_name_the_field(field, value):
+    with pytest.raises(OptionsError, match=field):
+        mrf.MRFOptions(**{field: value})
+
+
+def test_options_from_mapping():
+    o = mrf.MRFOptions.from_mapping({"method": "graphcut", "gc_smoothness": 1})
+    assert o.method == "graphcut" and o.gc_smoothness == 1.0
+    with pytest.raises(OptionsError, match="unknown"):
+        mrf.MRFOptions.from_mapping({"sgm_p3": 1.0})
+
+
+def test_bad_inputs_are_input_errors():
+    cost = np.zeros((4, 5, 6), np.float32)
+    guide = np.zeros((5, 6), np.float32)
+    opts = mrf.MRFOptions()
+    with pytest.raises(InputError, match="heights"):
+        mrf.graphcut_refine(cost, guide, [0.0, 1.0, 2.0], opts)
+    with pytest.raises(InputError, match="equally spaced"):
+        mrf.graphcut_refine(cost, guide, [0.0, 1.0, 2.0, 4.0], opts)
+    with pytest.raises(InputError, match="guide"):
+        mrf.graphcut_refine(cost, guide[:4], [0.0, 1.0, 2.0, 3.0], opts)
+    with pytest.raises(InputError, match="cost_volume"):
+        mrf.graphcut_refine(cost[0], guide, [0.0], opts)
+    with pytest.raises(InputError, match="visible"):
+        mrf.graphcut_refine(cost, guide, [0.0, 1.0, 2.0, 3.0], opts, visible=np.ones((3, 3)))
+    with pytest.raises(InputError, match="cost_scale"):
+        mrf.graphcut_refine(cost, guide, [0.0, 1.0, 2.0, 3.0], opts, cost_scale=0.0)
