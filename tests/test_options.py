@@ -66,3 +66,12 @@ def test_bad_toml_names_the_file(tmp_path):
         load_toml(path)
     with pytest.raises(InputError, match="does not exist"):
         load_toml(tmp_path / "absent.toml")
+
+
+def test_public_api_names_resolve():
+    import satsweep
+
+    for name in satsweep.__all__:
+        assert getattr(satsweep, name) is not None, name
+    with pytest.raises(AttributeError):
+        satsweep.no_such_thing  # noqa: B018
