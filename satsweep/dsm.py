@@ -5,8 +5,12 @@ Stages (host code, float64 numpy, vectorised):
 1. ``height_map_to_points``: each valid reference pixel (col, row) with its surface height u (ENU
    up, metres) becomes a 3D point: the ENU (e, n) solving ``P @ [e, n, u, 1] ~ [col, row, 1]``
    exactly (a 2x2 linear system per pixel), then WGS84 lon/lat/ellipsoidal height.
+   ``cross_check_heights`` first keeps only the pixels whose 3D point another reference view's
+   height map confirms; ``height_map_to_enu`` stops at the ENU points (and their pixels).
 2. ``points_to_utm`` + ``rasterise_max``: points to UTM easting/northing, highest point per cell
    (a DSM is the top surface: a roof point beats a wall point falling in the same cell).
+   ``ENUToMap`` maps ENU points to UTM and ellipsoidal height directly with polynomials fitted
+   to the exact transform over the points' box (checked to 1 mm, else the exact transform).
 3. ``fuse_dsms``: per cell, median of the per-reference-view DSMs after discarding values farther
    than ``outlier_m`` from their first median (a consistency filter across views).
 4. ``fill_small_holes``: optional; fills enclosed holes of a few cells and returns how many cells
@@ -38,6 +42,17 @@ AOI_EDGE_SAMPLES = 65
 # degenerate: its viewing ray is parallel to the horizontal plane.
 DEGENERATE_RELATIVE_DET = 1e-12
 
+# ENUToMap: total degree of the polynomials, fitting nodes per axis (Chebyshev), largest error
+# accepted against the exact map (m; 1/500 of a 0.5 m cell, else the exact map is used), smallest
+# half-size of the fitted box (m; keeps a flat box well conditioned) and points per evaluation block.
+ENU_MAP_DEGREE = 3
+ENU_MAP_NODES = 7
+ENU_MAP_TOL_M = 1e-3
+ENU_MAP_MIN_HALF_M = 1.0
+ENU_MAP_BLOCK = 1 << 18
+_MONOMIAL_POWERS = tuple((i, j, k) for i in range(ENU_MAP_DEGREE + 1) for j in range(ENU_MAP_DEGREE + 1)
+                         for k in range(ENU_MAP_DEGREE + 1) if i + j + k <= ENU_MAP_DEGREE)
+
 # fuse_dsms works on row blocks of at most this many values (views x cells): ~64 MB per float64
 # temporary, whatever the DSM size.
 FUSE_BLOCK_VALUES = 8_000_000
@@ -48,15 +63,21 @@ class DSMOptions(Options):
     """Options of the DSM stage (rasterisation, fusion across reference views, hole filling)."""
 
     resolution: float = 0.5  # DSM cell size in metres (UTM)
-    subsamples: int = 1  # each reference pixel is splatted as subsamples x subsamples points over its footprint (1: centre only)
+    subsamples: int = 2  # each reference pixel is splatted as subsamples x subsamples points over its footprint (1: centre only, which leaves empty cells between the pixels' centres)
+    cross_check_m: float = 2.0  # keep a reference view's pixel only where another reference view's height map agrees within this (m); 0: no check
+    cross_check_views: int = 1  # how many other reference views must agree (at most all the others; a single reference view is not checked)
     outlier_m: float = 2.0  # fusion: discard per-view heights farther than this (m) from the first per-cell median
     min_views: int = 1  # fusion: cells kept by fewer reference views are left empty
-    fill_max_hole_cells: int = 0  # fill enclosed holes of at most this many cells (0: no filling)
+    fill_max_hole_cells: int = 1000  # fill enclosed holes of at most this many cells (0: no filling); the
+    # holes left by occlusions and by the cross-check are mostly ground hidden by a wall (filled cells are counted in report.json)
     fill_method: Literal["min", "median"] = "min"  # value given to a filled hole: min or median of its rim
 
     def check(self) -> None:
         self._require(math.isfinite(self.resolution) and self.resolution > 0.0, "resolution", "must be > 0 metres")
         self._require(1 <= self.subsamples <= 8, "subsamples", "must be 1..8")
+        self._require(math.isfinite(self.cross_check_m) and self.cross_check_m >= 0.0, "cross_check_m",
+                      "must be >= 0 metres (0 disables the check)")
+        self._require(self.cross_check_views >= 1, "cross_check_views", "must be >= 1")
         self._require(math.isfinite(self.outlier_m) and self.outlier_m > 0.0, "outlier_m", "must be > 0 metres")
         self._require(self.min_views >= 1, "min_views", "must be >= 1")
         self._require(self.fill_max_hole_cells >= 0, "fill_max_hole_cells", "must be >= 0 (0 disables filling)")
@@ -197,6 +218,178 @@ def height_map_to_points(
         colors=rgb,
         confidence=conf,
     )
+
+
+def project_points(P: np.ndarray, *, e, n, u) -> tuple[np.ndarray, np.ndarray]:
+    """(col, row) pixels of ENU points (m) through a 3x4 matrix; NaN behind the camera."""
+    P = np.asarray(P, dtype=np.float64)
+    e, n, u = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (e, n, u)))
+    w = P[2, 0] * e + P[2, 1] * n + P[2, 2] * u + P[2, 3]
+    ok = w > 0 if np.linalg.det(P[:, :3]) > 0 else w < 0  # in front: positive depth for K[R|t]
+    safe = np.where(ok, w, 1.0)
+    col = np.where(ok, (P[0, 0] * e + P[0, 1] * n + P[0, 2] * u + P[0, 3]) / safe, np.nan)
+    row = np.where(ok, (P[1, 0] * e + P[1, 1] * n + P[1, 2] * u + P[1, 3]) / safe, np.nan)
+    return col, row
+
+
+def cross_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.ndarray], *,
+                        tolerance_m: float, min_agreeing: int = 1) -> list[np.ndarray]:
+    """Consistency of the height maps of several reference views (a geometric cross-check).
+
+    ``heights[k]``: (H_k, W_k) ENU up coordinate (m) of the surface seen at each pixel of
+    reference view k, NaN where unknown; ``projections[k]``: that view's 3x4 ENU -> pixel matrix.
+    Each known pixel of view k becomes its 3-D point (the pixel's ray at its height); the point is
+    projected into every other view j, whose height at the nearest pixel (``floor(x + 0.5)``)
+    must lie within ``tolerance_m`` of the point's height. A pixel is kept when at least
+    ``min_agreeing`` other views confirm it (all the others when there are fewer): a wrong match
+    (occlusion, low texture, fattened edge) rarely lands on the same 3-D point from another
+    viewpoint. Returns one boolean mask per view (True = known and confirmed). With a single view
+    nothing can be checked and its known pixels are returned as they are.
+    """
+    maps = [np.asarray(h, dtype=np.float64) for h in heights]
+    if len(maps) != len(projections):
+        raise ValueError(f"cross_check_heights: {len(maps)} height maps, {len(projections)} projections")
+    if not (math.isfinite(tolerance_m) and tolerance_m > 0.0):
+        raise OptionsError(f"tolerance_m = {tolerance_m!r}: must be > 0 metres")
+    if not (isinstance(min_agreeing, int) and min_agreeing >= 1):
+        raise OptionsError(f"min_agreeing = {min_agreeing!r}: must be an integer >= 1")
+    known = [np.isfinite(h) for h in maps]
+    if len(maps) < 2:
+        return known
+    need = min(min_agreeing, len(maps) - 1)
+    out = []
+    for k, (h, P) in enumerate(zip(maps, projections)):
+        rows, cols = np.nonzero(known[k])
+        u = h[rows, cols]
+        e, n = solve_ground_en(P, col=cols.astype(np.float64), row=rows.astype(np.float64), u=u)
+        agree = np.zeros(u.size, dtype=np.int64)
+        for j, (hj, Pj) in enumerate(zip(maps, projections)):
+            if j == k:
+                continue
+            col, row = project_points(Pj, e=e, n=n, u=u)
+            with np.errstate(invalid="ignore"):
+                ic = np.floor(col + 0.5)
+                ir = np.floor(row + 0.5)
+                inside = (ic >= 0) & (ic < hj.shape[1]) & (ir >= 0) & (ir < hj.shape[0])
+            idx = np.nonzero(inside)[0]
+            other = hj[ir[idx].astype(np.int64), ic[idx].astype(np.int64)]
+            with np.errstate(invalid="ignore"):
+                agree[idx] += np.abs(other - u[idx]) <= tolerance_m
+        mask = np.zeros(h.shape, dtype=bool)
+        mask[rows, cols] = agree >= need
+        out.append(mask)
+    return out
+
+
+def _exact_enu_to_map(frame, epsg: int, e, n, u) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ENU (m) -> (easting, northing, ellipsoidal height) (m) through geodetic coordinates."""
+    from .geo import lonlat_to_utm
+
+    lon, lat, alt = frame.to_geodetic(e=e, n=n, u=u)
+    x, y = lonlat_to_utm(lon=lon, lat=lat, epsg=epsg)
+    return np.asarray(x, np.float64), np.asarray(y, np.float64), np.asarray(alt, np.float64)
+
+
+def _monomials(t: np.ndarray) -> np.ndarray:
+    """(3, N) normalised coordinates -> (n_terms, N) monomials of total degree <= ENU_MAP_DEGREE."""
+    powers = [[np.ones(t.shape[1])] for _ in range(3)]
+    for axis in range(3):
+        for _ in range(ENU_MAP_DEGREE):
+            powers[axis].append(powers[axis][-1] * t[axis])
+    out = np.empty((len(_MONOMIAL_POWERS), t.shape[1]))
+    for c, (i, j, k) in enumerate(_MONOMIAL_POWERS):
+        np.multiply(powers[0][i], powers[1][j], out=out[c])
+        out[c] *= powers[2][k]
+    return out
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ENUToMap:
+    """ENU (m) -> map coordinates of a projected CRS and ellipsoidal height, as polynomials.
+
+    Over an AOI the exact map (ENU -> ECEF -> geodetic -> UTM, through pyproj) is so smooth that
+    polynomials of total degree ``ENU_MAP_DEGREE`` in the normalised ENU coordinates reproduce it
+    to well under a millimetre; they cost a few multiply-adds per point instead of two geodetic
+    transforms, which matters for the millions of points of a DSM. ``fit`` checks the polynomials
+    against the exact map on points between its fitting nodes and reports the largest error.
+    """
+
+    frame: object  # the geo.ENUFrame of the ENU coordinates
+    epsg: int  # the projected CRS (metres)
+    center: np.ndarray  # (3,) ENU centre of the fitted box (m)
+    half: np.ndarray  # (3,) half-sizes of the box (m)
+    coef: np.ndarray  # (n_terms, 3) coefficients of x, y, alt
+    max_error_m: float  # largest distance to the exact map at the check points (m)
+
+    @classmethod
+    def fit(cls, frame, epsg: int, *, e_range: tuple[float, float], n_range: tuple[float, float],
+            u_range: tuple[float, float]) -> "ENUToMap":
+        """Least-squares fit over the ENU box; checked at the centres of the fitting cells."""
+        lo = np.array([e_range[0], n_range[0], u_range[0]], dtype=np.float64)
+        hi = np.array([e_range[1], n_range[1], u_range[1]], dtype=np.float64)
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi >= lo)):
+            raise ValueError(f"ENUToMap.fit: bad box {lo} .. {hi}")
+        center = 0.5 * (lo + hi)
+        half = np.maximum(0.5 * (hi - lo), ENU_MAP_MIN_HALF_M)
+        k = ENU_MAP_NODES
+        nodes = np.cos(np.pi * (np.arange(k) + 0.5) / k)[::-1]  # Chebyshev nodes in (-1, 1)
+        check = 0.5 * (nodes[1:] + nodes[:-1])
+
+        def box(s):
+            g = np.stack(np.meshgrid(s, s, s, indexing="ij"), axis=-1).reshape(-1, 3)
+            return g, center + g * half
+
+        t_fit, p_fit = box(nodes)
+        target = np.stack(_exact_enu_to_map(frame, epsg, *p_fit.T), axis=1)
+        coef, *_ = np.linalg.lstsq(_monomials(t_fit.T).T, target, rcond=None)
+        t_chk, p_chk = box(check)
+        exact = np.stack(_exact_enu_to_map(frame, epsg, *p_chk.T), axis=1)
+        err = float(np.max(np.linalg.norm(_monomials(t_chk.T).T @ coef - exact, axis=1)))
+        return cls(frame=frame, epsg=int(epsg), center=center, half=half, coef=coef,
+                   max_error_m=err)
+
+    @property
+    def accurate(self) -> bool:
+        """Whether the polynomials reproduce the exact map within ENU_MAP_TOL_M."""
+        return self.max_error_m <= ENU_MAP_TOL_M
+
+    def __call__(self, *, e, n, u) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(easting, northing, ellipsoidal height) in metres; the exact map when not accurate."""
+        e, n, u = (np.asarray(a, dtype=np.float64).ravel() for a in np.broadcast_arrays(e, n, u))
+        if not self.accurate:
+            return _exact_enu_to_map(self.frame, self.epsg, e, n, u)
+        out = np.empty((3, e.size))
+        for s in range(0, e.size, ENU_MAP_BLOCK):
+            t = np.stack([e[s:s + ENU_MAP_BLOCK], n[s:s + ENU_MAP_BLOCK], u[s:s + ENU_MAP_BLOCK]])
+            t = (t - self.center[:, None]) / self.half[:, None]
+            out[:, s:s + ENU_MAP_BLOCK] = self.coef.T @ _monomials(t)
+        return out[0], out[1], out[2]
+
+
+def height_map_to_enu(height: np.ndarray, valid: np.ndarray, P: np.ndarray, *,
+                      subsamples: int = 1) -> tuple[np.ndarray, ...]:
+    """ENU points (e, n, u) of the valid pixels of a height map, and their pixels' flat indices.
+
+    Like ``height_map_to_points`` (same sub-sample placement and order) but stops in the ENU
+    frame: returns (e, n, u, pixel) with ``pixel`` the row-major index of each point's pixel.
+    """
+    h = np.asarray(height, dtype=np.float64)
+    v = np.asarray(valid, dtype=bool) & np.isfinite(h)
+    if v.shape != h.shape or h.ndim != 2:
+        raise ValueError(f"height {h.shape} and valid {v.shape} must be 2D of one shape")
+    if not (isinstance(subsamples, int) and subsamples >= 1):
+        raise ValueError(f"subsamples = {subsamples!r}: must be a positive integer")
+    rows, cols = np.nonzero(v)
+    s = subsamples
+    offsets = (np.arange(s) + 0.5) / s - 0.5
+    oy, ox = np.meshgrid(offsets, offsets, indexing="ij")
+    pc = (cols[:, None] + ox.ravel()[None, :]).ravel()
+    pr = (rows[:, None] + oy.ravel()[None, :]).ravel()
+    u = np.repeat(h[rows, cols], s * s)
+    pixel = np.repeat(rows * h.shape[1] + cols, s * s)
+    e, n = solve_ground_en(P, col=pc, row=pr, u=u)
+    keep = np.isfinite(e) & np.isfinite(n)
+    return e[keep], n[keep], u[keep], pixel[keep]
 
 
 def points_to_utm(points: Points, epsg: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

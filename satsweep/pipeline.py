@@ -7,7 +7,8 @@ Stages (each timed in the report):
   skew      shear images so that K has no skew (satsweep.camera.skew_correct_set)
   select    reference views and their sources (satsweep.viewselect)
   sweep     OpenCL plane sweep per reference view (satsweep.sweep), then the MRF (satsweep.mrf)
-  dsm       height maps -> points (ENU -> lon/lat/alt -> UTM) -> per-view rasters -> fusion
+  dsm       height maps -> cross-check across the reference views (satsweep.dsm) -> points
+            over each pixel's footprint (ENU -> UTM) -> per-view rasters -> fusion -> filling
   outputs   dsm.tif, confidence.tif, cloud.ply, dsm.png, cameras.json, config.toml, report.json
 
 Outputs are first written into a hidden staging folder inside DIR and renamed into DIR only
@@ -275,10 +276,23 @@ def _nanmean_stack(arrays: list[np.ndarray], shape: tuple[int, int]) -> np.ndarr
     return np.where(n > 0, total / np.maximum(n, 1), np.nan).astype(np.float32)
 
 
+def _enu_to_map(frame, epsg: int, points: list[tuple[np.ndarray, ...]]):
+    """The ENU -> (UTM, height) map (``dsm.ENUToMap``) fitted over the bounding box of the points."""
+    from .dsm import ENUToMap
+
+    lo, hi = np.zeros(3), np.ones(3)  # any box when there is no point at all
+    if any(p[0].size for p in points):
+        stacked = [np.concatenate([p[k] for p in points]) for k in range(3)]
+        lo = np.array([a.min() for a in stacked])
+        hi = np.array([a.max() for a in stacked])
+    return ENUToMap.fit(frame, epsg, e_range=(lo[0], hi[0]), n_range=(lo[1], hi[1]),
+                        u_range=(lo[2], hi[2]))
+
+
 def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunReport,
               out: OutputFolder, truth, names):
-    from .dsm import (dsm_grid_for_aoi, fill_small_holes, fuse_dsms, height_map_to_points,
-                      points_to_utm, rasterise_max, write_dsm_geotiff)
+    from .dsm import (cross_check_heights, dsm_grid_for_aoi, fill_small_holes, fuse_dsms,
+                      height_map_to_enu, rasterise_max, write_dsm_geotiff)
     from .imageio import write_geotiff
     from .ply import write_ply
     from .render import height_png
@@ -286,24 +300,37 @@ def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunRe
     d = config.dsm
     with rep.stage("dsm"):
         grid = dsm_grid_for_aoi(aoi, d.resolution, epsg=cameras.utm_epsg)
+        heights = [np.where(pv["valid"], pv["height"], np.nan) for pv in per_view]
+        checked = [np.isfinite(h) for h in heights]
+        if d.cross_check_m > 0 and len(per_view) >= 2:
+            checked = cross_check_heights(
+                heights, [cameras.views[pv["index"]].camera.P for pv in per_view],
+                tolerance_m=d.cross_check_m, min_agreeing=d.cross_check_views)
+        # Points of every view in ENU: the footprint sub-samples for the rasters, the pixel
+        # centres for the cloud; then one polynomial ENU -> UTM map fitted over all of them.
+        splats, centres = [], []
+        for pv, height, keep in zip(per_view, heights, checked):
+            P = cameras.views[pv["index"]].camera.P
+            splats.append(height_map_to_enu(height, keep, P, subsamples=d.subsamples))
+            centres.append(height_map_to_enu(height, keep, P, subsamples=1)
+                           if config.reconstruct.write_cloud else None)
+        to_map = _enu_to_map(cameras.frame, grid.epsg, splats)
         rasters, conf_rasters, clouds = [], [], []
-        for pv in per_view:
-            r = pv["index"]
-            height = np.where(pv["valid"], pv["height"], np.nan)
-            gray = np.clip(np.nan_to_num(images[r]) * 255.0, 0, 255).astype(np.uint8)
-            pts = height_map_to_points(height, pv["valid"] & np.isfinite(height),
-                                       cameras.views[r].camera.P, cameras.frame,
-                                       colors=gray, confidence=pv["confidence"],
-                                       subsamples=d.subsamples)
-            x, y, z = points_to_utm(pts, grid.epsg)
+        for pv, (e, n, u, pixel), centre in zip(per_view, splats, centres):
+            x, y, z = to_map(e=e, n=n, u=u)
             rasters.append(rasterise_max(x, y, z, grid))
-            if pts.confidence is not None:
-                conf_rasters.append(rasterise_max(x, y, pts.confidence, grid))
+            if pv["confidence"] is not None:
+                conf_rasters.append(rasterise_max(x, y, np.ravel(pv["confidence"])[pixel], grid))
+            if centre is None:
+                continue
+            e, n, u, pixel = centre
+            x, y, z = to_map(e=e, n=n, u=u)
+            gray = np.clip(np.nan_to_num(images[pv["index"]]) * 255.0, 0, 255).astype(np.uint8)
             # The cloud covers the AOI's DSM grid, like the DSM (the crops extend beyond it).
             keep = ((x >= grid.x_min) & (x <= grid.x_min + grid.width * grid.resolution)
                     & (y <= grid.y_max) & (y >= grid.y_max - grid.height * grid.resolution))
             clouds.append((x[keep], y[keep], z[keep],
-                           None if pts.colors is None else pts.colors[keep]))
+                           np.repeat(gray.ravel()[pixel[keep]][:, None], 3, axis=1)))
         fused, count = fuse_dsms(rasters, outlier_m=d.outlier_m, min_views=d.min_views)
         filled = 0
         if d.fill_max_hole_cells > 0:
@@ -316,7 +343,12 @@ def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunRe
             "height": grid.height, "x_min": grid.x_min, "y_max": grid.y_max,
             "filled_fraction": float(valid_cells.mean()),
             "holes_filled_cells": int(filled),
+            "cross_check": ({"tolerance_m": d.cross_check_m, "views": d.cross_check_views,
+                             "kept_fraction": [float(k.sum() / max(1, np.isfinite(h).sum()))
+                                               for k, h in zip(checked, heights)]}
+                            if d.cross_check_m > 0 and len(per_view) >= 2 else None),
             "per_view_filled_fraction": [float(np.isfinite(a).mean()) for a in rasters],
+            "enu_to_map": {"polynomial": to_map.accurate, "max_error_m": to_map.max_error_m},
         }
     with rep.stage("outputs"):
         dsm_path = out.path("dsm.tif")

@@ -21,13 +21,15 @@ FLOAT32_HEIGHT_TOL_M = 5e-4
 FRAME = ENUFrame(lon0=55.65, lat0=-21.23, alt0=2340.0)  # La Reunion, as the real pair
 
 
-def _satellite_camera(width: int = 64, height: int = 48):
-    """A pinhole 600 km up, 10 degrees off nadir looking at the ENU origin, ~0.5 m pixels.
+def _satellite_camera(width: int = 64, height: int = 48, *, off_nadir_deg: float = 10.0,
+                      azimuth_rad: float = 0.3):
+    """A pinhole 600 km up, ``off_nadir_deg`` off nadir looking at the ENU origin, ~0.5 m pixels.
 
     Returns (P, K, R, C): P = K R [I | -C], R ENU -> camera (x along columns, y along rows).
     """
-    off = math.radians(10.0)
-    C = np.array([600e3 * math.tan(off) * math.sin(0.3), -600e3 * math.tan(off) * math.cos(0.3), 600e3])
+    off = math.radians(off_nadir_deg)
+    C = np.array([600e3 * math.tan(off) * math.sin(azimuth_rad),
+                  -600e3 * math.tan(off) * math.cos(azimuth_rad), 600e3])
     forward = -C / np.linalg.norm(C)
     north = np.array([0.0, 1.0, 0.0])
     right = np.cross(forward, north)
@@ -88,6 +90,126 @@ def test_subsamples_cover_the_pixel_footprint():
     np.testing.assert_allclose(e, e_ref, atol=POINT_TOL_M)
     np.testing.assert_allclose(n, n_ref, atol=POINT_TOL_M)
     assert np.all(pts.colors == 77) and pts.colors.shape == (4, 3)
+
+
+# A slanted plane u = a + b e + c n (m): the surface the cross-check tests see.
+PLANE = (5.0, 0.02, -0.01)
+# Tolerance of the cross-check in those tests (m), and the error injected into one view (m).
+CHECK_TOL_M = 1.0
+INJECTED_ERROR_M = 3.0
+
+
+def _plane_height_map(K, R, C, shape):
+    """Exact ENU height of the plane PLANE seen at every pixel (ray-plane intersection)."""
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    d = R.T @ np.linalg.solve(K, np.stack([cols.ravel(), rows.ravel(), np.ones(cols.size)]))
+    a, b, c = PLANE
+    lam = (a + b * C[0] + c * C[1] - C[2]) / (d[2] - b * d[0] - c * d[1])
+    return (C[2] + lam * d[2]).reshape(shape)
+
+
+def _views_of_the_plane(n: int, shape=(48, 64)):
+    cams = [_satellite_camera(shape[1], shape[0], off_nadir_deg=off, azimuth_rad=az)
+            for off, az in ((10.0, 0.3), (6.0, 2.4), (12.0, 4.2))[:n]]
+    return [P for P, *_ in cams], [_plane_height_map(K, R, C, shape) for _, K, R, C in cams], cams
+
+
+def _seen_by(cam_from, cam_to, height, shape):
+    """Pixels of one view whose plane point falls inside another view (exact geometry)."""
+    _, K, R, C = cam_from
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    e, n = _ray_plane(K, R, C, cols.ravel(), rows.ravel(), height.ravel())
+    P = cam_to[0]
+    q = P @ np.stack([e, n, height.ravel(), np.ones(e.size)])
+    col, row = np.floor(q[0] / q[2] + 0.5), np.floor(q[1] / q[2] + 0.5)
+    return ((col >= 0) & (col < shape[1]) & (row >= 0) & (row < shape[0])).reshape(shape)
+
+
+def test_cross_check_keeps_consistent_maps_and_rejects_an_injected_error():
+    shape = (48, 64)
+    Ps, maps, cams = _views_of_the_plane(2, shape)
+    seen = [_seen_by(cams[0], cams[1], maps[0], shape), _seen_by(cams[1], cams[0], maps[1], shape)]
+    assert all(0.5 < s.mean() < 1.0 for s in seen)  # the views overlap, not completely
+    keep = dsm.cross_check_heights(maps, Ps, tolerance_m=CHECK_TOL_M)
+    for k in range(2):
+        np.testing.assert_array_equal(keep[k], seen[k])
+    bad = [m.copy() for m in maps]
+    bad[0][10:30, 20:40] += INJECTED_ERROR_M
+    bad[0][0, 0] = np.nan  # unknown pixels are never kept
+    keep = dsm.cross_check_heights(bad, Ps, tolerance_m=CHECK_TOL_M)
+    assert not keep[0][10:30, 20:40].any() and not keep[0][0, 0]
+    outside = seen[0].copy()
+    outside[10:30, 20:40] = False
+    outside[0, 0] = False
+    np.testing.assert_array_equal(keep[0][outside], True)
+    # View 1's pixels that see the corrupted block disagree with it; the others are kept.
+    assert (keep[1] <= seen[1]).all() and 0.5 * seen[1].mean() < keep[1].mean() < seen[1].mean()
+
+
+def test_cross_check_with_three_views_needs_one_or_all_agreeing():
+    shape = (48, 64)
+    Ps, maps, cams = _views_of_the_plane(3, shape)
+    bad = [m.copy() for m in maps]
+    bad[0] += INJECTED_ERROR_M  # view 0 is wrong everywhere
+    one = dsm.cross_check_heights(bad, Ps, tolerance_m=CHECK_TOL_M, min_agreeing=1)
+    both = dsm.cross_check_heights(bad, Ps, tolerance_m=CHECK_TOL_M, min_agreeing=2)
+    assert not one[0].any() and not both[0].any()
+    seen12 = _seen_by(cams[1], cams[2], maps[1], shape)
+    np.testing.assert_array_equal(one[1], seen12)  # view 2 confirms what view 0 cannot
+    assert not both[1].any()  # view 0 never agrees
+    # A single view cannot be checked: its known pixels are returned.
+    single = dsm.cross_check_heights([maps[0]], [Ps[0]], tolerance_m=CHECK_TOL_M)
+    assert single[0].all()
+    with pytest.raises(OptionsError, match="tolerance_m"):
+        dsm.cross_check_heights(maps, Ps, tolerance_m=0.0)
+    with pytest.raises(OptionsError, match="min_agreeing"):
+        dsm.cross_check_heights(maps, Ps, tolerance_m=1.0, min_agreeing=0)
+
+
+def test_height_map_to_enu_matches_the_points_and_names_their_pixels():
+    P, K, R, C = _satellite_camera()
+    rng = np.random.default_rng(3)
+    height = rng.uniform(-5.0, 30.0, (48, 64))
+    valid = rng.random((48, 64)) > 0.3
+    for s in (1, 2):
+        e, n, u, pixel = dsm.height_map_to_enu(height, valid, P, subsamples=s)
+        pts = dsm.height_map_to_points(height, valid, P, FRAME, subsamples=s)
+        lon, lat, alt = FRAME.to_geodetic(e=e, n=n, u=u)
+        np.testing.assert_allclose(lon, pts.lon, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(lat, pts.lat, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(alt, pts.alt, rtol=0, atol=POINT_TOL_M)
+        rows, cols = np.divmod(pixel, 64)
+        assert valid[rows, cols].all() and len(e) == s * s * valid.sum()
+        np.testing.assert_array_equal(u, height[rows, cols])
+
+
+# The polynomial ENU -> UTM map must reproduce pyproj to this (m) over an AOI-sized box.
+ENU_MAP_CHECK_TOL_M = 1e-6
+
+
+def test_enu_to_map_reproduces_the_exact_transform():
+    from satsweep.geo import lonlat_to_utm, utm_epsg
+
+    epsg = utm_epsg(lon=FRAME.lon0, lat=FRAME.lat0)
+    m = dsm.ENUToMap.fit(FRAME, epsg, e_range=(-400.0, 300.0), n_range=(-250.0, 350.0),
+                         u_range=(-20.0, 150.0))
+    assert m.accurate and m.max_error_m < ENU_MAP_CHECK_TOL_M
+    rng = np.random.default_rng(5)
+    e, n, u = rng.uniform(-400, 300, 5000), rng.uniform(-250, 350, 5000), rng.uniform(-20, 150, 5000)
+    x, y, z = m(e=e, n=n, u=u)
+    lon, lat, alt = FRAME.to_geodetic(e=e, n=n, u=u)
+    xr, yr = lonlat_to_utm(lon=lon, lat=lat, epsg=epsg)
+    np.testing.assert_allclose(x, xr, rtol=0, atol=ENU_MAP_CHECK_TOL_M)
+    np.testing.assert_allclose(y, yr, rtol=0, atol=ENU_MAP_CHECK_TOL_M)
+    np.testing.assert_allclose(z, alt, rtol=0, atol=ENU_MAP_CHECK_TOL_M)
+    # Over a 600 km box the polynomials are not accurate: the exact transform is used instead.
+    far = dsm.ENUToMap.fit(FRAME, epsg, e_range=(-3e5, 3e5), n_range=(-3e5, 3e5), u_range=(0, 100))
+    assert not far.accurate
+    x, y, z = far(e=e * 500, n=n * 500, u=u)
+    lon, lat, alt = FRAME.to_geodetic(e=e * 500, n=n * 500, u=u)
+    xr, yr = lonlat_to_utm(lon=lon, lat=lat, epsg=epsg)
+    np.testing.assert_array_equal(x, xr)
+    np.testing.assert_array_equal(z, alt)
 
 
 def test_degenerate_or_bad_camera():
@@ -263,6 +385,10 @@ def test_dsm_options_are_checked():
         dsm.DSMOptions(resolution=-1.0)
     with pytest.raises(OptionsError, match="fill_method"):
         dsm.DSMOptions(fill_method="mean")
+    with pytest.raises(OptionsError, match="DSMOptions.cross_check_m"):
+        dsm.DSMOptions(cross_check_m=-1.0)
+    with pytest.raises(OptionsError, match="DSMOptions.cross_check_views"):
+        dsm.DSMOptions(cross_check_views=0)
 
 
 def test_write_dsm_geotiff_is_read_by_rasterio_with_the_right_crs(tmp_path):

@@ -66,7 +66,8 @@ def test_bad_options_name_the_field(field, value):
 
 def test_defaults_and_derived_sizes():
     o = SweepOptions()
-    assert o.census_bits == 62 and o.census_radii == (4, 3)
+    assert o.census_bits == 24 and o.census_radii == (2, 2)
+    assert SweepOptions(census_window=(7, 9)).census_radii == (4, 3)
     assert o.tile_margin == 2 * o.gf_radius
     assert o.best_k(1) == 1 and o.best_k(2) == 1 and o.best_k(5) == 3
     assert SweepOptions(n_best_sources=4).best_k(2) == 2
@@ -151,7 +152,7 @@ def test_plane_batches_do_not_change_the_result(cl_device):
 # -- the whole pipeline against the numpy references ---------------------------------------------
 def test_pipeline_matches_the_numpy_reference(cl_device):
     ref_img, srcs, _, hom, heights = _scene((40, 52), shifts=((PX_PER_M, 0.0), (0.1, -0.4)))
-    o = SweepOptions(n_best_sources=1, gf_radius=3, gf_eps=1e-3)
+    o = SweepOptions(census_window=(7, 9), n_best_sources=1, gf_radius=3, gf_eps=1e-3)
     res = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights)
     vol = ref.sweep_volume(ref_img, srcs, hom.astype(np.float32).astype(np.float64), 4, 3, 1)
     vol = ref.guided_filter(vol, ref_img, 3, 1e-3)
