@@ -65,6 +65,30 @@ def _cmd_devices(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- shared by the commands that read images ------------------------------------------------------
+def _add_image_inputs(p) -> None:
+    """IMAGE..., --aoi, --alt-range, --dem: the inputs of cameras and reconstruct."""
+    p.add_argument("images", nargs="+", metavar="IMAGE", help="TIFF images with an RPC (tag or sidecar)")
+    p.add_argument("--aoi", required=True, help="LON_MIN,LAT_MIN,LON_MAX,LAT_MAX (degrees) or a GeoJSON file")
+    p.add_argument("--alt-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=None,
+                   help="heights in metres above the WGS84 ellipsoid (default: from --dem, else a "
+                   "coarse guess from the RPCs)")
+    p.add_argument("--dem", default=None, metavar="FILE", help="DEM GeoTIFF giving the altitude range")
+
+
+def _cli_altitude_range(args: argparse.Namespace):
+    """The --alt-range given on the command line (None if absent); errors name the option."""
+    from .aoi import AltitudeRange
+    from .errors import AOIError
+
+    if args.alt_range is None:
+        return None
+    try:
+        return AltitudeRange(*args.alt_range)
+    except AOIError as exc:
+        raise AOIError(f"--alt-range {args.alt_range[0]:g} {args.alt_range[1]:g}: {exc}") from None
+
+
 # -- cameras -----------------------------------------------------------------------------------
 def _add_cameras(sub) -> None:
     p = sub.add_parser(
@@ -74,12 +98,7 @@ def _add_cameras(sub) -> None:
         "altitude range) in a local ENU frame, report its error against the RPC, and write "
         "DIR/cameras.json (with the plane-plus-parallax 4x4 matrices the sweep uses).",
     )
-    p.add_argument("images", nargs="+", metavar="IMAGE", help="TIFF images with an RPC (tag or sidecar)")
-    p.add_argument("--aoi", required=True, help="LON_MIN,LAT_MIN,LON_MAX,LAT_MAX (degrees) or a GeoJSON file")
-    p.add_argument("--alt-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=None,
-                   help="heights in metres above the WGS84 ellipsoid (default: from --dem, else "
-                   "a coarse guess from the RPCs)")
-    p.add_argument("--dem", default=None, metavar="FILE", help="DEM GeoTIFF giving the altitude range")
+    _add_image_inputs(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (cameras.json, images/)")
     p.add_argument("--adjust", action="store_true",
                    help="correct RPC pointing errors: match SIFT features, triangulate and "
@@ -95,21 +114,14 @@ def _add_cameras(sub) -> None:
 
 def _cmd_cameras(args: argparse.Namespace) -> int:
     from . import camera as scam
-    from .aoi import AltitudeRange, parse_aoi, resolve_altitude_range
-    from .errors import AOIError
-    from .views import load_views
-
+    from .aoi import parse_aoi, resolve_altitude_range
     from .imageio import check_output_dir
+    from .views import load_views
 
     check_output_dir(args.out, overwrite=args.overwrite)
     options = scam.CameraOptions() if args.grid is None else scam.CameraOptions(grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
-    alt = None
-    if args.alt_range is not None:
-        try:
-            alt = AltitudeRange(*args.alt_range)
-        except AOIError as exc:
-            raise AOIError(f"--alt-range {args.alt_range[0]:g} {args.alt_range[1]:g}: {exc}") from None
+    alt = _cli_altitude_range(args)
     rpcs = None
     if alt is None and args.dem is None:
         from .rpc import RPCModel
@@ -263,12 +275,7 @@ def _add_reconstruct(sub) -> None:
         "dsm.tif, confidence.tif, cloud.ply, dsm.png, cameras.json, config.toml and report.json "
         "into --out (all at the end: a failed run writes nothing).",
     )
-    p.add_argument("images", nargs="+", metavar="IMAGE", help="TIFF images with an RPC (tag or sidecar)")
-    p.add_argument("--aoi", required=True, help="LON_MIN,LAT_MIN,LON_MAX,LAT_MAX (degrees) or a GeoJSON file")
-    p.add_argument("--alt-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=None,
-                   help="heights in metres above the WGS84 ellipsoid (default: from --dem, else a "
-                   "coarse guess from the RPCs)")
-    p.add_argument("--dem", default=None, metavar="FILE", help="DEM GeoTIFF giving the altitude range")
+    _add_image_inputs(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--truth", default=None, metavar="TRUTH.tif",
                    help="a ground-truth DSM: evaluate the result against it (report.json, evaluation/)")
@@ -277,18 +284,12 @@ def _add_reconstruct(sub) -> None:
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
-    from .aoi import AltitudeRange, parse_aoi
-    from .errors import AOIError
+    from .aoi import parse_aoi
     from .pipeline import reconstruct
 
     config = _pipeline_config(args)
     aoi = parse_aoi(args.aoi)
-    alt = None
-    if args.alt_range is not None:
-        try:
-            alt = AltitudeRange(*args.alt_range)
-        except AOIError as exc:
-            raise AOIError(f"--alt-range {args.alt_range[0]:g} {args.alt_range[1]:g}: {exc}") from None
+    alt = _cli_altitude_range(args)
     result = reconstruct(args.images, aoi, args.out, alt_range=alt, dem=args.dem, config=config,
                          overwrite=args.overwrite, truth=args.truth, verbose=not args.quiet)
     _print_summary(result)
