@@ -324,7 +324,7 @@ def _add_demo(sub) -> None:
     p.add_argument("--out", default=None, metavar="DIR",
                    help="folder for scene/ and reconstruction/ (default: a new temporary folder)")
     p.add_argument("--views", type=int, default=None, metavar="N", help="number of views (default 2)")
-    p.add_argument("--size", type=int, default=None, metavar="PIX", help="image side in pixels (default 256)")
+    p.add_argument("--size", type=int, default=None, metavar="PIX", help="image side in pixels (default 512)")
     p.add_argument("--bias", type=float, default=None, metavar="PX",
                    help="max pointing bias injected per view (default 0)")
     p.add_argument("--seed", type=int, default=None, help="scene seed (default 0)")

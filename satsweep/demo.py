@@ -23,7 +23,7 @@ from .pipeline import ReconstructResult, reconstruct
 class DemoOptions(Options):
     seed: int = 0  # scene seed
     n_views: int = 2  # satellite views of the scene
-    size_px: int = 256  # image side in pixels (0.5 m ground sample distance)
+    size_px: int = 512  # image side in pixels (0.5 m ground sample distance): a 190 m AOI
     bias_px: float = 0.0  # max pointing bias injected per view (pixels); the pipeline corrects it
     alt_margin_m: float = 5.0  # margin added around the scene's true altitude range
 
