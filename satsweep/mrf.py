@@ -80,7 +80,11 @@ class MRFOptions(Options):
 
     method: Literal["none", "sgm", "graphcut"] = "sgm"  # none: the sweep's winner-take-all; sgm:
     # semi-global matching on the device; graphcut: alpha-expansion on the host (see README table)
-    sgm_p1: float = 0.15  # SGM penalty of a one-plane height change (fraction of cost_scale)
+    sgm_p1: float = 0.4  # SGM penalty of a one-plane height change (fraction of cost_scale);
+    # tuned with tools/bench_e2e.py (seeds 0 and 1, 2 and 3 views: 0.4 beats 0.15 on every median
+    # and completeness). Much more over-smooths: a path pays max(P1, P2') to jump onto a weakly
+    # textured roof, whose census evidence is only ~0.02-0.03 cost_scale per pixel, so roofs keep
+    # the ground's height (tests/test_mrf.py weak-texture roof: p1 0.6 / p2 2.0 fails)
     sgm_p2: float = 1.0  # SGM penalty of a larger jump (fraction of cost_scale), before adaptation
     sgm_paths: Literal[4, 8] = 8  # number of scanline directions aggregated
     sgm_p2_sigma: float = 0.05  # guide intensity difference (image in [0, 1]) at which P2 is

@@ -26,6 +26,12 @@ FAST_CAMERA = {"camera": {"grid_size": [20, 20, 6]}}
 # (a wrong frame or axis, a lost half-pixel, a swapped view would give metres of error).
 MAX_MEDIAN_ABS_ERROR_M = 0.5
 MIN_COMPLETENESS_1M = 0.6
+# What the alignment search may gain over the unaligned DSM when the DSM is in place. Measured
+# on the demo town: moving its DSM by one 0.5 m cell costs 1.1 points of completeness unaligned
+# (two cells: 2.8 points) but only 0.004 m of median error, so completeness is the sensitive
+# figure; the median bound only catches gross misplacement.
+MAX_ALIGNMENT_GAIN_M = 0.05
+MAX_ALIGNMENT_GAIN_COMPLETENESS = 0.01
 # The synthetic scene's altitude range, widened so that the true surface is never at its edge.
 ALT_MARGIN_M = 5.0
 
@@ -82,8 +88,12 @@ def test_accuracy_against_the_exact_truth(reconstruction):
     a = ev["aligned"]
     assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M, ev
     assert a["completeness_1m"] >= MIN_COMPLETENESS_1M, ev
-    # The estimated cameras put the DSM in place: the best alignment shift is at most one cell.
-    assert abs(a["shift"]["dx_m"]) <= 0.5 and abs(a["shift"]["dy_m"]) <= 0.5
+    # The estimated cameras put the DSM in place: the alignment search gains little over the
+    # unaligned DSM. (Which shift wins is not a stable statistic: neighbouring shifts score within
+    # a fraction of a millimetre of each other on a small scene.)
+    u = ev["unaligned"]
+    assert u["median_abs_error_m"] - a["median_abs_error_m"] <= MAX_ALIGNMENT_GAIN_M, ev
+    assert a["completeness_1m"] - u["completeness_1m"] <= MAX_ALIGNMENT_GAIN_COMPLETENESS, ev
 
 
 def test_report_records_settings_device_timings_and_views(reconstruction):
