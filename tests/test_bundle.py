@@ -24,8 +24,9 @@ import numpy as np
 import pytest
 
 from satsweep import bundle, sparse
-from satsweep.camera import PerspectiveCamera, build_cameras, reparametrise
+from satsweep.camera import build_cameras, reparametrise
 from satsweep.errors import CameraError, OptionsError
+from synthetic_cameras import project, three_cameras
 
 # The issue's bound on the recovered relative shifts (px), synthetic scenes with biases up to 2 px
 # (measured on 4 seeds: at most 0.06 px once the unobservable motion is removed).
@@ -46,41 +47,13 @@ EXACT_PX = 1e-8
 NOISE_PX = 0.3
 
 
-# -- synthetic satellite cameras (tie-point tests) ---------------------------------------------
-def _look_at(center: np.ndarray, roll: float) -> np.ndarray:
-    z = -center / np.linalg.norm(center)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    c, s = np.cos(roll), np.sin(roll)
-    return np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.stack([x, y, z])
-
-
-def _camera(off_east: float, off_north: float, roll: float, skew: float = 0.0) -> PerspectiveCamera:
-    """A pinhole camera 700 km up looking at the ENU origin, GSD about 0.5 m, 1000 x 1000 px."""
-    f = 1.4e6
-    K = np.array([[f, skew * f, 500.3], [0.0, f, 499.3], [0.0, 0.0, 1.0]])
-    C = np.array([off_east * 7e5, off_north * 7e5, 7e5])
-    R = _look_at(C, roll)
-    t = -R @ C
-    return PerspectiveCamera(K=K, R=R, t=t, P=K @ np.column_stack([R, t]), width=1000, height=1000)
-
-
-def _cameras() -> list[PerspectiveCamera]:
-    return [_camera(0.0, -0.15, 0.01), _camera(0.02, 0.0, -0.02, skew=0.01), _camera(-0.01, 0.14, 0.03)]
-
-
-def _project(camera: PerspectiveCamera, X: np.ndarray) -> np.ndarray:
-    return np.column_stack(camera.project(X[:, 0], X[:, 1], X[:, 2]))
-
-
 def _tie_points(cams, biases, *, n=600, outliers=0.05, seed=0):
     """Observations of random points in every view: projection + bias + noise, some blunders."""
     rng = np.random.default_rng(seed)
     X = rng.uniform([-200.0, -200.0, 0.0], [200.0, 200.0, 60.0], size=(n, 3))
     xys = []
     for cam, b in zip(cams, biases):
-        xy = _project(cam, X) + b + rng.normal(0.0, NOISE_PX, (n, 2))
+        xy = project(cam, X) + b + rng.normal(0.0, NOISE_PX, (n, 2))
         bad = rng.random(n) < outliers
         xy[bad] += rng.uniform(-30.0, 30.0, (int(bad.sum()), 2))
         xys.append(xy)
@@ -96,7 +69,7 @@ def _numeric_jacobians(cams, point=(0.0, 0.0, 30.0), step=1.0) -> np.ndarray:
         for k in range(3):
             d = np.zeros(3)
             d[k] = step
-            a, b = _project(cam, (p + d)[None]), _project(cam, (p - d)[None])
+            a, b = project(cam, (p + d)[None]), project(cam, (p - d)[None])
             out[v, :, k] = (a - b)[0] / (2 * step)
     return out
 
@@ -117,10 +90,10 @@ def test_options_name_the_bad_field(field, value):
 
 
 def test_shifting_the_principal_point_moves_projections_exactly():
-    cam = _cameras()[1]
+    cam = three_cameras()[1]
     X = np.random.default_rng(1).uniform(-200.0, 200.0, (50, 3))
     moved = bundle.shift_principal_point(cam, (1.25, -0.5))
-    assert np.abs(_project(moved, X) - _project(cam, X) - [1.25, -0.5]).max() < EXACT_PX
+    assert np.abs(project(moved, X) - project(cam, X) - [1.25, -0.5]).max() < EXACT_PX
     assert moved.K[0, 2] == cam.K[0, 2] + 1.25 and moved.K[1, 2] == cam.K[1, 2] - 0.5
     assert np.array_equal(np.delete(moved.K.ravel(), [2, 5]), np.delete(cam.K.ravel(), [2, 5]))
     assert np.array_equal(moved.R, cam.R) and np.array_equal(moved.t, cam.t)
@@ -129,13 +102,13 @@ def test_shifting_the_principal_point_moves_projections_exactly():
 def test_height_offset_is_unobservable():
     """The gauge the comparisons remove is real: moving the scene by dX and every view by -A dX
     leaves the reprojections unchanged, so no adjustment can tell such shifts apart."""
-    cams = _cameras()
+    cams = three_cameras()
     A = _numeric_jacobians(cams)
     X = np.random.default_rng(2).uniform([-200.0, -200.0, 0.0], [200.0, 200.0, 60.0], (100, 3))
     dX = np.array([0.4, -0.3, 1.5])
     for v, cam in enumerate(cams):
         moved = bundle.shift_principal_point(cam, -A[v] @ dX)
-        change = _project(moved, X + dX) - _project(cam, X)
+        change = project(moved, X + dX) - project(cam, X)
         assert np.abs(change).max() < GAUGE_INVARIANCE_TOL_PX
     # ... while the height offset moves the views by different amounts (it is not a common shift).
     shifts = -A @ dX
@@ -144,7 +117,7 @@ def test_height_offset_is_unobservable():
 
 # -- the adjustment on tie points --------------------------------------------------------------
 def test_adjustment_recovers_biases_on_tie_points():
-    cams = _cameras()
+    cams = three_cameras()
     biases = np.array([[0.0, 0.0], [1.7, -0.9], [-1.2, 2.0]])
     obs, _ = _tie_points(cams, biases)
     sol = bundle.adjust_observations(cams, obs)
@@ -157,14 +130,14 @@ def test_adjustment_recovers_biases_on_tie_points():
 
 
 def test_adjustment_without_bias_stays_put():
-    cams = _cameras()
+    cams = three_cameras()
     obs, _ = _tie_points(cams, np.zeros((3, 2)), seed=3)
     sol = bundle.adjust_observations(cams, obs)
     assert np.abs(sol.shifts).max() < GEOMETRIC_SHIFT_TOL_PX
 
 
 def test_too_few_tie_points_name_the_view():
-    cams = _cameras()
+    cams = three_cameras()
     obs, _ = _tie_points(cams, np.zeros((3, 2)), n=40, outliers=0.0)
     keep = ~((obs.view == 2) & (obs.point >= 5))  # view 2 sees only 5 points
     with pytest.raises(CameraError, match=r"img_c \(5\)"):
@@ -231,7 +204,7 @@ def test_synthetic_scene_biases_are_recovered(biased_scene):
     # and their plane-plus-parallax projections follow.
     X = np.random.default_rng(4).uniform(-20.0, 20.0, (10, 3))
     for v0, v1, s in zip(cams.views, adjusted.views, shifts):
-        assert np.abs(_project(v1.camera, X) - _project(v0.camera, X) - s).max() < EXACT_PX
+        assert np.abs(project(v1.camera, X) - project(v0.camera, X) - s).max() < EXACT_PX
         ref = reparametrise(v1.camera, d=v0.projection.d, zbar=v0.projection.zbar)
         assert np.array_equal(v1.projection.P4, ref.P4)
     d = report.to_dict()
