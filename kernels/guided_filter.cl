@@ -123,6 +123,34 @@ __kernel void gf_cols_p(__global const float *p, __global const float *guide_i,
     }
 }
 
+/* Sliding sums over the row windows of two rows r0, r1 (tw samples each), shared by gf_rows_ab
+ * and gf_rows_q: row_pair_window gives the sums of the window of column x0; row_pair_slide moves
+ * them from the window of column x to that of x + 1. */
+inline float2 row_pair_window(__global const float *r0, __global const float *r1, const int x0,
+                              const int tw)
+{
+    float2 s = (float2)(0.0f, 0.0f);
+    for (int i = max(x0 - BOX_R, 0); i <= min(x0 + BOX_R, tw - 1); ++i) {
+        s.x += r0[i];
+        s.y += r1[i];
+    }
+    return s;
+}
+
+inline float2 row_pair_slide(float2 s, __global const float *r0, __global const float *r1,
+                             const int x, const int tw)
+{
+    if (x + BOX_R + 1 < tw) {
+        s.x += r0[x + BOX_R + 1];
+        s.y += r1[x + BOX_R + 1];
+    }
+    if (x - BOX_R >= 0) {
+        s.x -= r0[x - BOX_R];
+        s.y -= r1[x - BOX_R];
+    }
+    return s;
+}
+
 /* From column sums [p | I p] and the guide means [mean I | mean I^2]: ab[b] = a, ab[nb + b] = b. */
 __kernel void gf_rows_ab(__global const float *sums, __global const float *guide_mean,
                          __global float *ab, const int tw, const int th, const int nb)
@@ -136,26 +164,15 @@ __kernel void gf_rows_ab(__global const float *sums, __global const float *guide
     __global const float *rp = sums + b * plane + row;
     __global const float *rip = sums + (nb + b) * plane + row;
     const int ny = window_count(y, th);
-    float s = 0.0f, si = 0.0f;
-    for (int i = max(x0 - BOX_R, 0); i <= min(x0 + BOX_R, tw - 1); ++i) {
-        s += rp[i];
-        si += rip[i];
-    }
+    float2 s = row_pair_window(rp, rip, x0, tw);
     for (int x = x0; x < x1; ++x) {
         const float n = (float)(ny * window_count(x, tw));
-        const float mp = s / n, mip = si / n;
+        const float mp = s.x / n, mip = s.y / n;
         const float mi = guide_mean[row + x], mii = guide_mean[plane + row + x];
         const float a = (mip - mi * mp) / (mii - mi * mi + GF_EPS);
         ab[b * plane + row + x] = a;
         ab[(nb + b) * plane + row + x] = mp - a * mi;
-        if (x + BOX_R + 1 < tw) {
-            s += rp[x + BOX_R + 1];
-            si += rip[x + BOX_R + 1];
-        }
-        if (x - BOX_R >= 0) {
-            s -= rp[x - BOX_R];
-            si -= rip[x - BOX_R];
-        }
+        s = row_pair_slide(s, rp, rip, x, tw);
     }
 }
 
@@ -172,22 +189,11 @@ __kernel void gf_rows_q(__global const float *sums, __global const float *guide_
     __global const float *ra = sums + b * plane + row;
     __global const float *rb = sums + (nb + b) * plane + row;
     const int ny = window_count(y, th);
-    float sa = 0.0f, sb = 0.0f;
-    for (int i = max(x0 - BOX_R, 0); i <= min(x0 + BOX_R, tw - 1); ++i) {
-        sa += ra[i];
-        sb += rb[i];
-    }
+    float2 s = row_pair_window(ra, rb, x0, tw);
     for (int x = x0; x < x1; ++x) {
         const float n = (float)(ny * window_count(x, tw));
-        q[b * plane + row + x] = (sa / n) * guide_i[row + x] + sb / n;
-        if (x + BOX_R + 1 < tw) {
-            sa += ra[x + BOX_R + 1];
-            sb += rb[x + BOX_R + 1];
-        }
-        if (x - BOX_R >= 0) {
-            sa -= ra[x - BOX_R];
-            sb -= rb[x - BOX_R];
-        }
+        q[b * plane + row + x] = (s.x / n) * guide_i[row + x] + s.y / n;
+        s = row_pair_slide(s, ra, rb, x, tw);
     }
 }
 #endif
