@@ -64,6 +64,8 @@ class SweepOptions(Options):
     # is faster
     cost_mode: Literal["warped_census", "sampled_codes"] = "warped_census"  # census of the bilinearly
     # warped source image (sub-pixel), or the source's own codes sampled at the nearest warped pixel
+    prefilter_sigma_px: float = 0.0  # Gaussian blur (pixels) of the reference and source images
+    # before the census (0: none); lowers the pull of the bilinear warp towards whole source pixels
     step_px: float = 0.5  # plane spacing: one step moves a pixel by at most this much (pixels) in the
     # widest-baseline source view
     n_best_sources: int | None = None  # k: per-pixel cost = mean of the k lowest source costs; None =
@@ -87,6 +89,8 @@ class SweepOptions(Options):
                       "census_window", "both sizes must be odd and positive")
         self._require(2 <= rows * cols <= 65, "census_window",
                       "the window must hold between 1 and 64 neighbours (64-bit codes)")
+        self._require(math.isfinite(self.prefilter_sigma_px) and 0 <= self.prefilter_sigma_px <= 5,
+                      "prefilter_sigma_px", "must be in [0, 5] pixels")
         self._require(math.isfinite(self.step_px) and self.step_px > 0, "step_px", "must be > 0")
         self._require(self.n_best_sources is None or self.n_best_sources >= 1, "n_best_sources",
                       "must be >= 1 (or None)")
@@ -403,6 +407,14 @@ def _check_image(name: str, img) -> np.ndarray:
     return a
 
 
+def prefilter(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``image`` (float32) blurred by a Gaussian of ``sigma_px`` pixels, edges replicated."""
+    import cv2  # noqa: PLC0415
+
+    return cv2.GaussianBlur(image, (0, 0), sigmaX=float(sigma_px), sigmaY=float(sigma_px),
+                            borderType=cv2.BORDER_REPLICATE)
+
+
 class PlaneSweep:
     """The plane-sweep engine on one device: builds the kernels once, sweeps reference views.
 
@@ -489,6 +501,9 @@ class PlaneSweep:
             d = np.diff(hts)
             if not ((d > 0).all() or (d < 0).all()):
                 raise InputError(None, "heights: must be strictly monotonic")
+        if self.options.prefilter_sigma_px > 0:
+            ref = prefilter(ref, self.options.prefilter_sigma_px)
+            srcs = [prefilter(s, self.options.prefilter_sigma_px) for s in srcs]
         result = self._sweep(ref, srcs, hom, hts, keep_volume=keep_volume)
         if self.options.lr_check:
             self._lr_check(result, ref, srcs, hom, hts)
