@@ -80,6 +80,19 @@ def test_sgm_aggregate_matches_reference(cl_device, paths, work_group):
     np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
 
 
+@pytest.mark.parametrize("n_labels", [5, 13, 27])
+def test_sgm_label_counts_off_the_vector_width_match_reference(cl_device, n_labels):
+    """The one-work-item path steps through the labels 8 at a time: counts below 8, and with a
+    remainder, exercise its scalar tail and its +inf guards at both ends of the label range."""
+    scale = 24.0
+    cost, guide = _random_volume(3, shape=(n_labels, 11, 9), scale=scale)
+    opts = mrf.MRFOptions(sgm_paths=8, sgm_work_group=1, sgm_p1=0.08, sgm_p2=0.6, sgm_p2_sigma=0.2)
+    got = mrf.sgm_aggregate(cl_device, cost, guide, opts, cost_scale=scale).get()
+    want = reference_aggregate(cost, guide, n_paths=8, p1=0.08 * scale, p2=0.6 * scale,
+                               inv_sigma=1.0 / 0.2, missing_cost=scale)
+    np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
+
+
 def test_sgm_without_p2_adaptation_matches_reference(cl_device):
     cost, guide = _random_volume(2, shape=(5, 9, 7), scale=1.0)
     opts = mrf.MRFOptions(sgm_p2_sigma=0.0, sgm_p1=0.2, sgm_p2=0.7)
