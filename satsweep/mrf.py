@@ -102,6 +102,11 @@ class MRFOptions(Options):
     gc_tile: int = 256  # graph-cut tile side (pixels) at full resolution
     gc_tile_overlap: int = 16  # pixels each tile extends past its kept part on every side
     gc_iterations: int = 2  # most sweeps over the labels (stops earlier when nothing changes)
+    tile_px: int = 1024  # reconstruct sweeps and refines a reference in tiles of at most this
+    # side (pixels), so that memory holds one tile's cost volume, not the whole image's; smaller
+    # when the device's memory budget needs it (satsweep.pipeline.mrf_tile_side)
+    tile_overlap_px: int = 64  # pixels each such tile is swept and refined past its kept part on
+    # every side, so that SGM paths and graph-cut neighbourhoods reach into the neighbours
 
     def check(self) -> None:
         self._require(math.isfinite(self.sgm_p1) and self.sgm_p1 >= 0.0, "sgm_p1", "must be >= 0")
@@ -115,6 +120,9 @@ class MRFOptions(Options):
         self._require(math.isfinite(self.gc_smoothness) and self.gc_smoothness >= 0.0,
                       "gc_smoothness", "must be >= 0")
         self._require(self.gc_truncation_labels >= 1, "gc_truncation_labels", "must be >= 1")
+        self._require(self.tile_px >= 64, "tile_px", "must be >= 64 pixels")
+        self._require(0 <= self.tile_overlap_px <= 1024, "tile_overlap_px",
+                      "must be in [0, 1024] pixels")
         self._require(math.isfinite(self.gc_edge_sigma) and self.gc_edge_sigma >= 0.0,
                       "gc_edge_sigma", "must be >= 0 (0: no contrast sensitivity)")
         self._require(self.gc_label_window >= 1, "gc_label_window", "must be >= 1")

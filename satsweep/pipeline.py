@@ -212,25 +212,142 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
                              report=report, evaluation=evaluation)
 
 
+# Smallest interior side (pixels) of an MRF tile (below it, overlaps dominate the work).
+MIN_MRF_TILE_PX = 64
+# Cost volumes SGM holds on the device at once (sgm_aggregate: pixel-major costs and sums, and
+# the input volume while it is converted).
+SGM_DEVICE_VOLUMES = 3
+
+
+def mrf_tile_side(n_planes: int, mrf: "MRFOptions", budget_bytes: int,
+                  max_alloc_bytes: int) -> int:
+    """Interior side (pixels) of the tiles of ``sweep_refine_tiled``.
+
+    ``mrf.tile_px``, reduced so that the cost volume of one tile with its overlap fits
+    ``SGM_DEVICE_VOLUMES`` times in the device budget and once in one device allocation.
+    DeviceError when even a ``MIN_MRF_TILE_PX`` tile does not fit.
+    """
+    import math  # noqa: PLC0415
+
+    from .errors import DeviceError  # noqa: PLC0415
+
+    per_px = 4 * n_planes
+    o = mrf.tile_overlap_px
+    fit_budget = math.isqrt(max(budget_bytes // (SGM_DEVICE_VOLUMES * per_px), 0)) - 2 * o
+    fit_alloc = math.isqrt(max(max_alloc_bytes // per_px, 0)) - 2 * o
+    side = min(mrf.tile_px, fit_budget, fit_alloc)
+    if side < MIN_MRF_TILE_PX:
+        raise DeviceError(f"the MRF's cost volume of a {MIN_MRF_TILE_PX}-pixel tile with its "
+                          f"{o}-pixel overlap over {n_planes} planes does not fit the device "
+                          f"budget of {budget_bytes / 2**20:.0f} MiB: raise "
+                          "sweep.memory_fraction, or lower mrf.tile_overlap_px or the planes")
+    return side
+
+
+def _tiles(width: int, height: int, side: int, overlap: int):
+    """(interior x0, y0, x1, y1, tile x0, y0, x1, y1) covering the image, interiors side wide."""
+    for y0 in range(0, height, side):
+        for x0 in range(0, width, side):
+            x1, y1 = min(x0 + side, width), min(y0 + side, height)
+            yield (x0, y0, x1, y1, max(x0 - overlap, 0), max(y0 - overlap, 0),
+                   min(x1 + overlap, width), min(y1 + overlap, height))
+
+
+def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, heights,
+                       sweep: "SweepOptions", mrf: "MRFOptions"):
+    """Plane sweep plus MRF refinement of one reference view, tile by tile.
+
+    The reference is cut into tiles of interior side ``mrf_tile_side``; each tile is swept with
+    ``mrf.tile_overlap_px`` more pixels on every side (homographies composed with the tile's
+    offset), its filtered cost volume refined by ``mrf.method``, and its interior kept. So host
+    and device hold one tile's cost volume at a time, and a reference that fits one tile gives
+    exactly the untiled result. The images are prefiltered once, whole (the MRF's guide is the
+    reference as given); the left-right check
+    (``sweep.lr_check``) runs once on the assembled winner-take-all map, as the untiled sweep
+    does. Returns (SweepResult with n_tiles = the MRF tiles, MRF seconds).
+    """
+    from .mrf import refine  # noqa: PLC0415
+    from .sweep import PlaneSweep, SweepResult, prefilter  # noqa: PLC0415
+
+    ref = guide = np.ascontiguousarray(ref_image, dtype=np.float32)
+    srcs = [np.ascontiguousarray(s, dtype=np.float32) for s in src_images]
+    if sweep.prefilter_sigma_px > 0:
+        ref = prefilter(ref, sweep.prefilter_sigma_px)
+        srcs = [prefilter(s, sweep.prefilter_sigma_px) for s in srcs]
+    hom = np.asarray(homographies, dtype=np.float64)
+    hts = np.asarray(heights, dtype=np.float64)
+    engine = PlaneSweep(device, sweep.replace(lr_check=False, prefilter_sigma_px=0.0))
+    h_img, w_img = ref.shape
+    side = mrf_tile_side(hts.size, mrf, engine.budget_bytes(), device.max_alloc_bytes)
+    height = np.full((h_img, w_img), np.nan)
+    plane_index = np.zeros((h_img, w_img), np.float32)
+    confidence = np.zeros((h_img, w_img), np.float32)
+    cost_min = np.zeros((h_img, w_img), np.float32)
+    valid = np.zeros((h_img, w_img), bool)
+    wta_index = np.zeros((h_img, w_img), np.float32)
+    wta_valid = np.zeros((h_img, w_img), bool)
+    n_tiles, peak, seconds = 0, 0, 0.0
+    for x0, y0, x1, y1, tx0, ty0, tx1, ty1 in _tiles(w_img, h_img, side, mrf.tile_overlap_px):
+        shift = np.array([[1.0, 0.0, tx0], [0.0, 1.0, ty0], [0.0, 0.0, 1.0]])
+        r = engine.run(ref[ty0:ty1, tx0:tx1], srcs, hom @ shift, hts, keep_volume=True)
+        initial = np.clip(np.rint(r.plane_index), 0, hts.size - 1).astype(np.int32)
+        m = refine(device, r.volume, guide[ty0:ty1, tx0:tx1], hts, mrf,
+                   cost_scale=float(sweep.census_bits),
+                   reject_range_edges=sweep.reject_range_edges, initial_labels=initial)
+        keep = (slice(y0 - ty0, y1 - ty0), slice(x0 - tx0, x1 - tx0))
+        out = (slice(y0, y1), slice(x0, x1))
+        wta_index[out], wta_valid[out] = r.plane_index[keep], r.valid[keep]
+        # Pixels the sweep found unseen by every source stay invalid.
+        valid[out] = m.valid[keep] & r.valid[keep]
+        height[out] = m.height[keep]
+        plane_index[out] = m.plane_index[keep]
+        confidence[out] = m.confidence[keep]
+        cost_min[out] = m.cost_min[keep]
+        n_tiles += 1
+        peak = max(peak, r.peak_device_bytes)
+        seconds += m.seconds
+    if sweep.lr_check:
+        valid &= engine.lr_mask(wta_index, wta_valid, ref, srcs, hom, hts)
+    height[~valid] = np.nan
+    return SweepResult(height=height, plane_index=plane_index, confidence=confidence, valid=valid,
+                       cost_min=cost_min, n_tiles=n_tiles, peak_device_bytes=peak), seconds
+
+
 def _sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
                       rep: RunReport, names) -> list[dict]:
-    """Sweep every reference view against its sources; MRF refinement per the options."""
-    from .sweep import sweep_views
+    """Sweep every reference view against its sources; MRF refinement per the options.
+
+    Without an MRF, the sweep's winner-take-all (its own tiling keeps the cost volume on the
+    device). With one, ``sweep_refine_tiled``: sweep and refinement share the "sweep" stage's
+    time, the refinement's own time is reported under "mrf" in the view's entry.
+    """
+    from .sweep import plane_heights, sweep_views, view_homographies
 
     per_view, sweeps = [], []
     progress = rep.progress("sweep", len(selection.references))
     with_mrf = config.mrf.method != "none"
     for k, r in enumerate(selection.references):
         srcs = list(selection.sources[r])
-        with rep.stage("sweep"):
-            result, heights = sweep_views(
-                device, images[r], [images[s] for s in srcs],
-                cameras.views[r].projection, [cameras.views[s].projection for s in srcs],
-                alt_range=u_range, options=config.sweep, keep_volume=with_mrf)
+        ref_proj = cameras.views[r].projection
+        src_projs = [cameras.views[s].projection for s in srcs]
         mrf_info = None
         if with_mrf:
-            with rep.stage("mrf"):
-                result, mrf_info = _refine(device, result, heights, images[r], config)
+            with rep.stage("sweep"):
+                heights = plane_heights(ref_proj, src_projs, u_range, config.sweep.step_px,
+                                        ref_shape=images[r].shape)
+                result, seconds = sweep_refine_tiled(
+                    device, images[r], [images[s] for s in srcs],
+                    view_homographies(ref_proj, src_projs, heights), heights,
+                    config.sweep, config.mrf)
+            rep.move_time("sweep", "mrf", seconds)
+            mrf_info = {"method": config.mrf.method, "seconds": seconds,
+                        "tiles": int(result.n_tiles),
+                        "valid_fraction": float(np.mean(result.valid))}
+        else:
+            with rep.stage("sweep"):
+                result, heights = sweep_views(device, images[r], [images[s] for s in srcs],
+                                              ref_proj, src_projs, alt_range=u_range,
+                                              options=config.sweep)
         progress.update(k + 1, names[r])
         valid = np.asarray(result.valid, bool)
         sweeps.append({
@@ -244,25 +361,6 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
                          "confidence": result.confidence})
     rep["sweep"] = sweeps
     return per_view
-
-
-def _refine(device, result, heights, ref_image, config: PipelineConfig):
-    """MRF refinement (satsweep.mrf) of one reference view's filtered cost volume."""
-    from .mrf import refine
-    from .sweep import SweepResult
-
-    initial = np.clip(np.rint(result.plane_index), 0, len(heights) - 1).astype(np.int32)
-    m = refine(device, result.volume, ref_image, heights, config.mrf,
-               cost_scale=float(config.sweep.census_bits),
-               reject_range_edges=config.sweep.reject_range_edges, initial_labels=initial)
-    # Pixels the sweep found unseen by every source stay invalid.
-    valid = m.valid & result.valid
-    height = np.where(valid, m.height, np.nan)
-    refined = SweepResult(height=height, plane_index=m.plane_index, confidence=m.confidence,
-                          valid=valid, cost_min=m.cost_min, n_tiles=result.n_tiles,
-                          n_batches=result.n_batches, peak_device_bytes=result.peak_device_bytes)
-    return refined, {"method": config.mrf.method, "seconds": m.seconds,
-                     "valid_fraction": float(np.mean(valid))}
 
 
 def _nanmean_stack(arrays: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:

@@ -108,6 +108,14 @@ class RunReport:
             self.data["timings_s"][name] = self.data["timings_s"].get(name, 0.0) + dt
             self.log(f"[{name}] done in {dt:.2f} s")
 
+    def move_time(self, source: str, target: str, seconds: float) -> None:
+        """Move ``seconds`` of stage ``source``'s time to stage ``target``: for work of one stage
+        done, and timed, inside another's block (the MRF inside the tiled sweep)."""
+        timings = self.data["timings_s"]
+        moved = min(max(float(seconds), 0.0), timings.get(source, 0.0))
+        timings[source] = timings.get(source, 0.0) - moved
+        timings[target] = timings.get(target, 0.0) + moved
+
     def progress(self, stage: str, total: int) -> Progress:
         return Progress(stage, total, stream=self.stream, enabled=self.verbose)
 

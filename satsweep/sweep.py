@@ -753,14 +753,23 @@ class PlaneSweep:
         by interpolating the maps of the planes around f; it passes when source 0's nearest
         pixel is valid with |f - f_0| <= lr_tolerance_planes.
         """
+        ok = self.lr_mask(result.plane_index, result.valid, ref, srcs, hom, hts)
+        result.valid &= ok
+        result.height[~result.valid] = np.nan
+
+    def lr_mask(self, plane_index: np.ndarray, valid: np.ndarray, ref: np.ndarray,
+                srcs: list[np.ndarray], hom: np.ndarray, hts: np.ndarray) -> np.ndarray:
+        """Pixels of a (whole-reference) winner-take-all map that pass the left-right check.
+
+        The first source is swept as the reference (winner-take-all, no check) against the
+        reference and the other sources; see ``_lr_check`` and ``lr_consistent``.
+        """
         inv0 = np.linalg.inv(hom[:, 0])
         swapped = [inv0] + [hom[:, j] @ inv0 for j in range(1, len(srcs))]
         back = PlaneSweep(self.device, self.options.replace(lr_check=False))
-        other = back._sweep(srcs[0], [ref] + srcs[1:], np.stack(swapped, axis=1), hts)
-        ok = lr_consistent(result.plane_index, result.valid, other.plane_index, other.valid,
-                           hom[:, 0], self.options.lr_tolerance_planes)
-        result.valid &= ok
-        result.height[~result.valid] = np.nan
+        other = back._sweep(srcs[0], [ref] + list(srcs[1:]), np.stack(swapped, axis=1), hts)
+        return lr_consistent(plane_index, valid, other.plane_index, other.valid, hom[:, 0],
+                             self.options.lr_tolerance_planes)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -844,6 +853,16 @@ def ellipsoid_heights(height: np.ndarray, ref_proj, frame) -> np.ndarray:
     return out
 
 
+def view_homographies(ref_proj, src_projs: Sequence, heights) -> np.ndarray:
+    """(n_planes, n_src, 3, 3) float64 homographies, reference pixel -> source pixel, of the planes
+    ``heights`` for projections from ``satsweep.camera`` (``plane_homography``)."""
+    from .camera import plane_homography  # noqa: PLC0415
+
+    h = np.asarray(heights, dtype=np.float64)
+    return np.stack([np.asarray(plane_homography(ref_proj, p, h)).reshape(-1, 3, 3)
+                     for p in src_projs], axis=1)
+
+
 def sweep_views(device: Device, ref_image, src_images: Sequence, ref_proj, src_projs: Sequence, *,
                 heights=None, alt_range: tuple[float, float] | None = None,
                 options: SweepOptions | None = None, keep_volume: bool = False,
@@ -854,8 +873,6 @@ def sweep_views(device: Device, ref_image, src_images: Sequence, ref_proj, src_p
     given. With ``frame`` (the ``ENUFrame`` of the projections) ``SweepResult.altitude`` holds the
     heights above the ellipsoid (``ellipsoid_heights``). Returns the result and the plane heights.
     """
-    from .camera import plane_homography  # noqa: PLC0415
-
     opts = options if options is not None else SweepOptions()
     if len(src_projs) != len(src_images):
         raise InputError(None, f"src_projs: {len(src_projs)} projections for "
@@ -866,8 +883,7 @@ def sweep_views(device: Device, ref_image, src_images: Sequence, ref_proj, src_p
         heights = plane_heights(ref_proj, src_projs, alt_range, opts.step_px,
                                 ref_shape=np.asarray(ref_image).shape)
     heights = np.asarray(heights, dtype=np.float64)
-    hom = np.stack([np.asarray(plane_homography(ref_proj, p, heights)).reshape(-1, 3, 3)
-                    for p in src_projs], axis=1)
+    hom = view_homographies(ref_proj, src_projs, heights)
     result = PlaneSweep(device, opts).run(ref_image, src_images, hom, heights,
                                           keep_volume=keep_volume)
     if frame is not None:

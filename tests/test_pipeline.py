@@ -107,6 +107,24 @@ def test_report_records_settings_device_timings_and_views(reconstruction):
     assert rep["evaluation"]["prediction"] == str(reconstruction.out_dir / "dsm.tif")
 
 
+def test_tiled_mrf_reconstruction_is_as_accurate_and_reports_its_tiles(scene, reconstruction,
+                                                                          tmp_path):
+    """mrf.tile_px small enough to cut each reference into several tiles: same accuracy bounds,
+    the tiles and the MRF's own time in the report."""
+    config = PipelineConfig.from_mapping({**FAST_CAMERA,
+                                          "mrf": {"tile_px": 96, "tile_overlap_px": 32}})
+    tiled = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
+                        alt_range=_alt(scene), config=config, truth=scene.truth_dsm, verbose=False)
+    a = tiled.evaluation["aligned"]
+    assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M, tiled.evaluation
+    assert a["completeness_1m"] >= MIN_COMPLETENESS_1M, tiled.evaluation
+    rep = json.loads((tiled.out_dir / "report.json").read_text())
+    assert all(v["mrf"]["tiles"] >= 4 for v in rep["sweep"])
+    assert rep["timings_s"]["mrf"] > 0
+    one = json.loads((reconstruction.out_dir / "report.json").read_text())
+    assert all(v["mrf"]["tiles"] == 1 for v in one["sweep"])
+
+
 def test_config_written_is_the_config_used(reconstruction):
     again = PipelineConfig.from_toml(reconstruction.out_dir / "config.toml")
     assert again == PipelineConfig.from_mapping(FAST_CAMERA)
