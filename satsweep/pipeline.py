@@ -259,8 +259,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
 
     The reference is cut into tiles of interior side ``mrf_tile_side``; each tile is swept with
     ``mrf.tile_overlap_px`` more pixels on every side (homographies composed with the tile's
-    offset), its filtered cost volume refined by ``mrf.method``, and its interior kept. So host
-    and device hold one tile's cost volume at a time, and a reference that fits one tile gives
+    offset), its filtered cost volume refined by ``mrf.method`` (for SGM the volume never leaves
+    the device), and its interior kept. So host and device hold one tile's cost volume at a time, and a reference that fits one tile gives
     exactly the untiled result. The images are prefiltered once, whole (the MRF's guide is the
     reference as given); the left-right check
     (``sweep.lr_check``) runs once on the assembled winner-take-all map, as the untiled sweep
@@ -279,6 +279,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     engine = PlaneSweep(device, sweep.replace(lr_check=False, prefilter_sigma_px=0.0))
     h_img, w_img = ref.shape
     side = mrf_tile_side(hts.size, mrf, engine.budget_bytes(), device.max_alloc_bytes)
+    # SGM runs on the device: the tile's volume stays there. The graph cut runs on the host.
+    on_device = mrf.method == "sgm"
     height = np.full((h_img, w_img), np.nan)
     plane_index = np.zeros((h_img, w_img), np.float32)
     confidence = np.zeros((h_img, w_img), np.float32)
@@ -289,11 +291,16 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     n_tiles, peak, seconds = 0, 0, 0.0
     for x0, y0, x1, y1, tx0, ty0, tx1, ty1 in _tiles(w_img, h_img, side, mrf.tile_overlap_px):
         shift = np.array([[1.0, 0.0, tx0], [0.0, 1.0, ty0], [0.0, 0.0, 1.0]])
-        r = engine.run(ref[ty0:ty1, tx0:tx1], srcs, hom @ shift, hts, keep_volume=True)
+        r = engine.run(ref[ty0:ty1, tx0:tx1], srcs, hom @ shift, hts, keep_volume=True,
+                       volume_on_device=on_device)
         initial = np.clip(np.rint(r.plane_index), 0, hts.size - 1).astype(np.int32)
-        m = refine(device, r.volume, guide[ty0:ty1, tx0:tx1], hts, mrf,
-                   cost_scale=float(sweep.census_bits),
-                   reject_range_edges=sweep.reject_range_edges, initial_labels=initial)
+        try:
+            m = refine(device, r.volume, guide[ty0:ty1, tx0:tx1], hts, mrf,
+                       cost_scale=float(sweep.census_bits),
+                       reject_range_edges=sweep.reject_range_edges, initial_labels=initial)
+        finally:
+            if on_device:
+                r.volume.data.release()
         keep = (slice(y0 - ty0, y1 - ty0), slice(x0 - tx0, x1 - tx0))
         out = (slice(y0, y1), slice(x0, x1))
         wta_index[out], wta_valid[out] = r.plane_index[keep], r.valid[keep]

@@ -276,7 +276,7 @@ def _resident_bytes(options: SweepOptions, ref_shape: tuple[int, int],
 
 def plan_tiles(options: SweepOptions, ref_shape: tuple[int, int],
                src_shapes: Sequence[tuple[int, int]], n_planes: int, budget_bytes: int,
-               max_alloc_bytes: int | None = None) -> TilePlan:
+               max_alloc_bytes: int | None = None, extra_resident_bytes: int = 0) -> TilePlan:
     """Split a sweep into tiles and plane batches that fit ``budget_bytes`` of device memory.
 
     Whole images stay resident; each tile holds its reference codes, guide statistics, the cost
@@ -287,12 +287,13 @@ def plan_tiles(options: SweepOptions, ref_shape: tuple[int, int],
     """
     h_img, w_img = ref_shape
     m = options.tile_margin
-    resident = _resident_bytes(options, ref_shape, src_shapes)
+    resident = _resident_bytes(options, ref_shape, src_shapes) + int(extra_resident_bytes)
     free = budget_bytes - resident
     n_src = len(src_shapes)
     if free <= 0:
+        what = "images themselves" + (" and the kept cost volume" if extra_resident_bytes else "")
         raise DeviceError(f"memory budget of {budget_bytes / 2**20:.0f} MiB is smaller than the "
-                          f"images themselves ({resident / 2**20:.0f} MiB): raise "
+                          f"{what} ({resident / 2**20:.0f} MiB): raise "
                           "SweepOptions.memory_budget_bytes or memory_fraction")
 
     src_bytes = (8 if options.cost_mode == "sampled_codes" else 4) * sum(h * w for h, w in src_shapes)
@@ -475,14 +476,16 @@ class PlaneSweep:
 
     # -- public entry point ---------------------------------------------------------------------
     def run(self, ref_image, src_images: Sequence, homographies, heights, *,
-            keep_volume: bool = False) -> SweepResult:
+            keep_volume: bool = False, volume_on_device: bool = False) -> SweepResult:
         """Sweep ``ref_image`` against ``src_images`` over the planes ``heights``.
 
         homographies: (n_planes, n_src, 3, 3), plane p and source s mapping homogeneous reference
         pixels to source pixels; heights: (n_planes,) strictly monotonic plane heights (metres).
-        keep_volume: also copy the filtered cost of every plane back to the host
-        (``SweepResult.volume``) for an MRF refinement; off in the plain WTA path, where the cost
-        volume never leaves the device.
+        keep_volume: also keep the filtered cost of every plane (``SweepResult.volume``) for an
+        MRF refinement; off in the plain WTA path, where the cost volume never exists whole.
+        volume_on_device: with keep_volume, the volume stays on the device, a
+        ``pyopencl.array.Array`` (n_planes, H, W) float32 that the caller releases, counted in
+        the memory budget; else it is copied to the host (numpy).
         """
         ref = _check_image("ref_image", ref_image)
         srcs = [_check_image(f"src_images[{i}]", s) for i, s in enumerate(src_images)]
@@ -504,7 +507,8 @@ class PlaneSweep:
         if self.options.prefilter_sigma_px > 0:
             ref = prefilter(ref, self.options.prefilter_sigma_px)
             srcs = [prefilter(s, self.options.prefilter_sigma_px) for s in srcs]
-        result = self._sweep(ref, srcs, hom, hts, keep_volume=keep_volume)
+        result = self._sweep(ref, srcs, hom, hts, keep_volume=keep_volume,
+                             volume_on_device=volume_on_device)
         if self.options.lr_check:
             self._lr_check(result, ref, srcs, hom, hts)
         return result
@@ -544,16 +548,26 @@ class PlaneSweep:
 
     # -- implementation -------------------------------------------------------------------------
     def _sweep(self, ref: np.ndarray, srcs: list[np.ndarray], hom: np.ndarray,
-               hts: np.ndarray, *, keep_volume: bool = False) -> SweepResult:
+               hts: np.ndarray, *, keep_volume: bool = False,
+               volume_on_device: bool = False) -> SweepResult:
         import pyopencl as cl  # noqa: PLC0415
+        import pyopencl.array as cla  # noqa: PLC0415
 
         o = self.options
         queue = self.device.queue
         n_src, n_planes = len(srcs), hts.size
         h_img, w_img = ref.shape
         census_prg, sweep_prg, filt_prg, wta_prg = self._programs(n_src)
+        on_device = keep_volume and volume_on_device
+        volume_bytes = 4 * n_planes * h_img * w_img
+        if on_device and volume_bytes > self.device.max_alloc_bytes:
+            raise DeviceError(f"{self.device.info.label}: a cost volume of "
+                              f"{volume_bytes / 2**20:.0f} MiB ({n_planes} planes x {h_img} x "
+                              f"{w_img}) exceeds the largest allocation "
+                              f"({self.device.max_alloc_bytes / 2**20:.0f} MiB): sweep smaller tiles")
         plan = plan_tiles(o, ref.shape, [s.shape for s in srcs], n_planes, self.budget_bytes(),
-                          self.device.max_alloc_bytes)
+                          self.device.max_alloc_bytes,
+                          extra_resident_bytes=volume_bytes if on_device else 0)
         bufs = _Buffers(self.device.context)
         i32 = np.int32
         rx, ry = o.census_radii
@@ -588,7 +602,11 @@ class PlaneSweep:
         out_conf = np.zeros((h_img, w_img), np.float32)
         out_cost = np.zeros((h_img, w_img), np.float32)
         out_valid = np.zeros((h_img, w_img), np.uint8)
-        volume = np.empty((n_planes, h_img, w_img), np.float32) if keep_volume else None
+        volume = None
+        if on_device:
+            volume = bufs.alloc(volume_bytes)
+        elif keep_volume:
+            volume = np.empty((n_planes, h_img, w_img), np.float32)
         n_batches = 0
         m = plan.margin
         for iy0 in range(0, h_img, plan.tile_h):
@@ -609,6 +627,8 @@ class PlaneSweep:
         height = np.interp(index.astype(np.float64), np.arange(n_planes), hts) if n_planes > 1 \
             else np.full(index.shape, hts[0])
         height[~valid] = np.nan
+        if on_device:
+            volume = cla.Array(queue, (n_planes, h_img, w_img), np.float32, data=volume)
         return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
                            cost_min=out_cost, n_tiles=plan.n_tiles, n_batches=n_batches,
                            peak_device_bytes=bufs.peak, volume=volume)
@@ -670,12 +690,17 @@ class PlaneSweep:
                             code_buf, i32(tw), i32(th), i32(p0), vol_a)
             with self._stage("filter"):
                 self._filter(filt_prg, tile, nb, vol_a, vol_b, guide_i, guide_mean)
-            if volume is not None:  # MRF path only: the filtered planes' interior to the host
+            ix0, iy0 = interior_origin
+            if isinstance(volume, np.ndarray):  # MRF path: the filtered interior to the host
                 batch = np.empty((nb, th, tw), np.float32)
                 cl.enqueue_copy(queue, batch, vol_a)
-                ix0, iy0 = interior_origin
                 volume[p0:p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
                     batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
+            elif volume is not None:  # MRF path, volume on the device: a rectangular copy
+                cl.enqueue_copy(queue, volume, vol_a, src_origin=(4 * tile.mx, tile.my, 0),
+                                dst_origin=(4 * ix0, iy0, p0), region=(4 * tile.iw, tile.ih, nb),
+                                src_pitches=(4 * tw, 4 * tw * th),
+                                dst_pitches=(4 * w_img, 4 * w_img * h_img))
             with self._stage("wta"):
                 _launch(wta_update, queue, (iw, ih), vol_a, i32(tw), i32(th), i32(tile.mx),
                         i32(tile.my), i32(iw), i32(ih), i32(nb), i32(p0), state)
