@@ -22,7 +22,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -254,7 +254,8 @@ def _tiles(width: int, height: int, side: int, overlap: int):
 
 
 def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, heights,
-                       sweep: "SweepOptions", mrf: "MRFOptions"):
+                       sweep: "SweepOptions", mrf: "MRFOptions", *,
+                       progress: "Callable[[int, int], None] | None" = None):
     """Plane sweep plus MRF refinement of one reference view, tile by tile.
 
     The reference is cut into tiles of interior side ``mrf_tile_side``; each tile is swept with
@@ -264,7 +265,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     exactly the untiled result. The images are prefiltered once, whole (the MRF's guide is the
     reference as given); the left-right check
     (``sweep.lr_check``) runs once on the assembled winner-take-all map, as the untiled sweep
-    does. Returns (SweepResult with n_tiles = the MRF tiles, MRF seconds).
+    does. ``progress(done, total)`` is called after each tile. Returns (SweepResult with
+    n_tiles = the MRF tiles, MRF seconds).
     """
     from .mrf import refine  # noqa: PLC0415
     from .sweep import PlaneSweep, SweepResult, prefilter  # noqa: PLC0415
@@ -289,7 +291,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     wta_index = np.zeros((h_img, w_img), np.float32)
     wta_valid = np.zeros((h_img, w_img), bool)
     n_tiles, peak, seconds = 0, 0, 0.0
-    for x0, y0, x1, y1, tx0, ty0, tx1, ty1 in _tiles(w_img, h_img, side, mrf.tile_overlap_px):
+    tiles = list(_tiles(w_img, h_img, side, mrf.tile_overlap_px))
+    for x0, y0, x1, y1, tx0, ty0, tx1, ty1 in tiles:
         shift = np.array([[1.0, 0.0, tx0], [0.0, 1.0, ty0], [0.0, 0.0, 1.0]])
         r = engine.run(ref[ty0:ty1, tx0:tx1], srcs, hom @ shift, hts, keep_volume=True,
                        volume_on_device=on_device)
@@ -313,6 +316,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
         n_tiles += 1
         peak = max(peak, r.peak_device_bytes)
         seconds += m.seconds
+        if progress is not None:
+            progress(n_tiles, len(tiles))
     if sweep.lr_check:
         valid &= engine.lr_mask(wta_index, wta_valid, ref, srcs, hom, hts)
     height[~valid] = np.nan
@@ -345,7 +350,8 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
                 result, seconds = sweep_refine_tiled(
                     device, images[r], [images[s] for s in srcs],
                     view_homographies(ref_proj, src_projs, heights), heights,
-                    config.sweep, config.mrf)
+                    config.sweep, config.mrf,
+                    progress=rep.progress("sweep tiles", 1).callback(names[r]))
             rep.move_time("sweep", "mrf", seconds)
             mrf_info = {"method": config.mrf.method, "seconds": seconds,
                         "tiles": int(result.n_tiles),

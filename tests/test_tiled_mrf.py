@@ -65,9 +65,12 @@ def test_many_tiles_agree_with_one(cl_device):
     ref_img, srcs, hom, heights = _scene((150, 170))
     sweep = SweepOptions()
     one, _ = sweep_refine_tiled(cl_device, ref_img, srcs, hom, heights, sweep, MRFOptions())
+    calls = []
     many, seconds = sweep_refine_tiled(cl_device, ref_img, srcs, hom, heights, sweep,
-                                       MRFOptions(tile_px=MIN_MRF_TILE_PX, tile_overlap_px=32))
+                                       MRFOptions(tile_px=MIN_MRF_TILE_PX, tile_overlap_px=32),
+                                       progress=lambda done, total: calls.append((done, total)))
     assert one.n_tiles == 1 and many.n_tiles == 3 * 3 and seconds > 0
+    assert calls == [(k, 9) for k in range(1, 10)]
     different = np.abs(many.plane_index - one.plane_index) > TILED_INDEX_TOL
     assert different.mean() <= TILED_MAX_DIFFERENT
     assert np.mean(many.valid != one.valid) <= TILED_MAX_DIFFERENT
