@@ -151,4 +151,6 @@ def _matches(value: Any, expected: Any) -> bool:
 
 
 def _type_name(expected: Any) -> str:
+    if typing.get_origin(expected) is typing.Literal:
+        return "one of " + ", ".join(repr(v) for v in typing.get_args(expected))
     return getattr(expected, "__name__", None) or str(expected).replace("typing.", "")

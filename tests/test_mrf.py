@@ -80,6 +80,25 @@ def test_sgm_aggregate_matches_reference(cl_device, paths, work_group):
     np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
 
 
+@pytest.mark.parametrize("true_offset", [-0.45, -0.3, -0.1, 0.0, 0.2, 0.4])
+def test_equiangular_fit_is_exact_on_v_shaped_costs(true_offset):
+    """Costs |k - t| sampled at k = -1, 0, 1 (what SGM's linear P1 penalties give near the
+    minimum): the symmetric V recovers t exactly; the parabola is pulled towards the plane."""
+    k = np.array([-1.0, 0.0, 1.0])
+    cm, c0, cp = (np.array([abs(x - true_offset) * 7.0 + 3.0]) for x in k)
+    inside = np.array([True])
+    v = mrf._equiangular_offset(cm, c0, cp, inside)[0]
+    p = mrf._parabola_offset(cm, c0, cp, inside)[0]
+    assert v == pytest.approx(true_offset, abs=1e-12)
+    if true_offset != 0.0:
+        assert abs(p) < abs(true_offset)
+    # no offset at a range end, on a plateau, or where the middle is not the smallest
+    assert mrf._equiangular_offset(cm, c0, cp, np.array([False]))[0] == 0.0
+    flat = np.array([2.0])
+    assert mrf._equiangular_offset(flat, flat, flat, inside)[0] == 0.0
+    assert mrf._equiangular_offset(np.array([1.0]), np.array([2.0]), np.array([3.0]), inside)[0] == 0.0
+
+
 @pytest.mark.parametrize("n_labels", [5, 13, 27])
 def test_sgm_label_counts_off_the_vector_width_match_reference(cl_device, n_labels):
     """The one-work-item path steps through the labels 8 at a time: counts below 8, and with a
@@ -118,8 +137,9 @@ def test_sgm_accepts_device_arrays_and_buffers(cl_device):
         mrf.sgm_aggregate(cl_device, arr.data, guide, opts)
 
 
-def _numpy_wta(vol: np.ndarray):
-    """Independent WTA of the sweep's rules: first argmin, parabola, second local minimum."""
+def _numpy_wta(vol: np.ndarray, subplane: str = "parabola"):
+    """Independent WTA of the sweep's rules: first argmin, sub-plane fit (parabola, or the
+    symmetric V of ``sgm_subplane = "equiangular"``), second local minimum."""
     v = vol.astype(np.float64)
     n_labels = v.shape[0]
     best = np.argmin(v, axis=0)
@@ -132,28 +152,35 @@ def _numpy_wta(vol: np.ndarray):
     c2 = np.where(np.isfinite(c2), c2, v.max(axis=0))
     cm = np.take_along_axis(v, np.maximum(best - 1, 0)[None], 0)[0]
     cp = np.take_along_axis(v, np.minimum(best + 1, n_labels - 1)[None], 0)[0]
-    denom = cm - 2 * c1 + cp
-    inner = (best > 0) & (best < n_labels - 1) & (denom > 0)
-    off = np.where(inner, np.clip(0.5 * (cm - cp) / np.where(inner, denom, 1.0), -0.5, 0.5), 0.0)
+    if subplane == "parabola":
+        denom = cm - 2 * c1 + cp
+        inner = (best > 0) & (best < n_labels - 1) & (denom > 0)
+        off = np.where(inner, np.clip(0.5 * (cm - cp) / np.where(inner, denom, 1.0), -0.5, 0.5),
+                       0.0)
+    else:  # two lines of slopes +-s through the three costs: s = the larger rise from c1
+        rise = np.maximum(cm, cp) - c1
+        inner = (best > 0) & (best < n_labels - 1) & (rise > 0)
+        off = np.where(inner, 0.5 * (cm - cp) / np.where(inner, rise, 1.0), 0.0)
     order = np.sort(v, axis=0)
     margin = order[1] - order[0]
     return best, off, c1, c2, margin
 
 
-def test_sgm_refine_matches_numpy_wta(cl_device):
+@pytest.mark.parametrize("subplane", ["equiangular", "parabola"])
+def test_sgm_refine_matches_numpy_wta(cl_device, subplane):
     scale = 24.0
     cost, guide = _random_volume(4, scale=scale)
     n_labels, h, w = cost.shape
     heights = 250.0 - 0.75 * np.arange(n_labels)           # decreasing heights are allowed
     rng = np.random.default_rng(5)
     visible = rng.uniform(size=cost.shape) > 0.2           # per-plane visibility
-    opts = mrf.MRFOptions(sgm_paths=8)
+    opts = mrf.MRFOptions(sgm_paths=8, sgm_subplane=subplane)
     res = mrf.sgm_refine(cl_device, cost, guide, heights, opts, cost_scale=scale,
                          visible=visible, reject_range_edges=True)
     agg = reference_aggregate(cost, guide, n_paths=8, p1=opts.sgm_p1 * scale,
                               p2=opts.sgm_p2 * scale, inv_sigma=1.0 / opts.sgm_p2_sigma,
                               missing_cost=scale)
-    best, off, c1, c2, margin = _numpy_wta(agg)
+    best, off, c1, c2, margin = _numpy_wta(agg, subplane)
     sure = margin > ARGMIN_MARGIN * float(agg.max())
     assert sure.mean() > 0.9
     np.testing.assert_array_equal(res.labels[sure], best[sure])
@@ -413,7 +440,7 @@ def test_graphcut_beats_wta_on_census_costs_of_a_plain_plaza(seed):
 @pytest.mark.parametrize("field,value", [
     ("sgm_p2", 0.01), ("sgm_work_group", 3), ("sgm_paths", 6), ("gc_tile_overlap", 200),
     ("gc_truncation_labels", 0), ("gc_levels", 9), ("method", "belief"), ("sgm_p2_sigma", -1.0),
-    ("tile_px", 32), ("tile_overlap_px", -1),
+    ("tile_px", 32), ("tile_overlap_px", -1), ("sgm_subplane", "cubic"),
 ])
 def test_bad_options_name_the_field(field, value):
     with pytest.raises(OptionsError, match=field):
