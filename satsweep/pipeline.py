@@ -330,8 +330,8 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
     """Sweep every reference view against its sources; MRF refinement per the options.
 
     Without an MRF, the sweep's winner-take-all (its own tiling keeps the cost volume on the
-    device). With one, ``sweep_refine_tiled``: sweep and refinement share the "sweep" stage's
-    time, the refinement's own time is reported under "mrf" in the view's entry.
+    device). With one, ``sweep_refine_tiled``, timed as the "sweep" stage, whose refinement time
+    is then moved to the "mrf" stage and also given in the view's entry with its tile count.
     """
     from .sweep import plane_heights, sweep_views, view_homographies
 
