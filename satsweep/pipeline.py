@@ -18,18 +18,23 @@ when every stage has succeeded: a failed run leaves what DIR held before untouch
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
 from .aoi import AOI, AltitudeRange, resolve_altitude_range
 from .config import PipelineConfig
-from .errors import CameraError, OptionsError
+from .errors import CameraError, DeviceError, OptionsError
 from .report import RunReport, to_json
+
+if TYPE_CHECKING:
+    from .mrf import MRFOptions
+    from .sweep import SweepOptions
 
 
 @dataclasses.dataclass(frozen=True)
@@ -219,7 +224,7 @@ MIN_MRF_TILE_PX = 64
 SGM_DEVICE_VOLUMES = 3
 
 
-def mrf_tile_side(n_planes: int, mrf: "MRFOptions", budget_bytes: int,
+def mrf_tile_side(n_planes: int, mrf: MRFOptions, budget_bytes: int,
                   max_alloc_bytes: int) -> int:
     """Interior side (pixels) of the tiles of ``sweep_refine_tiled``.
 
@@ -227,10 +232,6 @@ def mrf_tile_side(n_planes: int, mrf: "MRFOptions", budget_bytes: int,
     ``SGM_DEVICE_VOLUMES`` times in the device budget and once in one device allocation.
     DeviceError when even a ``MIN_MRF_TILE_PX`` tile does not fit.
     """
-    import math  # noqa: PLC0415
-
-    from .errors import DeviceError  # noqa: PLC0415
-
     per_px = 4 * n_planes
     o = mrf.tile_overlap_px
     fit_budget = math.isqrt(max(budget_bytes // (SGM_DEVICE_VOLUMES * per_px), 0)) - 2 * o
@@ -254,16 +255,16 @@ def _tiles(width: int, height: int, side: int, overlap: int):
 
 
 def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, heights,
-                       sweep: "SweepOptions", mrf: "MRFOptions", *,
-                       progress: "Callable[[int, int], None] | None" = None):
+                       sweep: SweepOptions, mrf: MRFOptions, *,
+                       progress: Callable[[int, int], None] | None = None):
     """Plane sweep plus MRF refinement of one reference view, tile by tile.
 
     The reference is cut into tiles of interior side ``mrf_tile_side``; each tile is swept with
     ``mrf.tile_overlap_px`` more pixels on every side (homographies composed with the tile's
     offset), its filtered cost volume refined by ``mrf.method`` (for SGM the volume never leaves
-    the device), and its interior kept. So host and device hold one tile's cost volume at a time, and a reference that fits one tile gives
-    exactly the untiled result. The images are prefiltered once, whole (the MRF's guide is the
-    reference as given); the left-right check
+    the device), and its interior kept. So host and device hold one tile's cost volume at a
+    time, and a reference that fits one tile gives exactly the untiled result. The images are
+    prefiltered once, whole (the MRF's guide is the reference as given); the left-right check
     (``sweep.lr_check``) runs once on the assembled winner-take-all map, as the untiled sweep
     does. ``progress(done, total)`` is called after each tile. Returns (SweepResult with
     n_tiles = the MRF tiles, MRF seconds).

@@ -40,7 +40,7 @@ import numpy as np
 from . import __version__
 from .aoi import AOI
 from .errors import InputError, OptionsError
-from .geo import ENUFrame, lonlat_to_utm, utm_epsg, utm_to_lonlat
+from .geo import ENUFrame, utm_to_lonlat
 from .dsm import DSMGrid, dsm_grid_for_aoi
 from .imageio import atomic_output, check_output_dir, write_geotiff, write_tiff
 from .options import Options

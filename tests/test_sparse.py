@@ -12,7 +12,7 @@ import pytest
 
 from satsweep import sparse
 from satsweep.errors import OptionsError
-from synthetic_cameras import project, satellite_camera, scene_points, three_cameras
+from synthetic_cameras import project, scene_points, three_cameras
 
 # Gaussian blobs are located by SIFT's quadratic interpolation of the DoG extremum: measured
 # errors about 0.01 px; a quarter-pixel convention slip would show as 0.25 px.
