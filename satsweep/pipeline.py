@@ -254,6 +254,36 @@ def _tiles(width: int, height: int, side: int, overlap: int):
                    min(x1 + overlap, width), min(y1 + overlap, height))
 
 
+def _source_windows(hom: np.ndarray, tile_shape: tuple[int, int],
+                    src_shapes: Sequence[tuple[int, int]]) -> list[tuple[int, int, int, int]]:
+    """Per source, the window (x0, y0, x1, y1), end exclusive, that a tile's sweep reads.
+
+    ``hom`` (n_planes, n_src, 3, 3) maps tile pixels to source pixels. Where the denominator is
+    positive at the tile's corners, a plane maps the tile onto the convex quadrilateral of its
+    corners' images, so the box of every plane's corners, with one pixel more for the bilinear
+    neighbours, holds every position the sweep samples; clamped to the source, the window keeps
+    each position's validity and sampled value (a position outside the source is outside the
+    window on the same side, which then ends at the source's edge). A source whose denominator
+    is not positive at some corner gets its whole image.
+    """
+    th, tw = tile_shape
+    corners = np.array([[0.0, tw - 1.0, 0.0, tw - 1.0], [0.0, 0.0, th - 1.0, th - 1.0],
+                        [1.0, 1.0, 1.0, 1.0]])
+    out = []
+    for s, (sh, sw) in enumerate(src_shapes):
+        mapped = hom[:, s] @ corners  # (n_planes, 3, 4)
+        if not (mapped[:, 2] > 0).all():
+            out.append((0, 0, sw, sh))
+            continue
+        u, v = mapped[:, 0] / mapped[:, 2], mapped[:, 1] / mapped[:, 2]
+        x0 = min(max(int(math.floor(u.min())) - 1, 0), sw - 1)
+        y0 = min(max(int(math.floor(v.min())) - 1, 0), sh - 1)
+        x1 = min(max(int(math.ceil(u.max())) + 2, x0 + 1), sw)
+        y1 = min(max(int(math.ceil(v.max())) + 2, y0 + 1), sh)
+        out.append((x0, y0, x1, y1))
+    return out
+
+
 def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, heights,
                        sweep: SweepOptions, mrf: MRFOptions, *,
                        progress: Callable[[int, int], None] | None = None):
@@ -263,7 +293,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     ``mrf.tile_overlap_px`` more pixels on every side (homographies composed with the tile's
     offset), its filtered cost volume refined by ``mrf.method`` (for SGM the volume never leaves
     the device), and its interior kept. So host and device hold one tile's cost volume at a
-    time, and a reference that fits one tile gives exactly the untiled result. The images are
+    time (and, with several tiles, only the windows of the sources that the tile reads), and a
+    reference that fits one tile gives exactly the untiled result. The images are
     prefiltered once, whole (the MRF's guide is the reference as given); the left-right check
     (``sweep.lr_check``) runs once on the assembled winner-take-all map, as the untiled sweep
     does. ``progress(done, total)`` is called after each tile. Returns (SweepResult with
@@ -295,7 +326,16 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     tiles = list(_tiles(w_img, h_img, side, mrf.tile_overlap_px))
     for x0, y0, x1, y1, tx0, ty0, tx1, ty1 in tiles:
         shift = np.array([[1.0, 0.0, tx0], [0.0, 1.0, ty0], [0.0, 0.0, 1.0]])
-        r = engine.run(ref[ty0:ty1, tx0:tx1], srcs, hom @ shift, hts, keep_volume=True,
+        tile_hom = hom @ shift
+        tile_srcs = srcs
+        if len(tiles) > 1:
+            # Upload only the part of each source the tile reads, not whole images per tile.
+            windows = _source_windows(tile_hom, (ty1 - ty0, tx1 - tx0), [a.shape for a in srcs])
+            tile_srcs = [a[wy0:wy1, wx0:wx1] for a, (wx0, wy0, wx1, wy1) in zip(srcs, windows)]
+            back = np.array([[[1.0, 0.0, -wx0], [0.0, 1.0, -wy0], [0.0, 0.0, 1.0]]
+                             for wx0, wy0, _, _ in windows])
+            tile_hom = back[None] @ tile_hom
+        r = engine.run(ref[ty0:ty1, tx0:tx1], tile_srcs, tile_hom, hts, keep_volume=True,
                        volume_on_device=on_device)
         initial = np.clip(np.rint(r.plane_index), 0, hts.size - 1).astype(np.int32)
         try:

@@ -15,7 +15,8 @@ import pytest
 import reference_sweep as ref
 from satsweep.errors import DeviceError
 from satsweep.mrf import MRFOptions, refine
-from satsweep.pipeline import MIN_MRF_TILE_PX, mrf_tile_side, sweep_refine_tiled
+from satsweep.pipeline import (MIN_MRF_TILE_PX, _source_windows, mrf_tile_side,
+                               sweep_refine_tiled)
 from satsweep.sweep import PlaneSweep, SweepOptions, plane_heights_for, translation_homographies
 
 SHIFTS = ((0.52, 0.0), (0.1, -0.4))
@@ -86,3 +87,37 @@ def test_tile_side_follows_the_budget():
     assert mrf_tile_side(100, mrf, big, 4 * 100 * 400 ** 2) == 400 - 128
     with pytest.raises(DeviceError, match="tile_overlap_px"):
         mrf_tile_side(100, mrf, 3 * 4 * 100 * 150 ** 2, big)
+
+
+def test_source_windows_hold_every_sample_of_the_tile():
+    """Every tile pixel, on every plane: when it maps inside the source, its bilinear neighbours
+    lie in the window; when it maps outside, it is outside the window on a side where the window
+    ends at the source's edge (so validity and edge-clamped values are those of the whole
+    source). Mild perspective, sources partly and wholly beside the tile's footprint."""
+    rng = np.random.default_rng(8)
+    th, tw = 37, 45
+    src_shapes = [(120, 150), (60, 70), (80, 90)]
+    n_planes = 9
+    hom = np.zeros((n_planes, len(src_shapes), 3, 3))
+    offsets = [(20.0, 30.0), (40.0, -10.0), (200.0, 5.0)]  # inside, across an edge, outside
+    for p in range(n_planes):
+        for s_, (ox, oy) in enumerate(offsets):
+            h = np.eye(3)
+            h[:2, :2] += rng.normal(0.0, 0.05, (2, 2))
+            h[0, 2], h[1, 2] = ox + 1.5 * p, oy - 0.7 * p
+            h[2, :2] = rng.normal(0.0, 2e-4, 2)
+            hom[p, s_] = h
+    windows = _source_windows(hom, (th, tw), src_shapes)
+    ys, xs = np.mgrid[0:th, 0:tw].astype(np.float64)
+    pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    for s_, ((sh, sw), (x0, y0, x1, y1)) in enumerate(zip(src_shapes, windows)):
+        assert 0 <= x0 < x1 <= sw and 0 <= y0 < y1 <= sh
+        m = hom[:, s_] @ pts
+        u, v = m[:, 0] / m[:, 2], m[:, 1] / m[:, 2]
+        inside = (u >= 0) & (u <= sw - 1) & (v >= 0) & (v <= sh - 1)
+        fu, fv = np.floor(u[inside]), np.floor(v[inside])
+        assert (fu >= x0).all() and (np.minimum(fu + 1, sw - 1) < x1).all()
+        assert (fv >= y0).all() and (np.minimum(fv + 1, sh - 1) < y1).all()
+        assert (u[u < 0].size == 0 or x0 == 0) and (u[u > sw - 1].size == 0 or x1 == sw)
+        assert (v[v < 0].size == 0 or y0 == 0) and (v[v > sh - 1].size == 0 or y1 == sh)
+    assert windows[0] != (0, 0, 150, 120)  # the first source is really cut
