@@ -95,7 +95,9 @@ inline void sgm_line_start(const int line, const int w, const int h, const int d
  * work-items, and a scanline has only one). Lr(p - r, .) lives in a private array with +inf
  * guards at d = -1 and d = SGM_NL, so that the terms in d - 1 and d + 1 need no test at the range
  * ends (fmin(m, inf + P1) = m: the same values as the per-label code below), and the current and
- * previous steps swap arrays instead of copying. */
+ * previous steps swap arrays instead of copying. Before the first pixel of a scanline the
+ * previous step is all zeros with minimum 0, so the recurrence gives exactly Lr = C there
+ * (every term is >= 0 and the zero term wins: C + (0 - 0)). */
 #define SGM_VEC 8
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
 void sgm_path(__global const float *cost, __global const float *guide, __global float *agg,
@@ -106,56 +108,39 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
     float *prev = buf_a + 1, *cur = buf_b + 1;
     buf_a[0] = buf_b[0] = INFINITY;
     prev[SGM_NL] = cur[SGM_NL] = INFINITY;
+    for (int d = 0; d < SGM_NL; ++d) prev[d] = 0.0f;
 
     int x, y;
     sgm_line_start(get_group_id(0), w, h, dx, dy, &x, &y);
     float prev_min = 0.0f;
     float prev_guide = 0.0f;
-    int first = 1;
     while (x >= 0 && x < w && y >= 0 && y < h) {
         const size_t idx = (size_t)y * (size_t)w + (size_t)x;
         __global const float *c = cost + idx * SGM_NL;
         __global float *a = agg + idx * SGM_NL;
         const float gv = guide[idx];
-        const float p2a = first ? p2
-                                : fmax(p1, p2 / (1.0f + fabs(gv - prev_guide) * inv_sigma));
-        const float jump = prev_min + p2a;
+        const float jump = prev_min + fmax(p1, p2 / (1.0f + fabs(gv - prev_guide) * inv_sigma));
+        const float8 jump8 = (float8)(jump), p18 = (float8)(p1), min8 = (float8)(prev_min);
         float8 vmin = (float8)(MAXFLOAT);
         float cmin = MAXFLOAT;
         int d = 0;
-        if (first) {
-            for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
-                const float8 v = vload8(0, c + d);
-                vstore8(v, 0, cur + d);
-                vstore8(accumulate ? vload8(0, a + d) + v : v, 0, a + d);
-                vmin = fmin(vmin, v);
-            }
-            for (; d < SGM_NL; ++d) {
-                const float v = c[d];
-                cur[d] = v;
-                a[d] = accumulate ? a[d] + v : v;
-                cmin = fmin(cmin, v);
-            }
-        } else {
-            const float8 jump8 = (float8)(jump), p18 = (float8)(p1), min8 = (float8)(prev_min);
-            for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
-                float8 m = fmin(vload8(0, prev + d), jump8);
-                m = fmin(m, vload8(0, prev + d - 1) + p18);
-                m = fmin(m, vload8(0, prev + d + 1) + p18);
-                const float8 v = vload8(0, c + d) + (m - min8);
-                vstore8(v, 0, cur + d);
-                vstore8(accumulate ? vload8(0, a + d) + v : v, 0, a + d);
-                vmin = fmin(vmin, v);
-            }
-            for (; d < SGM_NL; ++d) {
-                float m = fmin(prev[d], jump);
-                m = fmin(m, prev[d - 1] + p1);
-                m = fmin(m, prev[d + 1] + p1);
-                const float v = c[d] + (m - prev_min);
-                cur[d] = v;
-                a[d] = accumulate ? a[d] + v : v;
-                cmin = fmin(cmin, v);
-            }
+        for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
+            float8 m = fmin(vload8(0, prev + d), jump8);
+            m = fmin(m, vload8(0, prev + d - 1) + p18);
+            m = fmin(m, vload8(0, prev + d + 1) + p18);
+            const float8 v = vload8(0, c + d) + (m - min8);
+            vstore8(v, 0, cur + d);
+            vstore8(accumulate ? vload8(0, a + d) + v : v, 0, a + d);
+            vmin = fmin(vmin, v);
+        }
+        for (; d < SGM_NL; ++d) {
+            float m = fmin(prev[d], jump);
+            m = fmin(m, prev[d - 1] + p1);
+            m = fmin(m, prev[d + 1] + p1);
+            const float v = c[d] + (m - prev_min);
+            cur[d] = v;
+            a[d] = accumulate ? a[d] + v : v;
+            cmin = fmin(cmin, v);
         }
         const float4 m4 = fmin(vmin.lo, vmin.hi);
         const float2 m2 = fmin(m4.lo, m4.hi);
@@ -164,7 +149,6 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
         prev = cur;
         cur = t;
         prev_guide = gv;
-        first = 0;
         x += dx;
         y += dy;
     }
