@@ -224,12 +224,8 @@ def plane_heights_for(homography_fn: Callable[[np.ndarray], np.ndarray],
 def plane_heights(ref, srcs: Sequence, alt_range: tuple[float, float], step_px: float = 0.5, *,
                   ref_shape: tuple[int, int]) -> np.ndarray:
     """Plane heights for projections (``satsweep.camera``): see ``plane_heights_for``."""
-    from .camera import plane_homography  # noqa: PLC0415  (camera is a sibling stage)
-
-    def fn(h: np.ndarray) -> np.ndarray:
-        return np.stack([np.asarray(plane_homography(ref, s, h)) for s in srcs], axis=1)
-
-    return plane_heights_for(fn, ref_shape, alt_range, step_px)
+    return plane_heights_for(lambda h: view_homographies(ref, srcs, h), ref_shape, alt_range,
+                             step_px)
 
 
 def translation_homographies(shifts_px_per_m: np.ndarray, heights: np.ndarray) -> np.ndarray:
