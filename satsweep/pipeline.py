@@ -245,15 +245,6 @@ def mrf_tile_side(n_planes: int, mrf: MRFOptions, budget_bytes: int,
     return side
 
 
-def _tiles(width: int, height: int, side: int, overlap: int):
-    """(interior x0, y0, x1, y1, tile x0, y0, x1, y1) covering the image, interiors side wide."""
-    for y0 in range(0, height, side):
-        for x0 in range(0, width, side):
-            x1, y1 = min(x0 + side, width), min(y0 + side, height)
-            yield (x0, y0, x1, y1, max(x0 - overlap, 0), max(y0 - overlap, 0),
-                   min(x1 + overlap, width), min(y1 + overlap, height))
-
-
 def _source_windows(hom: np.ndarray, tile_shape: tuple[int, int],
                     src_shapes: Sequence[tuple[int, int]]) -> list[tuple[int, int, int, int]]:
     """Per source, the window (x0, y0, x1, y1), end exclusive, that a tile's sweep reads.
@@ -301,7 +292,7 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     n_tiles = the MRF tiles, MRF seconds).
     """
     from .mrf import refine  # noqa: PLC0415
-    from .sweep import PlaneSweep, SweepResult, prefilter  # noqa: PLC0415
+    from .sweep import PlaneSweep, SweepResult, prefilter, tile_grid  # noqa: PLC0415
 
     ref = guide = np.ascontiguousarray(ref_image, dtype=np.float32)
     srcs = [np.ascontiguousarray(s, dtype=np.float32) for s in src_images]
@@ -323,7 +314,7 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     wta_index = np.zeros((h_img, w_img), np.float32)
     wta_valid = np.zeros((h_img, w_img), bool)
     n_tiles, peak, seconds = 0, 0, 0.0
-    tiles = list(_tiles(w_img, h_img, side, mrf.tile_overlap_px))
+    tiles = list(tile_grid(w_img, h_img, side, side, mrf.tile_overlap_px))
     for x0, y0, x1, y1, tx0, ty0, tx1, ty1 in tiles:
         shift = np.array([[1.0, 0.0, tx0], [0.0, 1.0, ty0], [0.0, 0.0, 1.0]])
         tile_hom = hom @ shift

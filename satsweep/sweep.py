@@ -605,16 +605,14 @@ class PlaneSweep:
             volume = np.empty((n_planes, h_img, w_img), np.float32)
         n_batches = 0
         m = plan.margin
-        for iy0 in range(0, h_img, plan.tile_h):
-            for ix0 in range(0, w_img, plan.tile_w):
-                iw, ih = min(plan.tile_w, w_img - ix0), min(plan.tile_h, h_img - iy0)
-                tx0, ty0 = max(ix0 - m, 0), max(iy0 - m, 0)
-                tw, th = min(ix0 + iw + m, w_img) - tx0, min(iy0 + ih + m, h_img) - ty0
-                tile = _Tile(tx0, ty0, tw, th, ix0 - tx0, iy0 - ty0, iw, ih)
-                n_batches += self._sweep_tile(
-                    tile, plan.planes_per_batch, hom, n_planes, bufs, ref_buf, src_buf, off_buf,
-                    size_buf, census_k, sweep_k, filt_prg, wta_prg, (w_img, h_img),
-                    (out_index, out_conf, out_cost, out_valid), (ix0, iy0), volume)
+        for ix0, iy0, ix1, iy1, tx0, ty0, tx1, ty1 in tile_grid(w_img, h_img, plan.tile_w,
+                                                                plan.tile_h, m):
+            tile = _Tile(tx0, ty0, tx1 - tx0, ty1 - ty0, ix0 - tx0, iy0 - ty0, ix1 - ix0,
+                         iy1 - iy0)
+            n_batches += self._sweep_tile(
+                tile, plan.planes_per_batch, hom, n_planes, bufs, ref_buf, src_buf, off_buf,
+                size_buf, census_k, sweep_k, filt_prg, wta_prg, (w_img, h_img),
+                (out_index, out_conf, out_cost, out_valid), (ix0, iy0), volume)
         bufs.free(ref_buf, src_buf, off_buf, size_buf)
         index = out_index
         if not o.subplane:
@@ -803,6 +801,17 @@ class _Tile:
     my: int
     iw: int  # interior size
     ih: int
+
+
+def tile_grid(width: int, height: int, tile_w: int, tile_h: int, margin: int):
+    """Tiles covering a width x height image, row by row: (interior x0, y0, x1, y1, tile x0, y0,
+    x1, y1), ends exclusive, interiors tile_w x tile_h (less at the right and bottom), each tile
+    its interior plus ``margin`` pixels on every side, clipped to the image."""
+    for y0 in range(0, height, tile_h):
+        for x0 in range(0, width, tile_w):
+            x1, y1 = min(x0 + tile_w, width), min(y0 + tile_h, height)
+            yield (x0, y0, x1, y1, max(x0 - margin, 0), max(y0 - margin, 0),
+                   min(x1 + margin, width), min(y1 + margin, height))
 
 
 def _ceil_div(a: int, b: int) -> int:
