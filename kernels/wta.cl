@@ -14,6 +14,10 @@
  * (mx + x, my + y) of a tile of width tw (the interior excludes the tile's filter margin).
  *   wta_init     : resets the state;
  *   wta_update   : consumes planes plane0 .. plane0 + nb - 1 from cost[nb][th][tw];
+ *   wta_pixel_major : the state after ALL n_planes planes of a pixel-major volume
+ *                  cost[i * n_planes + d] (the layout SGM aggregates in), in one pass: equal to
+ *                  wta_init then wta_update over planes 0 .. n_planes - 1. Work size: global =
+ *                  (n_pix), rounded up to any multiple; local = any; work-item i writes pixel i.
  *   wta_finalize : after the last of n_planes planes: fractional plane index (parabola through the
  *                  best plane and its neighbours, offset clamped to [-0.5, 0.5], none at the first
  *                  and last planes), confidence = (c2 - M1) / CENSUS_NBITS clamped to [0, 1]
@@ -99,6 +103,32 @@ __kernel void wta_update(__global const float *cost, const int tw, const int th,
     state[S_PREV * n + k] = prev;
     state[S_PREV2 * n + k] = prev2;
     state[S_MAX * n + k] = cmax;
+}
+
+__kernel void wta_pixel_major(__global const float *cost, const int n_pix, const int n_planes,
+                              __global float *state)
+{
+    const int i = get_global_id(0);
+    if (i >= n_pix) return;
+    float m1 = WTA_BIG, i1 = -1.0f, m1p = WTA_BIG, m1n = WTA_BIG, m2 = WTA_BIG;
+    float prev = WTA_BIG, prev2 = WTA_BIG, cmax = -WTA_BIG;
+    __global const float *c = cost + (size_t)i * n_planes;
+    for (int p = 0; p < n_planes; ++p) {
+        const float cp = c[p];
+        if (p >= 1) consider(p - 1, prev2, prev, cp, &m1, &i1, &m1p, &m1n, &m2);
+        prev2 = prev;
+        prev = cp;
+        cmax = fmax(cmax, cp);
+    }
+    const size_t n = (size_t)n_pix;
+    state[S_M1 * n + i] = m1;
+    state[S_I1 * n + i] = i1;
+    state[S_M1P * n + i] = m1p;
+    state[S_M1N * n + i] = m1n;
+    state[S_M2 * n + i] = m2;
+    state[S_PREV * n + i] = prev;
+    state[S_PREV2 * n + i] = prev2;
+    state[S_MAX * n + i] = cmax;
 }
 
 __kernel void wta_finalize(__global const float *state, const int iw, const int ih,

@@ -379,6 +379,24 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
     import pyopencl as cl  # noqa: PLC0415
     import pyopencl.array as cla  # noqa: PLC0415
 
+    agg_pm, prg = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
+                                             cost_scale=cost_scale, shape=shape)
+    h, w, n_labels = agg_pm.shape
+    queue = device.queue
+    agg = cla.empty(queue, (n_labels, h, w), np.float32)
+    cl.Kernel(prg, "sgm_to_plane_major")(queue, (h * w,), None, agg_pm.data, agg.data,
+                                         np.int32(h * w))
+    queue.finish()
+    agg_pm.data.release()
+    return agg
+
+
+def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFOptions, *,
+                               cost_scale: float, shape: tuple[int, int, int] | None):
+    """``sgm_aggregate`` without the final transposition: ((H, W, L) device array, program)."""
+    import pyopencl as cl  # noqa: PLC0415
+    import pyopencl.array as cla  # noqa: PLC0415
+
     scale = _check_scale(cost_scale)
     n_labels, h, w = _volume_shape(cost_volume, shape)
     g = _check_guide(guide, (h, w))
@@ -406,28 +424,23 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
                f32(inv_sigma), i32(1 if i > 0 else 0))
     queue.finish()
     cost_pm.data.release()
-    agg = cla.empty(queue, (n_labels, h, w), np.float32)
-    cl.Kernel(prg, "sgm_to_plane_major")(queue, (n_pix,), None, agg_pm.data, agg.data,
-                                         i32(n_pix))
-    queue.finish()
-    agg_pm.data.release()
-    return agg
+    return agg_pm, prg
 
 
-def _wta_state(device: Device, agg) -> np.ndarray:
-    """Run wta.cl's streaming argmin over a whole (L, H, W) device volume; (8, H, W) state."""
+def _wta_state(device: Device, agg_pm) -> np.ndarray:
+    """wta.cl's winner-take-all state (8, H, W) of a whole PIXEL-MAJOR (H, W, L) device volume,
+    in one pass (``wta_pixel_major``: the same state as streaming the planes through
+    ``wta_update``, without turning the volume plane-major first)."""
     import pyopencl as cl  # noqa: PLC0415
     import pyopencl.array as cla  # noqa: PLC0415
 
-    n_labels, h, w = agg.shape
+    h, w, n_labels = agg_pm.shape
     # wta.cl needs NSRC and the census radii only for wta_finalize, which is not used here.
     prg = device.build("wta", {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1})
     queue = device.queue
     state = cla.empty(queue, (_WTA_NSTATE, h, w), np.float32)
-    i32 = np.int32
-    cl.Kernel(prg, "wta_init")(queue, (w, h), None, state.data, i32(w), i32(h))
-    cl.Kernel(prg, "wta_update")(queue, (w, h), None, agg.data, i32(w), i32(h), i32(0), i32(0),
-                                 i32(w), i32(h), i32(n_labels), i32(0), state.data)
+    cl.Kernel(prg, "wta_pixel_major")(queue, (h * w,), None, agg_pm.data, np.int32(h * w),
+                                      np.int32(n_labels), state.data)
     return state.get()
 
 
@@ -446,9 +459,12 @@ def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions,
     n_labels = dims[0]
     hts = _check_heights(heights, n_labels)
     vis = _check_visible(visible, dims)
-    agg = sgm_aggregate(device, cost_volume, guide, options, cost_scale=cost_scale, shape=shape)
-    s = _wta_state(device, agg).astype(np.float64)
-    agg.data.release()
+    agg_pm, _ = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
+                                           cost_scale=cost_scale, shape=shape)
+    try:
+        s = _wta_state(device, agg_pm).astype(np.float64)
+    finally:
+        agg_pm.data.release()
     # Finish as wta_finalize does: the last plane is tested as a local minimum against +inf.
     m1, i1, m1p, m1n, m2 = s[_S_M1], s[_S_I1], s[_S_M1P], s[_S_M1N], s[_S_M2]
     last, before = s[_S_PREV], s[_S_PREV2]
