@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import dataclasses
 import json
 import math
 import os
@@ -87,6 +88,24 @@ def parse_set(items: list[str]) -> dict[str, dict[str, object]]:
     return out
 
 
+def parse_scene_set(items: list[str]) -> dict[str, object]:
+    """``FIELD=VALUE`` SynthOptions overrides (VALUE a Python literal) -> dict, checked."""
+    from satsweep.synth import SynthOptions
+
+    names = {f.name for f in dataclasses.fields(SynthOptions)}
+    out: dict[str, object] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in names:
+            raise OptionsError(f"--scene-set {item!r}: expected FIELD=VALUE with FIELD one of SynthOptions' "
+                               f"fields ({', '.join(sorted(names))})")
+        try:
+            out[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            raise OptionsError(f"--scene-set {item!r}: VALUE must be a Python literal") from None
+    return out
+
+
 def make_config(path: str | None, overrides: dict[str, dict[str, object]]) -> PipelineConfig:
     """The pipeline configuration: a TOML file (or the defaults) with the --set overrides."""
     data = {} if path is None else PipelineConfig.from_toml(path).to_dict()
@@ -96,16 +115,23 @@ def make_config(path: str | None, overrides: dict[str, dict[str, object]]) -> Pi
 
 
 # -- synthetic scenes --------------------------------------------------------------------------
-def scene_specs(sizes: int, seeds: list[int], bias: float) -> list[dict]:
-    """The synthetic scenes of the benchmark: (name, SynthOptions keyword arguments)."""
+def scene_specs(sizes: int, seeds: list[int], bias: float,
+                render: dict[str, object] | None = None) -> list[dict]:
+    """The synthetic scenes of the benchmark: (name, SynthOptions keyword arguments).
+
+    ``render``: extra SynthOptions fields (``--scene-set``) given to every scene; they are part
+    of the cache key, so scenes rendered otherwise are not reused for them.
+    """
+    render = dict(render or {})
+    suffix = "".join(f"_{k}{v}" for k, v in sorted(render.items()))
     specs = []
     for seed in seeds:
-        specs.append({"name": f"2 views seed {seed}", "key": f"v2_s{seed}_px{sizes}_b{bias:g}",
-                      "options": dict(seed=seed, n_views=2, size_px=sizes, bias_px=bias)})
-        specs.append({"name": f"3 views seed {seed}", "key": f"v3_s{seed}_px{sizes}_b{bias:g}",
+        specs.append({"name": f"2 views seed {seed}", "key": f"v2_s{seed}_px{sizes}_b{bias:g}{suffix}",
+                      "options": dict(seed=seed, n_views=2, size_px=sizes, bias_px=bias, **render)})
+        specs.append({"name": f"3 views seed {seed}", "key": f"v3_s{seed}_px{sizes}_b{bias:g}{suffix}",
                       "options": dict(seed=seed, n_views=3, size_px=sizes, bias_px=bias,
                                       off_nadir_deg=tuple(a for a, _ in THREE_VIEW_ANGLES),
-                                      azimuth_deg=tuple(b for _, b in THREE_VIEW_ANGLES))})
+                                      azimuth_deg=tuple(b for _, b in THREE_VIEW_ANGLES), **render)})
     return specs
 
 
@@ -130,7 +156,7 @@ def run_synthetic(args, config: PipelineConfig, out_root: Path, log) -> list[dic
     cache = Path(args.scenes)
     cache.mkdir(parents=True, exist_ok=True)
     rows = []
-    for spec in scene_specs(args.size, args.seeds, args.bias):
+    for spec in scene_specs(args.size, args.seeds, args.bias, parse_scene_set(args.scene_set)):
         scene = get_scene(cache, spec, log)
         lo, hi = scene.alt_range
         alt = AltitudeRange(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M)
@@ -267,6 +293,8 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="synthetic scene seeds")
     p.add_argument("--bias", type=float, default=2.0,
                    help="max pointing bias per axis (pixels) of every view but the first")
+    p.add_argument("--scene-set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="a SynthOptions field for every synthetic scene, e.g. psf_sigma_px=0.5 (repeatable)")
     p.add_argument("--scenes", default=os.path.join(tempfile.gettempdir(), "satsweep-bench-e2e"),
                    help="cache folder of the synthetic scenes (reused when their options match)")
     p.add_argument("--out", default=None, help="folder for the reconstructions (default: temporary)")
