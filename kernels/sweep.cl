@@ -137,6 +137,75 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
 }
 #endif
 
+/* Split form of sweep_census_cost (the same costs, bit for bit), in two launches per chunk of
+ * planes: sweep_warp writes the warped sources once, sweep_warped_cost reads them. It needs no
+ * barriers and no clamping in its inner loop, which CPU OpenCL compilers vectorise far better
+ * than the staged kernel (tools/bench_sweep.py measures both).
+ *
+ * sweep_warp: for planes plane0 .. plane0 + nb - 1 and every source s, the source warped onto
+ *   the tile extended by the census radii: with pw = tw + 2 CENSUS_RX, ph = th + 2 CENSUS_RY,
+ *   warped[((b NSRC + s) ph + py) pw + px] = the bilinear sample (clamped coordinates) of source
+ *   s at H(plane0 + b, s) applied to the tile-local reference pixel
+ *   (clamp(tx0 + px - CENSUS_RX, ref_w) - tx0, clamp(ty0 + py - CENSUS_RY, ref_h) - ty0), or 0
+ *   where the homogeneous denominator is not positive: exactly what sweep_census_cost stages.
+ *   Work size: global = (pw, ph, nb NSRC), each of the first two rounded up to any multiple;
+ *   local = any. Work-item (px, py, b NSRC + s) writes one sample.
+ * sweep_warped_cost: the census of the warped sources (sweep_warp's output for the same planes)
+ *   against the reference codes, aggregated over the sources like sweep_census_cost, into
+ *   cost[(slot0 + b) th tw + y tw + x] for plane plane0 + b.
+ *   Work size: global = (tw, th, nb), the first two rounded up to any multiple; local = any.
+ */
+__kernel void sweep_warp(__global const float *src_img, __global const long *src_offset,
+                         __global const int *src_size, __global const float *homography,
+                         const int tw, const int th, const int tx0, const int ty0,
+                         const int ref_w, const int ref_h, const int plane0,
+                         __global float *warped)
+{
+    const int pw = tw + 2 * CENSUS_RX, ph = th + 2 * CENSUS_RY;
+    const int px = get_global_id(0), py = get_global_id(1), bs = get_global_id(2);
+    if (px >= pw || py >= ph) return;
+    const int s = bs % NSRC, b = bs / NSRC;
+    __global const float *H = homography + ((plane0 + b) * NSRC + s) * 9;
+    const int rx = clamp_index(tx0 - CENSUS_RX + px, ref_w) - tx0;
+    const int ry = clamp_index(ty0 - CENSUS_RY + py, ref_h) - ty0;
+    float u, v;
+    warped[((size_t)bs * ph + py) * pw + px] =
+        apply_homography(H, (float)rx, (float)ry, &u, &v)
+            ? sample_bilinear_clamped(src_img + src_offset[s], src_size[2 * s], src_size[2 * s + 1], u, v)
+            : 0.0f;
+}
+
+__kernel void sweep_warped_cost(__global const float *warped, __global const int *src_size,
+                                __global const float *homography, __global const ulong *ref_code,
+                                const int tw, const int th, const int plane0, const int slot0,
+                                __global float *cost)
+{
+    const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
+    if (x >= tw || y >= th) return;
+    const int pw = tw + 2 * CENSUS_RX, ph = th + 2 * CENSUS_RY;
+    const ulong rc = ref_code[IDX2(x, y, tw)];
+    float cst[NSRC];
+    uint valid = 0u;
+    for (int s = 0; s < NSRC; ++s) {
+        __global const float *H = homography + ((plane0 + b) * NSRC + s) * 9;
+        cst[s] = 0.0f;
+        if (!source_valid(H, (float)x, (float)y, src_size[2 * s], src_size[2 * s + 1])) continue;
+        __global const float *w = warped + ((size_t)(b * NSRC + s) * ph + y + CENSUS_RY) * pw
+                                  + x + CENSUS_RX;
+        const float c = w[0];
+        ulong code = 0;
+        for (int dy = -CENSUS_RY; dy <= CENSUS_RY; ++dy) {
+            for (int dx = -CENSUS_RX; dx <= CENSUS_RX; ++dx) {
+                if (dx == 0 && dy == 0) continue;
+                code = (code << 1) | (ulong)(w[dy * pw + dx] < c);
+            }
+        }
+        cst[s] = (float)popcount(code ^ rc);
+        valid |= 1u << s;
+    }
+    cost[(size_t)(slot0 + b) * tw * th + IDX2(x, y, tw)] = aggregate_best(cst, valid);
+}
+
 /* sweep_code_cost: census codes of the SOURCE sampled at the warped position (nearest pixel,
  * floor(u + 0.5)) versus the reference census. src_code holds every source's codes (census.cl on
  * the whole source image) concatenated like the images.

@@ -47,6 +47,9 @@ _WTA_NSTATE = 8
 _OUT_BYTES_PER_PX = 4 + 4 + 4 + 1
 # Smallest tile interior side (pixels) worth processing before the plane batch is reduced instead.
 _MIN_TILE_SIDE = 64
+# Planes warped per launch by the split census kernels (their warped-source buffer holds this
+# many planes of every source over the tile plus the census margin).
+SPLIT_WARP_PLANES = 8
 # Fixed allowance (bytes) for small buffers and driver bookkeeping per tile.
 _SMALL_BUFFERS_BYTES = 1 << 16
 # Heights probed (over the altitude range) when measuring the parallax rate for plane spacing.
@@ -81,7 +84,11 @@ class SweepOptions(Options):
     memory_fraction: float = 0.5  # device memory budget as a fraction of its global memory
     memory_budget_bytes: int | None = None  # explicit budget (bytes); overrides memory_fraction
     max_planes_per_batch: int = 32  # planes filtered together (memory grows linearly with it)
-    work_group: tuple[int, int] = (16, 16)  # work-group size of the census sweep kernel (x, y)
+    census_kernel: Literal["split", "staged"] = "split"  # warped_census kernels: "split" warps the
+    # sources in one launch and takes the census in another (sweep_warp + sweep_warped_cost; 1.x
+    # times faster on PoCL, tools/bench_sweep.py); "staged" does both in one work-group kernel
+    # with the warped patch in local memory (sweep_census_cost). Same costs, bit for bit.
+    work_group: tuple[int, int] = (16, 16)  # work-group size of the staged census kernel (x, y)
 
     def check(self) -> None:
         rows, cols = self.census_window
@@ -249,13 +256,28 @@ def _volume_planes(options: SweepOptions, nb: int) -> int:
     return {"guided": 4 * nb, "box": 2 * nb, "none": nb}[options.cost_filter]
 
 
-def _tile_bytes(options: SweepOptions, area: int, interior: int, nb: int, n_planes: int,
-                n_src: int) -> int:
-    """Device bytes of one tile: ref codes, guide, cost batches, WTA state, outputs."""
+def _tile_bytes(options: SweepOptions, tile_dims: tuple[int, int], interior: int, nb: int,
+                n_planes: int, n_src: int) -> int:
+    """Device bytes of one tile of (width, height) ``tile_dims`` (margins included): ref codes,
+    guide, cost batches, the split kernels' warped sources, WTA state, outputs."""
+    area = tile_dims[0] * tile_dims[1]
     guide = 3 * 4 * area if options.cost_filter == "guided" else 0
     return (8 * area + guide + 4 * _volume_planes(options, nb) * area
+            + _warped_bytes(options, tile_dims, nb, n_src)
             + (4 * _WTA_NSTATE + _OUT_BYTES_PER_PX) * interior
             + 36 * n_planes * n_src + _SMALL_BUFFERS_BYTES)
+
+
+def _split_census(options: SweepOptions) -> bool:
+    return options.cost_mode == "warped_census" and options.census_kernel == "split"
+
+
+def _warped_bytes(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
+    """Bytes of the split kernels' warped-source buffer for a tile (0 for the other kernels)."""
+    if not _split_census(options):
+        return 0
+    rx, ry = options.census_radii
+    return 4 * min(nb, SPLIT_WARP_PLANES) * n_src * (tile_dims[0] + 2 * rx) * (tile_dims[1] + 2 * ry)
 
 
 def _resident_bytes(options: SweepOptions, ref_shape: tuple[int, int],
@@ -299,11 +321,13 @@ def plan_tiles(options: SweepOptions, ref_shape: tuple[int, int],
                           f"({max_alloc_bytes / 2**20:.0f} MiB): use fewer or smaller sources")
 
     def fits(tw: int, th: int, nb: int) -> bool:
-        area = (min(tw + 2 * m, w_img)) * (min(th + 2 * m, h_img))
-        if _tile_bytes(options, area, tw * th, nb, n_planes, n_src) > free:
+        dims = (min(tw + 2 * m, w_img), min(th + 2 * m, h_img))
+        area = dims[0] * dims[1]
+        if _tile_bytes(options, dims, tw * th, nb, n_planes, n_src) > free:
             return False
         if max_alloc_bytes is not None:
-            largest = 4 * area * max(2 * nb if options.cost_filter == "guided" else nb, 1)
+            largest = max(4 * area * max(2 * nb if options.cost_filter == "guided" else nb, 1),
+                          _warped_bytes(options, dims, nb, n_src))
             if largest > max_alloc_bytes:
                 return False
         return True
@@ -327,10 +351,10 @@ def plan_tiles(options: SweepOptions, ref_shape: tuple[int, int],
             tw = _largest_square(lambda s: fits(s, th, nb), w_img) if tw < w_img else tw
             break
         nb = max(1, nb // 2)
-    area = min(tw + 2 * m, w_img) * min(th + 2 * m, h_img)
+    dims = (min(tw + 2 * m, w_img), min(th + 2 * m, h_img))
     n_tiles = math.ceil(w_img / tw) * math.ceil(h_img / th)
     return TilePlan(tile_w=tw, tile_h=th, margin=m, planes_per_batch=nb, resident_bytes=resident,
-                    tile_bytes=_tile_bytes(options, area, tw * th, nb, n_planes, n_src),
+                    tile_bytes=_tile_bytes(options, dims, tw * th, nb, n_planes, n_src),
                     n_tiles=n_tiles)
 
 
@@ -446,7 +470,7 @@ class PlaneSweep:
         rx, ry = o.census_radii
         census = self.device.build("census", {"CENSUS_RX": rx, "CENSUS_RY": ry})
         sweep_defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": o.best_k(n_src)}
-        if o.cost_mode == "warped_census":
+        if o.cost_mode == "warped_census" and o.census_kernel == "staged":
             sweep_defs.update({"WG_X": o.work_group[0], "WG_Y": o.work_group[1]})
         sweep = self.device.build("sweep", sweep_defs)
         wta = self.device.build("wta", {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry})
@@ -592,7 +616,8 @@ class PlaneSweep:
         else:
             src_buf = bufs.alloc(4 * sum(s.size for s in srcs),
                                  np.concatenate([s.ravel() for s in srcs]))
-            sweep_k = cl.Kernel(sweep_prg, "sweep_census_cost")
+            sweep_k = (cl.Kernel(sweep_prg, "sweep_warp"), cl.Kernel(sweep_prg, "sweep_warped_cost")) \
+                if _split_census(o) else cl.Kernel(sweep_prg, "sweep_census_cost")
 
         out_index = np.zeros((h_img, w_img), np.float32)
         out_conf = np.zeros((h_img, w_img), np.float32)
@@ -668,6 +693,12 @@ class PlaneSweep:
         wta_update = cl.Kernel(wta_prg, "wta_update")
         _launch(wta_init, queue, (iw, ih), state, i32(iw), i32(ih))
 
+        warped = None
+        if _split_census(o):
+            rx, ry = o.census_radii
+            pw, ph = tw + 2 * rx, th + 2 * ry
+            warped = bufs.alloc(_warped_bytes(o, (tw, th), nb_max, n_src))
+
         # The cost of a batch lands in vol_a (first nb planes); the filters use vol_b (and the
         # rest of vol_a) as temporaries and leave the filtered cost in vol_a.
         wgx, wgy = o.work_group
@@ -675,7 +706,16 @@ class PlaneSweep:
         for p0 in range(0, n_planes, nb_max):
             nb = min(nb_max, n_planes - p0)
             with self._stage("sweep"):
-                if o.cost_mode == "warped_census":
+                if warped is not None:
+                    warp_k, cost_k = sweep_k
+                    for c0 in range(0, nb, SPLIT_WARP_PLANES):
+                        nc = min(SPLIT_WARP_PLANES, nb - c0)
+                        _launch(warp_k, queue, (pw, ph, nc * n_src), src_buf, off_buf, size_buf,
+                                hom_buf, i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0),
+                                i32(w_img), i32(h_img), i32(p0 + c0), warped)
+                        _launch(cost_k, queue, (tw, th, nc), warped, size_buf, hom_buf, code_buf,
+                                i32(tw), i32(th), i32(p0 + c0), i32(c0), vol_a)
+                elif o.cost_mode == "warped_census":
                     sweep_k(queue, (_round_up(tw, wgx), _round_up(th, wgy), nb), (wgx, wgy, 1),
                             src_buf, off_buf, size_buf, hom_buf, code_buf, i32(tw), i32(th),
                             i32(tile.tx0), i32(tile.ty0), i32(w_img), i32(h_img), i32(p0), vol_a)
@@ -716,7 +756,7 @@ class PlaneSweep:
             host[iy0:iy0 + ih, ix0:ix0 + iw] = tmp
         queue.finish()
         bufs.free(hom_buf, code_buf, vol_a, vol_b, guide_i, guide_mean, state, index, conf, best,
-                  valid)
+                  valid, warped)
         return n_batches
 
     def _guide_stats(self, prg, tile, ref_buf, w_img, guide_i, guide_mean, scratch) -> None:

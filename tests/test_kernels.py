@@ -73,6 +73,8 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
     """Run one sweep kernel over all planes of hom (n_planes, n_src, 3, 3) on a tile.
 
     tile = (tx0, ty0, tw, th) of ref_img (default: the whole image); hom maps tile-local pixels.
+    mode: "warped_census" (the staged kernel sweep_census_cost), "split" (sweep_warp then
+    sweep_warped_cost, two planes a launch) or "sampled_codes" (sweep_code_cost).
     """
     h, w = ref_img.shape
     tx0, ty0, tw, th = tile if tile is not None else (0, 0, w, h)
@@ -87,7 +89,20 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
     hom32 = np.ascontiguousarray(hom.reshape(n_planes, n_src, 9), np.float32)
     out = _empty(dev, 4 * n_planes * tw * th)
     i32 = np.int32
-    if mode == "warped_census":
+    if mode == "split":
+        data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
+        pw, ph, chunk = tw + 2 * rx, th + 2 * ry, 2
+        warped = _empty(dev, 4 * chunk * n_src * pw * ph)
+        bufs = [_buf(dev, a) for a in (data, offsets, sizes, hom32, codes)]
+        for p0 in range(0, n_planes, chunk):
+            nb = min(chunk, n_planes - p0)
+            cl.Kernel(prg, "sweep_warp")(dev.queue, (pw, ph, nb * n_src), None, *bufs[:4],
+                                         i32(tw), i32(th), i32(tx0), i32(ty0), i32(w), i32(h),
+                                         i32(p0), warped)
+            cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (tw, th, nb), None, warped, bufs[2],
+                                                bufs[3], bufs[4], i32(tw), i32(th), i32(p0),
+                                                i32(p0), out)
+    elif mode == "warped_census":
         data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
         gx = -(-tw // wg[0]) * wg[0]
         gy = -(-th // wg[1]) * wg[1]
@@ -147,7 +162,8 @@ def test_census_bit_order_and_border_rule(cl_device):
 
 
 # -- sweep costs -------------------------------------------------------------------------------------
-def test_warped_census_cost_exact_for_dyadic_translations(cl_device):
+@pytest.mark.parametrize("form", ["warped_census", "split"])
+def test_warped_census_cost_exact_for_dyadic_translations(cl_device, form):
     rng = np.random.default_rng(3)
     h, w = 45, 61
     ref_img = _quantised(rng, (h, w))
@@ -155,7 +171,7 @@ def test_warped_census_cost_exact_for_dyadic_translations(cl_device):
     # Quarter-pixel shifts, some large enough to push part of the view outside the source.
     shifts = np.array([[[0.25, -0.5]], [[3.75, 1.25]], [[-6.5, 0.0]], [[0.0, 12.25]]])
     hom = _translations(shifts)
-    got = _sweep_dev(cl_device, ref_img, [src], hom, 4, 3, 1)
+    got = _sweep_dev(cl_device, ref_img, [src], hom, 4, 3, 1, mode=form)
     codes = ref.census(ref_img, 4, 3)
     for p in range(hom.shape[0]):
         cost, valid = ref.warped_census_cost(codes, src, hom[p, 0], 4, 3)
@@ -164,18 +180,20 @@ def test_warped_census_cost_exact_for_dyadic_translations(cl_device):
     assert (got == 62).any() and (got < 62).any()
 
 
-def test_warped_census_cost_on_a_tile_equals_the_whole_image(cl_device):
+@pytest.mark.parametrize("form", ["warped_census", "split"])
+def test_warped_census_cost_on_a_tile_equals_the_whole_image(cl_device, form):
     """Census neighbours are clamped to the reference image, not to the tile."""
     rng = np.random.default_rng(4)
     ref_img = _quantised(rng, (40, 50))
     src = _quantised(rng, (40, 50))
     hom = _translations([[[0.75, -0.25]], [[-1.5, 2.0]]])
-    whole = _sweep_dev(cl_device, ref_img, [src], hom, 4, 3, 1)
+    whole = _sweep_dev(cl_device, ref_img, [src], hom, 4, 3, 1, mode=form)
     tx0, ty0, tw, th = 7, 5, 30, 33
     shift = np.eye(3)
     shift[0, 2], shift[1, 2] = tx0, ty0
     local = hom @ shift
-    tile = _sweep_dev(cl_device, ref_img, [src], local, 4, 3, 1, wg=(8, 8), tile=(tx0, ty0, tw, th))
+    tile = _sweep_dev(cl_device, ref_img, [src], local, 4, 3, 1, mode=form, wg=(8, 8),
+                      tile=(tx0, ty0, tw, th))
     np.testing.assert_array_equal(tile, whole[:, ty0:ty0 + th, tx0:tx0 + tw])
 
 
@@ -203,7 +221,8 @@ def test_warp_image_matches_bilinear_reference(cl_device):
     assert ((got_seen != want_seen) <= near_border).all()
 
 
-def test_warped_census_cost_general_homography_within_rounding(cl_device):
+@pytest.mark.parametrize("form", ["warped_census", "split"])
+def test_warped_census_cost_general_homography_within_rounding(cl_device, form):
     """With a general warp, a census bit may only differ where the reference comparison is
     within the warp tolerance: |cost - reference| <= number of such ambiguous comparisons."""
     rng = np.random.default_rng(6)
@@ -212,7 +231,7 @@ def test_warped_census_cost_general_homography_within_rounding(cl_device):
     hom = np.array([[[[1.02, 0.05, 1.3], [-0.04, 0.98, 0.7], [1e-4, -2e-4, 1.0]]],
                     [[[0.97, -0.03, -0.6], [0.02, 1.01, 2.2], [-1e-4, 1e-4, 1.0]]]])
     hom32 = hom.astype(np.float32).astype(np.float64)
-    got = _sweep_dev(cl_device, ref_img, [src], hom32, 4, 3, 1)
+    got = _sweep_dev(cl_device, ref_img, [src], hom32, 4, 3, 1, mode=form)
     codes = ref.census(ref_img, 4, 3)
     for p in range(hom.shape[0]):
         warped, valid = ref.warp_image(src, hom32[p, 0], ref_img.shape)
@@ -225,6 +244,29 @@ def test_warped_census_cost_general_homography_within_rounding(cl_device):
         assert sel.mean() > 0.8
         assert (np.abs(got[p][sel] - cost[sel]) <= slack[sel]).all()
         assert (got[p][~valid & ~border] == 62).all()
+
+
+@pytest.mark.parametrize("window", [(5, 5), (7, 9)])
+def test_split_sweep_equals_staged_kernel_bit_for_bit(cl_device, window):
+    """sweep_warp + sweep_warped_cost give exactly sweep_census_cost's costs: perspective
+    homographies, two sources with best-2 aggregation, a tile inside the image (clamped census
+    neighbours at its border), sources partly out of view."""
+    rng = np.random.default_rng(9)
+    rx, ry = window[1] // 2, window[0] // 2
+    ref_img = rng.random((41, 53)).astype(np.float32)
+    srcs = [rng.random((45, 50)).astype(np.float32), rng.random((39, 57)).astype(np.float32)]
+    base = np.array([[1.02, 0.05, 1.3], [-0.04, 0.98, 0.7], [1e-4, -2e-4, 1.0]])
+    hom = np.stack([[base + np.array([[0, 0, 2.5 * p - 3.0 * s], [0, 0, 0.7 * s - 1.1 * p], [0, 0, 0]])
+                     for s in range(2)] for p in range(5)])
+    tx0, ty0, tw, th = 3, 6, 37, 29
+    shift = np.eye(3)
+    shift[0, 2], shift[1, 2] = tx0, ty0
+    local = (hom @ shift).astype(np.float32).astype(np.float64)
+    staged = _sweep_dev(cl_device, ref_img, srcs, local, rx, ry, 2, wg=(8, 8), tile=(tx0, ty0, tw, th))
+    split = _sweep_dev(cl_device, ref_img, srcs, local, rx, ry, 2, mode="split", tile=(tx0, ty0, tw, th))
+    np.testing.assert_array_equal(split, staged)
+    invalid = (2 * rx + 1) * (2 * ry + 1) - 1
+    assert (staged == invalid).any() and (staged < invalid).any()
 
 
 def test_sampled_codes_cost_exact(cl_device):
@@ -241,7 +283,7 @@ def test_sampled_codes_cost_exact(cl_device):
         np.testing.assert_array_equal(got[p], np.where(valid, cost, 62))
 
 
-@pytest.mark.parametrize("mode", ["warped_census", "sampled_codes"])
+@pytest.mark.parametrize("mode", ["warped_census", "split", "sampled_codes"])
 @pytest.mark.parametrize("k", [1, 2, 3])
 def test_best_k_aggregation_over_sources(cl_device, mode, k):
     rng = np.random.default_rng(8 + k)
@@ -260,7 +302,7 @@ def test_best_k_aggregation_over_sources(cl_device, mode, k):
     for p in range(hom.shape[0]):
         cs, vs = [], []
         for s in range(3):
-            if mode == "warped_census":
+            if mode in ("warped_census", "split"):
                 c, v = ref.warped_census_cost(codes, srcs[s], hom[p, s], 4, 3)
             else:
                 c, v = ref.sampled_codes_cost(codes, src_codes[s], hom[p, s])

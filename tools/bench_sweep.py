@@ -9,6 +9,10 @@ planes and scaled linearly to all planes (the per-plane work is the same; the ou
 
     python tools/bench_sweep.py                     # 1024^2, 2 sources, 128 planes
     python tools/bench_sweep.py --size 256 --planes 32 --json out.json
+    python tools/bench_sweep.py --census-kernel split staged   # both census kernels, same run
+
+With several ``--census-kernel`` values each is timed in turn (same images, same device) and the
+ratio of each to the first is printed; the numpy comparison uses the first.
 """
 
 from __future__ import annotations
@@ -56,6 +60,25 @@ def _numpy_reference(ref_img, srcs, hom, heights, options: SweepOptions, n_sub: 
     return time.perf_counter() - t0
 
 
+def _time_engine(device, options: SweepOptions, ref_img, srcs, hom, heights, voxels: int,
+                 repeat: int) -> dict:
+    """Best-of-``repeat`` engine seconds and one profiled run's stage seconds."""
+    # Warm-up on a crop: builds (or loads from the cache) every program.
+    PlaneSweep(device, options).run(ref_img[:64, :64], [s[:64, :64] for s in srcs], hom[:4], heights[:4])
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        res = PlaneSweep(device, options).run(ref_img, srcs, hom, heights)
+        best = min(best, time.perf_counter() - t0)
+    prof = PlaneSweep(device, options, profile=True)
+    prof.run(ref_img, srcs, hom, heights)
+    stages = dict(sorted(prof.stage_seconds.items()))
+    return {"census_kernel": options.census_kernel, "tiles": res.n_tiles, "batches": res.n_batches,
+            "peak_device_bytes": res.peak_device_bytes, "engine_seconds": best,
+            "engine_gvoxel_per_s": voxels / best / 1e9, "stage_seconds": stages,
+            "stage_gvoxel_per_s": {k: voxels / v / 1e9 for k, v in stages.items() if v > 0}}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--size", type=int, default=1024, help="reference width = height (pixels)")
@@ -66,43 +89,39 @@ def main(argv=None) -> int:
     p.add_argument("--repeat", type=int, default=2, help="timed runs (the best is kept)")
     p.add_argument("--numpy-planes", type=int, default=4,
                    help="planes of the numpy reference run, scaled to --planes (0: skip)")
+    p.add_argument("--census-kernel", nargs="+", choices=["split", "staged"], default=["split"],
+                   help="SweepOptions.census_kernel values to time (the first is the main figure)")
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = p.parse_args(argv)
 
     device = open_device(args.device)
-    options = SweepOptions(cost_filter=args.filter)
     ref_img, srcs, hom, heights = _scene(args.size, args.sources, args.planes)
     voxels = args.size * args.size * args.planes * args.sources
-
-    # Warm-up on a crop: builds (or loads from the cache) every program.
-    PlaneSweep(device, options).run(ref_img[:64, :64], [s[:64, :64] for s in srcs], hom[:4], heights[:4])
-
-    best = np.inf
-    for _ in range(args.repeat):
-        t0 = time.perf_counter()
-        res = PlaneSweep(device, options).run(ref_img, srcs, hom, heights)
-        best = min(best, time.perf_counter() - t0)
-    prof = PlaneSweep(device, options, profile=True)
-    prof.run(ref_img, srcs, hom, heights)
-    stages = dict(sorted(prof.stage_seconds.items()))
-
-    out = {
-        "device": device.info.label,
-        "size": args.size, "planes": args.planes, "sources": args.sources,
-        "filter": args.filter, "voxels": voxels,
-        "tiles": res.n_tiles, "batches": res.n_batches, "peak_device_bytes": res.peak_device_bytes,
-        "engine_seconds": best, "engine_gvoxel_per_s": voxels / best / 1e9,
-        "stage_seconds": stages,
-        "stage_gvoxel_per_s": {k: voxels / v / 1e9 for k, v in stages.items() if v > 0},
-    }
-    print(f"device: {out['device']}")
-    print(f"reference {args.size}x{args.size}, {args.sources} sources, {args.planes} planes, "
-          f"filter {args.filter}: {voxels / 1e9:.3f} Gvoxel, {res.n_tiles} tile(s), "
-          f"{res.n_batches} batch(es), peak {res.peak_device_bytes / 2**20:.0f} MiB on the device")
-    print(f"engine (upload, census, sweep, filter, argmin, download): {best:.3f} s = "
-          f"{out['engine_gvoxel_per_s']:.3f} Gvoxel/s (best of {args.repeat})")
-    for k, v in stages.items():
-        print(f"  stage {k:7s}: {v:8.3f} s = {voxels / v / 1e9:9.3f} Gvoxel/s (queue drained per stage)")
+    print(f"device: {device.info.label}")
+    runs = []
+    for kernel in args.census_kernel:
+        options = SweepOptions(cost_filter=args.filter, census_kernel=kernel)
+        runs.append(_time_engine(device, options, ref_img, srcs, hom, heights, voxels, args.repeat))
+    out = dict(runs[0])
+    out.update({"device": device.info.label, "size": args.size, "planes": args.planes,
+                "sources": args.sources, "filter": args.filter, "voxels": voxels})
+    if len(runs) > 1:
+        out["kernels"] = runs
+    for r in runs:
+        print(f"census kernel {r['census_kernel']}: reference {args.size}x{args.size}, "
+              f"{args.sources} sources, {args.planes} planes, filter {args.filter}: "
+              f"{voxels / 1e9:.3f} Gvoxel, {r['tiles']} tile(s), {r['batches']} batch(es), "
+              f"peak {r['peak_device_bytes'] / 2**20:.0f} MiB on the device")
+        print(f"engine (upload, census, sweep, filter, argmin, download): {r['engine_seconds']:.3f} s = "
+              f"{r['engine_gvoxel_per_s']:.3f} Gvoxel/s (best of {args.repeat})")
+        for k, v in r["stage_seconds"].items():
+            print(f"  stage {k:7s}: {v:8.3f} s = {voxels / v / 1e9:9.3f} Gvoxel/s (queue drained per stage)")
+    for r in runs[1:]:
+        print(f"time of census kernel {r['census_kernel']} / time of {runs[0]['census_kernel']}: "
+              f"engine {r['engine_seconds'] / runs[0]['engine_seconds']:.2f}, sweep stage "
+              f"{r['stage_seconds'].get('sweep', 0) / runs[0]['stage_seconds'].get('sweep', 1):.2f}")
+    options = SweepOptions(cost_filter=args.filter, census_kernel=args.census_kernel[0])
+    best = runs[0]["engine_seconds"]
     if args.numpy_planes > 0:
         n_sub = min(args.numpy_planes, args.planes)
         t_sub = _numpy_reference(ref_img, srcs, hom, heights, options, n_sub)
