@@ -12,8 +12,9 @@
  *
  * Work sizes (ncy = ceil(th / BOX_CHUNK), ncx = ceil(tw / BOX_CHUNK), each rounded up to any
  * multiple of any local size; local = any):
- *   box_cols_sum, gf_cols_p : global (tw, ncy, planes); work-item (x, c, p) handles rows
- *                             [c BOX_CHUNK, (c + 1) BOX_CHUNK) of column x of plane p;
+ *   box_cols_sum, gf_cols_p : global (ceil(tw / COLS_VEC), ncy, planes); work-item (g, c, p)
+ *                             handles rows [c BOX_CHUNK, (c + 1) BOX_CHUNK) of the columns
+ *                             [g COLS_VEC, (g + 1) COLS_VEC) (clipped to tw) of plane p;
  *   box_rows_mean, gf_rows_ab, gf_rows_q : global (ncx, th, planes); work-item (c, y, p) handles
  *                             columns [c BOX_CHUNK, (c + 1) BOX_CHUNK) of row y of plane p;
  *   gf_guide_fields          : global (tw, th); work-item (x, y) handles one pixel.
@@ -24,7 +25,8 @@
  * Host sequence: gf_guide_fields -> box_cols_sum -> box_rows_mean gives the guide means (once per
  * tile); per batch of nb planes: gf_cols_p (p -> [colsum p | colsum I p], 2 nb planes),
  * gf_rows_ab (-> [a | b]), box_cols_sum on the 2 nb planes, gf_rows_q (-> q, nb planes).
- * Compile-time constants: BOX_R (radius, pixels), BOX_CHUNK, GF_EPS (float, guide units squared).
+ * Compile-time constants: BOX_R (radius, pixels), BOX_CHUNK, COLS_VEC (columns per work-item of
+ * the column kernels: 8), GF_EPS (float, guide units squared).
  */
 #include "common.h"
 
@@ -38,21 +40,45 @@ inline int window_count(const int i, const int n)
     return min(i + BOX_R, n - 1) - max(i - BOX_R, 0) + 1;
 }
 
+/* Column kernels: each work-item runs the sliding sums of COLS_VEC adjacent columns at once, so
+ * that every step down the rows reads and writes COLS_VEC contiguous floats (vload/vstore): a
+ * CPU executing the work-items of a group one after the other would otherwise stride through
+ * memory one float per row. The last group of a row may be narrower (scalar tail). */
+#ifndef COLS_VEC
+#error "COLS_VEC must be defined (the host's satsweep.sweep.GF_COLS_VEC)"
+#elif COLS_VEC != 8
+#error "COLS_VEC must be 8 (the column kernels use float8)"
+#endif
+
 __kernel void box_cols_sum(__global const float *in, __global float *out, const int tw,
                            const int th)
 {
-    const int x = get_global_id(0), c = get_global_id(1);
+    const int x0 = get_global_id(0) * COLS_VEC, c = get_global_id(1);
     const size_t base = (size_t)get_global_id(2) * tw * th;
     const int y0 = c * BOX_CHUNK;
-    if (x >= tw || y0 >= th) return;
+    if (x0 >= tw || y0 >= th) return;
     const int y1 = min(y0 + BOX_CHUNK, th);
-    __global const float *col = in + base + x;
-    float s = 0.0f;
-    for (int j = max(y0 - BOX_R, 0); j <= min(y0 + BOX_R, th - 1); ++j) s += col[(size_t)j * tw];
-    for (int y = y0; y < y1; ++y) {
-        out[base + IDX2(x, y, tw)] = s;
-        if (y + BOX_R + 1 < th) s += col[(size_t)(y + BOX_R + 1) * tw];
-        if (y - BOX_R >= 0) s -= col[(size_t)(y - BOX_R) * tw];
+    __global const float *col = in + base + x0;
+    __global float *dst = out + base + x0;
+    if (x0 + COLS_VEC <= tw) {
+        float8 s = (float8)(0.0f);
+        for (int j = max(y0 - BOX_R, 0); j <= min(y0 + BOX_R, th - 1); ++j)
+            s += vload8(0, col + (size_t)j * tw);
+        for (int y = y0; y < y1; ++y) {
+            vstore8(s, 0, dst + (size_t)y * tw);
+            if (y + BOX_R + 1 < th) s += vload8(0, col + (size_t)(y + BOX_R + 1) * tw);
+            if (y - BOX_R >= 0) s -= vload8(0, col + (size_t)(y - BOX_R) * tw);
+        }
+        return;
+    }
+    for (int x = 0; x < tw - x0; ++x) {
+        float s = 0.0f;
+        for (int j = max(y0 - BOX_R, 0); j <= min(y0 + BOX_R, th - 1); ++j) s += col[(size_t)j * tw + x];
+        for (int y = y0; y < y1; ++y) {
+            dst[(size_t)y * tw + x] = s;
+            if (y + BOX_R + 1 < th) s += col[(size_t)(y + BOX_R + 1) * tw + x];
+            if (y - BOX_R >= 0) s -= col[(size_t)(y - BOX_R) * tw + x];
+        }
     }
 }
 
@@ -90,35 +116,65 @@ __kernel void gf_guide_fields(__global const float *ref, const int ref_w, const 
     guide_sq[(size_t)tw * th + IDX2(x, y, tw)] = v * v;
 }
 
-/* sums[b] = column sums of p[b], sums[nb + b] = column sums of I p[b]. */
+/* sums[b] = column sums of p[b], sums[nb + b] = column sums of I p[b] (COLS_VEC columns per
+ * work-item, as box_cols_sum). */
 __kernel void gf_cols_p(__global const float *p, __global const float *guide_i,
                         __global float *sums, const int tw, const int th, const int nb)
 {
-    const int x = get_global_id(0), c = get_global_id(1), b = get_global_id(2);
+    const int x0 = get_global_id(0) * COLS_VEC, c = get_global_id(1), b = get_global_id(2);
     const int y0 = c * BOX_CHUNK;
-    if (x >= tw || y0 >= th) return;
+    if (x0 >= tw || y0 >= th) return;
     const int y1 = min(y0 + BOX_CHUNK, th);
     const size_t plane = (size_t)tw * th;
-    __global const float *col = p + b * plane + x;
-    __global const float *gcol = guide_i + x;
-    float s = 0.0f, si = 0.0f;
-    for (int j = max(y0 - BOX_R, 0); j <= min(y0 + BOX_R, th - 1); ++j) {
-        const float v = col[(size_t)j * tw];
-        s += v;
-        si += gcol[(size_t)j * tw] * v;
-    }
-    for (int y = y0; y < y1; ++y) {
-        sums[b * plane + IDX2(x, y, tw)] = s;
-        sums[(nb + b) * plane + IDX2(x, y, tw)] = si;
-        if (y + BOX_R + 1 < th) {
-            const size_t k = (size_t)(y + BOX_R + 1) * tw;
-            s += col[k];
-            si += gcol[k] * col[k];
+    __global const float *col = p + b * plane + x0;
+    __global const float *gcol = guide_i + x0;
+    __global float *out_s = sums + b * plane + x0;
+    __global float *out_si = sums + (nb + b) * plane + x0;
+    if (x0 + COLS_VEC <= tw) {
+        float8 s = (float8)(0.0f), si = (float8)(0.0f);
+        for (int j = max(y0 - BOX_R, 0); j <= min(y0 + BOX_R, th - 1); ++j) {
+            const float8 v = vload8(0, col + (size_t)j * tw);
+            s += v;
+            si += vload8(0, gcol + (size_t)j * tw) * v;
         }
-        if (y - BOX_R >= 0) {
-            const size_t k = (size_t)(y - BOX_R) * tw;
-            s -= col[k];
-            si -= gcol[k] * col[k];
+        for (int y = y0; y < y1; ++y) {
+            vstore8(s, 0, out_s + (size_t)y * tw);
+            vstore8(si, 0, out_si + (size_t)y * tw);
+            if (y + BOX_R + 1 < th) {
+                const size_t k = (size_t)(y + BOX_R + 1) * tw;
+                const float8 v = vload8(0, col + k);
+                s += v;
+                si += vload8(0, gcol + k) * v;
+            }
+            if (y - BOX_R >= 0) {
+                const size_t k = (size_t)(y - BOX_R) * tw;
+                const float8 v = vload8(0, col + k);
+                s -= v;
+                si -= vload8(0, gcol + k) * v;
+            }
+        }
+        return;
+    }
+    for (int x = 0; x < tw - x0; ++x) {
+        float s = 0.0f, si = 0.0f;
+        for (int j = max(y0 - BOX_R, 0); j <= min(y0 + BOX_R, th - 1); ++j) {
+            const float v = col[(size_t)j * tw + x];
+            s += v;
+            si += gcol[(size_t)j * tw + x] * v;
+        }
+        for (int y = y0; y < y1; ++y) {
+            out_s[(size_t)y * tw + x] = s;
+            out_si[(size_t)y * tw + x] = si;
+            if (y + BOX_R + 1 < th) {
+                const size_t k = (size_t)(y + BOX_R + 1) * tw + x;
+                s += col[k];
+                si += gcol[k] * col[k];
+            }
+            if (y - BOX_R >= 0) {
+                const size_t k = (size_t)(y - BOX_R) * tw + x;
+                s -= col[k];
+                si -= gcol[k] * col[k];
+            }
         }
     }
 }

@@ -47,6 +47,8 @@ _WTA_NSTATE = 8
 _OUT_BYTES_PER_PX = 4 + 4 + 4 + 1
 # Smallest tile interior side (pixels) worth processing before the plane batch is reduced instead.
 _MIN_TILE_SIDE = 64
+# Columns per work-item of guided_filter.cl's column kernels (its COLS_VEC; float8 there).
+GF_COLS_VEC = 8
 # Planes warped per launch by the split census kernels (their warped-source buffer holds this
 # many planes of every source over the tile plus the census margin).
 SPLIT_WARP_PLANES = 8
@@ -482,7 +484,7 @@ class PlaneSweep:
         if o.cost_filter == "none":
             return None
         r = o.filter_radius
-        defs = {"BOX_R": r, "BOX_CHUNK": box_chunk(r)}
+        defs = {"BOX_R": r, "BOX_CHUNK": box_chunk(r), "COLS_VEC": GF_COLS_VEC}
         if o.cost_filter == "guided":
             defs["GF_EPS"] = float(o.gf_eps)
         return self.device.build("guided_filter", defs)
@@ -769,7 +771,7 @@ class PlaneSweep:
         chunk = box_chunk(self.options.filter_radius)
         _launch(cl.Kernel(prg, "gf_guide_fields"), queue, (tw, th), ref_buf, i32(w_img),
                 i32(tile.tx0), i32(tile.ty0), i32(tw), i32(th), guide_i, guide_mean)
-        _launch(cl.Kernel(prg, "box_cols_sum"), queue, (tw, _ceil_div(th, chunk), 2),
+        _launch(cl.Kernel(prg, "box_cols_sum"), queue, (_ceil_div(tw, GF_COLS_VEC), _ceil_div(th, chunk), 2),
                 guide_mean, scratch, i32(tw), i32(th))
         _launch(cl.Kernel(prg, "box_rows_mean"), queue, (_ceil_div(tw, chunk), th, 2),
                 scratch, guide_mean, i32(tw), i32(th))
@@ -786,19 +788,20 @@ class PlaneSweep:
         tw, th = tile.tw, tile.th
         chunk = box_chunk(o.filter_radius)
         ncx, ncy = _ceil_div(tw, chunk), _ceil_div(th, chunk)
+        ncv = _ceil_div(tw, GF_COLS_VEC)  # column kernels: GF_COLS_VEC columns per work-item
         if o.cost_filter == "box":
-            _launch(cl.Kernel(prg, "box_cols_sum"), queue, (tw, ncy, nb), vol_a, vol_b, i32(tw),
+            _launch(cl.Kernel(prg, "box_cols_sum"), queue, (ncv, ncy, nb), vol_a, vol_b, i32(tw),
                     i32(th))
             _launch(cl.Kernel(prg, "box_rows_mean"), queue, (ncx, th, nb), vol_b, vol_a, i32(tw),
                     i32(th))
             return
         # Guided: p = vol_a[0:nb] -> vol_b = [colsum p | colsum I p] -> vol_a = [a | b]
         # -> vol_b = [colsum a | colsum b] -> vol_a[0:nb] = q.
-        _launch(cl.Kernel(prg, "gf_cols_p"), queue, (tw, ncy, nb), vol_a, guide_i, vol_b,
+        _launch(cl.Kernel(prg, "gf_cols_p"), queue, (ncv, ncy, nb), vol_a, guide_i, vol_b,
                 i32(tw), i32(th), i32(nb))
         _launch(cl.Kernel(prg, "gf_rows_ab"), queue, (ncx, th, nb), vol_b, guide_mean, vol_a,
                 i32(tw), i32(th), i32(nb))
-        _launch(cl.Kernel(prg, "box_cols_sum"), queue, (tw, ncy, 2 * nb), vol_a, vol_b,
+        _launch(cl.Kernel(prg, "box_cols_sum"), queue, (ncv, ncy, 2 * nb), vol_a, vol_b,
                 i32(tw), i32(th))
         _launch(cl.Kernel(prg, "gf_rows_q"), queue, (ncx, th, nb), vol_b, guide_i, vol_a,
                 i32(tw), i32(th), i32(nb))
