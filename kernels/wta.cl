@@ -44,35 +44,67 @@
 #define S_MAX 7
 #define WTA_NSTATE 8
 
+/* The state of one pixel in private memory, and its moves. */
+typedef struct {
+    float m1, i1, m1p, m1n, m2, prev, prev2, cmax;
+} wta_state;
+
+inline wta_state state_fresh(void)
+{
+    wta_state st = {WTA_BIG, -1.0f, WTA_BIG, WTA_BIG, WTA_BIG, WTA_BIG, WTA_BIG, -WTA_BIG};
+    return st;
+}
+
+/* Field f of pixel k lives at state[f n + k] (n pixels). */
+inline wta_state state_load(__global const float *state, const size_t n, const size_t k)
+{
+    wta_state st = {state[S_M1 * n + k], state[S_I1 * n + k], state[S_M1P * n + k],
+                    state[S_M1N * n + k], state[S_M2 * n + k], state[S_PREV * n + k],
+                    state[S_PREV2 * n + k], state[S_MAX * n + k]};
+    return st;
+}
+
+inline void state_store(__global float *state, const size_t n, const size_t k, const wta_state st)
+{
+    state[S_M1 * n + k] = st.m1;
+    state[S_I1 * n + k] = st.i1;
+    state[S_M1P * n + k] = st.m1p;
+    state[S_M1N * n + k] = st.m1n;
+    state[S_M2 * n + k] = st.m2;
+    state[S_PREV * n + k] = st.prev;
+    state[S_PREV2 * n + k] = st.prev2;
+    state[S_MAX * n + k] = st.cmax;
+}
+
+/* Plane j (cost cj, neighbours cjm, cjp) is tested as a local minimum and merged in the state. */
+inline void consider(const int j, const float cjm, const float cj, const float cjp, wta_state *st)
+{
+    if (!(cj < cjm && cj <= cjp)) return;
+    if (cj < st->m1) {
+        st->m2 = st->m1;
+        st->m1 = cj;
+        st->i1 = (float)j;
+        st->m1p = cjm;
+        st->m1n = cjp;
+    } else if (cj < st->m2) {
+        st->m2 = cj;
+    }
+}
+
+/* Plane p with cost c arrives: plane p - 1 can now be tested (its neighbours are known). */
+inline void state_push(wta_state *st, const int p, const float c)
+{
+    if (p >= 1) consider(p - 1, st->prev2, st->prev, c, st);
+    st->prev2 = st->prev;
+    st->prev = c;
+    st->cmax = fmax(st->cmax, c);
+}
+
 __kernel void wta_init(__global float *state, const int iw, const int ih)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= iw || y >= ih) return;
-    const size_t n = (size_t)iw * ih, k = IDX2(x, y, iw);
-    state[S_M1 * n + k] = WTA_BIG;
-    state[S_I1 * n + k] = -1.0f;
-    state[S_M1P * n + k] = WTA_BIG;
-    state[S_M1N * n + k] = WTA_BIG;
-    state[S_M2 * n + k] = WTA_BIG;
-    state[S_PREV * n + k] = WTA_BIG;
-    state[S_PREV2 * n + k] = WTA_BIG;
-    state[S_MAX * n + k] = -WTA_BIG;
-}
-
-/* Plane j (cost cj, neighbours cjm, cjp) is tested as a local minimum and merged in the state. */
-inline void consider(const int j, const float cjm, const float cj, const float cjp, float *m1,
-                     float *i1, float *m1p, float *m1n, float *m2)
-{
-    if (!(cj < cjm && cj <= cjp)) return;
-    if (cj < *m1) {
-        *m2 = *m1;
-        *m1 = cj;
-        *i1 = (float)j;
-        *m1p = cjm;
-        *m1n = cjp;
-    } else if (cj < *m2) {
-        *m2 = cj;
-    }
+    state_store(state, (size_t)iw * ih, IDX2(x, y, iw), state_fresh());
 }
 
 __kernel void wta_update(__global const float *cost, const int tw, const int th, const int mx,
@@ -82,27 +114,10 @@ __kernel void wta_update(__global const float *cost, const int tw, const int th,
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= iw || y >= ih) return;
     const size_t n = (size_t)iw * ih, k = IDX2(x, y, iw);
-    float m1 = state[S_M1 * n + k], i1 = state[S_I1 * n + k];
-    float m1p = state[S_M1P * n + k], m1n = state[S_M1N * n + k], m2 = state[S_M2 * n + k];
-    float prev = state[S_PREV * n + k], prev2 = state[S_PREV2 * n + k];
-    float cmax = state[S_MAX * n + k];
+    wta_state st = state_load(state, n, k);
     const size_t plane = (size_t)tw * th, pix = IDX2(mx + x, my + y, tw);
-    for (int b = 0; b < nb; ++b) {
-        const int p = plane0 + b;
-        const float c = cost[b * plane + pix];
-        if (p >= 1) consider(p - 1, prev2, prev, c, &m1, &i1, &m1p, &m1n, &m2);
-        prev2 = prev;
-        prev = c;
-        cmax = fmax(cmax, c);
-    }
-    state[S_M1 * n + k] = m1;
-    state[S_I1 * n + k] = i1;
-    state[S_M1P * n + k] = m1p;
-    state[S_M1N * n + k] = m1n;
-    state[S_M2 * n + k] = m2;
-    state[S_PREV * n + k] = prev;
-    state[S_PREV2 * n + k] = prev2;
-    state[S_MAX * n + k] = cmax;
+    for (int b = 0; b < nb; ++b) state_push(&st, plane0 + b, cost[b * plane + pix]);
+    state_store(state, n, k, st);
 }
 
 __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const int n_planes,
@@ -110,25 +125,10 @@ __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const
 {
     const int i = get_global_id(0);
     if (i >= n_pix) return;
-    float m1 = WTA_BIG, i1 = -1.0f, m1p = WTA_BIG, m1n = WTA_BIG, m2 = WTA_BIG;
-    float prev = WTA_BIG, prev2 = WTA_BIG, cmax = -WTA_BIG;
+    wta_state st = state_fresh();
     __global const float *c = cost + (size_t)i * n_planes;
-    for (int p = 0; p < n_planes; ++p) {
-        const float cp = c[p];
-        if (p >= 1) consider(p - 1, prev2, prev, cp, &m1, &i1, &m1p, &m1n, &m2);
-        prev2 = prev;
-        prev = cp;
-        cmax = fmax(cmax, cp);
-    }
-    const size_t n = (size_t)n_pix;
-    state[S_M1 * n + i] = m1;
-    state[S_I1 * n + i] = i1;
-    state[S_M1P * n + i] = m1p;
-    state[S_M1N * n + i] = m1n;
-    state[S_M2 * n + i] = m2;
-    state[S_PREV * n + i] = prev;
-    state[S_PREV2 * n + i] = prev2;
-    state[S_MAX * n + i] = cmax;
+    for (int p = 0; p < n_planes; ++p) state_push(&st, p, c[p]);
+    state_store(state, (size_t)n_pix, i, st);
 }
 
 __kernel void wta_finalize(__global const float *state, const int iw, const int ih,
@@ -141,12 +141,10 @@ __kernel void wta_finalize(__global const float *state, const int iw, const int 
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= iw || y >= ih) return;
     const size_t n = (size_t)iw * ih, k = IDX2(x, y, iw);
-    float m1 = state[S_M1 * n + k], i1 = state[S_I1 * n + k];
-    float m1p = state[S_M1P * n + k], m1n = state[S_M1N * n + k], m2 = state[S_M2 * n + k];
-    const float prev = state[S_PREV * n + k], prev2 = state[S_PREV2 * n + k];
-    const float cmax = state[S_MAX * n + k];
-    consider(n_planes - 1, prev2, prev, WTA_BIG, &m1, &i1, &m1p, &m1n, &m2);
-    const int ib = (int)i1;
+    wta_state st = state_load(state, n, k);
+    consider(n_planes - 1, st.prev2, st.prev, WTA_BIG, &st);
+    const float m1 = st.m1, m1p = st.m1p, m1n = st.m1n, m2 = st.m2, cmax = st.cmax;
+    const int ib = (int)st.i1;
     float offset = 0.0f;
     if (ib > 0 && ib < n_planes - 1) {
         const float denom = m1p - 2.0f * m1 + m1n;
