@@ -10,6 +10,8 @@ planes and scaled linearly to all planes (the per-plane work is the same; the ou
     python tools/bench_sweep.py                     # 1024^2, 2 sources, 128 planes
     python tools/bench_sweep.py --size 256 --planes 32 --json out.json
     python tools/bench_sweep.py --census-kernel split staged   # both census kernels, same run
+    python tools/bench_sweep.py --size 10000 --planes 8 --sources 1 --memory-budget-gb 4 \
+        --repeat 1 --numpy-planes 0      # the 10000^2 reference within a 4 GB budget
 
 With several ``--census-kernel`` values each is timed in turn (same images, same device) and the
 ratio of each to the first is printed; the numpy comparison uses the first.
@@ -91,6 +93,8 @@ def main(argv=None) -> int:
                    help="planes of the numpy reference run, scaled to --planes (0: skip)")
     p.add_argument("--census-kernel", nargs="+", choices=["split", "staged"], default=["split"],
                    help="SweepOptions.census_kernel values to time (the first is the main figure)")
+    p.add_argument("--memory-budget-gb", type=float, default=None,
+                   help="SweepOptions.memory_budget_bytes in GiB (default: the device fraction)")
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = p.parse_args(argv)
 
@@ -98,9 +102,10 @@ def main(argv=None) -> int:
     ref_img, srcs, hom, heights = _scene(args.size, args.sources, args.planes)
     voxels = args.size * args.size * args.planes * args.sources
     print(f"device: {device.info.label}")
+    budget = None if args.memory_budget_gb is None else int(args.memory_budget_gb * 2**30)
     runs = []
     for kernel in args.census_kernel:
-        options = SweepOptions(cost_filter=args.filter, census_kernel=kernel)
+        options = SweepOptions(cost_filter=args.filter, census_kernel=kernel, memory_budget_bytes=budget)
         runs.append(_time_engine(device, options, ref_img, srcs, hom, heights, voxels, args.repeat))
     out = dict(runs[0])
     out.update({"device": device.info.label, "size": args.size, "planes": args.planes,
@@ -120,7 +125,8 @@ def main(argv=None) -> int:
         print(f"time of census kernel {r['census_kernel']} / time of {runs[0]['census_kernel']}: "
               f"engine {r['engine_seconds'] / runs[0]['engine_seconds']:.2f}, sweep stage "
               f"{r['stage_seconds'].get('sweep', 0) / runs[0]['stage_seconds'].get('sweep', 1):.2f}")
-    options = SweepOptions(cost_filter=args.filter, census_kernel=args.census_kernel[0])
+    options = SweepOptions(cost_filter=args.filter, census_kernel=args.census_kernel[0],
+                           memory_budget_bytes=budget)
     best = runs[0]["engine_seconds"]
     if args.numpy_planes > 0:
         n_sub = min(args.numpy_planes, args.planes)
