@@ -80,12 +80,16 @@ class MRFOptions(Options):
 
     method: Literal["none", "sgm", "graphcut"] = "sgm"  # none: the sweep's winner-take-all; sgm:
     # semi-global matching on the device; graphcut: alpha-expansion on the host (see README table)
-    sgm_p1: float = 0.4  # SGM penalty of a one-plane height change (fraction of cost_scale);
-    # tuned with tools/bench_e2e.py (seeds 0 and 1, 2 and 3 views: 0.4 beats 0.15 on every median
-    # and completeness). Much more over-smooths: a path pays max(P1, P2') to jump onto a weakly
-    # textured roof, whose census evidence is only ~0.02-0.03 cost_scale per pixel, so roofs keep
-    # the ground's height (tests/test_mrf.py weak-texture roof: p1 0.6 / p2 2.0 fails)
-    sgm_p2: float = 1.0  # SGM penalty of a larger jump (fraction of cost_scale), before adaptation
+    sgm_p1: float = 0.5  # SGM penalty of a one-plane height change (fraction of cost_scale);
+    # tuned with tools/bench_e2e.py together with sgm_p2 and sgm_sweep_gf_radius (README: better
+    # on all 8 scenes of seeds 0-3 and against S2P than 0.4 / 1.0 / radius 3, and 0.4 beat 0.15
+    # before). Much more over-smooths: a path pays max(P1, P2') to jump onto a weakly textured
+    # roof, whose census evidence is only ~0.02-0.03 cost_scale per pixel, so roofs keep the
+    # ground's height (tests/test_mrf.py weak-texture roof: p1 0.6 / p2 2.0 fails)
+    sgm_p2: float = 1.25  # SGM penalty of a larger jump (fraction of cost_scale), before adaptation
+    sgm_sweep_gf_radius: int | None = 2  # guided-filter radius of the sweep whose costs SGM
+    # refines, in place of [sweep] gf_radius (None: that one). SGM aggregates along its paths,
+    # so it wants less spatial filtering than the winner-take-all alone (whose best radius is 3)
     sgm_paths: Literal[4, 8] = 8  # number of scanline directions aggregated
     sgm_p2_sigma: float = 0.05  # guide intensity difference (image in [0, 1]) at which P2 is
     # halved: P2' = max(P1, P2 / (1 + |dI| / sigma)); 0 disables the adaptation
@@ -116,6 +120,8 @@ class MRFOptions(Options):
         self._require(math.isfinite(self.sgm_p1) and self.sgm_p1 >= 0.0, "sgm_p1", "must be >= 0")
         self._require(math.isfinite(self.sgm_p2) and self.sgm_p2 >= self.sgm_p1, "sgm_p2",
                       "must be finite and >= sgm_p1")
+        self._require(self.sgm_sweep_gf_radius is None or 0 <= self.sgm_sweep_gf_radius <= 64,
+                      "sgm_sweep_gf_radius", "must be in [0, 64] (or None)")
         self._require(math.isfinite(self.sgm_p2_sigma) and self.sgm_p2_sigma >= 0.0,
                       "sgm_p2_sigma", "must be >= 0 (0 disables the adaptation)")
         wg = self.sgm_work_group

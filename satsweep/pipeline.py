@@ -275,6 +275,14 @@ def _source_windows(hom: np.ndarray, tile_shape: tuple[int, int],
     return out
 
 
+def mrf_sweep_options(sweep: SweepOptions, mrf: MRFOptions) -> SweepOptions:
+    """The sweep options of a sweep whose cost volume ``mrf`` refines: with SGM, the guided
+    filter radius is ``mrf.sgm_sweep_gf_radius`` when that is set; otherwise ``sweep`` as is."""
+    if mrf.method == "sgm" and mrf.sgm_sweep_gf_radius is not None:
+        return sweep.replace(gf_radius=mrf.sgm_sweep_gf_radius)
+    return sweep
+
+
 def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, heights,
                        sweep: SweepOptions, mrf: MRFOptions, *,
                        progress: Callable[[int, int], None] | None = None):
@@ -288,7 +296,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     reference that fits one tile gives exactly the untiled result. The images are
     prefiltered once, whole (the MRF's guide is the reference as given); the left-right check
     (``sweep.lr_check``) runs once on the assembled winner-take-all map, as the untiled sweep
-    does. ``progress(done, total)`` is called after each tile. Returns (SweepResult with
+    does. The sweep runs with ``mrf_sweep_options(sweep, mrf)``.
+    ``progress(done, total)`` is called after each tile. Returns (SweepResult with
     n_tiles = the MRF tiles, MRF seconds).
     """
     from .mrf import refine  # noqa: PLC0415
@@ -301,7 +310,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
         srcs = [prefilter(s, sweep.prefilter_sigma_px) for s in srcs]
     hom = np.asarray(homographies, dtype=np.float64)
     hts = np.asarray(heights, dtype=np.float64)
-    engine = PlaneSweep(device, sweep.replace(lr_check=False, prefilter_sigma_px=0.0))
+    engine = PlaneSweep(device, mrf_sweep_options(sweep, mrf).replace(lr_check=False,
+                                                                      prefilter_sigma_px=0.0))
     h_img, w_img = ref.shape
     side = mrf_tile_side(hts.size, mrf, engine.budget_bytes(), device.max_alloc_bytes)
     # SGM runs on the device: the tile's volume stays there. The graph cut runs on the host.

@@ -15,8 +15,8 @@ import pytest
 import reference_sweep as ref
 from satsweep.errors import DeviceError
 from satsweep.mrf import MRFOptions, refine
-from satsweep.pipeline import (MIN_MRF_TILE_PX, _source_windows, mrf_tile_side,
-                               sweep_refine_tiled)
+from satsweep.pipeline import (MIN_MRF_TILE_PX, _source_windows, mrf_sweep_options,
+                               mrf_tile_side, sweep_refine_tiled)
 from satsweep.sweep import PlaneSweep, SweepOptions, plane_heights_for, translation_homographies
 
 SHIFTS = ((0.52, 0.0), (0.1, -0.4))
@@ -38,7 +38,8 @@ def _scene(shape, seed=3):
 
 def _untiled(device, ref_img, srcs, hom, heights, sweep, mrf):
     """The reference computation: one whole-image sweep keeping its volume, then refine."""
-    r = PlaneSweep(device, sweep).run(ref_img, srcs, hom, heights, keep_volume=True)
+    r = PlaneSweep(device, mrf_sweep_options(sweep, mrf)).run(ref_img, srcs, hom, heights,
+                                                              keep_volume=True)
     initial = np.clip(np.rint(r.plane_index), 0, heights.size - 1).astype(np.int32)
     m = refine(device, r.volume, ref_img, heights, mrf,
                cost_scale=float(sweep.census_bits), reject_range_edges=sweep.reject_range_edges,
@@ -60,6 +61,29 @@ def test_one_tile_is_the_untiled_result(cl_device, method, sweep):
     np.testing.assert_array_equal(got.valid, valid)
     np.testing.assert_array_equal(np.isnan(got.height), ~valid)
     np.testing.assert_array_equal(got.height[valid], want.height[valid])
+
+
+def test_sgm_sweeps_with_its_own_filter_radius():
+    sweep = SweepOptions(gf_radius=3)
+    assert mrf_sweep_options(sweep, MRFOptions(method="sgm", sgm_sweep_gf_radius=2)) \
+        == sweep.replace(gf_radius=2)
+    assert mrf_sweep_options(sweep, MRFOptions(method="sgm", sgm_sweep_gf_radius=None)) == sweep
+    assert mrf_sweep_options(sweep, MRFOptions(method="graphcut", sgm_sweep_gf_radius=2)) == sweep
+
+
+def test_sgm_filter_radius_reaches_the_sweep(cl_device):
+    """The tiled path's result changes with sgm_sweep_gf_radius and equals the untiled sweep with
+    that radius (so the option is used, not only stored)."""
+    ref_img, srcs, hom, heights = _scene((40, 46))
+    sweep = SweepOptions(gf_radius=3)
+    r2, _ = sweep_refine_tiled(cl_device, ref_img, srcs, hom, heights, sweep,
+                               MRFOptions(sgm_sweep_gf_radius=2))
+    r3, _ = sweep_refine_tiled(cl_device, ref_img, srcs, hom, heights, sweep,
+                               MRFOptions(sgm_sweep_gf_radius=None))
+    assert (r2.plane_index != r3.plane_index).any()
+    want, _ = _untiled(cl_device, ref_img, srcs, hom, heights, sweep.replace(gf_radius=2),
+                       MRFOptions(sgm_sweep_gf_radius=None))
+    np.testing.assert_array_equal(r2.plane_index, want.plane_index)
 
 
 def test_many_tiles_agree_with_one(cl_device):
