@@ -24,6 +24,7 @@ below 0.5 m), before and after the MVS3DM alignment.
     python tools/bench_e2e.py --synthetic-only --mrf none sgm graphcut
     python tools/bench_e2e.py --pleiades-only --repeat 2
     python tools/bench_e2e.py --size 256 --set sweep.gf_radius=5 --set dsm.cross_check_m=2
+    python tools/bench_e2e.py --synthetic-only --scene-set noise_dn=3.0   # scenes rendered otherwise
 """
 
 from __future__ import annotations
