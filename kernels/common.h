@@ -61,6 +61,13 @@ inline float sample_bilinear_clamped(__global const float *img, const int w, con
 #if CENSUS_NBITS > 64
 #error "census window too large for a 64-bit code"
 #endif
+/* Matching cost of one source at one pixel and plane, in census bits: the Hamming distance plus,
+ * with AD_WEIGHT > 0 (AD-census), AD_WEIGHT * min(|I_src - I_ref|, AD_TRUNC) / AD_TRUNC of the
+ * (warped) intensities (sweep.cl). COST_MAX is the largest such cost. */
+#ifndef AD_WEIGHT
+#define AD_WEIGHT 0.0f
+#endif
+#define COST_MAX ((float)CENSUS_NBITS + AD_WEIGHT)
 #endif
 
 #endif /* SATSWEEP_COMMON_H */

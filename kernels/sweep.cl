@@ -2,8 +2,11 @@
  *
  * For a batch of planes and every pixel of a reference tile, each source view is warped into the
  * reference view by the plane's homography, a census code is compared with the reference code
- * (Hamming distance, in bits) and the per-source costs are aggregated by the mean of the NBEST
- * lowest costs among the sources in which the pixel is valid (robust to occlusion in the others).
+ * (Hamming distance, in bits), plus with AD_WEIGHT > 0 the truncated absolute difference of the
+ * warped source intensity and the reference intensity at the pixel (AD-census, Mei et al. 2011:
+ * AD_WEIGHT * min(|I_src - I_ref|, AD_TRUNC) / AD_TRUNC bits), and the per-source costs are
+ * aggregated by the mean of the NBEST lowest costs among the sources in which the pixel is valid
+ * (robust to occlusion in the others).
  *
  * Shared arguments:
  *   src_offset[s]  first element of source s in the concatenated source buffer (row-major);
@@ -11,16 +14,18 @@
  *   homography     [n_planes][NSRC][9] row-major 3x3 maps from TILE-LOCAL reference pixels
  *                  (x - tx0, y - ty0) to source pixels (pixel (0,0) = centre of the first pixel);
  *   ref_code       [th][tw] census codes of the reference tile;
+ *   ref_img        the whole reference image (ref_w wide), for the AD term;
  *   tw, th         tile size; tx0, ty0 its origin in the reference image; ref_w, ref_h the
  *                  reference image size; plane0 the first plane of the batch;
  *   cost           [batch][th][tw] output, batch = global size 2.
  * A source is valid at a pixel when the pixel maps (positive homogeneous denominator) into
  * [0, w-1] x [0, h-1] of the source. The aggregated cost is the mean of the min(NBEST, n_valid)
- * lowest valid costs; with no valid source it is INVALID_COST = CENSUS_NBITS (the worst cost, so
+ * lowest valid costs; with no valid source it is INVALID_COST = COST_MAX (the worst cost, so
  * that filtering never favours such planes; wta.cl marks the pixel invalid geometrically).
  *
  * Compile-time constants: CENSUS_RX, CENSUS_RY, NSRC (number of sources, 1..32), NBEST (1..NSRC),
- *   WG_X, WG_Y (work-group size of sweep_census_cost).
+ *   WG_X, WG_Y (work-group size of sweep_census_cost), AD_WEIGHT (float, census bits, default 0:
+ *   census alone; not used by sweep_code_cost) and AD_TRUNC (float, intensity units, > 0).
  */
 #include "common.h"
 
@@ -28,9 +33,18 @@
 #error "CENSUS_RX, CENSUS_RY, NSRC and NBEST must be defined"
 #endif
 
-#define INVALID_COST ((float)CENSUS_NBITS)
-/* Per-source marker of "pixel not seen by this source" (costs are 0..64). */
-#define SWEEP_NOT_SEEN ((uchar)255)
+#ifndef AD_TRUNC
+#define AD_TRUNC 1.0f
+#endif
+#define INVALID_COST COST_MAX
+/* Per-source marker of "pixel not seen by this source" (costs are >= 0). */
+#define SWEEP_NOT_SEEN (-1.0f)
+
+/* The AD term of a source intensity against the reference intensity (0 when AD_WEIGHT = 0). */
+inline float ad_cost(const float src, const float ref)
+{
+    return AD_WEIGHT * fmin(fabs(src - ref), AD_TRUNC) / AD_TRUNC;
+}
 
 /* Mean of the NBEST lowest costs among the valid sources (bit s of valid set). */
 inline float aggregate_best(const float *cst, const uint valid)
@@ -81,15 +95,16 @@ inline int source_valid(__global const float *H, const float x, const float y,
 __kernel __attribute__((reqd_work_group_size(WG_X, WG_Y, 1)))
 void sweep_census_cost(__global const float *src_img, __global const long *src_offset,
                        __global const int *src_size, __global const float *homography,
-                       __global const ulong *ref_code, const int tw, const int th,
+                       __global const ulong *ref_code, __global const float *ref_img,
+                       const int tw, const int th,
                        const int tx0, const int ty0, const int ref_w, const int ref_h,
                        const int plane0, __global float *cost)
 {
     __local float patch[PATCH_W * PATCH_H];
-    /* Per-item, per-source Hamming cost (0..64), or SWEEP_NOT_SEEN. Kept in local memory rather
-     * than in private variables across the barriers of the source loop: PoCL 3.1 mis-compiled
-     * private state (a validity bit mask) carried across barriers inside this loop. */
-    __local uchar item_cost[NSRC * WG_X * WG_Y];
+    /* Per-item, per-source cost (>= 0), or SWEEP_NOT_SEEN. Kept in local memory rather than in
+     * private variables across the barriers of the source loop: PoCL 3.1 mis-compiled private
+     * state (a validity bit mask) carried across barriers inside this loop. */
+    __local float item_cost[NSRC * WG_X * WG_Y];
     const int lx = get_local_id(0), ly = get_local_id(1);
     const int item = ly * WG_X + lx;
     const int bx = get_group_id(0) * WG_X, by = get_group_id(1) * WG_Y;
@@ -109,7 +124,7 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
         }
         barrier(CLK_LOCAL_MEM_FENCE);
         const int x = bx + lx, y = by + ly;
-        uchar c_s = SWEEP_NOT_SEEN;
+        float c_s = SWEEP_NOT_SEEN;
         if (x < tw && y < th && source_valid(H, (float)x, (float)y, sw, sh)) {
             const int base = (ly + CENSUS_RY) * PATCH_W + lx + CENSUS_RX;
             const float c = patch[base];
@@ -120,7 +135,8 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
                     code = (code << 1) | (ulong)(patch[base + dy * PATCH_W + dx] < c);
                 }
             }
-            c_s = (uchar)popcount(code ^ ref_code[IDX2(x, y, tw)]);
+            c_s = (float)popcount(code ^ ref_code[IDX2(x, y, tw)])
+                  + ad_cost(c, ref_img[(size_t)(ty0 + y) * ref_w + tx0 + x]);
         }
         item_cost[s * WG_X * WG_Y + item] = c_s;
     }
@@ -129,9 +145,9 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
     float cst[NSRC];
     uint valid = 0u;
     for (int s = 0; s < NSRC; ++s) {
-        const uchar c_s = item_cost[s * WG_X * WG_Y + item];
-        cst[s] = (float)c_s;
-        if (c_s != SWEEP_NOT_SEEN) valid |= 1u << s;
+        const float c_s = item_cost[s * WG_X * WG_Y + item];
+        cst[s] = c_s;
+        if (c_s >= 0.0f) valid |= 1u << s;
     }
     cost[(size_t)get_global_id(2) * tw * th + IDX2(x, y, tw)] = aggregate_best(cst, valid);
 }
@@ -151,8 +167,8 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
  *   Work size: global = (pw, ph, nb NSRC), each of the first two rounded up to any multiple;
  *   local = any. Work-item (px, py, b NSRC + s) writes one sample.
  * sweep_warped_cost: the census of the warped sources (sweep_warp's output for the same planes)
- *   against the reference codes, aggregated over the sources like sweep_census_cost, into
- *   cost[(slot0 + b) th tw + y tw + x] for plane plane0 + b.
+ *   against the reference codes, plus the AD term, aggregated over the sources like
+ *   sweep_census_cost, into cost[(slot0 + b) th tw + y tw + x] for plane plane0 + b.
  *   Work size: global = (tw, th, nb), the first two rounded up to any multiple; local = any.
  */
 __kernel void sweep_warp(__global const float *src_img, __global const long *src_offset,
@@ -171,19 +187,22 @@ __kernel void sweep_warp(__global const float *src_img, __global const long *src
     float u, v;
     warped[((size_t)bs * ph + py) * pw + px] =
         apply_homography(H, (float)rx, (float)ry, &u, &v)
-            ? sample_bilinear_clamped(src_img + src_offset[s], src_size[2 * s], src_size[2 * s + 1], u, v)
+            ? sample_bilinear_clamped(src_img + src_offset[s], src_size[2 * s],
+                                      src_size[2 * s + 1], u, v)
             : 0.0f;
 }
 
 __kernel void sweep_warped_cost(__global const float *warped, __global const int *src_size,
                                 __global const float *homography, __global const ulong *ref_code,
-                                const int tw, const int th, const int plane0, const int slot0,
-                                __global float *cost)
+                                __global const float *ref_img, const int tw, const int th,
+                                const int tx0, const int ty0, const int ref_w, const int plane0,
+                                const int slot0, __global float *cost)
 {
     const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
     if (x >= tw || y >= th) return;
     const int pw = tw + 2 * CENSUS_RX, ph = th + 2 * CENSUS_RY;
     const ulong rc = ref_code[IDX2(x, y, tw)];
+    const float ref_i = ref_img[(size_t)(ty0 + y) * ref_w + tx0 + x];
     float cst[NSRC];
     uint valid = 0u;
     for (int s = 0; s < NSRC; ++s) {
@@ -200,7 +219,7 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const int
                 code = (code << 1) | (ulong)(w[dy * pw + dx] < c);
             }
         }
-        cst[s] = (float)popcount(code ^ rc);
+        cst[s] = (float)popcount(code ^ rc) + ad_cost(c, ref_i);
         valid |= 1u << s;
     }
     cost[(size_t)(slot0 + b) * tw * th + IDX2(x, y, tw)] = aggregate_best(cst, valid);

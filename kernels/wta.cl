@@ -20,12 +20,12 @@
  *                  (n_pix), rounded up to any multiple; local = any; work-item i writes pixel i.
  *   wta_finalize : after the last of n_planes planes: fractional plane index (parabola through the
  *                  best plane and its neighbours, offset clamped to [-0.5, 0.5], none at the first
- *                  and last planes), confidence = (c2 - M1) / CENSUS_NBITS clamped to [0, 1]
+ *                  and last planes), confidence = (c2 - M1) / COST_MAX clamped to [0, 1]
  *                  where c2 is the second-lowest local minimum (MAX when there is none), the best
  *                  cost, and validity: the pixel maps into at least one source at the best plane
  *                  (same rule as sweep.cl) and, when reject_edges != 0, the best plane is neither
  *                  the first nor the last.
- * Compile-time constants: NSRC, CENSUS_RX, CENSUS_RY (for CENSUS_NBITS).
+ * Compile-time constants: NSRC, CENSUS_RX, CENSUS_RY, AD_WEIGHT (default 0) for COST_MAX.
  */
 #include "common.h"
 
@@ -162,7 +162,7 @@ __kernel void wta_finalize(__global const float *state, const int iw, const int 
     }
     if (reject_edges && (ib == 0 || ib == n_planes - 1)) ok = 0;
     plane_index[k] = (float)ib + offset;
-    confidence[k] = fmin(fmax((c2 - m1) / (float)CENSUS_NBITS, 0.0f), 1.0f);
+    confidence[k] = fmin(fmax((c2 - m1) / COST_MAX, 0.0f), 1.0f);
     best_cost[k] = m1;
     valid[k] = (uchar)ok;
 }

@@ -80,10 +80,18 @@ def warp_image(src: np.ndarray, hom: np.ndarray, shape: tuple[int, int]):
     return warped, valid
 
 
-def warped_census_cost(ref_codes: np.ndarray, src: np.ndarray, hom: np.ndarray, rx: int, ry: int):
-    """Hamming cost of the census of the warped source (float32-rounded warp) and validity."""
+def warped_census_cost(ref_codes: np.ndarray, src: np.ndarray, hom: np.ndarray, rx: int, ry: int,
+                       *, ref_img: np.ndarray | None = None, ad_weight: float = 0.0,
+                       ad_truncation: float = 1.0):
+    """Hamming cost of the census of the warped source (float32-rounded warp) and validity; with
+    ad_weight > 0 plus ad_weight * min(|warped - ref_img|, ad_truncation) / ad_truncation."""
     warped, valid = warp_image(src, hom, ref_codes.shape)
-    return hamming(ref_codes, census(warped.astype(np.float32), rx, ry)), valid
+    warped = warped.astype(np.float32)
+    cost = hamming(ref_codes, census(warped, rx, ry)).astype(np.float64)
+    if ad_weight > 0:
+        diff = np.abs(warped.astype(np.float64) - np.asarray(ref_img, np.float64))
+        cost = cost + ad_weight * np.minimum(diff, ad_truncation) / ad_truncation
+    return cost, valid
 
 
 def sampled_codes_cost(ref_codes: np.ndarray, src_codes: np.ndarray, hom: np.ndarray):
@@ -106,8 +114,10 @@ def aggregate_best_k(costs: np.ndarray, valid: np.ndarray, k: int, invalid_cost:
 
 
 def sweep_volume(ref: np.ndarray, srcs, hom: np.ndarray, rx: int, ry: int, k: int,
-                 mode: str = "warped_census") -> np.ndarray:
-    """Aggregated cost volume (n_planes, h, w) of a whole reference image (float64)."""
+                 mode: str = "warped_census", ad_weight: float = 0.0,
+                 ad_truncation: float = 1.0) -> np.ndarray:
+    """Aggregated cost volume (n_planes, h, w) of a whole reference image (float64); the AD term
+    (warped_census mode) as in warped_census_cost; no valid source costs bits + ad_weight."""
     ref_codes = census(ref, rx, ry)
     nbits = (2 * rx + 1) * (2 * ry + 1) - 1
     src_codes = [census(s, rx, ry) for s in srcs] if mode == "sampled_codes" else None
@@ -118,10 +128,11 @@ def sweep_volume(ref: np.ndarray, srcs, hom: np.ndarray, rx: int, ry: int, k: in
             if mode == "sampled_codes":
                 c, v = sampled_codes_cost(ref_codes, src_codes[s], hom[p, s])
             else:
-                c, v = warped_census_cost(ref_codes, src, hom[p, s], rx, ry)
+                c, v = warped_census_cost(ref_codes, src, hom[p, s], rx, ry, ref_img=ref,
+                                          ad_weight=ad_weight, ad_truncation=ad_truncation)
             cs.append(c)
             vs.append(v)
-        vol[p] = aggregate_best_k(np.stack(cs), np.stack(vs), k, float(nbits))
+        vol[p] = aggregate_best_k(np.stack(cs), np.stack(vs), k, float(nbits) + ad_weight)
     return vol
 
 
@@ -159,8 +170,9 @@ def guided_filter(p: np.ndarray, guide: np.ndarray, r: int, eps: float) -> np.nd
     return box_mean(a, r) * g + box_mean(b, r)
 
 
-def wta(vol: np.ndarray, nbits: int):
-    """(best index, fractional index, confidence, best cost) of a (n_planes, h, w) volume."""
+def wta(vol: np.ndarray, nbits: float):
+    """(best index, fractional index, confidence, best cost) of a (n_planes, h, w) volume;
+    confidence = (second local minimum - best) / nbits (the largest cost), clipped to [0, 1]."""
     vol = np.asarray(vol, np.float64)
     n = vol.shape[0]
     inf = np.full((1,) + vol.shape[1:], np.inf)

@@ -69,17 +69,20 @@ def _census_dev(dev, img, rx, ry, x0=0, y0=0, out_w=None, out_h=None):
 
 
 def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16, 16),
-               tile=None):
+               tile=None, ad=None):
     """Run one sweep kernel over all planes of hom (n_planes, n_src, 3, 3) on a tile.
 
     tile = (tx0, ty0, tw, th) of ref_img (default: the whole image); hom maps tile-local pixels.
     mode: "warped_census" (the staged kernel sweep_census_cost), "split" (sweep_warp then
-    sweep_warped_cost, two planes a launch) or "sampled_codes" (sweep_code_cost).
+    sweep_warped_cost, two planes a launch) or "sampled_codes" (sweep_code_cost). ad = (weight,
+    truncation) of the AD term (default: none).
     """
     h, w = ref_img.shape
     tx0, ty0, tw, th = tile if tile is not None else (0, 0, w, h)
     n_planes, n_src = hom.shape[:2]
     defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": k}
+    if ad is not None:
+        defs.update({"AD_WEIGHT": float(ad[0]), "AD_TRUNC": float(ad[1])})
     if mode == "warped_census":
         defs.update({"WG_X": wg[0], "WG_Y": wg[1]})
     prg = dev.build("sweep", defs)
@@ -93,22 +96,23 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
         data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
         pw, ph, chunk = tw + 2 * rx, th + 2 * ry, 2
         warped = _empty(dev, 4 * chunk * n_src * pw * ph)
-        bufs = [_buf(dev, a) for a in (data, offsets, sizes, hom32, codes)]
+        bufs = [_buf(dev, a) for a in (data, offsets, sizes, hom32, codes, ref_img.astype(np.float32))]
         for p0 in range(0, n_planes, chunk):
             nb = min(chunk, n_planes - p0)
             cl.Kernel(prg, "sweep_warp")(dev.queue, (pw, ph, nb * n_src), None, *bufs[:4],
                                          i32(tw), i32(th), i32(tx0), i32(ty0), i32(w), i32(h),
                                          i32(p0), warped)
             cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (tw, th, nb), None, warped, bufs[2],
-                                                bufs[3], bufs[4], i32(tw), i32(th), i32(p0),
-                                                i32(p0), out)
+                                                bufs[3], bufs[4], bufs[5], i32(tw), i32(th),
+                                                i32(tx0), i32(ty0), i32(w), i32(p0), i32(p0), out)
     elif mode == "warped_census":
         data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
         gx = -(-tw // wg[0]) * wg[0]
         gy = -(-th // wg[1]) * wg[1]
         cl.Kernel(prg, "sweep_census_cost")(
             dev.queue, (gx, gy, n_planes), (wg[0], wg[1], 1), _buf(dev, data), _buf(dev, offsets),
-            _buf(dev, sizes), _buf(dev, hom32), _buf(dev, codes), i32(tw), i32(th), i32(tx0),
+            _buf(dev, sizes), _buf(dev, hom32), _buf(dev, codes),
+            _buf(dev, ref_img.astype(np.float32)), i32(tw), i32(th), i32(tx0),
             i32(ty0), i32(w), i32(h), i32(0), out)
     else:
         data = np.concatenate([ref.census(s, rx, ry).ravel() for s in srcs])
@@ -125,6 +129,10 @@ def _translations(shifts):
     hom[..., 0, 2] = shifts[..., 0]
     hom[..., 1, 2] = shifts[..., 1]
     return hom
+
+
+# float32 rounding of the AD term (at most AD_WEIGHT = 8 bits; a few ulp of it).
+AD_ATOL = 1e-5
 
 
 # -- census ---------------------------------------------------------------------------------------
@@ -267,6 +275,36 @@ def test_split_sweep_equals_staged_kernel_bit_for_bit(cl_device, window):
     np.testing.assert_array_equal(split, staged)
     invalid = (2 * rx + 1) * (2 * ry + 1) - 1
     assert (staged == invalid).any() and (staged < invalid).any()
+
+
+@pytest.mark.parametrize("form", ["warped_census", "split"])
+def test_ad_census_cost_matches_reference(cl_device, form):
+    """With AD_WEIGHT > 0 each source's cost is the Hamming distance plus
+    AD_WEIGHT * min(|I_src - I_ref|, AD_TRUNC) / AD_TRUNC, on a tile inside the image; the
+    no-source cost is COST_MAX = census bits + AD_WEIGHT."""
+    rng = np.random.default_rng(12)
+    ref_img = rng.random((36, 44)).astype(np.float32)
+    src = np.clip(np.roll(ref_img, 1, axis=1) + 0.05 * rng.standard_normal(ref_img.shape), 0, 1)
+    src = src.astype(np.float32)
+    weight, trunc = 8.0, 0.15
+    # Dyadic translations: the warp is exact, so only the float32 AD arithmetic differs.
+    hom = _translations([[[1.0, 0.0]], [[0.5, -0.25]], [[20.0, 0.0]]])
+    tx0, ty0, tw, th = 4, 3, 33, 30
+    shift = np.eye(3)
+    shift[0, 2], shift[1, 2] = tx0, ty0
+    local = hom @ shift
+    got = _sweep_dev(cl_device, ref_img, [src], local, 2, 2, 1, mode=form, wg=(8, 8),
+                     tile=(tx0, ty0, tw, th), ad=(weight, trunc))
+    codes = ref.census(ref_img, 2, 2)
+    for p in range(hom.shape[0]):
+        cost, valid = ref.warped_census_cost(codes, src, hom[p, 0], 2, 2, ref_img=ref_img,
+                                             ad_weight=weight, ad_truncation=trunc)
+        want = np.where(valid, cost, 24 + weight)[ty0:ty0 + th, tx0:tx0 + tw]
+        np.testing.assert_allclose(got[p], want, atol=AD_ATOL, rtol=0)
+    census_only = _sweep_dev(cl_device, ref_img, [src], local, 2, 2, 1, mode=form, wg=(8, 8),
+                             tile=(tx0, ty0, tw, th))
+    assert (got > census_only).mean() > 0.5  # the term is there where intensities differ
+    assert (got == 24 + weight).any()  # shifted 20 px: part of the tile sees no source
 
 
 def test_sampled_codes_cost_exact(cl_device):

@@ -53,12 +53,13 @@ def _numpy_reference(ref_img, srcs, hom, heights, options: SweepOptions, n_sub: 
     rx, ry = options.census_radii
     sub = hom[:n_sub].astype(np.float32).astype(np.float64)
     t0 = time.perf_counter()
-    vol = ref.sweep_volume(ref_img, srcs, sub, rx, ry, options.best_k(len(srcs)))
+    vol = ref.sweep_volume(ref_img, srcs, sub, rx, ry, options.best_k(len(srcs)),
+                           ad_weight=options.ad_weight, ad_truncation=options.ad_truncation)
     if options.cost_filter == "guided":
         vol = ref.guided_filter(vol, ref_img, options.gf_radius, options.gf_eps)
     elif options.cost_filter == "box":
         vol = ref.box_mean(vol, options.box_radius)
-    ref.wta(vol, options.census_bits)
+    ref.wta(vol, options.max_cost)
     return time.perf_counter() - t0
 
 
