@@ -63,11 +63,15 @@ inline float sample_bilinear_clamped(__global const float *img, const int w, con
 #endif
 /* Matching cost of one source at one pixel and plane, in census bits: the Hamming distance plus,
  * with AD_WEIGHT > 0 (AD-census), AD_WEIGHT * min(|I_src - I_ref|, AD_TRUNC) / AD_TRUNC of the
- * (warped) intensities (sweep.cl). COST_MAX is the largest such cost. */
+ * (warped) intensities, plus with GRAD_WEIGHT > 0 the same for the two image gradients
+ * (sweep.cl). COST_MAX is the largest such cost. */
 #ifndef AD_WEIGHT
 #define AD_WEIGHT 0.0f
 #endif
-#define COST_MAX ((float)CENSUS_NBITS + AD_WEIGHT)
+#ifndef GRAD_WEIGHT
+#define GRAD_WEIGHT 0.0f
+#endif
+#define COST_MAX ((float)CENSUS_NBITS + AD_WEIGHT + GRAD_WEIGHT)
 #endif
 
 #endif /* SATSWEEP_COMMON_H */

@@ -4,7 +4,10 @@
  * reference view by the plane's homography, a census code is compared with the reference code
  * (Hamming distance, in bits), plus with AD_WEIGHT > 0 the truncated absolute difference of the
  * warped source intensity and the reference intensity at the pixel (AD-census, Mei et al. 2011:
- * AD_WEIGHT * min(|I_src - I_ref|, AD_TRUNC) / AD_TRUNC bits), and the per-source costs are
+ * AD_WEIGHT * min(|I_src - I_ref|, AD_TRUNC) / AD_TRUNC bits), plus with GRAD_WEIGHT > 0 the
+ * truncated differences of the two images' gradients (central differences, neighbours clamped to
+ * the reference image as the census does: GRAD_WEIGHT * (min(|dx_src - dx_ref|, GRAD_TRUNC) +
+ * min(|dy_src - dy_ref|, GRAD_TRUNC)) / (2 GRAD_TRUNC) bits), and the per-source costs are
  * aggregated by the mean of the NBEST lowest costs among the sources in which the pixel is valid
  * (robust to occlusion in the others).
  *
@@ -25,7 +28,8 @@
  *
  * Compile-time constants: CENSUS_RX, CENSUS_RY, NSRC (number of sources, 1..32), NBEST (1..NSRC),
  *   WG_X, WG_Y (work-group size of sweep_census_cost), AD_WEIGHT (float, census bits, default 0:
- *   census alone; not used by sweep_code_cost) and AD_TRUNC (float, intensity units, > 0).
+ *   census alone; not used by sweep_code_cost) and AD_TRUNC (float, intensity units, > 0),
+ *   GRAD_WEIGHT (float, census bits, default 0; needs CENSUS_RX, CENSUS_RY >= 1) and GRAD_TRUNC.
  */
 #include "common.h"
 
@@ -40,10 +44,31 @@
 /* Per-source marker of "pixel not seen by this source" (costs are >= 0). */
 #define SWEEP_NOT_SEEN (-1.0f)
 
+#ifndef GRAD_TRUNC
+#define GRAD_TRUNC 1.0f
+#endif
+/* The gradient reads one neighbour on every side of the (warped) pixel: with a census radius of 0
+ * in either direction the term is left out (the host refuses GRAD_WEIGHT > 0 then). */
+#define GRAD_READY (CENSUS_RX >= 1 && CENSUS_RY >= 1)
+
 /* The AD term of a source intensity against the reference intensity (0 when AD_WEIGHT = 0). */
 inline float ad_cost(const float src, const float ref)
 {
     return AD_WEIGHT * fmin(fabs(src - ref), AD_TRUNC) / AD_TRUNC;
+}
+
+/* The gradient term: source central differences (dxs, dys) against the reference's at image
+ * pixel (X, Y), whose neighbours are clamped to the reference image (0 when GRAD_WEIGHT = 0). */
+inline float grad_cost(const float dxs, const float dys, __global const float *ref_img,
+                       const int ref_w, const int ref_h, const int X, const int Y)
+{
+    if (GRAD_WEIGHT == 0.0f) return 0.0f;
+    __global const float *row = ref_img + (size_t)Y * ref_w;
+    const float dxr = row[clamp_index(X + 1, ref_w)] - row[clamp_index(X - 1, ref_w)];
+    const float dyr = ref_img[(size_t)clamp_index(Y + 1, ref_h) * ref_w + X]
+                      - ref_img[(size_t)clamp_index(Y - 1, ref_h) * ref_w + X];
+    return GRAD_WEIGHT * (fmin(fabs(dxs - dxr), GRAD_TRUNC) + fmin(fabs(dys - dyr), GRAD_TRUNC))
+           / (2.0f * GRAD_TRUNC);
 }
 
 /* Mean of the NBEST lowest costs among the valid sources (bit s of valid set). */
@@ -137,6 +162,11 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
             }
             c_s = (float)popcount(code ^ ref_code[IDX2(x, y, tw)])
                   + ad_cost(c, ref_img[(size_t)(ty0 + y) * ref_w + tx0 + x]);
+#if GRAD_READY
+            c_s += grad_cost(patch[base + 1] - patch[base - 1],
+                             patch[base + PATCH_W] - patch[base - PATCH_W], ref_img, ref_w,
+                             ref_h, tx0 + x, ty0 + y);
+#endif
         }
         item_cost[s * WG_X * WG_Y + item] = c_s;
     }
@@ -195,8 +225,8 @@ __kernel void sweep_warp(__global const float *src_img, __global const long *src
 __kernel void sweep_warped_cost(__global const float *warped, __global const int *src_size,
                                 __global const float *homography, __global const ulong *ref_code,
                                 __global const float *ref_img, const int tw, const int th,
-                                const int tx0, const int ty0, const int ref_w, const int plane0,
-                                const int slot0, __global float *cost)
+                                const int tx0, const int ty0, const int ref_w, const int ref_h,
+                                const int plane0, const int slot0, __global float *cost)
 {
     const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
     if (x >= tw || y >= th) return;
@@ -220,6 +250,9 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const int
             }
         }
         cst[s] = (float)popcount(code ^ rc) + ad_cost(c, ref_i);
+#if GRAD_READY
+        cst[s] += grad_cost(w[1] - w[-1], w[pw] - w[-pw], ref_img, ref_w, ref_h, tx0 + x, ty0 + y);
+#endif
         valid |= 1u << s;
     }
     cost[(size_t)(slot0 + b) * tw * th + IDX2(x, y, tw)] = aggregate_best(cst, valid);

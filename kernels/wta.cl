@@ -25,7 +25,8 @@
  *                  cost, and validity: the pixel maps into at least one source at the best plane
  *                  (same rule as sweep.cl) and, when reject_edges != 0, the best plane is neither
  *                  the first nor the last.
- * Compile-time constants: NSRC, CENSUS_RX, CENSUS_RY, AD_WEIGHT (default 0) for COST_MAX.
+ * Compile-time constants: NSRC, CENSUS_RX, CENSUS_RY, AD_WEIGHT and GRAD_WEIGHT (default 0) for
+ * COST_MAX.
  */
 #include "common.h"
 

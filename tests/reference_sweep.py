@@ -80,17 +80,31 @@ def warp_image(src: np.ndarray, hom: np.ndarray, shape: tuple[int, int]):
     return warped, valid
 
 
+def central_differences(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(I(x+1) - I(x-1), I(y+1) - I(y-1)) with edge-replicated neighbours (float64)."""
+    p = np.pad(np.asarray(img, np.float64), 1, mode="edge")
+    return p[1:-1, 2:] - p[1:-1, :-2], p[2:, 1:-1] - p[:-2, 1:-1]
+
+
 def warped_census_cost(ref_codes: np.ndarray, src: np.ndarray, hom: np.ndarray, rx: int, ry: int,
                        *, ref_img: np.ndarray | None = None, ad_weight: float = 0.0,
-                       ad_truncation: float = 1.0):
+                       ad_truncation: float = 1.0, grad_weight: float = 0.0,
+                       grad_truncation: float = 1.0):
     """Hamming cost of the census of the warped source (float32-rounded warp) and validity; with
-    ad_weight > 0 plus ad_weight * min(|warped - ref_img|, ad_truncation) / ad_truncation."""
+    ad_weight > 0 plus ad_weight * min(|warped - ref_img|, ad_truncation) / ad_truncation; with
+    grad_weight > 0 plus grad_weight * (min(|dx_w - dx_ref|, t) + min(|dy_w - dy_ref|, t)) / (2 t)
+    (central differences of the warped image and of ref_img, t = grad_truncation)."""
     warped, valid = warp_image(src, hom, ref_codes.shape)
     warped = warped.astype(np.float32)
     cost = hamming(ref_codes, census(warped, rx, ry)).astype(np.float64)
     if ad_weight > 0:
         diff = np.abs(warped.astype(np.float64) - np.asarray(ref_img, np.float64))
         cost = cost + ad_weight * np.minimum(diff, ad_truncation) / ad_truncation
+    if grad_weight > 0:
+        (wx, wy), (gx, gy) = central_differences(warped), central_differences(ref_img)
+        t = grad_truncation
+        cost = cost + grad_weight * (np.minimum(np.abs(wx - gx), t)
+                                     + np.minimum(np.abs(wy - gy), t)) / (2 * t)
     return cost, valid
 
 
@@ -115,9 +129,11 @@ def aggregate_best_k(costs: np.ndarray, valid: np.ndarray, k: int, invalid_cost:
 
 def sweep_volume(ref: np.ndarray, srcs, hom: np.ndarray, rx: int, ry: int, k: int,
                  mode: str = "warped_census", ad_weight: float = 0.0,
-                 ad_truncation: float = 1.0) -> np.ndarray:
-    """Aggregated cost volume (n_planes, h, w) of a whole reference image (float64); the AD term
-    (warped_census mode) as in warped_census_cost; no valid source costs bits + ad_weight."""
+                 ad_truncation: float = 1.0, grad_weight: float = 0.0,
+                 grad_truncation: float = 1.0) -> np.ndarray:
+    """Aggregated cost volume (n_planes, h, w) of a whole reference image (float64); the AD and
+    gradient terms (warped_census mode) as in warped_census_cost; no valid source costs
+    bits + ad_weight + grad_weight."""
     ref_codes = census(ref, rx, ry)
     nbits = (2 * rx + 1) * (2 * ry + 1) - 1
     src_codes = [census(s, rx, ry) for s in srcs] if mode == "sampled_codes" else None
@@ -129,10 +145,12 @@ def sweep_volume(ref: np.ndarray, srcs, hom: np.ndarray, rx: int, ry: int, k: in
                 c, v = sampled_codes_cost(ref_codes, src_codes[s], hom[p, s])
             else:
                 c, v = warped_census_cost(ref_codes, src, hom[p, s], rx, ry, ref_img=ref,
-                                          ad_weight=ad_weight, ad_truncation=ad_truncation)
+                                          ad_weight=ad_weight, ad_truncation=ad_truncation,
+                                          grad_weight=grad_weight, grad_truncation=grad_truncation)
             cs.append(c)
             vs.append(v)
-        vol[p] = aggregate_best_k(np.stack(cs), np.stack(vs), k, float(nbits) + ad_weight)
+        vol[p] = aggregate_best_k(np.stack(cs), np.stack(vs), k,
+                                  float(nbits) + ad_weight + grad_weight)
     return vol
 
 

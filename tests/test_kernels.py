@@ -69,13 +69,13 @@ def _census_dev(dev, img, rx, ry, x0=0, y0=0, out_w=None, out_h=None):
 
 
 def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16, 16),
-               tile=None, ad=None):
+               tile=None, ad=None, grad=None):
     """Run one sweep kernel over all planes of hom (n_planes, n_src, 3, 3) on a tile.
 
     tile = (tx0, ty0, tw, th) of ref_img (default: the whole image); hom maps tile-local pixels.
     mode: "warped_census" (the staged kernel sweep_census_cost), "split" (sweep_warp then
-    sweep_warped_cost, two planes a launch) or "sampled_codes" (sweep_code_cost). ad = (weight,
-    truncation) of the AD term (default: none).
+    sweep_warped_cost, two planes a launch) or "sampled_codes" (sweep_code_cost). ad, grad =
+    (weight, truncation) of the AD and gradient terms (default: none).
     """
     h, w = ref_img.shape
     tx0, ty0, tw, th = tile if tile is not None else (0, 0, w, h)
@@ -83,6 +83,8 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
     defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": k}
     if ad is not None:
         defs.update({"AD_WEIGHT": float(ad[0]), "AD_TRUNC": float(ad[1])})
+    if grad is not None:
+        defs.update({"GRAD_WEIGHT": float(grad[0]), "GRAD_TRUNC": float(grad[1])})
     if mode == "warped_census":
         defs.update({"WG_X": wg[0], "WG_Y": wg[1]})
     prg = dev.build("sweep", defs)
@@ -104,7 +106,8 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
                                          i32(p0), warped)
             cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (tw, th, nb), None, warped, bufs[2],
                                                 bufs[3], bufs[4], bufs[5], i32(tw), i32(th),
-                                                i32(tx0), i32(ty0), i32(w), i32(p0), i32(p0), out)
+                                                i32(tx0), i32(ty0), i32(w), i32(h), i32(p0),
+                                                i32(p0), out)
     elif mode == "warped_census":
         data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
         gx = -(-tw // wg[0]) * wg[0]
@@ -278,33 +281,37 @@ def test_split_sweep_equals_staged_kernel_bit_for_bit(cl_device, window):
 
 
 @pytest.mark.parametrize("form", ["warped_census", "split"])
-def test_ad_census_cost_matches_reference(cl_device, form):
+@pytest.mark.parametrize("terms", [(8.0, 0.0), (0.0, 4.0), (8.0, 4.0)], ids=["ad", "grad", "both"])
+def test_ad_census_cost_matches_reference(cl_device, form, terms):
     """With AD_WEIGHT > 0 each source's cost is the Hamming distance plus
-    AD_WEIGHT * min(|I_src - I_ref|, AD_TRUNC) / AD_TRUNC, on a tile inside the image; the
-    no-source cost is COST_MAX = census bits + AD_WEIGHT."""
+    AD_WEIGHT * min(|I_src - I_ref|, AD_TRUNC) / AD_TRUNC, with GRAD_WEIGHT > 0 plus the
+    truncated gradient differences, on a tile inside the image (the tile touches the image's
+    top and right edges, where the gradients' neighbours are clamped); the no-source cost is
+    COST_MAX = census bits + AD_WEIGHT + GRAD_WEIGHT."""
     rng = np.random.default_rng(12)
     ref_img = rng.random((36, 44)).astype(np.float32)
     src = np.clip(np.roll(ref_img, 1, axis=1) + 0.05 * rng.standard_normal(ref_img.shape), 0, 1)
     src = src.astype(np.float32)
-    weight, trunc = 8.0, 0.15
+    (weight, gweight), trunc, gtrunc = terms, 0.15, 0.1
     # Dyadic translations: the warp is exact, so only the float32 AD arithmetic differs.
     hom = _translations([[[1.0, 0.0]], [[0.5, -0.25]], [[20.0, 0.0]]])
-    tx0, ty0, tw, th = 4, 3, 33, 30
+    tx0, ty0, tw, th = 4, 0, 40, 30
     shift = np.eye(3)
     shift[0, 2], shift[1, 2] = tx0, ty0
     local = hom @ shift
     got = _sweep_dev(cl_device, ref_img, [src], local, 2, 2, 1, mode=form, wg=(8, 8),
-                     tile=(tx0, ty0, tw, th), ad=(weight, trunc))
+                     tile=(tx0, ty0, tw, th), ad=(weight, trunc), grad=(gweight, gtrunc))
     codes = ref.census(ref_img, 2, 2)
     for p in range(hom.shape[0]):
         cost, valid = ref.warped_census_cost(codes, src, hom[p, 0], 2, 2, ref_img=ref_img,
-                                             ad_weight=weight, ad_truncation=trunc)
-        want = np.where(valid, cost, 24 + weight)[ty0:ty0 + th, tx0:tx0 + tw]
+                                             ad_weight=weight, ad_truncation=trunc,
+                                             grad_weight=gweight, grad_truncation=gtrunc)
+        want = np.where(valid, cost, 24 + weight + gweight)[ty0:ty0 + th, tx0:tx0 + tw]
         np.testing.assert_allclose(got[p], want, atol=AD_ATOL, rtol=0)
     census_only = _sweep_dev(cl_device, ref_img, [src], local, 2, 2, 1, mode=form, wg=(8, 8),
                              tile=(tx0, ty0, tw, th))
     assert (got > census_only).mean() > 0.5  # the term is there where intensities differ
-    assert (got == 24 + weight).any()  # shifted 20 px: part of the tile sees no source
+    assert (got == 24 + weight + gweight).any()  # shifted 20 px: part of the tile sees no source
 
 
 def test_sampled_codes_cost_exact(cl_device):

@@ -177,11 +177,13 @@ def test_prefilter_option_sweeps_the_blurred_images(cl_device):
 # -- the whole pipeline against the numpy references ---------------------------------------------
 def test_pipeline_matches_the_numpy_reference(cl_device):
     ref_img, srcs, _, hom, heights = _scene((40, 52), shifts=((PX_PER_M, 0.0), (0.1, -0.4)))
-    o = SweepOptions(census_window=(7, 9), n_best_sources=1, gf_radius=3, gf_eps=1e-3)
+    o = SweepOptions(census_window=(7, 9), n_best_sources=1, gf_radius=3, gf_eps=1e-3,
+                     grad_weight=4.0)
     res = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights)
-    assert o.ad_weight > 0  # the default AD-census cost, checked here end to end
+    assert o.ad_weight > 0  # the default AD term and the optional gradient term, end to end
     vol = ref.sweep_volume(ref_img, srcs, hom.astype(np.float32).astype(np.float64), 4, 3, 1,
-                           ad_weight=o.ad_weight, ad_truncation=o.ad_truncation)
+                           ad_weight=o.ad_weight, ad_truncation=o.ad_truncation,
+                           grad_weight=o.grad_weight, grad_truncation=o.grad_truncation)
     vol = ref.guided_filter(vol, ref_img, 3, 1e-3)
     i1, frac, conf, m1 = ref.wta(vol, o.max_cost)
     valid = ref.valid_at_plane(i1, hom, [s.shape for s in srcs], reject_edges=True)
@@ -214,7 +216,7 @@ def test_warped_census_is_more_accurate_than_sampled_codes(cl_device):
     meds = {}
     for mode in ("warped_census", "sampled_codes"):
         # Census alone in both (the AD term needs the warped intensities).
-        res = PlaneSweep(cl_device, SweepOptions(cost_mode=mode, ad_weight=0.0)).run(
+        res = PlaneSweep(cl_device, SweepOptions(cost_mode=mode, ad_weight=0.0, grad_weight=0.0)).run(
             ref_img, srcs, hom, heights)
         meds[mode] = np.nanmedian(_errors(res, truth)[0])
     assert meds["warped_census"] < MEDIAN_ERROR_MAX_M < meds["sampled_codes"]
@@ -362,7 +364,7 @@ def test_kept_volume_matches_the_wta_and_does_not_depend_on_tiling(cl_device):
     src = np.roll(ref, 2, axis=1) + 0.01 * rng.random(ref.shape).astype(np.float32)
     heights = np.linspace(0.0, 10.0, 12)
     hom = translation_homographies(np.array([[0.5, 0.0]]), heights)
-    box = SweepOptions(cost_filter="box", ad_weight=0.0)
+    box = SweepOptions(cost_filter="box", ad_weight=0.0, grad_weight=0.0)
     whole = PlaneSweep(cl_device, box).run(
         ref, [src], hom, heights, keep_volume=True)
     assert whole.volume.shape == (heights.size, *ref.shape)

@@ -54,7 +54,8 @@ def _numpy_reference(ref_img, srcs, hom, heights, options: SweepOptions, n_sub: 
     sub = hom[:n_sub].astype(np.float32).astype(np.float64)
     t0 = time.perf_counter()
     vol = ref.sweep_volume(ref_img, srcs, sub, rx, ry, options.best_k(len(srcs)),
-                           ad_weight=options.ad_weight, ad_truncation=options.ad_truncation)
+                           ad_weight=options.ad_weight, ad_truncation=options.ad_truncation,
+                           grad_weight=options.grad_weight, grad_truncation=options.grad_truncation)
     if options.cost_filter == "guided":
         vol = ref.guided_filter(vol, ref_img, options.gf_radius, options.gf_eps)
     elif options.cost_filter == "box":
