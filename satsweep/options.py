@@ -70,7 +70,10 @@ class Options:
             if expected is float and isinstance(value, int) and not isinstance(value, bool):
                 value = float(value)
             values[key] = value
-        return cls(**values)
+        try:
+            return cls(**values)
+        except OptionsError as exc:  # a value out of range: say which file (or flag) gave it
+            raise OptionsError(f"{source}: {exc}") from None
 
     def replace(self: T, **changes: Any) -> T:
         """A copy with some fields changed (validated again)."""

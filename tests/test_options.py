@@ -52,6 +52,13 @@ def test_from_mapping_converts_toml_types_and_rejects_unknown_keys():
         DemoOptions.from_mapping({"radious": 5}, source="cfg.toml")
 
 
+def test_from_mapping_out_of_range_values_name_the_source():
+    with pytest.raises(OptionsError, match=r"^cfg\.toml \[demo\]: DemoOptions\.radius = -2: must be >= 0$"):
+        DemoOptions.from_mapping({"radius": -2}, source="cfg.toml [demo]")
+    with pytest.raises(OptionsError, match=r"^cfg\.toml \[demo\]: DemoOptions\.mode"):
+        DemoOptions.from_mapping({"mode": "c"}, source="cfg.toml [demo]")
+
+
 def test_toml_round_trip(tmp_path):
     o = DemoOptions(radius=4, window=(5, 5), mode="b")
     path = tmp_path / "c.toml"
