@@ -344,9 +344,37 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- config ------------------------------------------------------------------------------------
+def _add_config(sub) -> None:
+    p = sub.add_parser(
+        "config",
+        help="print every option of every stage as commented TOML (defaults, or a file over them)",
+        description="Print the configuration as TOML, each option with the comment that explains "
+        "it: the defaults, or with --config the values of FILE over the defaults (checked like "
+        "reconstruct checks them: unknown tables or keys and bad values are errors). Redirect it "
+        "to a file to start a configuration for reconstruct/demo --config.",
+    )
+    p.add_argument("--config", metavar="FILE.toml", default=None,
+                   help="a configuration to check and show over the defaults")
+    p.set_defaults(handler=_cmd_config)
+
+
+def _cmd_config(args: argparse.Namespace) -> int:
+    from .config import PipelineConfig
+
+    if args.config is None:
+        text = PipelineConfig().to_toml(header="satsweep configuration: the defaults")
+    else:
+        text = PipelineConfig.from_toml(args.config).to_toml(
+            header=f"satsweep configuration: {args.config} over the defaults")
+    sys.stdout.write(text)
+    return 0
+
+
 # -- entry point -------------------------------------------------------------------------------
 # In the order `satsweep --help` lists them: the main job first.
-_COMMANDS = [_add_demo, _add_reconstruct, _add_synth, _add_cameras, _add_evaluate, _add_devices]
+_COMMANDS = [_add_demo, _add_reconstruct, _add_synth, _add_cameras, _add_evaluate, _add_devices,
+             _add_config]
 
 
 def build_parser() -> argparse.ArgumentParser:

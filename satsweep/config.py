@@ -94,5 +94,9 @@ class PipelineConfig:
     def to_dict(self) -> dict[str, dict[str, Any]]:
         return {name: getattr(self, name).to_dict() for name in SECTIONS}
 
-    def to_toml(self) -> str:
-        return "# satsweep configuration (as used by this run)\n" + dumps_toml(self.to_dict())
+    def to_toml(self, header: str = "satsweep configuration (as used by this run)",
+                comments: bool = True) -> str:
+        """TOML text of every option; with ``comments`` each key is preceded by its field's
+        comment in the source (what it means, its unit, how its default was chosen)."""
+        notes = {name: SECTIONS[name].field_comments() for name in SECTIONS} if comments else None
+        return f"# {header}\n" + dumps_toml(self.to_dict(), notes)

@@ -82,6 +82,72 @@ class Options:
     def to_dict(self) -> dict[str, Any]:
         return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
 
+    @classmethod
+    def field_comments(cls) -> dict[str, str]:
+        """Each field's comment in the class source: the ``# ...`` after its default and the
+        comment lines that continue it, joined. Fields of base classes are searched too; a field
+        without a comment (or source that cannot be read) maps to ""."""
+        out = {f.name: "" for f in dataclasses.fields(cls)}
+        for klass in reversed(cls.__mro__):
+            if klass is object or not dataclasses.is_dataclass(klass):
+                continue
+            out.update({k: v for k, v in _source_comments(klass).items() if k in out and v})
+        return out
+
+
+def _source_comments(klass: type) -> dict[str, str]:
+    """{field: comment} from the class body's source (see Options.field_comments).
+
+    Two styles are read: a comment after the field's default, continued by comment lines right
+    below it; or comment lines right above a field that has none after its default.
+    """
+    import inspect
+    import io
+    import keyword
+    import tokenize
+
+    try:
+        source = inspect.getsource(klass)
+    except (OSError, TypeError):
+        return {}
+    out: dict[str, str] = {}
+    body_indent = None
+    logical: list = []
+    pending: list[str] = []  # own-line comments not yet attached
+    last_field = None  # the field whose trailing comment own-line comments may continue
+    previous_was_comment = False
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type == tokenize.COMMENT and not logical:
+            text = tok.string.lstrip("#").strip()
+            if last_field is not None:
+                out[last_field] += " " + text
+            else:
+                pending.append(text)
+            previous_was_comment = True
+        elif tok.type == tokenize.NL and not logical:
+            if not previous_was_comment:  # a blank line ends both kinds of comment block
+                last_field, pending = None, []
+            previous_was_comment = False
+        elif tok.type == tokenize.NEWLINE:
+            first = logical[0] if logical else None
+            if body_indent is None and first is not None and first.start[1] > 0:
+                body_indent = first.start[1]
+            is_field = (first is not None and first.type == tokenize.NAME
+                        and not keyword.iskeyword(first.string) and first.start[1] == body_indent
+                        and len(logical) > 1 and logical[1].string == ":")
+            trailing = [t.string.lstrip("#").strip() for t in logical if t.type == tokenize.COMMENT]
+            last_field = None
+            if is_field:
+                if trailing:
+                    out[first.string] = " ".join(trailing)
+                    last_field = first.string
+                elif pending:
+                    out[first.string] = " ".join(pending)
+            pending, logical, previous_was_comment = [], [], False
+        elif tok.type not in (tokenize.INDENT, tokenize.DEDENT, tokenize.ENCODING):
+            logical.append(tok)
+    return out
+
 
 def load_toml(path: str | os.PathLike) -> dict[str, Any]:
     """Read a TOML file into a dict; a missing or malformed file is an InputError naming it."""
@@ -94,12 +160,20 @@ def load_toml(path: str | os.PathLike) -> dict[str, Any]:
         raise InputError(path, f"not valid TOML: {exc}") from None
 
 
-def dumps_toml(tables: Mapping[str, Mapping[str, Any]]) -> str:
-    """Serialise {table: {key: value}} of plain values (numbers, strings, bools, lists) as TOML."""
+def dumps_toml(tables: Mapping[str, Mapping[str, Any]],
+               comments: Mapping[str, Mapping[str, str]] | None = None) -> str:
+    """Serialise {table: {key: value}} of plain values (numbers, strings, bools, lists) as TOML;
+    ``comments[table][key]``, where given, is written as ``#`` lines above the key."""
+    import textwrap
+
     lines: list[str] = []
     for table, values in tables.items():
         lines.append(f"[{table}]")
+        notes = (comments or {}).get(table, {})
         for key, value in values.items():
+            if notes.get(key):
+                lines.extend(textwrap.wrap(notes[key], width=98, initial_indent="# ",
+                                           subsequent_indent="# ", break_on_hyphens=False))
             if value is None:
                 lines.append(f"# {key} is unset")
                 continue

@@ -78,7 +78,8 @@ class SweepOptions(Options):
     grad_weight: float = 0.0  # each source's cost adds grad_weight * (min(|dx_src - dx_ref|, t) +
     # min(|dy_src - dy_ref|, t)) / (2 t) census bits, t = grad_truncation: central differences of
     # the warped source and of the reference; 0: none. Measured at 4 (README): completeness +0.3
-    # to +0.5 points end to end, medians mixed (+0.001 to +0.003 m), closer to S2P; so off
+    # to +0.5 points end to end (means), medians mixed (-0.002 to +0.009 m per scene), closer to
+    # S2P; so off
     grad_truncation: float = 0.1  # gradient difference at which the gradient term saturates
     prefilter_sigma_px: float = 0.0  # Gaussian blur (pixels) of the reference and source images
     # before the census (0: none); lowers the pull of the bilinear warp towards whole source pixels

@@ -194,6 +194,37 @@ def test_cli_overrides_the_config_file(tmp_path):
     assert config.mrf.method == "none" and config.dsm.resolution == 1.0
 
 
+def test_cli_config_prints_the_explained_defaults(capsys):
+    import tomllib
+
+    assert main(["config"]) == 0
+    text = capsys.readouterr().out
+    assert PipelineConfig.from_mapping(tomllib.loads(text)) == PipelineConfig()
+    lines = text.splitlines()
+    for table, options in PipelineConfig().to_dict().items():
+        for key, value in options.items():
+            if value is None:
+                continue
+            # every key is preceded by its explanation (a comment line)
+            at = next(i for i, line in enumerate(lines) if line.startswith(f"{key} = "))
+            assert lines[at - 1].startswith("# "), key
+    assert "# AD-census: each source's cost adds ad_weight" in text
+
+
+def test_cli_config_shows_and_checks_a_file(tmp_path, capsys):
+    import tomllib
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[sweep]\nad_weight = 0.0\n")
+    assert main(["config", "--config", str(cfg)]) == 0
+    shown = tomllib.loads(capsys.readouterr().out)
+    assert shown["sweep"]["ad_weight"] == 0.0 and shown["sweep"]["gf_radius"] == 3
+    cfg.write_text("[sweep]\ngf_radius = 1000\n")
+    assert main(["config", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert f"{cfg} [sweep]: SweepOptions.gf_radius = 1000" in err and err.count("\n") == 1
+
+
 def _cli_error(capsys, args) -> str:
     rc = main(args)
     err = capsys.readouterr().err
