@@ -15,9 +15,11 @@ smoothness prior in the plane index (the label) and trade speed for accuracy:
 Conventions (shared by both; they are those of ``satsweep.sweep``):
 
 - The cost volume is (L, H, W) float32, plane-major: ``cost[d, y, x]`` is the (filtered) matching
-  cost of reference pixel (x, y) on plane d, lower is better, in [0, cost_scale]. For the sweep's
-  census costs ``cost_scale`` is the number of census bits (``SweepOptions.census_bits``), which is
-  also the cost the sweep gives a pixel that no source sees. Entries at or below
+  cost of reference pixel (x, y) on plane d, lower is better, mostly in [0, cost_scale]. For the
+  sweep's costs ``cost_scale`` is the number of census bits (``SweepOptions.census_bits``): the
+  penalties are fractions of it. The sweep's AD and gradient terms can add up to ``ad_weight +
+  grad_weight`` more (``SweepOptions.max_cost``, also the cost of a pixel that no source sees).
+  Entries at or below
   ``SATSWEEP_INVALID / 2`` (the device-side invalid marker, -1e30) and NaN are read as
   ``cost_scale``.
 - The label of a pixel is a plane index; the planes are at the equally spaced heights

@@ -13,8 +13,10 @@ Pipeline per reference tile (kernels/*.cl, one file per stage):
 1. ``census.cl``: census codes of the reference tile (window ``census_window``, 64-bit codes);
 2. ``sweep.cl``: per plane, each source warped into the reference by the plane's homography, the
    Hamming distance between census codes (of the warped source image, or of the source sampled
-   at the warped position), then the mean of the ``k`` lowest costs over the sources that see
-   the pixel (robust to occlusion); a pixel that no source sees gets the worst cost;
+   at the warped position) plus, by default, a truncated absolute intensity difference
+   (AD-census; ``ad_weight``) and optionally a gradient term (``grad_weight``), then the mean of
+   the ``k`` lowest costs over the sources that see the pixel (robust to occlusion); a pixel that
+   no source sees gets the worst cost;
 3. ``guided_filter.cl``: every cost slice filtered by the guided filter (He et al.) with the
    reference image as guide, or by a box filter, from O(1)-per-pixel box sums;
 4. ``wta.cl``: streaming argmin over the planes with a parabola through the best plane and its
@@ -189,10 +191,11 @@ class SweepResult:
     height: plane parameter (metres, the ``h`` of the planes, float64) of the best plane with
         sub-plane refinement; NaN where invalid.
     plane_index: fractional index of the best plane (float32), defined everywhere.
-    confidence: (second-lowest local minimum - best cost) / census bits, in [0, 1] (float32).
+    confidence: (second-lowest local minimum - best cost) / ``SweepOptions.max_cost`` (census
+        bits plus the AD and gradient weights), in [0, 1] (float32).
     valid: True where the pixel is seen by a source at its best plane, the best plane is not at
         an end of the range (``reject_range_edges``) and, with ``lr_check``, where the check passed.
-    cost_min: the best (filtered) cost, in census bits (float32).
+    cost_min: the best (filtered) cost, in census bits (plus the AD and gradient terms; float32).
     n_tiles, n_batches: how the work was split; peak_device_bytes: the most device memory held
         by this run's buffers at once.
     """
