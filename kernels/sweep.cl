@@ -17,7 +17,7 @@
  *   homography     [n_planes][NSRC][9] row-major 3x3 maps from TILE-LOCAL reference pixels
  *                  (x - tx0, y - ty0) to source pixels (pixel (0,0) = centre of the first pixel);
  *   ref_code       [th][tw] census codes of the reference tile;
- *   ref_img        the whole reference image (ref_w wide), for the AD term;
+ *   ref_img        the whole reference image (ref_w x ref_h), for the AD and gradient terms;
  *   tw, th         tile size; tx0, ty0 its origin in the reference image; ref_w, ref_h the
  *                  reference image size; plane0 the first plane of the batch;
  *   cost           [batch][th][tw] output, batch = global size 2.
