@@ -193,19 +193,21 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
  *   warped[((b NSRC + s) ph + py) pw + px] = the bilinear sample (clamped coordinates) of source
  *   s at H(plane0 + b, s) applied to the tile-local reference pixel
  *   (clamp(tx0 + px - CENSUS_RX, ref_w) - tx0, clamp(ty0 + py - CENSUS_RY, ref_h) - ty0), or 0
- *   where the homogeneous denominator is not positive: exactly what sweep_census_cost stages.
+ *   where the homogeneous denominator is not positive: exactly what sweep_census_cost stages;
+ *   and seen[same index] = 1 when that position maps (positive denominator) into
+ *   [0, w-1] x [0, h-1] of the source (for a tile pixel, the validity rule above).
  *   Work size: global = (pw, ph, nb NSRC), each of the first two rounded up to any multiple;
  *   local = any. Work-item (px, py, b NSRC + s) writes one sample.
- * sweep_warped_cost: the census of the warped sources (sweep_warp's output for the same planes)
- *   against the reference codes, plus the AD term, aggregated over the sources like
- *   sweep_census_cost, into cost[(slot0 + b) th tw + y tw + x] for plane plane0 + b.
+ * sweep_warped_cost: the census of the warped sources (sweep_warp's output for the same planes,
+ *   with its validity) against the reference codes, plus the AD and gradient terms, aggregated
+ *   over the sources like sweep_census_cost, into cost[(slot0 + b) th tw + y tw + x].
  *   Work size: global = (tw, th, nb), the first two rounded up to any multiple; local = any.
  */
 __kernel void sweep_warp(__global const float *src_img, __global const long *src_offset,
                          __global const int *src_size, __global const float *homography,
                          const int tw, const int th, const int tx0, const int ty0,
                          const int ref_w, const int ref_h, const int plane0,
-                         __global float *warped)
+                         __global float *warped, __global uchar *seen)
 {
     const int pw = tw + 2 * CENSUS_RX, ph = th + 2 * CENSUS_RY;
     const int px = get_global_id(0), py = get_global_id(1), bs = get_global_id(2);
@@ -214,19 +216,19 @@ __kernel void sweep_warp(__global const float *src_img, __global const long *src
     __global const float *H = homography + ((plane0 + b) * NSRC + s) * 9;
     const int rx = clamp_index(tx0 - CENSUS_RX + px, ref_w) - tx0;
     const int ry = clamp_index(ty0 - CENSUS_RY + py, ref_h) - ty0;
+    const int sw = src_size[2 * s], sh = src_size[2 * s + 1];
+    const size_t k = ((size_t)bs * ph + py) * pw + px;
     float u, v;
-    warped[((size_t)bs * ph + py) * pw + px] =
-        apply_homography(H, (float)rx, (float)ry, &u, &v)
-            ? sample_bilinear_clamped(src_img + src_offset[s], src_size[2 * s],
-                                      src_size[2 * s + 1], u, v)
-            : 0.0f;
+    const int ok = apply_homography(H, (float)rx, (float)ry, &u, &v);
+    warped[k] = ok ? sample_bilinear_clamped(src_img + src_offset[s], sw, sh, u, v) : 0.0f;
+    seen[k] = (uchar)(ok && u >= 0.0f && u <= (float)(sw - 1) && v >= 0.0f && v <= (float)(sh - 1));
 }
 
-__kernel void sweep_warped_cost(__global const float *warped, __global const int *src_size,
-                                __global const float *homography, __global const ulong *ref_code,
-                                __global const float *ref_img, const int tw, const int th,
-                                const int tx0, const int ty0, const int ref_w, const int ref_h,
-                                const int plane0, const int slot0, __global float *cost)
+__kernel void sweep_warped_cost(__global const float *warped, __global const uchar *seen,
+                                __global const ulong *ref_code, __global const float *ref_img,
+                                const int tw, const int th, const int tx0, const int ty0,
+                                const int ref_w, const int ref_h, const int slot0,
+                                __global float *cost)
 {
     const int x = get_global_id(0), y = get_global_id(1), b = get_global_id(2);
     if (x >= tw || y >= th) return;
@@ -236,11 +238,10 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const int
     float cst[NSRC];
     uint valid = 0u;
     for (int s = 0; s < NSRC; ++s) {
-        __global const float *H = homography + ((plane0 + b) * NSRC + s) * 9;
+        const size_t k = ((size_t)(b * NSRC + s) * ph + y + CENSUS_RY) * pw + x + CENSUS_RX;
         cst[s] = 0.0f;
-        if (!source_valid(H, (float)x, (float)y, src_size[2 * s], src_size[2 * s + 1])) continue;
-        __global const float *w = warped + ((size_t)(b * NSRC + s) * ph + y + CENSUS_RY) * pw
-                                  + x + CENSUS_RX;
+        if (!seen[k]) continue;  /* the tile pixel's own warp position: the validity rule */
+        __global const float *w = warped + k;
         const float c = w[0];
         ulong code = 0;
         for (int dy = -CENSUS_RY; dy <= CENSUS_RY; ++dy) {

@@ -311,12 +311,18 @@ def _split_census(options: SweepOptions) -> bool:
     return options.cost_mode == "warped_census" and options.census_kernel == "split"
 
 
-def _warped_bytes(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
-    """Bytes of the split kernels' warped-source buffer for a tile (0 for the other kernels)."""
+def _warped_positions(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
+    """Positions of the split kernels' warped sources for a tile (0 for the other kernels)."""
     if not _split_census(options):
         return 0
     rx, ry = options.census_radii
-    return 4 * min(nb, SPLIT_WARP_PLANES) * n_src * (tile_dims[0] + 2 * rx) * (tile_dims[1] + 2 * ry)
+    return min(nb, SPLIT_WARP_PLANES) * n_src * (tile_dims[0] + 2 * rx) * (tile_dims[1] + 2 * ry)
+
+
+def _warped_bytes(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
+    """Bytes of the split kernels' buffers for a tile: the warped sources (float32) and their
+    validity (one byte a position)."""
+    return 5 * _warped_positions(options, tile_dims, nb, n_src)
 
 
 def _resident_bytes(options: SweepOptions, ref_shape: tuple[int, int],
@@ -366,7 +372,7 @@ def plan_tiles(options: SweepOptions, ref_shape: tuple[int, int],
             return False
         if max_alloc_bytes is not None:
             largest = max(4 * area * max(2 * nb if options.cost_filter == "guided" else nb, 1),
-                          _warped_bytes(options, dims, nb, n_src))
+                          4 * _warped_positions(options, dims, nb, n_src))
             if largest > max_alloc_bytes:
                 return False
         return True
@@ -736,11 +742,13 @@ class PlaneSweep:
         wta_update = cl.Kernel(wta_prg, "wta_update")
         _launch(wta_init, queue, (iw, ih), state, i32(iw), i32(ih))
 
-        warped = None
+        warped = seen = None
         if _split_census(o):
             rx, ry = o.census_radii
             pw, ph = tw + 2 * rx, th + 2 * ry
-            warped = bufs.alloc(_warped_bytes(o, (tw, th), nb_max, n_src))
+            positions = _warped_positions(o, (tw, th), nb_max, n_src)
+            warped = bufs.alloc(4 * positions)
+            seen = bufs.alloc(positions)
 
         # The cost of a batch lands in vol_a (first nb planes); the filters use vol_b (and the
         # rest of vol_a) as temporaries and leave the filtered cost in vol_a.
@@ -755,10 +763,10 @@ class PlaneSweep:
                         nc = min(SPLIT_WARP_PLANES, nb - c0)
                         _launch(warp_k, queue, (pw, ph, nc * n_src), src_buf, off_buf, size_buf,
                                 hom_buf, i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0),
-                                i32(w_img), i32(h_img), i32(p0 + c0), warped)
-                        _launch(cost_k, queue, (tw, th, nc), warped, size_buf, hom_buf, code_buf,
-                                ref_buf, i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0),
-                                i32(w_img), i32(h_img), i32(p0 + c0), i32(c0), vol_a)
+                                i32(w_img), i32(h_img), i32(p0 + c0), warped, seen)
+                        _launch(cost_k, queue, (tw, th, nc), warped, seen, code_buf, ref_buf,
+                                i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0), i32(w_img),
+                                i32(h_img), i32(c0), vol_a)
                 elif o.cost_mode == "warped_census":
                     sweep_k(queue, (_round_up(tw, wgx), _round_up(th, wgy), nb), (wgx, wgy, 1),
                             src_buf, off_buf, size_buf, hom_buf, code_buf, ref_buf, i32(tw),
@@ -801,7 +809,7 @@ class PlaneSweep:
             host[iy0:iy0 + ih, ix0:ix0 + iw] = tmp
         queue.finish()
         bufs.free(hom_buf, code_buf, vol_a, vol_b, guide_i, guide_mean, state, index, conf, best,
-                  valid, warped)
+                  valid, warped, seen)
         return n_batches
 
     def _guide_stats(self, prg, tile, ref_buf, w_img, guide_i, guide_mean, scratch) -> None:

@@ -98,16 +98,16 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
         data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
         pw, ph, chunk = tw + 2 * rx, th + 2 * ry, 2
         warped = _empty(dev, 4 * chunk * n_src * pw * ph)
+        seen = _empty(dev, chunk * n_src * pw * ph)
         bufs = [_buf(dev, a) for a in (data, offsets, sizes, hom32, codes, ref_img.astype(np.float32))]
         for p0 in range(0, n_planes, chunk):
             nb = min(chunk, n_planes - p0)
             cl.Kernel(prg, "sweep_warp")(dev.queue, (pw, ph, nb * n_src), None, *bufs[:4],
                                          i32(tw), i32(th), i32(tx0), i32(ty0), i32(w), i32(h),
-                                         i32(p0), warped)
-            cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (tw, th, nb), None, warped, bufs[2],
-                                                bufs[3], bufs[4], bufs[5], i32(tw), i32(th),
-                                                i32(tx0), i32(ty0), i32(w), i32(h), i32(p0),
-                                                i32(p0), out)
+                                         i32(p0), warped, seen)
+            cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (tw, th, nb), None, warped, seen,
+                                                bufs[4], bufs[5], i32(tw), i32(th), i32(tx0),
+                                                i32(ty0), i32(w), i32(h), i32(p0), out)
     elif mode == "warped_census":
         data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
         gx = -(-tw // wg[0]) * wg[0]
