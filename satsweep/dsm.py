@@ -180,37 +180,17 @@ def height_map_to_points(
     footprint of the pixel instead of its centre only. Points are ordered row-major by pixel.
     """
     h = np.asarray(height, dtype=np.float64)
-    if h.ndim != 2:
-        raise ValueError(f"height must be 2D, got shape {h.shape}")
-    v = np.asarray(valid, dtype=bool)
-    if v.shape != h.shape:
-        raise ValueError(f"valid has shape {v.shape}, height has {h.shape}")
-    if not (isinstance(subsamples, int) and subsamples >= 1):
-        raise ValueError(f"subsamples = {subsamples!r}: must be a positive integer")
-    v = v & np.isfinite(h)
-    rows, cols = np.nonzero(v)
-    u = h[rows, cols]
-    s = subsamples
-    if s > 1:
-        offsets = (np.arange(s) + 0.5) / s - 0.5
-        oy, ox = np.meshgrid(offsets, offsets, indexing="ij")
-        pixel_cols = (cols[:, None] + ox.ravel()[None, :]).ravel()
-        pixel_rows = (rows[:, None] + oy.ravel()[None, :]).ravel()
-        u_all = np.repeat(u, s * s)
-    else:
-        pixel_cols, pixel_rows, u_all = cols.astype(np.float64), rows.astype(np.float64), u
-    e, n = solve_ground_en(P, col=pixel_cols, row=pixel_rows, u=u_all)
-    keep = np.isfinite(e) & np.isfinite(n)
-    lon, lat, alt = frame.to_geodetic(e=e[keep], n=n[keep], u=u_all[keep])
+    e, n, u, pixel = height_map_to_enu(h, valid, P, subsamples=subsamples)
+    lon, lat, alt = frame.to_geodetic(e=e, n=n, u=u)
     rgb = None
     if colors is not None:
-        rgb = np.repeat(_rgb_of(colors, h.shape)[rows, cols], s * s, axis=0)[keep]
+        rgb = _rgb_of(colors, h.shape).reshape(-1, 3)[pixel]
     conf = None
     if confidence is not None:
         c = np.asarray(confidence, dtype=np.float32)
         if c.shape != h.shape:
             raise ValueError(f"confidence has shape {c.shape}, height has {h.shape}")
-        conf = np.repeat(c[rows, cols], s * s)[keep]
+        conf = c.ravel()[pixel]
     return Points(
         lon=np.asarray(lon, np.float64).ravel(),
         lat=np.asarray(lat, np.float64).ravel(),
@@ -370,13 +350,17 @@ def height_map_to_enu(height: np.ndarray, valid: np.ndarray, P: np.ndarray, *,
                       subsamples: int = 1) -> tuple[np.ndarray, ...]:
     """ENU points (e, n, u) of the valid pixels of a height map, and their pixels' flat indices.
 
-    Like ``height_map_to_points`` (same sub-sample placement and order) but stops in the ENU
-    frame: returns (e, n, u, pixel) with ``pixel`` the row-major index of each point's pixel.
+    The sub-sample placement and order of ``height_map_to_points`` (which goes on to geodetic
+    coordinates): returns (e, n, u, pixel) with ``pixel`` the row-major index of each point's
+    pixel; points whose ray is parallel to the plane are dropped.
     """
     h = np.asarray(height, dtype=np.float64)
-    v = np.asarray(valid, dtype=bool) & np.isfinite(h)
-    if v.shape != h.shape or h.ndim != 2:
-        raise ValueError(f"height {h.shape} and valid {v.shape} must be 2D of one shape")
+    if h.ndim != 2:
+        raise ValueError(f"height must be 2D, got shape {h.shape}")
+    v = np.asarray(valid, dtype=bool)
+    if v.shape != h.shape:
+        raise ValueError(f"valid has shape {v.shape}, height has {h.shape}")
+    v = v & np.isfinite(h)
     if not (isinstance(subsamples, int) and subsamples >= 1):
         raise ValueError(f"subsamples = {subsamples!r}: must be a positive integer")
     rows, cols = np.nonzero(v)

@@ -434,10 +434,10 @@ def _enu_to_map(frame, epsg: int, points: list[tuple[np.ndarray, ...]]):
     from .dsm import ENUToMap
 
     lo, hi = np.zeros(3), np.ones(3)  # any box when there is no point at all
-    if any(p[0].size for p in points):
-        stacked = [np.concatenate([p[k] for p in points]) for k in range(3)]
-        lo = np.array([a.min() for a in stacked])
-        hi = np.array([a.max() for a in stacked])
+    present = [p for p in points if p[0].size]
+    if present:  # the box of every view's points, without concatenating millions of them
+        lo = np.array([min(p[k].min() for p in present) for k in range(3)])
+        hi = np.array([max(p[k].max() for p in present) for k in range(3)])
     return ENUToMap.fit(frame, epsg, e_range=(lo[0], hi[0]), n_range=(lo[1], hi[1]),
                         u_range=(lo[2], hi[2]))
 
@@ -455,7 +455,8 @@ def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunRe
         grid = dsm_grid_for_aoi(aoi, d.resolution, epsg=cameras.utm_epsg)
         heights = [np.where(pv["valid"], pv["height"], np.nan) for pv in per_view]
         checked = [np.isfinite(h) for h in heights]
-        if d.cross_check_m > 0 and len(per_view) >= 2:
+        cross_check = d.cross_check_m > 0 and len(per_view) >= 2
+        if cross_check:
             checked = cross_check_heights(
                 heights, [cameras.views[pv["index"]].camera.P for pv in per_view],
                 tolerance_m=d.cross_check_m, min_agreeing=d.cross_check_views)
@@ -499,7 +500,7 @@ def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunRe
             "cross_check": ({"tolerance_m": d.cross_check_m, "views": d.cross_check_views,
                              "kept_fraction": [float(k.sum() / max(1, np.isfinite(h).sum()))
                                                for k, h in zip(checked, heights)]}
-                            if d.cross_check_m > 0 and len(per_view) >= 2 else None),
+                            if cross_check else None),
             "per_view_filled_fraction": [float(np.isfinite(a).mean()) for a in rasters],
             "enu_to_map": {"polynomial": to_map.accurate, "max_error_m": to_map.max_error_m},
         }

@@ -112,22 +112,17 @@ class SweepOptions(Options):
                       "census_window", "both sizes must be odd and positive")
         self._require(2 <= rows * cols <= 65, "census_window",
                       "the window must hold between 1 and 64 neighbours (64-bit codes)")
-        self._require(math.isfinite(self.ad_weight) and 0 <= self.ad_weight <= 64, "ad_weight",
-                      "must be in [0, 64] census bits")
-        self._require(self.ad_weight == 0 or self.cost_mode == "warped_census", "ad_weight",
-                      "the AD term needs cost_mode = 'warped_census' (sampled_codes has no "
-                      "intensities): set ad_weight = 0")
-        self._require(math.isfinite(self.ad_truncation) and self.ad_truncation > 0, "ad_truncation",
-                      "must be > 0 (intensity units, images in [0, 1])")
-        self._require(math.isfinite(self.grad_weight) and 0 <= self.grad_weight <= 64,
-                      "grad_weight", "must be in [0, 64] census bits")
-        self._require(self.grad_weight == 0 or self.cost_mode == "warped_census", "grad_weight",
-                      "the gradient term needs cost_mode = 'warped_census' (sampled_codes has no "
-                      "intensities): set grad_weight = 0")
+        for term, weight, trunc in (("the AD term", "ad_weight", "ad_truncation"),
+                                    ("the gradient term", "grad_weight", "grad_truncation")):
+            w = getattr(self, weight)
+            self._require(math.isfinite(w) and 0 <= w <= 64, weight, "must be in [0, 64] census bits")
+            self._require(w == 0 or self.cost_mode == "warped_census", weight,
+                          f"{term} needs cost_mode = 'warped_census' (sampled_codes has no "
+                          f"intensities): set {weight} = 0")
+            t = getattr(self, trunc)
+            self._require(math.isfinite(t) and t > 0, trunc, "must be > 0 (intensity units)")
         self._require(self.grad_weight == 0 or min(self.census_window) >= 3, "grad_weight",
                       "the gradient term needs a census window of at least 3x3: set grad_weight = 0")
-        self._require(math.isfinite(self.grad_truncation) and self.grad_truncation > 0,
-                      "grad_truncation", "must be > 0 (intensity units per 2 pixels)")
         self._require(math.isfinite(self.prefilter_sigma_px) and 0 <= self.prefilter_sigma_px <= 5,
                       "prefilter_sigma_px", "must be in [0, 5] pixels")
         self._require(math.isfinite(self.step_px) and self.step_px > 0, "step_px", "must be > 0")
