@@ -51,6 +51,10 @@ _OUT_BYTES_PER_PX = 4 + 4 + 4 + 1
 _MIN_TILE_SIDE = 64
 # Columns per work-item of guided_filter.cl's column kernels (its COLS_VEC; float8 there).
 GF_COLS_VEC = 8
+# Pixels per work-item of sweep.cl's sweep_warped_cost (its COST_VEC; float8 there).
+SPLIT_COST_VEC = 8
+# Positions per work-item of sweep.cl's sweep_warp (its WARP_VEC; float8 there).
+SPLIT_WARP_VEC = 8
 # Planes warped per launch by the split census kernels (their warped-source buffer holds this
 # many planes of every source over the tile plus the census margin).
 SPLIT_WARP_PLANES = 8
@@ -511,7 +515,8 @@ class PlaneSweep:
         census = self.device.build("census", {"CENSUS_RX": rx, "CENSUS_RY": ry})
         sweep_defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": o.best_k(n_src),
                       "AD_WEIGHT": float(o.ad_weight), "AD_TRUNC": float(o.ad_truncation),
-                      "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation)}
+                      "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation),
+                      "COST_VEC": SPLIT_COST_VEC}
         if o.cost_mode == "warped_census" and o.census_kernel == "staged":
             sweep_defs.update({"WG_X": o.work_group[0], "WG_Y": o.work_group[1]})
         sweep = self.device.build("sweep", sweep_defs)
@@ -756,12 +761,12 @@ class PlaneSweep:
                     warp_k, cost_k = sweep_k
                     for c0 in range(0, nb, SPLIT_WARP_PLANES):
                         nc = min(SPLIT_WARP_PLANES, nb - c0)
-                        _launch(warp_k, queue, (pw, ph, nc * n_src), src_buf, off_buf, size_buf,
+                        _launch(warp_k, queue, (_ceil_div(pw, SPLIT_WARP_VEC), ph, nc * n_src), src_buf, off_buf, size_buf,
                                 hom_buf, i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0),
                                 i32(w_img), i32(h_img), i32(p0 + c0), warped, seen)
-                        _launch(cost_k, queue, (tw, th, nc), warped, seen, code_buf, ref_buf,
-                                i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0), i32(w_img),
-                                i32(h_img), i32(c0), vol_a)
+                        _launch(cost_k, queue, (_ceil_div(tw, SPLIT_COST_VEC), th, nc), warped,
+                                seen, code_buf, ref_buf, i32(tw), i32(th), i32(tile.tx0),
+                                i32(tile.ty0), i32(w_img), i32(h_img), i32(c0), vol_a)
                 elif o.cost_mode == "warped_census":
                     sweep_k(queue, (_round_up(tw, wgx), _round_up(th, wgy), nb), (wgx, wgy, 1),
                             src_buf, off_buf, size_buf, hom_buf, code_buf, ref_buf, i32(tw),

@@ -14,7 +14,7 @@ import pyopencl as cl
 import pytest
 
 import reference_sweep as ref
-from satsweep.sweep import PlaneSweep, SweepOptions, box_chunk
+from satsweep.sweep import SPLIT_COST_VEC, SPLIT_WARP_VEC, PlaneSweep, SweepOptions, box_chunk
 
 F32_EPS = float(np.finfo(np.float32).eps)
 # Bilinear warp of a [0, 1] image with a general homography: the float32 evaluation of the
@@ -80,7 +80,7 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
     h, w = ref_img.shape
     tx0, ty0, tw, th = tile if tile is not None else (0, 0, w, h)
     n_planes, n_src = hom.shape[:2]
-    defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": k}
+    defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": k, "COST_VEC": SPLIT_COST_VEC}
     if ad is not None:
         defs.update({"AD_WEIGHT": float(ad[0]), "AD_TRUNC": float(ad[1])})
     if grad is not None:
@@ -102,10 +102,11 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
         bufs = [_buf(dev, a) for a in (data, offsets, sizes, hom32, codes, ref_img.astype(np.float32))]
         for p0 in range(0, n_planes, chunk):
             nb = min(chunk, n_planes - p0)
-            cl.Kernel(prg, "sweep_warp")(dev.queue, (pw, ph, nb * n_src), None, *bufs[:4],
+            cl.Kernel(prg, "sweep_warp")(dev.queue, (-(-pw // SPLIT_WARP_VEC), ph, nb * n_src), None, *bufs[:4],
                                          i32(tw), i32(th), i32(tx0), i32(ty0), i32(w), i32(h),
                                          i32(p0), warped, seen)
-            cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (tw, th, nb), None, warped, seen,
+            cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (-(-tw // SPLIT_COST_VEC), th, nb), None,
+                                                warped, seen,
                                                 bufs[4], bufs[5], i32(tw), i32(th), i32(tx0),
                                                 i32(ty0), i32(w), i32(h), i32(p0), out)
     elif mode == "warped_census":
@@ -211,7 +212,8 @@ def test_warped_census_cost_on_a_tile_equals_the_whole_image(cl_device, form):
 def test_warp_image_matches_bilinear_reference(cl_device):
     rng = np.random.default_rng(5)
     src = rng.random((50, 60)).astype(np.float32)
-    prg = cl_device.build("sweep", {"CENSUS_RX": 1, "CENSUS_RY": 1, "NSRC": 1, "NBEST": 1})
+    prg = cl_device.build("sweep", {"CENSUS_RX": 1, "CENSUS_RY": 1, "NSRC": 1, "NBEST": 1,
+                                    "COST_VEC": SPLIT_COST_VEC})
     # A perspective homography (rotation, scale, shear, mild projective terms).
     hom = np.array([[0.93, 0.21, 4.3], [-0.17, 1.08, -2.6], [2.1e-4, -1.3e-4, 1.0]])
     out_h, out_w = 44, 57
