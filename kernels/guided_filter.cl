@@ -82,6 +82,37 @@ __kernel void box_cols_sum(__global const float *in, __global float *out, const 
     }
 }
 
+/* Row kernels with small radii (BOX_R <= ROW_DIRECT_MAX_R) sum each window directly, 8 adjacent
+ * columns at once (the sum of the 2 BOX_R + 1 shifted float8 rows, in increasing column order):
+ * PoCL leaves the sliding one-column form scalar, and for these radii the direct vector sums
+ * take fewer operations per pixel. Groups of 8 whose window would leave the tile, or that cross
+ * the end of the work-item's chunk, sum the same columns in the same order one at a time. Larger
+ * radii keep the sliding sums (O(1) per pixel in the radius). */
+#define ROW_DIRECT_MAX_R 7
+#define ROW_VEC 8
+
+/* Whether the group of ROW_VEC columns starting at x (chunk end x1) takes the vector path. */
+inline int row_group_inside(const int x, const int x1, const int tw)
+{
+    return x - BOX_R >= 0 && x + ROW_VEC + BOX_R <= tw && x + ROW_VEC <= x1;
+}
+
+/* Window sums of columns x .. x + 7 (all windows inside the row). */
+inline float8 row_sum8(__global const float *r, const int x)
+{
+    float8 s = (float8)(0.0f);
+    for (int d = -BOX_R; d <= BOX_R; ++d) s += vload8(0, r + x + d);
+    return s;
+}
+
+/* The window sum of column x, clipped to the row (the same order as row_sum8). */
+inline float row_sum1(__global const float *r, const int x, const int tw)
+{
+    float s = 0.0f;
+    for (int i = max(x - BOX_R, 0); i <= min(x + BOX_R, tw - 1); ++i) s += r[i];
+    return s;
+}
+
 __kernel void box_rows_mean(__global const float *in, __global float *out, const int tw,
                             const int th)
 {
@@ -92,6 +123,16 @@ __kernel void box_rows_mean(__global const float *in, __global float *out, const
     const size_t base = (size_t)get_global_id(2) * tw * th + (size_t)y * tw;
     __global const float *row = in + base;
     const int ny = window_count(y, th);
+#if BOX_R <= ROW_DIRECT_MAX_R
+    for (int x = x0; x < x1; x += ROW_VEC) {
+        if (row_group_inside(x, x1, tw)) {
+            vstore8(row_sum8(row, x) / (float)(ny * (2 * BOX_R + 1)), 0, out + base + x);
+            continue;
+        }
+        for (int xx = x; xx < min(x + ROW_VEC, x1); ++xx)
+            out[base + xx] = row_sum1(row, xx, tw) / (float)(ny * window_count(xx, tw));
+    }
+#else
     float s = 0.0f;
     for (int i = max(x0 - BOX_R, 0); i <= min(x0 + BOX_R, tw - 1); ++i) s += row[i];
     for (int x = x0; x < x1; ++x) {
@@ -99,6 +140,7 @@ __kernel void box_rows_mean(__global const float *in, __global float *out, const
         if (x + BOX_R + 1 < tw) s += row[x + BOX_R + 1];
         if (x - BOX_R >= 0) s -= row[x - BOX_R];
     }
+#endif
 }
 
 #ifdef GF_EPS
@@ -219,17 +261,41 @@ __kernel void gf_rows_ab(__global const float *sums, __global const float *guide
     const size_t row = (size_t)y * tw;
     __global const float *rp = sums + b * plane + row;
     __global const float *rip = sums + (nb + b) * plane + row;
+    __global const float *rmi = guide_mean + row, *rmii = guide_mean + plane + row;
+    __global float *ra = ab + b * plane + row, *rb = ab + (nb + b) * plane + row;
     const int ny = window_count(y, th);
+#if BOX_R <= ROW_DIRECT_MAX_R
+    for (int x = x0; x < x1; x += ROW_VEC) {
+        if (row_group_inside(x, x1, tw)) {
+            const float n = (float)(ny * (2 * BOX_R + 1));
+            const float8 mp = row_sum8(rp, x) / n, mip = row_sum8(rip, x) / n;
+            const float8 mi = vload8(0, rmi + x), mii = vload8(0, rmii + x);
+            const float8 a = (mip - mi * mp) / (mii - mi * mi + GF_EPS);
+            vstore8(a, 0, ra + x);
+            vstore8(mp - a * mi, 0, rb + x);
+            continue;
+        }
+        for (int xx = x; xx < min(x + ROW_VEC, x1); ++xx) {
+            const float n = (float)(ny * window_count(xx, tw));
+            const float mp = row_sum1(rp, xx, tw) / n, mip = row_sum1(rip, xx, tw) / n;
+            const float mi = rmi[xx], mii = rmii[xx];
+            const float a = (mip - mi * mp) / (mii - mi * mi + GF_EPS);
+            ra[xx] = a;
+            rb[xx] = mp - a * mi;
+        }
+    }
+#else
     float2 s = row_pair_window(rp, rip, x0, tw);
     for (int x = x0; x < x1; ++x) {
         const float n = (float)(ny * window_count(x, tw));
         const float mp = s.x / n, mip = s.y / n;
-        const float mi = guide_mean[row + x], mii = guide_mean[plane + row + x];
+        const float mi = rmi[x], mii = rmii[x];
         const float a = (mip - mi * mp) / (mii - mi * mi + GF_EPS);
-        ab[b * plane + row + x] = a;
-        ab[(nb + b) * plane + row + x] = mp - a * mi;
+        ra[x] = a;
+        rb[x] = mp - a * mi;
         s = row_pair_slide(s, rp, rip, x, tw);
     }
+#endif
 }
 
 /* From column sums [a | b]: q[b] = mean(a) I + mean(b). */
@@ -244,12 +310,28 @@ __kernel void gf_rows_q(__global const float *sums, __global const float *guide_
     const size_t row = (size_t)y * tw;
     __global const float *ra = sums + b * plane + row;
     __global const float *rb = sums + (nb + b) * plane + row;
+    __global const float *ri = guide_i + row;
+    __global float *rq = q + b * plane + row;
     const int ny = window_count(y, th);
+#if BOX_R <= ROW_DIRECT_MAX_R
+    for (int x = x0; x < x1; x += ROW_VEC) {
+        if (row_group_inside(x, x1, tw)) {
+            const float n = (float)(ny * (2 * BOX_R + 1));
+            vstore8((row_sum8(ra, x) / n) * vload8(0, ri + x) + row_sum8(rb, x) / n, 0, rq + x);
+            continue;
+        }
+        for (int xx = x; xx < min(x + ROW_VEC, x1); ++xx) {
+            const float n = (float)(ny * window_count(xx, tw));
+            rq[xx] = (row_sum1(ra, xx, tw) / n) * ri[xx] + row_sum1(rb, xx, tw) / n;
+        }
+    }
+#else
     float2 s = row_pair_window(ra, rb, x0, tw);
     for (int x = x0; x < x1; ++x) {
         const float n = (float)(ny * window_count(x, tw));
-        q[b * plane + row + x] = (s.x / n) * guide_i[row + x] + s.y / n;
+        rq[x] = (s.x / n) * ri[x] + s.y / n;
         s = row_pair_slide(s, ra, rb, x, tw);
     }
+#endif
 }
 #endif

@@ -29,12 +29,20 @@
  * Compile-time constants: CENSUS_RX, CENSUS_RY, NSRC (number of sources, 1..32), NBEST (1..NSRC),
  *   WG_X, WG_Y (work-group size of sweep_census_cost), AD_WEIGHT (float, census bits, default 0:
  *   census alone; not used by sweep_code_cost) and AD_TRUNC (float, intensity units, > 0),
- *   GRAD_WEIGHT (float, census bits, default 0; needs CENSUS_RX, CENSUS_RY >= 1) and GRAD_TRUNC.
+ *   GRAD_WEIGHT (float, census bits, default 0; needs CENSUS_RX, CENSUS_RY >= 1) and GRAD_TRUNC,
+ *   SWEEP_VEC (positions per work-item of sweep_warp and sweep_warped_cost: 8).
  */
 #include "common.h"
 
 #if !defined(CENSUS_RX) || !defined(CENSUS_RY) || !defined(NSRC) || !defined(NBEST)
 #error "CENSUS_RX, CENSUS_RY, NSRC and NBEST must be defined"
+#endif
+
+/* Positions per work-item of the split kernels (sweep_warp, sweep_warped_cost): float8 there. */
+#ifndef SWEEP_VEC
+#error "SWEEP_VEC must be defined (the host's satsweep.sweep.SWEEP_VEC)"
+#elif SWEEP_VEC != 8
+#error "SWEEP_VEC must be 8 (the split kernels use float8)"
 #endif
 
 #ifndef AD_TRUNC
@@ -196,14 +204,14 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
  *   where the homogeneous denominator is not positive: exactly what sweep_census_cost stages;
  *   and seen[same index] = 1 when that position maps (positive denominator) into
  *   [0, w-1] x [0, h-1] of the source (for a tile pixel, the validity rule above).
- *   Work size: global = (ceil(pw / WARP_VEC), ph, nb NSRC), each of the first two rounded up to
+ *   Work size: global = (ceil(pw / SWEEP_VEC), ph, nb NSRC), each of the first two rounded up to
  *   any multiple; local = any. Work-item (g, py, b NSRC + s) writes positions
- *   [g WARP_VEC, (g + 1) WARP_VEC) (clipped to pw) of row py.
+ *   [g SWEEP_VEC, (g + 1) SWEEP_VEC) (clipped to pw) of row py.
  * sweep_warped_cost: the census of the warped sources (sweep_warp's output for the same planes,
  *   with its validity) against the reference codes, plus the AD and gradient terms, aggregated
  *   over the sources like sweep_census_cost, into cost[(slot0 + b) th tw + y tw + x].
- *   Work size: global = (ceil(tw / COST_VEC), th, nb), the first two rounded up to any multiple;
- *   local = any. Work-item (g, y, b) writes pixels [g COST_VEC, (g + 1) COST_VEC) (clipped to
+ *   Work size: global = (ceil(tw / SWEEP_VEC), th, nb), the first two rounded up to any multiple;
+ *   local = any. Work-item (g, y, b) writes pixels [g SWEEP_VEC, (g + 1) SWEEP_VEC) (clipped to
  *   tw) of row y for slot b.
  */
 /* sweep_warp's per-position form: the sample and validity at warped-buffer index k of the
@@ -219,10 +227,9 @@ inline void warp_position(__global const float *img, const int sw, const int sh,
     seen[k] = (uchar)(ok && u >= 0.0f && u <= (float)(sw - 1) && v >= 0.0f && v <= (float)(sh - 1));
 }
 
-/* sweep_warp handles WARP_VEC (8) adjacent positions of a row per work-item in vector types
+/* sweep_warp handles SWEEP_VEC (8) adjacent positions of a row per work-item in vector types
  * (the homography and the bilinear weights in float8; the four taps are gathered lane by lane),
  * with the same float32 operations as warp_position, so the samples are the same bit for bit. */
-#define WARP_VEC 8
 
 inline float8 gather8(__global const float *img, const int8 i)
 {
@@ -237,7 +244,7 @@ __kernel void sweep_warp(__global const float *src_img, __global const long *src
                          __global float *warped, __global uchar *seen)
 {
     const int pw = tw + 2 * CENSUS_RX, ph = th + 2 * CENSUS_RY;
-    const int px0 = get_global_id(0) * WARP_VEC, py = get_global_id(1), bs = get_global_id(2);
+    const int px0 = get_global_id(0) * SWEEP_VEC, py = get_global_id(1), bs = get_global_id(2);
     if (px0 >= pw || py >= ph) return;
     const int s = bs % NSRC, b = bs / NSRC;
     __global const float *H = homography + ((plane0 + b) * NSRC + s) * 9;
@@ -245,7 +252,7 @@ __kernel void sweep_warp(__global const float *src_img, __global const long *src
     const int ry = clamp_index(ty0 - CENSUS_RY + py, ref_h) - ty0;
     const int sw = src_size[2 * s], sh = src_size[2 * s + 1];
     const size_t k = ((size_t)bs * ph + py) * pw + px0;
-    if (px0 + WARP_VEC > pw) {
+    if (px0 + SWEEP_VEC > pw) {
         for (int i = 0; px0 + i < pw; ++i)
             warp_position(img, sw, sh, H, clamp_index(tx0 - CENSUS_RX + px0 + i, ref_w) - tx0,
                           ry, k + i, warped, seen);
@@ -312,15 +319,10 @@ inline float warped_cost_px(__global const float *warped, __global const uchar *
     return aggregate_best(cst, valid);
 }
 
-/* sweep_warped_cost computes COST_VEC (8) adjacent pixels of a row per work-item in OpenCL
+/* sweep_warped_cost computes SWEEP_VEC (8) adjacent pixels of a row per work-item in OpenCL
  * vector types (float8, uint8): PoCL does not vectorise the one-pixel form across work-items (its
  * compiled code is scalar), and this form is 3-5 times faster there. Every step is the same
  * float32 operation as in warped_cost_px, so both give the same costs bit for bit. */
-#ifndef COST_VEC
-#error "COST_VEC must be defined (the host's satsweep.sweep.SPLIT_COST_VEC)"
-#elif COST_VEC != 8
-#error "COST_VEC must be 8 (sweep_warped_cost uses float8)"
-#endif
 /* Census bits that do not fit in the low 32-bit word of the code (the first comparisons). */
 #define CENSUS_HI_BITS (CENSUS_NBITS > 32 ? CENSUS_NBITS - 32 : 0)
 
@@ -330,19 +332,19 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const uch
                                 const int ref_w, const int ref_h, const int slot0,
                                 __global float *cost)
 {
-    const int x0 = get_global_id(0) * COST_VEC, y = get_global_id(1), b = get_global_id(2);
+    const int x0 = get_global_id(0) * SWEEP_VEC, y = get_global_id(1), b = get_global_id(2);
     if (x0 >= tw || y >= th) return;
     __global float *out = cost + (size_t)(slot0 + b) * tw * th + IDX2(x0, y, tw);
     /* The vector path needs the group's 8 pixels inside the tile and, for the gradient term,
      * unclamped reference neighbours. */
-    int full = x0 + COST_VEC <= tw;
+    int full = x0 + SWEEP_VEC <= tw;
 #if GRAD_READY
     if (GRAD_WEIGHT != 0.0f)
-        full = full && tx0 + x0 >= 1 && tx0 + x0 + COST_VEC < ref_w && ty0 + y >= 1
+        full = full && tx0 + x0 >= 1 && tx0 + x0 + SWEEP_VEC < ref_w && ty0 + y >= 1
                && ty0 + y < ref_h - 1;
 #endif
     if (!full) {
-        for (int i = 0; x0 + i < tw && i < COST_VEC; ++i)
+        for (int i = 0; x0 + i < tw && i < SWEEP_VEC; ++i)
             out[i] = warped_cost_px(warped, seen, ref_code, ref_img, tw, th, tx0, ty0, ref_w,
                                     ref_h, x0 + i, y, b);
         return;
@@ -446,6 +448,26 @@ __kernel void sweep_code_cost(__global const ulong *src_code, __global const lon
         }
     }
     cost[(size_t)b * tw * th + IDX2(x, y, tw)] = aggregate_best(cst, valid);
+}
+
+/* volume_pixel_major: the interior of a batch of nb filtered cost planes, cost[nb][th][tw] (interior
+ * origin (mx, my) in the tile, size iw x ih), into a cost volume of the whole reference kept in
+ * the PIXEL-MAJOR layout that SGM aggregates in (sgm.cl): out[((oy + y) out_w + ox + x) n_planes
+ * + plane0 + b] = cost[b][my + y][mx + x], where (ox, oy) is the interior's origin in the
+ * reference and n_planes the volume's label count.
+ * Work size: global = (iw, ih), each rounded up to any multiple; local = any. Work-item (x, y)
+ *   writes the nb labels of one pixel. */
+__kernel void volume_pixel_major(__global const float *cost, const int tw, const int th,
+                                 const int mx, const int my, const int iw, const int ih,
+                                 const int nb, __global float *out, const int out_w, const int ox,
+                                 const int oy, const int n_planes, const int plane0)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= iw || y >= ih) return;
+    __global const float *c = cost + IDX2(mx + x, my + y, tw);
+    __global float *o = out + (size_t)IDX2(ox + x, oy + y, out_w) * n_planes + plane0;
+    const size_t plane = (size_t)tw * th;
+    for (int b = 0; b < nb; ++b) o[b] = c[b * plane];
 }
 
 /* warp_image: a source image resampled onto the reference grid by one homography (the warp that

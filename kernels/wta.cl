@@ -9,15 +9,19 @@
  * missing neighbours of the first and last planes count as +infinity (a plateau counts once, at
  * its first plane). The global argmin (first one) is always such a minimum.
  *
- * Work sizes: every kernel has global = (iw, ih), each rounded up to any multiple of the local
- * size; local = any. Work-item (x, y) handles interior pixel (x, y), i.e. tile pixel
+ * Work sizes: wta_init and wta_finalize have global = (iw, ih), each rounded up to any multiple
+ * of the local size; local = any. Work-item (x, y) handles interior pixel (x, y), i.e. tile pixel
  * (mx + x, my + y) of a tile of width tw (the interior excludes the tile's filter margin).
  *   wta_init     : resets the state;
- *   wta_update   : consumes planes plane0 .. plane0 + nb - 1 from cost[nb][th][tw];
+ *   wta_update   : consumes planes plane0 .. plane0 + nb - 1 from cost[nb][th][tw]. Work size:
+ *                  global = (ceil(iw / WTA_VEC), ih), rounded up to any multiple; local = any;
+ *                  work-item (g, y) handles pixels [g WTA_VEC, (g + 1) WTA_VEC) (clipped to iw)
+ *                  of interior row y;
  *   wta_pixel_major : the state after ALL n_planes planes of a pixel-major volume
  *                  cost[i * n_planes + d] (the layout SGM aggregates in), in one pass: equal to
  *                  wta_init then wta_update over planes 0 .. n_planes - 1. Work size: global =
- *                  (n_pix), rounded up to any multiple; local = any; work-item i writes pixel i.
+ *                  (ceil(n_pix / WTA_VEC)), rounded up to any multiple; local = any; work-item g
+ *                  writes pixels [g WTA_VEC, (g + 1) WTA_VEC) (clipped to n_pix).
  *   wta_finalize : after the last of n_planes planes: fractional plane index (parabola through the
  *                  best plane and its neighbours, offset clamped to [-0.5, 0.5], none at the first
  *                  and last planes), confidence = (c2 - M1) / COST_MAX clamped to [0, 1]
@@ -26,7 +30,7 @@
  *                  (same rule as sweep.cl) and, when reject_edges != 0, the best plane is neither
  *                  the first nor the last.
  * Compile-time constants: NSRC, CENSUS_RX, CENSUS_RY, AD_WEIGHT and GRAD_WEIGHT (default 0) for
- * COST_MAX.
+ * COST_MAX; WTA_VEC (pixels per work-item of wta_update and wta_pixel_major: 8).
  */
 #include "common.h"
 
@@ -108,28 +112,109 @@ __kernel void wta_init(__global float *state, const int iw, const int ih)
     state_store(state, (size_t)iw * ih, IDX2(x, y, iw), state_fresh());
 }
 
+/* wta_update and wta_pixel_major run WTA_VEC (8) adjacent pixels per work-item with the state in
+ * float8 and the branches of consider() as selects (PoCL leaves the one-pixel form scalar); the
+ * comparisons are the same, so the states are the same bit for bit. The last, narrower group
+ * runs the one-pixel form. */
+#ifndef WTA_VEC
+#error "WTA_VEC must be defined (the host's satsweep.sweep.WTA_VEC)"
+#elif WTA_VEC != 8
+#error "WTA_VEC must be 8 (the vector kernels use float8)"
+#endif
+
+typedef struct {
+    float8 m1, i1, m1p, m1n, m2, prev, prev2, cmax;
+} wta_state8;
+
+inline wta_state8 state_load8(__global const float *state, const size_t n, const size_t k)
+{
+    wta_state8 st = {vload8(0, state + S_M1 * n + k), vload8(0, state + S_I1 * n + k),
+                     vload8(0, state + S_M1P * n + k), vload8(0, state + S_M1N * n + k),
+                     vload8(0, state + S_M2 * n + k), vload8(0, state + S_PREV * n + k),
+                     vload8(0, state + S_PREV2 * n + k), vload8(0, state + S_MAX * n + k)};
+    return st;
+}
+
+inline void state_store8(__global float *state, const size_t n, const size_t k,
+                         const wta_state8 st)
+{
+    vstore8(st.m1, 0, state + S_M1 * n + k);
+    vstore8(st.i1, 0, state + S_I1 * n + k);
+    vstore8(st.m1p, 0, state + S_M1P * n + k);
+    vstore8(st.m1n, 0, state + S_M1N * n + k);
+    vstore8(st.m2, 0, state + S_M2 * n + k);
+    vstore8(st.prev, 0, state + S_PREV * n + k);
+    vstore8(st.prev2, 0, state + S_PREV2 * n + k);
+    vstore8(st.cmax, 0, state + S_MAX * n + k);
+}
+
+/* consider() and state_push(), lane by lane. */
+inline void consider8(const int j, const float8 cjm, const float8 cj, const float8 cjp,
+                      wta_state8 *st)
+{
+    const int8 is_min = (cj < cjm) & (cj <= cjp);
+    const int8 better = is_min & (cj < st->m1);
+    const int8 second = is_min & ~better & (cj < st->m2);
+    st->m2 = select(select(st->m2, cj, second), st->m1, better);
+    st->m1 = select(st->m1, cj, better);
+    st->i1 = select(st->i1, (float8)(float)j, better);
+    st->m1p = select(st->m1p, cjm, better);
+    st->m1n = select(st->m1n, cjp, better);
+}
+
+inline void state_push8(wta_state8 *st, const int p, const float8 c)
+{
+    if (p >= 1) consider8(p - 1, st->prev2, st->prev, c, st);
+    st->prev2 = st->prev;
+    st->prev = c;
+    st->cmax = fmax(st->cmax, c);
+}
+
 __kernel void wta_update(__global const float *cost, const int tw, const int th, const int mx,
                          const int my, const int iw, const int ih, const int nb,
                          const int plane0, __global float *state)
 {
-    const int x = get_global_id(0), y = get_global_id(1);
-    if (x >= iw || y >= ih) return;
-    const size_t n = (size_t)iw * ih, k = IDX2(x, y, iw);
-    wta_state st = state_load(state, n, k);
-    const size_t plane = (size_t)tw * th, pix = IDX2(mx + x, my + y, tw);
-    for (int b = 0; b < nb; ++b) state_push(&st, plane0 + b, cost[b * plane + pix]);
-    state_store(state, n, k, st);
+    const int x0 = get_global_id(0) * WTA_VEC, y = get_global_id(1);
+    if (x0 >= iw || y >= ih) return;
+    const size_t n = (size_t)iw * ih, plane = (size_t)tw * th;
+    if (x0 + WTA_VEC > iw) {
+        for (int x = x0; x < iw; ++x) {
+            const size_t k = IDX2(x, y, iw), pix = IDX2(mx + x, my + y, tw);
+            wta_state st = state_load(state, n, k);
+            for (int b = 0; b < nb; ++b) state_push(&st, plane0 + b, cost[b * plane + pix]);
+            state_store(state, n, k, st);
+        }
+        return;
+    }
+    const size_t k = IDX2(x0, y, iw), pix = IDX2(mx + x0, my + y, tw);
+    wta_state8 st = state_load8(state, n, k);
+    for (int b = 0; b < nb; ++b) state_push8(&st, plane0 + b, vload8(0, cost + b * plane + pix));
+    state_store8(state, n, k, st);
 }
 
 __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const int n_planes,
                               __global float *state)
 {
-    const int i = get_global_id(0);
-    if (i >= n_pix) return;
-    wta_state st = state_fresh();
-    __global const float *c = cost + (size_t)i * n_planes;
-    for (int p = 0; p < n_planes; ++p) state_push(&st, p, c[p]);
-    state_store(state, (size_t)n_pix, i, st);
+    const int i0 = get_global_id(0) * WTA_VEC;
+    if (i0 >= n_pix) return;
+    if (i0 + WTA_VEC > n_pix) {
+        for (int i = i0; i < n_pix; ++i) {
+            wta_state st = state_fresh();
+            __global const float *c = cost + (size_t)i * n_planes;
+            for (int p = 0; p < n_planes; ++p) state_push(&st, p, c[p]);
+            state_store(state, (size_t)n_pix, i, st);
+        }
+        return;
+    }
+    const wta_state one = state_fresh();
+    wta_state8 st = {(float8)one.m1, (float8)one.i1, (float8)one.m1p, (float8)one.m1n,
+                     (float8)one.m2, (float8)one.prev, (float8)one.prev2, (float8)one.cmax};
+    __global const float *c = cost + (size_t)i0 * n_planes;
+    const size_t d = (size_t)n_planes;
+    for (int p = 0; p < n_planes; ++p)
+        state_push8(&st, p, (float8)(c[p], c[d + p], c[2 * d + p], c[3 * d + p], c[4 * d + p],
+                                     c[5 * d + p], c[6 * d + p], c[7 * d + p]));
+    state_store8(state, (size_t)n_pix, i0, st);
 }
 
 __kernel void wta_finalize(__global const float *state, const int iw, const int ih,

@@ -57,6 +57,7 @@ import numpy as np
 from .device import Device
 from .errors import DeviceError, InputError
 from .options import Options
+from .sweep import WTA_VEC
 
 # The device-side invalid marker (kernels/common.h SATSWEEP_INVALID); costs at or below half of
 # it are missing.
@@ -342,6 +343,24 @@ def _as_device_volume(device: Device, cost_volume, shape):
     return buf, c.shape, True
 
 
+def _pixel_major_volume(device: Device, cost_volume) -> tuple[int, int, int]:
+    """(L, H, W) of a PIXEL-MAJOR (H, W, L) device volume, checked as ``_as_device_volume``
+    checks a plane-major one."""
+    import pyopencl.array as cla  # noqa: PLC0415
+
+    if not isinstance(cost_volume, cla.Array) or cost_volume.dtype != np.float32 \
+            or cost_volume.ndim != 3 or not cost_volume.flags.c_contiguous \
+            or cost_volume.offset != 0:
+        raise InputError(None, "cost_volume: a pixel-major volume must be a C-contiguous float32 "
+                               "pyopencl Array (H, W, L) without offset")
+    if cost_volume.context != device.context:
+        raise InputError(None, "cost_volume: device array lives in another OpenCL context")
+    h, w, n_labels = (int(s) for s in cost_volume.shape)
+    if min(h, w, n_labels) < 1:
+        raise InputError(None, f"cost_volume: expected (H, W, L), got shape {cost_volume.shape}")
+    return n_labels, h, w
+
+
 def _volume_shape(cost_volume, shape) -> tuple[int, int, int]:
     """(L, H, W) of a host volume, a pyopencl Array, or a Buffer with its ``shape``."""
     import pyopencl as cl  # noqa: PLC0415
@@ -374,7 +393,8 @@ def _check_sgm_size(device: Device, dims: tuple[int, int, int]) -> None:
 
 
 def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
-                  cost_scale: float = 1.0, shape: tuple[int, int, int] | None = None):
+                  cost_scale: float = 1.0, shape: tuple[int, int, int] | None = None,
+                  pixel_major: bool = False):
     """Sum of the SGM path costs over ``options.sgm_paths`` directions, on the device.
 
     ``cost_volume``: (L, H, W) float32 as a numpy array, a ``pyopencl.array.Array`` in the
@@ -382,13 +402,17 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
     (<= SATSWEEP_INVALID / 2, or NaN) count as ``cost_scale``. P1 = sgm_p1 * cost_scale,
     P2 = sgm_p2 * cost_scale, adapted to the guide as documented in kernels/sgm.cl. The volume
     is turned pixel-major on the device, aggregated, and turned back; at most three volumes are
-    held at once. Returns a ``pyopencl.array.Array`` (L, H, W) float32 on the device.
+    held at once. With ``pixel_major``, ``cost_volume`` is already in SGM's layout, a
+    ``pyopencl.array.Array`` (H, W, L) (as ``PlaneSweep.run(volume_on_device=True)`` leaves
+    it), whose entries are all valid costs, and it is aggregated as it is. Returns a
+    ``pyopencl.array.Array`` (L, H, W) float32 on the device.
     """
     import pyopencl as cl  # noqa: PLC0415
     import pyopencl.array as cla  # noqa: PLC0415
 
     agg_pm, prg = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
-                                             cost_scale=cost_scale, shape=shape)
+                                             cost_scale=cost_scale, shape=shape,
+                                             pixel_major=pixel_major)
     h, w, n_labels = agg_pm.shape
     queue = device.queue
     agg = cla.empty(queue, (n_labels, h, w), np.float32)
@@ -400,28 +424,33 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
 
 
 def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFOptions, *,
-                               cost_scale: float, shape: tuple[int, int, int] | None):
+                               cost_scale: float, shape: tuple[int, int, int] | None,
+                               pixel_major: bool = False):
     """``sgm_aggregate`` without the final transposition: ((H, W, L) device array, program)."""
     import pyopencl as cl  # noqa: PLC0415
     import pyopencl.array as cla  # noqa: PLC0415
 
     scale = _check_scale(cost_scale)
-    n_labels, h, w = _volume_shape(cost_volume, shape)
+    n_labels, h, w = _pixel_major_volume(device, cost_volume) if pixel_major \
+        else _volume_shape(cost_volume, shape)
     g = _check_guide(guide, (h, w))
     _check_sgm_size(device, (n_labels, h, w))
-    buf, _, owned = _as_device_volume(device, cost_volume, shape)
     wg = sgm_work_group(device, options, n_labels)
     prg = device.build("sgm", {"SGM_NL": n_labels, "SGM_WG": wg})
     queue = device.queue
     guide_d = cla.to_device(queue, g)
     n_pix = h * w
     i32, f32 = np.int32, np.float32
-    # Pixel-major copy of the costs (invalid entries replaced), aggregated in that layout.
-    cost_pm = cla.empty(queue, (h, w, n_labels), np.float32)
-    cl.Kernel(prg, "sgm_to_pixel_major")(queue, (n_pix,), None, buf, cost_pm.data, i32(n_pix),
-                                         f32(scale))
-    if owned:
-        buf.release()  # the uploaded host volume is no longer needed on the device
+    if pixel_major:
+        cost_pm = cost_volume  # the caller's, in SGM's layout already
+    else:
+        # Pixel-major copy of the costs (invalid entries replaced), aggregated in that layout.
+        buf, _, owned = _as_device_volume(device, cost_volume, shape)
+        cost_pm = cla.empty(queue, (h, w, n_labels), np.float32)
+        cl.Kernel(prg, "sgm_to_pixel_major")(queue, (n_pix,), None, buf, cost_pm.data,
+                                             i32(n_pix), f32(scale))
+        if owned:
+            buf.release()  # the uploaded host volume is no longer needed on the device
     agg_pm = cla.empty(queue, (h, w, n_labels), np.float32)
     inv_sigma = 0.0 if options.sgm_p2_sigma == 0.0 else 1.0 / options.sgm_p2_sigma
     kernel = cl.Kernel(prg, "sgm_path")
@@ -431,7 +460,8 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
                i32(h), i32(dx), i32(dy), f32(options.sgm_p1 * scale), f32(options.sgm_p2 * scale),
                f32(inv_sigma), i32(1 if i > 0 else 0))
     queue.finish()
-    cost_pm.data.release()
+    if not pixel_major:
+        cost_pm.data.release()
     return agg_pm, prg
 
 
@@ -444,31 +474,34 @@ def _wta_state(device: Device, agg_pm) -> np.ndarray:
 
     h, w, n_labels = agg_pm.shape
     # wta.cl needs NSRC and the census radii only for wta_finalize, which is not used here.
-    prg = device.build("wta", {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1})
+    prg = device.build("wta", {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1, "WTA_VEC": WTA_VEC})
     queue = device.queue
     state = cla.empty(queue, (_WTA_NSTATE, h, w), np.float32)
-    cl.Kernel(prg, "wta_pixel_major")(queue, (h * w,), None, agg_pm.data, np.int32(h * w),
-                                      np.int32(n_labels), state.data)
+    cl.Kernel(prg, "wta_pixel_major")(queue, (-(-h * w // WTA_VEC),), None, agg_pm.data,
+                                      np.int32(h * w), np.int32(n_labels), state.data)
     return state.get()
 
 
 def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions, *,
                cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
-               shape: tuple[int, int, int] | None = None) -> MRFResult:
+               shape: tuple[int, int, int] | None = None,
+               pixel_major: bool = False) -> MRFResult:
     """SGM aggregation, then winner-take-all with sub-plane refinement and confidence.
 
     The argmin, the parabola and the second local minimum are those of the sweep's WTA
     (wta.cl, run on the aggregated volume); the confidence margin is divided by
     ``sgm_paths * cost_scale`` since each path adds about one cost. See ``sgm_aggregate`` for the
-    inputs and ``MRFResult`` for the outputs.
+    inputs (and ``pixel_major``) and ``MRFResult`` for the outputs.
     """
     t0 = time.perf_counter()
-    dims = _volume_shape(cost_volume, shape)
+    dims = _pixel_major_volume(device, cost_volume) if pixel_major \
+        else _volume_shape(cost_volume, shape)
     n_labels = dims[0]
     hts = _check_heights(heights, n_labels)
     vis = _check_visible(visible, dims)
     agg_pm, _ = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
-                                           cost_scale=cost_scale, shape=shape)
+                                           cost_scale=cost_scale, shape=shape,
+                                           pixel_major=pixel_major)
     try:
         s = _wta_state(device, agg_pm).astype(np.float64)
     finally:
@@ -840,10 +873,11 @@ def wta_labels(cost_volume) -> np.ndarray:
 
 def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptions, *,
            cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
-           initial_labels=None) -> MRFResult | None:
+           initial_labels=None, pixel_major: bool = False) -> MRFResult | None:
     """Dispatch on ``options.method``: None for ``none`` (keep the sweep's WTA), else the result.
 
-    SGM needs ``device``; the graph cut runs on the host and uses ``initial_labels`` only with
+    SGM needs ``device`` (and alone takes a ``pixel_major`` device volume, see
+    ``sgm_aggregate``); the graph cut runs on the host and uses ``initial_labels`` only with
     ``gc_levels`` = 0 (see ``graphcut_refine``).
     """
     if options.method == "none":
@@ -852,7 +886,11 @@ def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptio
         if device is None:
             raise DeviceError("MRF method sgm needs an OpenCL device")
         return sgm_refine(device, cost_volume, guide, heights, options, cost_scale=cost_scale,
-                          visible=visible, reject_range_edges=reject_range_edges)
+                          visible=visible, reject_range_edges=reject_range_edges,
+                          pixel_major=pixel_major)
+    if pixel_major:
+        raise InputError(None, f"cost_volume: MRF method {options.method} takes a plane-major "
+                               "host volume, not a pixel-major device volume")
     return graphcut_refine(cost_volume, guide, heights, options, cost_scale=cost_scale,
                            visible=visible, reject_range_edges=reject_range_edges,
                            initial_labels=initial_labels)

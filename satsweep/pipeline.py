@@ -342,7 +342,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
         try:
             m = refine(device, r.volume, guide[ty0:ty1, tx0:tx1], hts, mrf,
                        cost_scale=float(sweep.census_bits),
-                       reject_range_edges=sweep.reject_range_edges, initial_labels=initial)
+                       reject_range_edges=sweep.reject_range_edges, initial_labels=initial,
+                       pixel_major=on_device)
         finally:
             if on_device:
                 r.volume.data.release()

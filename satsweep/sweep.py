@@ -51,10 +51,11 @@ _OUT_BYTES_PER_PX = 4 + 4 + 4 + 1
 _MIN_TILE_SIDE = 64
 # Columns per work-item of guided_filter.cl's column kernels (its COLS_VEC; float8 there).
 GF_COLS_VEC = 8
-# Pixels per work-item of sweep.cl's sweep_warped_cost (its COST_VEC; float8 there).
-SPLIT_COST_VEC = 8
-# Positions per work-item of sweep.cl's sweep_warp (its WARP_VEC; float8 there).
-SPLIT_WARP_VEC = 8
+# Positions per work-item of sweep.cl's split kernels, sweep_warp and sweep_warped_cost (its
+# SWEEP_VEC; float8 there).
+SWEEP_VEC = 8
+# Pixels per work-item of wta.cl's wta_update and wta_pixel_major (its WTA_VEC; float8 there).
+WTA_VEC = 8
 # Planes warped per launch by the split census kernels (their warped-source buffer holds this
 # many planes of every source over the tile plus the census margin).
 SPLIT_WARP_PLANES = 8
@@ -516,13 +517,14 @@ class PlaneSweep:
         sweep_defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": o.best_k(n_src),
                       "AD_WEIGHT": float(o.ad_weight), "AD_TRUNC": float(o.ad_truncation),
                       "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation),
-                      "COST_VEC": SPLIT_COST_VEC}
+                      "SWEEP_VEC": SWEEP_VEC}
         if o.cost_mode == "warped_census" and o.census_kernel == "staged":
             sweep_defs.update({"WG_X": o.work_group[0], "WG_Y": o.work_group[1]})
         sweep = self.device.build("sweep", sweep_defs)
         wta = self.device.build("wta", {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry,
                                         "AD_WEIGHT": float(o.ad_weight),
-                                        "GRAD_WEIGHT": float(o.grad_weight)})
+                                        "GRAD_WEIGHT": float(o.grad_weight),
+                                        "WTA_VEC": WTA_VEC})
         return census, sweep, self._filter_program(), wta
 
     def _filter_program(self):
@@ -552,9 +554,10 @@ class PlaneSweep:
         pixels to source pixels; heights: (n_planes,) strictly monotonic plane heights (metres).
         keep_volume: also keep the filtered cost of every plane (``SweepResult.volume``) for an
         MRF refinement; off in the plain WTA path, where the cost volume never exists whole.
-        volume_on_device: with keep_volume, the volume stays on the device, a
-        ``pyopencl.array.Array`` (n_planes, H, W) float32 that the caller releases, counted in
-        the memory budget; else it is copied to the host (numpy).
+        volume_on_device: with keep_volume, the volume stays on the device, PIXEL-MAJOR (the
+        layout SGM aggregates in, so that it needs no copy of its own): a
+        ``pyopencl.array.Array`` (H, W, n_planes) float32 that the caller releases, counted in
+        the memory budget; else it is copied to the host (numpy, (n_planes, H, W)).
         """
         ref = _check_image("ref_image", ref_image)
         srcs = [_check_image(f"src_images[{i}]", s) for i, s in enumerate(src_images)]
@@ -672,9 +675,10 @@ class PlaneSweep:
         out_conf = np.zeros((h_img, w_img), np.float32)
         out_cost = np.zeros((h_img, w_img), np.float32)
         out_valid = np.zeros((h_img, w_img), np.uint8)
-        volume = None
+        volume = volume_k = None
         if on_device:
             volume = bufs.alloc(volume_bytes)
+            volume_k = cl.Kernel(sweep_prg, "volume_pixel_major")
         elif keep_volume:
             volume = np.empty((n_planes, h_img, w_img), np.float32)
         n_batches = 0
@@ -686,7 +690,7 @@ class PlaneSweep:
             n_batches += self._sweep_tile(
                 tile, plan.planes_per_batch, hom, n_planes, bufs, ref_buf, src_buf, off_buf,
                 size_buf, census_k, sweep_k, filt_prg, wta_prg, (w_img, h_img),
-                (out_index, out_conf, out_cost, out_valid), (ix0, iy0), volume)
+                (out_index, out_conf, out_cost, out_valid), (ix0, iy0), volume, volume_k)
         bufs.free(ref_buf, src_buf, off_buf, size_buf)
         index = out_index
         if not o.subplane:
@@ -696,14 +700,14 @@ class PlaneSweep:
             else np.full(index.shape, hts[0])
         height[~valid] = np.nan
         if on_device:
-            volume = cla.Array(queue, (n_planes, h_img, w_img), np.float32, data=volume)
+            volume = cla.Array(queue, (h_img, w_img, n_planes), np.float32, data=volume)
         return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
                            cost_min=out_cost, n_tiles=plan.n_tiles, n_batches=n_batches,
                            peak_device_bytes=bufs.peak, volume=volume)
 
     def _sweep_tile(self, tile, nb_max, hom, n_planes, bufs, ref_buf, src_buf, off_buf, size_buf,
                     census_k, sweep_k, filt_prg, wta_prg, ref_size, outs, interior_origin,
-                    volume=None) -> int:
+                    volume=None, volume_k=None) -> int:
         import pyopencl as cl  # noqa: PLC0415
 
         o = self.options
@@ -761,10 +765,11 @@ class PlaneSweep:
                     warp_k, cost_k = sweep_k
                     for c0 in range(0, nb, SPLIT_WARP_PLANES):
                         nc = min(SPLIT_WARP_PLANES, nb - c0)
-                        _launch(warp_k, queue, (_ceil_div(pw, SPLIT_WARP_VEC), ph, nc * n_src), src_buf, off_buf, size_buf,
+                        _launch(warp_k, queue, (_ceil_div(pw, SWEEP_VEC), ph, nc * n_src),
+                                src_buf, off_buf, size_buf,
                                 hom_buf, i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0),
                                 i32(w_img), i32(h_img), i32(p0 + c0), warped, seen)
-                        _launch(cost_k, queue, (_ceil_div(tw, SPLIT_COST_VEC), th, nc), warped,
+                        _launch(cost_k, queue, (_ceil_div(tw, SWEEP_VEC), th, nc), warped,
                                 seen, code_buf, ref_buf, i32(tw), i32(th), i32(tile.tx0),
                                 i32(tile.ty0), i32(w_img), i32(h_img), i32(c0), vol_a)
                 elif o.cost_mode == "warped_census":
@@ -783,14 +788,15 @@ class PlaneSweep:
                 cl.enqueue_copy(queue, batch, vol_a)
                 volume[p0:p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
                     batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
-            elif volume is not None:  # MRF path, volume on the device: a rectangular copy
-                cl.enqueue_copy(queue, volume, vol_a, src_origin=(4 * tile.mx, tile.my, 0),
-                                dst_origin=(4 * ix0, iy0, p0), region=(4 * tile.iw, tile.ih, nb),
-                                src_pitches=(4 * tw, 4 * tw * th),
-                                dst_pitches=(4 * w_img, 4 * w_img * h_img))
+            elif volume is not None:  # MRF path: the interior into the pixel-major volume
+                with self._stage("copy"):
+                    _launch(volume_k, queue, (iw, ih), vol_a,
+                            i32(tw), i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih),
+                            i32(nb), volume, i32(w_img), i32(ix0), i32(iy0), i32(n_planes),
+                            i32(p0))
             with self._stage("wta"):
-                _launch(wta_update, queue, (iw, ih), vol_a, i32(tw), i32(th), i32(tile.mx),
-                        i32(tile.my), i32(iw), i32(ih), i32(nb), i32(p0), state)
+                _launch(wta_update, queue, (_ceil_div(iw, WTA_VEC), ih), vol_a, i32(tw), i32(th),
+                        i32(tile.mx), i32(tile.my), i32(iw), i32(ih), i32(nb), i32(p0), state)
             n_batches += 1
 
         index = bufs.alloc(4 * iw * ih)

@@ -14,7 +14,7 @@ import pyopencl as cl
 import pytest
 
 import reference_sweep as ref
-from satsweep.sweep import SPLIT_COST_VEC, SPLIT_WARP_VEC, PlaneSweep, SweepOptions, box_chunk
+from satsweep.sweep import SWEEP_VEC, WTA_VEC, PlaneSweep, SweepOptions, box_chunk
 
 F32_EPS = float(np.finfo(np.float32).eps)
 # Bilinear warp of a [0, 1] image with a general homography: the float32 evaluation of the
@@ -80,7 +80,7 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
     h, w = ref_img.shape
     tx0, ty0, tw, th = tile if tile is not None else (0, 0, w, h)
     n_planes, n_src = hom.shape[:2]
-    defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": k, "COST_VEC": SPLIT_COST_VEC}
+    defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": k, "SWEEP_VEC": SWEEP_VEC}
     if ad is not None:
         defs.update({"AD_WEIGHT": float(ad[0]), "AD_TRUNC": float(ad[1])})
     if grad is not None:
@@ -102,10 +102,10 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
         bufs = [_buf(dev, a) for a in (data, offsets, sizes, hom32, codes, ref_img.astype(np.float32))]
         for p0 in range(0, n_planes, chunk):
             nb = min(chunk, n_planes - p0)
-            cl.Kernel(prg, "sweep_warp")(dev.queue, (-(-pw // SPLIT_WARP_VEC), ph, nb * n_src), None, *bufs[:4],
+            cl.Kernel(prg, "sweep_warp")(dev.queue, (-(-pw // SWEEP_VEC), ph, nb * n_src), None, *bufs[:4],
                                          i32(tw), i32(th), i32(tx0), i32(ty0), i32(w), i32(h),
                                          i32(p0), warped, seen)
-            cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (-(-tw // SPLIT_COST_VEC), th, nb), None,
+            cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (-(-tw // SWEEP_VEC), th, nb), None,
                                                 warped, seen,
                                                 bufs[4], bufs[5], i32(tw), i32(th), i32(tx0),
                                                 i32(ty0), i32(w), i32(h), i32(p0), out)
@@ -213,7 +213,7 @@ def test_warp_image_matches_bilinear_reference(cl_device):
     rng = np.random.default_rng(5)
     src = rng.random((50, 60)).astype(np.float32)
     prg = cl_device.build("sweep", {"CENSUS_RX": 1, "CENSUS_RY": 1, "NSRC": 1, "NBEST": 1,
-                                    "COST_VEC": SPLIT_COST_VEC})
+                                    "SWEEP_VEC": SWEEP_VEC})
     # A perspective homography (rotation, scale, shear, mild projective terms).
     hom = np.array([[0.93, 0.21, 4.3], [-0.17, 1.08, -2.6], [2.1e-4, -1.3e-4, 1.0]])
     out_h, out_w = 44, 57
@@ -365,7 +365,9 @@ def test_best_k_aggregation_over_sources(cl_device, mode, k):
 
 
 # -- box and guided filters ----------------------------------------------------------------------
-@pytest.mark.parametrize("radius", [0, 1, 3, 7])
+# Radii up to 7 take the row kernels' direct vector sums, larger ones their sliding sums
+# (guided_filter.cl ROW_DIRECT_MAX_R): both forms are checked.
+@pytest.mark.parametrize("radius", [0, 1, 3, 7, 9])
 def test_box_filter_matches_float64_reference(cl_device, radius):
     rng = np.random.default_rng(10 + radius)
     # 70 columns > BOX_CHUNK = 32: several chunks per row with restarted sums.
@@ -377,7 +379,7 @@ def test_box_filter_matches_float64_reference(cl_device, radius):
     assert box_chunk(radius) >= 2 * radius + 1
 
 
-@pytest.mark.parametrize("radius,eps", [(1, 1e-3), (4, 1e-3), (6, 1e-2)])
+@pytest.mark.parametrize("radius,eps", [(1, 1e-3), (4, 1e-3), (6, 1e-2), (9, 1e-3)])
 def test_guided_filter_matches_float64_reference(cl_device, radius, eps):
     rng = np.random.default_rng(20 + radius)
     guide = ref.smooth_noise((41, 67), 1.5, rng).astype(np.float32)
@@ -395,7 +397,7 @@ def _wta_dev(dev, vol, hom, src_shapes, nb, reject_edges, rx=4, ry=3):
     """Stream vol (n_planes, h, w) through wta_update in batches of nb, then finalize."""
     n_planes, h, w = vol.shape
     n_src = len(src_shapes)
-    prg = dev.build("wta", {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry})
+    prg = dev.build("wta", {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry, "WTA_VEC": WTA_VEC})
     i32 = np.int32
     q = dev.queue
     state = _empty(dev, 4 * 8 * h * w)
@@ -403,7 +405,7 @@ def _wta_dev(dev, vol, hom, src_shapes, nb, reject_edges, rx=4, ry=3):
     upd = cl.Kernel(prg, "wta_update")
     for p0 in range(0, n_planes, nb):
         n = min(nb, n_planes - p0)
-        upd(q, (w, h), None, _buf(dev, vol[p0:p0 + n]), i32(w), i32(h), i32(0), i32(0), i32(w),
+        upd(q, (-(-w // WTA_VEC), h), None, _buf(dev, vol[p0:p0 + n]), i32(w), i32(h), i32(0), i32(0), i32(w),
             i32(h), i32(n), i32(p0), state)
     sizes = np.array([[s[1], s[0]] for s in src_shapes], np.int32).ravel()
     outs = [_empty(dev, 4 * h * w) for _ in range(3)] + [_empty(dev, h * w)]
@@ -424,15 +426,15 @@ def test_wta_pixel_major_equals_streaming_state(cl_device):
     vol = (rng.integers(0, 40, (n_planes, h, w)) / 4).astype(np.float32)
     vol[:, :3, :3] = 5.0
     vol[:, 5, :] = np.arange(n_planes, dtype=np.float32)[:, None]
-    prg = cl_device.build("wta", {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1})
+    prg = cl_device.build("wta", {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1, "WTA_VEC": WTA_VEC})
     i32, q = np.int32, cl_device.queue
     streamed = _empty(cl_device, 4 * 8 * h * w)
     cl.Kernel(prg, "wta_init")(q, (w, h), None, streamed, i32(w), i32(h))
-    cl.Kernel(prg, "wta_update")(q, (w, h), None, _buf(cl_device, vol), i32(w), i32(h), i32(0),
+    cl.Kernel(prg, "wta_update")(q, (-(-w // WTA_VEC), h), None, _buf(cl_device, vol), i32(w), i32(h), i32(0),
                                  i32(0), i32(w), i32(h), i32(n_planes), i32(0), streamed)
     one_pass = _empty(cl_device, 4 * 8 * h * w)
     pixel_major = np.ascontiguousarray(vol.transpose(1, 2, 0))
-    cl.Kernel(prg, "wta_pixel_major")(q, (h * w,), None, _buf(cl_device, pixel_major),
+    cl.Kernel(prg, "wta_pixel_major")(q, (-(-h * w // WTA_VEC),), None, _buf(cl_device, pixel_major),
                                       i32(h * w), i32(n_planes), one_pass)
     want = _read(cl_device, streamed, (8, h, w), np.float32)
     got = _read(cl_device, one_pass, (8, h, w), np.float32)

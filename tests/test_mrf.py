@@ -135,6 +135,19 @@ def test_sgm_accepts_device_arrays_and_buffers(cl_device):
     np.testing.assert_array_equal(from_buffer, from_host)
     with pytest.raises(InputError, match="shape"):
         mrf.sgm_aggregate(cl_device, arr.data, guide, opts)
+    # Pixel-major (H, W, L), the layout the sweep keeps on the device, taken as it is: with the
+    # invalid entries already replaced by the missing cost (cost_scale), the same sums.
+    replaced = np.where(np.isnan(cost) | (cost <= mrf.SATSWEEP_INVALID / 2), 24.0, cost)
+    pixel_major = cla.to_device(cl_device.queue,
+                                np.ascontiguousarray(replaced.transpose(1, 2, 0), np.float32))
+    from_pm = mrf.sgm_aggregate(cl_device, pixel_major, guide, opts, cost_scale=24.0,
+                                pixel_major=True).get()
+    np.testing.assert_array_equal(from_pm, from_host)
+    with pytest.raises(InputError, match="pixel-major"):
+        mrf.sgm_aggregate(cl_device, cost, guide, opts, pixel_major=True)
+    with pytest.raises(InputError, match="plane-major host volume"):
+        mrf.refine(cl_device, pixel_major, guide, np.arange(cost.shape[0], dtype=float),
+                   mrf.MRFOptions(method="graphcut"), pixel_major=True)
 
 
 def _numpy_wta(vol: np.ndarray, subplane: str = "parabola"):

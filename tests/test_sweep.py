@@ -381,15 +381,16 @@ def test_kept_volume_matches_the_wta_and_does_not_depend_on_tiling(cl_device):
     np.testing.assert_array_equal(tiled.volume, whole.volume)
     plain = PlaneSweep(cl_device, box).run(ref, [src], hom, heights)
     assert plain.volume is None
-    # Kept on the device (rectangular copies of each tile's interior): the same volume, counted
-    # in the budget (so the images, the volume and the tiles share it: more tiles).
+    # Kept on the device (each tile's interior written pixel-major, SGM's layout): the same
+    # volume, counted in the budget (so the images, the volume and the tiles share it: more tiles).
     volume_bytes = 4 * heights.size * ref.size
     on_device = PlaneSweep(cl_device, box.replace(
         memory_budget_bytes=budget + volume_bytes, max_planes_per_batch=4)).run(
         ref, [src], hom, heights, keep_volume=True, volume_on_device=True)
     try:
         assert on_device.n_tiles > 1 and on_device.peak_device_bytes >= volume_bytes
-        np.testing.assert_array_equal(on_device.volume.get(), whole.volume)
+        assert on_device.volume.shape == ref.shape + (heights.size,)
+        np.testing.assert_array_equal(on_device.volume.get().transpose(2, 0, 1), whole.volume)
         np.testing.assert_array_equal(on_device.plane_index, whole.plane_index)
     finally:
         on_device.volume.data.release()
