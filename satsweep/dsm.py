@@ -44,12 +44,16 @@ DEGENERATE_RELATIVE_DET = 1e-12
 
 # ENUToMap: total degree of the polynomials, fitting nodes per axis (Chebyshev), largest error
 # accepted against the exact map (m; 1/500 of a 0.5 m cell, else the exact map is used), smallest
-# half-size of the fitted box (m; keeps a flat box well conditioned) and points per evaluation block.
+# half-size of the fitted box (m; keeps a flat box well conditioned) and points per evaluation block
+# (its 20 monomials in float64 stay in a CPU's L2 cache: 8192 points took 0.16-0.24 s per 2.6 M
+# points where 262144 took 0.21-0.69 s).
 ENU_MAP_DEGREE = 3
 ENU_MAP_NODES = 7
 ENU_MAP_TOL_M = 1e-3
 ENU_MAP_MIN_HALF_M = 1.0
-ENU_MAP_BLOCK = 1 << 18
+ENU_MAP_BLOCK = 1 << 13
+# Points per block of solve_ground_en (its float64 temporaries stay in a CPU's L2 cache).
+GROUND_BLOCK = 1 << 15
 _MONOMIAL_POWERS = tuple((i, j, k) for i in range(ENU_MAP_DEGREE + 1) for j in range(ENU_MAP_DEGREE + 1)
                          for k in range(ENU_MAP_DEGREE + 1) if i + j + k <= ENU_MAP_DEGREE)
 
@@ -137,26 +141,34 @@ def solve_ground_en(P: np.ndarray, *, col, row, u) -> tuple[np.ndarray, np.ndarr
     ``P``: 3x4 matrix mapping homogeneous ENU ``[e, n, u, 1]`` to homogeneous pixel coordinates
     ((0, 0) = centre of the first pixel). With ``q = P @ X``, ``col * q[2] = q[0]`` and
     ``row * q[2] = q[1]`` are two linear equations in (e, n), solved by Cramer's rule in float64.
-    Pixels whose system is degenerate (ray parallel to the plane u = const) get NaN.
+    Pixels whose system is degenerate (ray parallel to the plane u = const) get NaN. The points
+    are solved in blocks of ``GROUND_BLOCK`` so that the temporaries stay in the CPU's cache.
     """
     P = np.asarray(P, dtype=np.float64)
     if P.shape != (3, 4) or not np.all(np.isfinite(P)):
         raise CameraError(f"projection matrix must be a finite 3x4 array, got shape {P.shape}")
     P = P / np.linalg.norm(P)  # scale-free: keeps intermediate magnitudes near 1
     col, row, u = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (col, row, u)))
-    a11 = P[0, 0] - col * P[2, 0]
-    a12 = P[0, 1] - col * P[2, 1]
-    a21 = P[1, 0] - row * P[2, 0]
-    a22 = P[1, 1] - row * P[2, 1]
-    b1 = -((P[0, 2] - col * P[2, 2]) * u + (P[0, 3] - col * P[2, 3]))
-    b2 = -((P[1, 2] - row * P[2, 2]) * u + (P[1, 3] - row * P[2, 3]))
-    det = a11 * a22 - a12 * a21
-    scale = np.hypot(a11, a12) * np.hypot(a21, a22)
-    ok = np.abs(det) > DEGENERATE_RELATIVE_DET * scale
-    safe = np.where(ok, det, 1.0)
-    e = np.where(ok, (b1 * a22 - a12 * b2) / safe, np.nan)
-    n = np.where(ok, (a11 * b2 - b1 * a21) / safe, np.nan)
-    return e, n
+    shape = col.shape
+    col, row, u = col.ravel(), row.ravel(), u.ravel()
+    e = np.empty(col.size)
+    n = np.empty(col.size)
+    for s in range(0, col.size, GROUND_BLOCK):
+        blk = slice(s, s + GROUND_BLOCK)
+        c, r, h = col[blk], row[blk], u[blk]
+        a11 = P[0, 0] - c * P[2, 0]
+        a12 = P[0, 1] - c * P[2, 1]
+        a21 = P[1, 0] - r * P[2, 0]
+        a22 = P[1, 1] - r * P[2, 1]
+        b1 = -((P[0, 2] - c * P[2, 2]) * h + (P[0, 3] - c * P[2, 3]))
+        b2 = -((P[1, 2] - r * P[2, 2]) * h + (P[1, 3] - r * P[2, 3]))
+        det = a11 * a22 - a12 * a21
+        scale = np.hypot(a11, a12) * np.hypot(a21, a22)
+        ok = np.abs(det) > DEGENERATE_RELATIVE_DET * scale
+        safe = np.where(ok, det, 1.0)
+        e[blk] = np.where(ok, (b1 * a22 - a12 * b2) / safe, np.nan)
+        n[blk] = np.where(ok, (a11 * b2 - b1 * a21) / safe, np.nan)
+    return e.reshape(shape), n.reshape(shape)
 
 
 def height_map_to_points(
