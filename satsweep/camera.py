@@ -88,6 +88,9 @@ __all__ = [
 # Fewer grid samples than this inside an image cannot support an 11-parameter fit with any
 # confidence (DLT needs 6; we ask for a margin of redundancy).
 MIN_GRID_POINTS = 20
+# Seed of the random subset of grid samples that a camera fit uses (CameraOptions.fit_samples):
+# fixed, so that a run is repeatable.
+FIT_SUBSET_SEED = 0
 # The DLT system is declared degenerate (coplanar or collinear samples) when its second smallest
 # singular value is below this fraction of the largest one: the null space is then not unique.
 DEGENERATE_SV_RATIO = 1e-10
@@ -112,6 +115,11 @@ class CameraOptions(Options):
 
     # Samples of the AOI cube along longitude (east), latitude (north) and altitude (up).
     grid_size: tuple[int, int, int] = (100, 100, 20)
+    # Grid samples the fit uses: a seeded random subset of those inside the image (all of them when
+    # fewer); the errors are reported over every sample. On the Pleiades pair's 700 px AOI both
+    # views took 1.0-1.2 s with all 2e5 samples and 0.2 s with 2e4, and the largest errors over
+    # all 2e5 samples moved by 0.0001 px (0.03894 -> 0.03900 and 0.03697 -> 0.03710 px).
+    fit_samples: int = 20_000
     # Refine the normalised DLT by Gauss-Newton on the reprojection error (pixels).
     refine: bool = True
     # Distance (m) of the parallax reference plane u = d below the lowest sample of the AOI cube,
@@ -125,6 +133,8 @@ class CameraOptions(Options):
                       "needs at least 2 samples along each of east, north and up")
         self._require(self.grid_size[0] * self.grid_size[1] * self.grid_size[2] <= 10_000_000,
                       "grid_size", "more than 1e7 samples is wasteful (the default is 2e5)")
+        self._require(self.fit_samples >= MIN_GRID_POINTS, "fit_samples",
+                      f"must be at least {MIN_GRID_POINTS}")
         self._require(math.isfinite(self.plane_margin_m) and self.plane_margin_m > 0.0,
                       "plane_margin_m", "must be a positive number of metres")
         self._require(math.isfinite(self.warn_error_px) and self.warn_error_px > 0.0,
@@ -436,10 +446,14 @@ def fit_camera(rpc, grid: AOIGrid, image_shape: Sequence[int], options: CameraOp
         )
     points = np.stack([grid.e[inside], grid.n[inside], grid.u[inside]], axis=1)
     pixels = np.stack([col[inside], row[inside]], axis=1)
+    fit = slice(None)
+    if n_inside > options.fit_samples:
+        fit = np.sort(np.random.default_rng(FIT_SUBSET_SEED).choice(n_inside, options.fit_samples,
+                                                                    replace=False))
     try:
-        P = normalized_dlt(points, pixels)
+        P = normalized_dlt(points[fit], pixels[fit])
         if options.refine:
-            P = refine_projection(P, points, pixels)
+            P = refine_projection(P, points[fit], pixels[fit])
     except CameraError as exc:
         raise CameraError(f"{where}{exc}") from None
     P, K, R, t = decompose_projection(P)
