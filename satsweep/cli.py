@@ -403,5 +403,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
+def console_main() -> int:
+    """The ``satsweep`` command: ``main`` under the command's heap policy (see ``heap``)."""
+    from .heap import keep_freed_memory  # noqa: PLC0415
+
+    keep_freed_memory()
+    return main()
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    sys.exit(console_main())
