@@ -32,6 +32,10 @@
  *   GRAD_WEIGHT (float, census bits, default 0; needs CENSUS_RX, CENSUS_RY >= 1) and GRAD_TRUNC,
  *   SWEEP_VEC (positions per work-item of sweep_warp and sweep_warped_cost: 8).
  */
+/* No contraction into fused multiply-adds: the staged kernel, the split kernels' vector paths and
+ * their one-position forms then round the same sequence of float32 operations on every device,
+ * which their bit-for-bit equality relies on (no measurable cost on PoCL). */
+#pragma OPENCL FP_CONTRACT OFF
 #include "common.h"
 
 #if !defined(CENSUS_RX) || !defined(CENSUS_RY) || !defined(NSRC) || !defined(NBEST)
