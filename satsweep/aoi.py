@@ -378,12 +378,13 @@ def altitude_range_from_dem(
     return AltitudeRange(float(valid.min()) - margin, float(valid.max()) + margin)
 
 
-def altitude_range_from_rpcs(rpcs: Iterable[Any]) -> AltitudeRange:
+def altitude_range_from_rpcs(rpcs: Iterable[Any], *, warn: bool = True) -> AltitudeRange:
     """Coarse height range from RPC height offsets/scales: ``offset +- scale``.
 
     Uses the heights valid for every RPC (their intersection), or all of them (the union) when they
-    do not overlap. Logs a warning: this range is usually far wider than the scene's relief, which
-    slows the sweep; give --alt-range or --dem for a tight one.
+    do not overlap. Logs a warning unless ``warn`` is False: this range is usually far wider than
+    the scene's relief, which slows the sweep; give --alt-range or --dem for a tight one (the
+    reconstruction narrows it with tie points, ``satsweep.tiepoints``).
     """
     rpcs = list(rpcs)
     if not rpcs:
@@ -395,6 +396,8 @@ def altitude_range_from_rpcs(rpcs: Iterable[Any]) -> AltitudeRange:
         lo, hi = lows.min(), highs.max()
     lo, hi = max(lo, ALT_PLAUSIBLE_MIN_M), min(hi, ALT_PLAUSIBLE_MAX_M)
     rng = AltitudeRange(lo, hi)
+    if not warn:
+        return rng
     log.warning(
         "altitude range %s guessed from the RPC height offset/scale of %d image(s): this is coarse "
         "(pass --alt-range MIN,MAX or --dem FILE for a tighter, faster sweep)", rng, len(rpcs),

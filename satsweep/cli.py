@@ -71,8 +71,8 @@ def _add_image_inputs(p) -> None:
     p.add_argument("images", nargs="+", metavar="IMAGE", help="TIFF images with an RPC (tag or sidecar)")
     p.add_argument("--aoi", required=True, help="LON_MIN,LAT_MIN,LON_MAX,LAT_MAX (degrees) or a GeoJSON file")
     p.add_argument("--alt-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=None,
-                   help="heights in metres above the WGS84 ellipsoid (default: from --dem, else a "
-                   "coarse guess from the RPCs)")
+                   help="heights in metres above the WGS84 ellipsoid (default: from --dem, else "
+                   "from SIFT tie points triangulated with the RPCs inside the AOI)")
     p.add_argument("--dem", default=None, metavar="FILE", help="DEM GeoTIFF giving the altitude range")
 
 
@@ -122,12 +122,17 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     options = scam.CameraOptions() if args.grid is None else scam.CameraOptions(grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
     alt = _cli_altitude_range(args)
-    rpcs = None
     if alt is None and args.dem is None:
-        from .rpc import RPCModel
+        from .config import ReconstructOptions
+        from .sparse import SparseOptions
+        from .tiepoints import altitude_range_for_images
 
-        rpcs = [RPCModel.from_image(p) for p in args.images]
-    alt = resolve_altitude_range(alt_range=alt, dem=args.dem, rpcs=rpcs, aoi=aoi)
+        defaults = ReconstructOptions()
+        alt, _ = altitude_range_for_images(
+            args.images, aoi, SparseOptions(), quantile=defaults.tie_altitude_quantile,
+            margin_m=defaults.tie_altitude_margin_m, crop_margin_px=defaults.crop_margin_px)
+    else:
+        alt = resolve_altitude_range(alt_range=alt, dem=args.dem, aoi=aoi)
     views = load_views(args.images, aoi, alt)
     cameras = scam.build_cameras(views, aoi, alt, options)
     images = None

@@ -10,6 +10,7 @@ overrides the file, and the configuration actually used is written beside the ou
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from typing import Any, Literal, Mapping
 
@@ -35,11 +36,20 @@ class ReconstructOptions(Options):
     skew_correct: bool = True  # shear images so that K has no skew before the sweep
     crop_margin_px: int = 32  # margin around the AOI footprint when cropping the images
     write_cloud: bool = True  # write cloud.ply (all reference views' points, UTM, with colour)
+    tie_altitude_quantile: float = 0.01  # without --alt-range or --dem, the altitudes between
+    # this quantile and 1 - it of the SIFT tie points inside the AOI (triangulated with the RPCs)
+    # are swept (satsweep.tiepoints; Pleiades pair: 2271.9..2373.0 m, S2P's DSM 2273.8..2373.2 m)
+    tie_altitude_margin_m: float = 20.0  # ... widened by this much (m) on each side: tie points
+    # are scarce on the lowest ground and the highest roofs
 
     def check(self) -> None:
         self._require(self.device is None or bool(self.device.strip()), "device",
                       "must be auto|cpu|gpu|PLATFORM:DEVICE")
         self._require(0 <= self.crop_margin_px <= 4096, "crop_margin_px", "must be in [0, 4096]")
+        self._require(0.0 <= self.tie_altitude_quantile < 0.5, "tie_altitude_quantile",
+                      "must be in [0, 0.5)")
+        self._require(math.isfinite(self.tie_altitude_margin_m) and self.tie_altitude_margin_m >= 0.0,
+                      "tie_altitude_margin_m", "must be a finite number of metres >= 0")
 
 
 SECTIONS: dict[str, type[Options]] = {

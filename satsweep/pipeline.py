@@ -139,7 +139,7 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     from .bundle import adjust_principal_points
     from .device import open_device
     from .imageio import tonemap
-    from .rpc import RPCModel
+    from .tiepoints import altitude_range_for_images
     from .views import load_views
     from .viewselect import select_views
 
@@ -152,18 +152,26 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     rep["device"] = device.info.as_dict()
     rep.log(f"device: {device.info.label}")
 
-    with rep.stage("views"):
-        rpcs = None
-        if alt_range is None and dem is None:
-            rpcs = [RPCModel.from_image(p) for p in paths]
-        alt = resolve_altitude_range(alt_range=alt_range, dem=dem, rpcs=rpcs, aoi=aoi)
+    names = [Path(p).name for p in paths]
+    if alt_range is None and dem is None:
+        # Neither a range nor a DEM: the RPCs' range (kilometres), narrowed by tie points.
+        with rep.stage("altitude"):
+            r = config.reconstruct
+            alt, rep["altitude_range"] = altitude_range_for_images(
+                paths, aoi, config.sparse, quantile=r.tie_altitude_quantile,
+                margin_m=r.tie_altitude_margin_m, crop_margin_px=r.crop_margin_px)
+        rep.log(f"altitude range {alt.min:.1f}..{alt.max:.1f} m from "
+                f"{rep['altitude_range']['tie_points']} tie points (pass --alt-range or --dem to "
+                "set it)")
+    else:
+        alt = resolve_altitude_range(alt_range=alt_range, dem=dem, aoi=aoi)
         rep["altitude_range"] = {"min": alt.min, "max": alt.max,
-                                 "source": "user" if alt_range is not None else ("dem" if dem else "rpc (coarse)")}
+                                 "source": "user" if alt_range is not None else "dem"}
+    with rep.stage("views"):
         views = load_views(paths, aoi, alt, margin_px=config.reconstruct.crop_margin_px)
         images = [tonemap(v.image) for v in views]
         rep["views"] = [{"image": v.path, "crop": [int(v.x0), int(v.y0), int(v.width), int(v.height)]}
                         for v in views]
-    names = [Path(p).name for p in paths]
 
     with rep.stage("cameras"):
         cameras = scam.build_cameras(views, aoi, alt, config.camera)

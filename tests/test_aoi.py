@@ -288,6 +288,10 @@ def test_altitude_range_from_rpcs(caplog):
         got = saoi.altitude_range_from_rpcs([_fake_rpc(1295.0, 1315.0), _fake_rpc(1000.0, 500.0)])
     assert got == AltitudeRange(1000.0 - 500.0, 1000.0 + 500.0)  # heights valid for both
     assert "coarse" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="satsweep.aoi"):
+        quiet = saoi.altitude_range_from_rpcs([_fake_rpc(1000.0, 500.0)], warn=False)
+    assert quiet == AltitudeRange(500.0, 1500.0) and not caplog.text
     disjoint = saoi.altitude_range_from_rpcs([_fake_rpc(100.0, 50.0), _fake_rpc(500.0, 50.0)])
     assert disjoint == AltitudeRange(50.0, 550.0)  # no common heights: their union
     with pytest.raises(OptionsError):

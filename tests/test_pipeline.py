@@ -125,6 +125,24 @@ def test_tiled_mrf_reconstruction_is_as_accurate_and_reports_its_tiles(scene, re
     assert all(v["mrf"]["tiles"] == 1 for v in one["sweep"])
 
 
+def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
+    """No --alt-range and no DEM: the RPCs' coarse range is narrowed by tie points (reported),
+    and the reconstruction still succeeds against the truth."""
+    config = PipelineConfig.from_mapping(FAST_CAMERA)
+    res = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out", config=config,
+                      truth=scene.truth_dsm, verbose=False)
+    alt = res.report["altitude_range"]
+    assert alt["source"] == "tie points" and alt["tie_points"] >= 20
+    lo, hi = scene.alt_range
+    # the range holds the ground, within the RPCs' heights (these synthetic RPCs are fitted over
+    # the relief alone, so theirs is not the kilometres of a real RPC)
+    assert alt["min"] <= lo and alt["max"] > lo + 1.0
+    assert alt["rpc_range"][0] <= alt["min"] and alt["max"] <= alt["rpc_range"][1]
+    assert "altitude" in res.report["timings_s"]
+    a = res.evaluation["aligned"]  # the bounds of the run given the range
+    assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M and a["completeness_1m"] >= MIN_COMPLETENESS_1M
+
+
 def test_config_written_is_the_config_used(reconstruction):
     again = PipelineConfig.from_toml(reconstruction.out_dir / "config.toml")
     assert again == PipelineConfig.from_mapping(FAST_CAMERA)
