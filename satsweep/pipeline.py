@@ -29,7 +29,7 @@ import numpy as np
 
 from .aoi import AOI, AltitudeRange, resolve_altitude_range
 from .config import PipelineConfig
-from .errors import CameraError, DeviceError, OptionsError
+from .errors import CameraError, DeviceError, InputError, OptionsError
 from .report import RunReport, to_json
 
 if TYPE_CHECKING:
@@ -398,6 +398,7 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
             with rep.stage("sweep"):
                 heights = plane_heights(ref_proj, src_projs, u_range, config.sweep.step_px,
                                         ref_shape=images[r].shape)
+                _check_sgm_labels(heights, config)
                 result, seconds = sweep_refine_tiled(
                     device, images[r], [images[s] for s in srcs],
                     view_homographies(ref_proj, src_projs, heights), heights,
@@ -425,6 +426,18 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
                          "confidence": result.confidence})
     rep["sweep"] = sweeps
     return per_view
+
+
+def _check_sgm_labels(heights: np.ndarray, config: PipelineConfig) -> None:
+    """Refuse, before sweeping, an altitude range with more planes than SGM handles."""
+    from .mrf import SGM_MAX_LABELS
+
+    if config.mrf.method == "sgm" and heights.size > SGM_MAX_LABELS:
+        raise InputError(None, f"the altitude range spans {abs(heights[-1] - heights[0]):.0f} m: "
+                               f"{heights.size} planes at [sweep] step_px = "
+                               f"{config.sweep.step_px:g}, more than SGM's {SGM_MAX_LABELS}; "
+                               "give a tighter --alt-range or --dem, a larger step_px, or "
+                               "--mrf none")
 
 
 def _nanmean_stack(arrays: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:

@@ -268,6 +268,9 @@ def test_cli_bad_inputs(scene, tmp_path, capsys):
         (["reconstruct", *imgs, "--aoi", aoi, "--out", str(out), "--config", str(tmp_path / "no.toml")],
          "no.toml"),
         (["reconstruct", *imgs, "--aoi", aoi, "--out", str(out), "--device", "7:7"], "7:7"),
+        # kilometres of relief: refused before the sweep, with what to change
+        (["reconstruct", *imgs, "--aoi", aoi, "--alt-range", "-2000", "5000", "--out", str(out),
+          "--config", str(_fast_config(tmp_path))], "more than SGM's 1024; give a tighter"),
     ]
     for args, needle in cases:
         line = _cli_error(capsys, args + ["--quiet"])
