@@ -258,6 +258,8 @@ def test_cli_bad_inputs(scene, tmp_path, capsys):
     out = tmp_path / "out"
     not_tiff = tmp_path / "notes.tif"
     not_tiff.write_text("hello")
+    fine_steps = tmp_path / "fine.toml"
+    fine_steps.write_text("[camera]\ngrid_size = [20, 20, 6]\n[sweep]\nstep_px = 0.01\n")
     cases = [
         (["reconstruct", imgs[0], "--aoi", aoi, "--out", str(out)], "at least two images"),
         (["reconstruct", *imgs, "--aoi", "3,1,2,2", "--out", str(out)], "lon_min = 3.0 >= lon_max"),
@@ -268,9 +270,9 @@ def test_cli_bad_inputs(scene, tmp_path, capsys):
         (["reconstruct", *imgs, "--aoi", aoi, "--out", str(out), "--config", str(tmp_path / "no.toml")],
          "no.toml"),
         (["reconstruct", *imgs, "--aoi", aoi, "--out", str(out), "--device", "7:7"], "7:7"),
-        # kilometres of relief: refused before the sweep, with what to change
-        (["reconstruct", *imgs, "--aoi", aoi, "--alt-range", "-2000", "5000", "--out", str(out),
-          "--config", str(_fast_config(tmp_path))], "more than SGM's 1024; give a tighter"),
+        # more planes than SGM takes (here from a tiny plane step): refused before the sweep
+        (["reconstruct", *imgs, "--aoi", aoi, "--alt-range", "90", "170", "--out", str(out),
+          "--config", str(fine_steps)], "more than SGM's 1024; give a tighter"),
     ]
     for args, needle in cases:
         line = _cli_error(capsys, args + ["--quiet"])
