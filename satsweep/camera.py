@@ -446,14 +446,15 @@ def fit_camera(rpc, grid: AOIGrid, image_shape: Sequence[int], options: CameraOp
         )
     points = np.stack([grid.e[inside], grid.n[inside], grid.u[inside]], axis=1)
     pixels = np.stack([col[inside], row[inside]], axis=1)
-    fit = slice(None)
+    fit_points, fit_pixels = points, pixels
     if n_inside > options.fit_samples:
         fit = np.sort(np.random.default_rng(FIT_SUBSET_SEED).choice(n_inside, options.fit_samples,
                                                                     replace=False))
+        fit_points, fit_pixels = points[fit], pixels[fit]
     try:
-        P = normalized_dlt(points[fit], pixels[fit])
+        P = normalized_dlt(fit_points, fit_pixels)
         if options.refine:
-            P = refine_projection(P, points[fit], pixels[fit])
+            P = refine_projection(P, fit_points, fit_pixels)
     except CameraError as exc:
         raise CameraError(f"{where}{exc}") from None
     P, K, R, t = decompose_projection(P)

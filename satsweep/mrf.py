@@ -313,6 +313,19 @@ def sgm_work_group(device: Device, options: MRFOptions, n_labels: int) -> int:
     return wg
 
 
+def _check_device_array(device: Device, arr, layout: str, instead: str) -> None:
+    """A device volume must be a C-contiguous 3-D float32 pyopencl Array of this device's context
+    without offset (``layout`` and ``instead`` complete the messages)."""
+    if arr.dtype != np.float32 or arr.ndim != 3 or not arr.flags.c_contiguous:
+        raise InputError(None, f"cost_volume: device array must be C-contiguous float32 "
+                               f"{layout}, got {arr.dtype} {arr.shape}")
+    if arr.context != device.context:
+        raise InputError(None, "cost_volume: device array lives in another OpenCL context")
+    if arr.offset != 0:
+        raise InputError(None, f"cost_volume: device array is a view with an offset; pass a "
+                               f"{instead}")
+
+
 def _as_device_volume(device: Device, cost_volume, shape):
     """(buffer, (L, H, W), owned) for a numpy volume, a pyopencl Array or a Buffer; owned: the
     buffer was uploaded here (from a numpy volume) and may be released after use."""
@@ -320,15 +333,7 @@ def _as_device_volume(device: Device, cost_volume, shape):
     import pyopencl.array as cla  # noqa: PLC0415
 
     if isinstance(cost_volume, cla.Array):
-        if cost_volume.dtype != np.float32 or cost_volume.ndim != 3 \
-                or not cost_volume.flags.c_contiguous:
-            raise InputError(None, f"cost_volume: device array must be C-contiguous float32 "
-                                   f"(planes, H, W), got {cost_volume.dtype} {cost_volume.shape}")
-        if cost_volume.context != device.context:
-            raise InputError(None, "cost_volume: device array lives in another OpenCL context")
-        if cost_volume.offset != 0:
-            raise InputError(None, "cost_volume: device array is a view with an offset; pass a "
-                                   "copy or its buffer with shape=")
+        _check_device_array(device, cost_volume, "(planes, H, W)", "copy or its buffer with shape=")
         return cost_volume.data, tuple(int(s) for s in cost_volume.shape), False
     if isinstance(cost_volume, cl.Buffer):
         if shape is None or len(shape) != 3:
@@ -348,13 +353,10 @@ def _pixel_major_volume(device: Device, cost_volume) -> tuple[int, int, int]:
     checks a plane-major one."""
     import pyopencl.array as cla  # noqa: PLC0415
 
-    if not isinstance(cost_volume, cla.Array) or cost_volume.dtype != np.float32 \
-            or cost_volume.ndim != 3 or not cost_volume.flags.c_contiguous \
-            or cost_volume.offset != 0:
+    if not isinstance(cost_volume, cla.Array):
         raise InputError(None, "cost_volume: a pixel-major volume must be a C-contiguous float32 "
                                "pyopencl Array (H, W, L) without offset")
-    if cost_volume.context != device.context:
-        raise InputError(None, "cost_volume: device array lives in another OpenCL context")
+    _check_device_array(device, cost_volume, "(H, W, L)", "copy")
     h, w, n_labels = (int(s) for s in cost_volume.shape)
     if min(h, w, n_labels) < 1:
         raise InputError(None, f"cost_volume: expected (H, W, L), got shape {cost_volume.shape}")
