@@ -28,6 +28,13 @@
  *   (inv_sigma = 0: no adaptation, P2' = max(P1, P2)). The terms in d-1, d+1 are absent at the
  *   label range ends. Subtracting m keeps Lr bounded (Lr <= max C + P2').
  *
+ * Label bands (coarse-to-fine search): with banded != 0, label d of pixel p stands for the plane
+ *   base[p] + d (base: one int per pixel, pixel-major like the volume), so neighbouring pixels may
+ *   cover different windows of SGM_NL planes. The recurrence then compares the same PLANES: with
+ *   delta = base[p] - base[p-r], Lr(p-r, d + delta) takes the place of Lr(p-r, d) (and d + delta
+ *   +- 1 that of d +- 1), labels outside p-r's window counting as +inf; m is still the minimum over
+ *   p-r's window. banded == 0 is the plain recurrence (delta = 0; base is not read).
+ *
  * Scanlines of a direction: dy == 0: one per row (H lines) starting at column 0 (dx > 0) or
  *   W-1; dx == 0: one per column (W lines) starting at row 0 (dy > 0) or H-1; diagonal: W + H - 1
  *   lines, line i < W starting at (i, y0) and line i >= W at (x0, row j = i - W + 1 counted from
@@ -65,6 +72,8 @@
 #error "SGM_WG must be a power of two"
 #endif
 
+/* +inf guard entries on each side of a step's labels (one-work-item path) */
+#define SGM_GUARD (SGM_NL + 2)
 /* labels per work-item */
 #define SGM_LPT ((SGM_NL + SGM_WG - 1) / SGM_WG)
 /* cost values at or below this are the sweep's invalid marker */
@@ -102,18 +111,25 @@ inline void sgm_line_start(const int line, const int w, const int h, const int d
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
 void sgm_path(__global const float *cost, __global const float *guide, __global float *agg,
               const int w, const int h, const int dx, const int dy,
-              const float p1, const float p2, const float inv_sigma, const int accumulate)
+              const float p1, const float p2, const float inv_sigma, const int accumulate,
+              __global const int *base, const int banded)
 {
-    float buf_a[SGM_NL + 2], buf_b[SGM_NL + 2];
-    float *prev = buf_a + 1, *cur = buf_b + 1;
-    buf_a[0] = buf_b[0] = INFINITY;
-    prev[SGM_NL] = cur[SGM_NL] = INFINITY;
+    /* Each step's labels sit between +inf guards of SGM_GUARD entries, so that a band shift
+     * delta (clamped to +-(SGM_NL + 1), beyond which the windows do not meet) reads only guards
+     * outside the window. */
+    float buf_a[SGM_NL + 2 * SGM_GUARD], buf_b[SGM_NL + 2 * SGM_GUARD];
+    float *prev = buf_a + SGM_GUARD, *cur = buf_b + SGM_GUARD;
+    for (int i = 0; i < SGM_GUARD; ++i) {
+        buf_a[i] = buf_b[i] = INFINITY;
+        prev[SGM_NL + i] = cur[SGM_NL + i] = INFINITY;
+    }
     for (int d = 0; d < SGM_NL; ++d) prev[d] = 0.0f;
 
     int x, y;
     sgm_line_start(get_group_id(0), w, h, dx, dy, &x, &y);
     float prev_min = 0.0f;
     float prev_guide = 0.0f;
+    int prev_base = banded ? base[(size_t)y * (size_t)w + (size_t)x] : 0;
     while (x >= 0 && x < w && y >= 0 && y < h) {
         const size_t idx = (size_t)y * (size_t)w + (size_t)x;
         __global const float *c = cost + idx * SGM_NL;
@@ -121,22 +137,24 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
         const float gv = guide[idx];
         const float jump = prev_min + fmax(p1, p2 / (1.0f + fabs(gv - prev_guide) * inv_sigma));
         const float8 jump8 = (float8)(jump), p18 = (float8)(p1), min8 = (float8)(prev_min);
+        const int cur_base = banded ? base[idx] : 0;
+        const float *pv = prev + clamp(cur_base - prev_base, -(SGM_NL + 1), SGM_NL + 1);
         float8 vmin = (float8)(MAXFLOAT);
         float cmin = MAXFLOAT;
         int d = 0;
         for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
-            float8 m = fmin(vload8(0, prev + d), jump8);
-            m = fmin(m, vload8(0, prev + d - 1) + p18);
-            m = fmin(m, vload8(0, prev + d + 1) + p18);
+            float8 m = fmin(vload8(0, pv + d), jump8);
+            m = fmin(m, vload8(0, pv + d - 1) + p18);
+            m = fmin(m, vload8(0, pv + d + 1) + p18);
             const float8 v = vload8(0, c + d) + (m - min8);
             vstore8(v, 0, cur + d);
             vstore8(accumulate ? vload8(0, a + d) + v : v, 0, a + d);
             vmin = fmin(vmin, v);
         }
         for (; d < SGM_NL; ++d) {
-            float m = fmin(prev[d], jump);
-            m = fmin(m, prev[d - 1] + p1);
-            m = fmin(m, prev[d + 1] + p1);
+            float m = fmin(pv[d], jump);
+            m = fmin(m, pv[d - 1] + p1);
+            m = fmin(m, pv[d + 1] + p1);
             const float v = c[d] + (m - prev_min);
             cur[d] = v;
             a[d] = accumulate ? a[d] + v : v;
@@ -149,6 +167,7 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
         prev = cur;
         cur = t;
         prev_guide = gv;
+        prev_base = cur_base;
         x += dx;
         y += dy;
     }
@@ -157,7 +176,8 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
 __kernel __attribute__((reqd_work_group_size(SGM_WG, 1, 1)))
 void sgm_path(__global const float *cost, __global const float *guide, __global float *agg,
               const int w, const int h, const int dx, const int dy,
-              const float p1, const float p2, const float inv_sigma, const int accumulate)
+              const float p1, const float p2, const float inv_sigma, const int accumulate,
+              __global const int *base, const int banded)
 {
     __local float prev[SGM_NL];   /* Lr(p - r, .) */
     __local float red[SGM_WG];    /* reduction scratch for min_k */
@@ -170,6 +190,7 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
     float prev_min = 0.0f;
     float prev_guide = 0.0f;
     int first = 1;
+    int prev_base = 0;
 
     /* x, y are the same for every work-item of the group, so the loop and its barriers are
      * uniform across the group. */
@@ -179,6 +200,8 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
         const float p2a = first ? p2
                                 : fmax(p1, p2 / (1.0f + fabs(gv - prev_guide) * inv_sigma));
         const float jump = prev_min + p2a;
+        const int cur_base = banded ? base[idx] : 0;
+        const int delta = first ? 0 : cur_base - prev_base;
         float cmin = MAXFLOAT;
         for (int k = 0; k < SGM_LPT; ++k) {
             const int d = lid + k * SGM_WG;
@@ -187,9 +210,11 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
                 const float c = cost[o];
                 float v = c;
                 if (!first) {
-                    float m = fmin(prev[d], jump);
-                    if (d > 0) m = fmin(m, prev[d - 1] + p1);
-                    if (d < SGM_NL - 1) m = fmin(m, prev[d + 1] + p1);
+                    const int j = d + delta;  /* the same plane in p - r's window */
+                    float m = jump;
+                    if (j >= 0 && j < SGM_NL) m = fmin(m, prev[j]);
+                    if (j - 1 >= 0 && j - 1 < SGM_NL) m = fmin(m, prev[j - 1] + p1);
+                    if (j + 1 >= 0 && j + 1 < SGM_NL) m = fmin(m, prev[j + 1] + p1);
                     v = c + (m - prev_min);
                 }
                 cur[k] = v;
@@ -211,6 +236,7 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
         prev_min = red[0];
         barrier(CLK_LOCAL_MEM_FENCE);   /* everyone has read red[0] before it is overwritten */
         prev_guide = gv;
+        prev_base = cur_base;
         first = 0;
         x += dx;
         y += dy;

@@ -176,9 +176,11 @@ class MRFResult:
 # ---------------------------------------------------------------------------------------------
 # input checks
 # ---------------------------------------------------------------------------------------------
-def _check_heights(heights, n_labels: int) -> np.ndarray:
+def _check_heights(heights, n_labels: int, *, banded: bool = False) -> np.ndarray:
+    """The plane heights: one per label, or with label bands (``banded``) at least as many
+    planes as the window of labels."""
     h = np.asarray(heights, dtype=np.float64).reshape(-1)
-    if h.size != n_labels:
+    if (h.size < n_labels) if banded else (h.size != n_labels):
         raise InputError(None, f"heights: {h.size} values for a cost volume of {n_labels} planes")
     if not np.isfinite(h).all():
         raise InputError(None, "heights: holds NaN or infinite values")
@@ -218,6 +220,22 @@ def _check_visible(visible, shape: tuple[int, int, int]) -> np.ndarray | None:
     if v.shape != shape and v.shape != shape[1:]:
         raise InputError(None, f"visible: shape {v.shape}, expected {shape[1:]} or {shape}")
     return v
+
+
+def _check_label_base(label_base, shape: tuple[int, int], n_labels: int,
+                      n_planes: int | None) -> np.ndarray | None:
+    """The (H, W) int32 first plane of each pixel's label window (None: no bands): label d of
+    pixel p stands for plane label_base[p] + d, which must lie in [0, n_planes)."""
+    if label_base is None:
+        return None
+    b = np.asarray(label_base)
+    if b.shape != shape or not np.issubdtype(b.dtype, np.integer):
+        raise InputError(None, f"label_base: expected integers of shape {shape}, got "
+                               f"{b.dtype} {b.shape}")
+    if b.size and (b.min() < 0 or (n_planes is not None and b.max() + n_labels > n_planes)):
+        raise InputError(None, f"label_base: windows of {n_labels} labels from planes "
+                               f"{b.min()}..{b.max()} leave the {n_planes} planes")
+    return np.ascontiguousarray(b, dtype=np.int32)
 
 
 def _check_scale(cost_scale: float) -> float:
@@ -272,8 +290,17 @@ def _equiangular_offset(cm: np.ndarray, c0: np.ndarray, cp: np.ndarray,
 
 def _finish(labels: np.ndarray, offset: np.ndarray, confidence: np.ndarray, cost_min: np.ndarray,
             heights: np.ndarray, visible: np.ndarray | None, reject_range_edges: bool,
-            seconds: float, energy: float = math.nan) -> MRFResult:
-    n_labels = heights.size
+            seconds: float, energy: float = math.nan, *, label_base: np.ndarray | None = None,
+            n_labels: int | None = None) -> MRFResult:
+    """Labels (and offsets) -> plane indices and heights. With ``label_base``, label d of a pixel
+    is plane label_base + d of ``heights``, its window holds ``n_labels`` labels, and the range
+    edges that ``reject_range_edges`` refuses are the window's (a minimum there may lie outside
+    it)."""
+    if n_labels is None:
+        n_labels = heights.size
+    window = labels.astype(np.int64)
+    if label_base is not None:
+        labels = window + label_base
     index = (labels + offset).astype(np.float32)
     if visible is None:
         valid = np.ones(labels.shape, bool)
@@ -282,9 +309,9 @@ def _finish(labels: np.ndarray, offset: np.ndarray, confidence: np.ndarray, cost
     else:
         valid = np.take_along_axis(visible, labels[None].astype(np.intp), axis=0)[0]
     if reject_range_edges:
-        valid &= (labels > 0) & (labels < n_labels - 1)
-    if n_labels > 1:
-        height = np.interp(index.astype(np.float64), np.arange(n_labels), heights)
+        valid &= (window > 0) & (window < n_labels - 1)
+    if heights.size > 1:
+        height = np.interp(index.astype(np.float64), np.arange(heights.size), heights)
     else:
         height = np.full(labels.shape, heights[0])
     height[~valid] = np.nan
@@ -396,7 +423,7 @@ def _check_sgm_size(device: Device, dims: tuple[int, int, int]) -> None:
 
 def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
                   cost_scale: float = 1.0, shape: tuple[int, int, int] | None = None,
-                  pixel_major: bool = False):
+                  pixel_major: bool = False, label_base=None):
     """Sum of the SGM path costs over ``options.sgm_paths`` directions, on the device.
 
     ``cost_volume``: (L, H, W) float32 as a numpy array, a ``pyopencl.array.Array`` in the
@@ -406,19 +433,20 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
     is turned pixel-major on the device, aggregated, and turned back; at most three volumes are
     held at once. With ``pixel_major``, ``cost_volume`` is already in SGM's layout, a
     ``pyopencl.array.Array`` (H, W, L) (as ``PlaneSweep.run(volume_on_device=True)`` leaves
-    it), whose entries are all valid costs, and it is aggregated as it is. Returns a
-    ``pyopencl.array.Array`` (L, H, W) float32 on the device.
+    it), whose entries are all valid costs, and it is aggregated as it is. ``label_base``
+    ((H, W) integers, optional): label d of pixel p is plane label_base[p] + d (label bands of a
+    coarse-to-fine search, kernels/sgm.cl). Returns a ``pyopencl.array.Array`` (L, H, W) float32
+    on the device.
     """
-    import pyopencl as cl  # noqa: PLC0415
     import pyopencl.array as cla  # noqa: PLC0415
 
     agg_pm, prg = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
                                              cost_scale=cost_scale, shape=shape,
-                                             pixel_major=pixel_major)
+                                             pixel_major=pixel_major, label_base=label_base)
     h, w, n_labels = agg_pm.shape
     queue = device.queue
     agg = cla.empty(queue, (n_labels, h, w), np.float32)
-    cl.Kernel(prg, "sgm_to_plane_major")(queue, (h * w,), None, agg_pm.data, agg.data,
+    device.kernel(prg, "sgm_to_plane_major")(queue, (h * w,), None, agg_pm.data, agg.data,
                                          np.int32(h * w))
     queue.finish()
     agg_pm.data.release()
@@ -427,20 +455,22 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
 
 def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFOptions, *,
                                cost_scale: float, shape: tuple[int, int, int] | None,
-                               pixel_major: bool = False):
+                               pixel_major: bool = False, label_base=None):
     """``sgm_aggregate`` without the final transposition: ((H, W, L) device array, program)."""
-    import pyopencl as cl  # noqa: PLC0415
     import pyopencl.array as cla  # noqa: PLC0415
 
     scale = _check_scale(cost_scale)
     n_labels, h, w = _pixel_major_volume(device, cost_volume) if pixel_major \
         else _volume_shape(cost_volume, shape)
     g = _check_guide(guide, (h, w))
+    base = _check_label_base(label_base, (h, w), n_labels, None)
     _check_sgm_size(device, (n_labels, h, w))
     wg = sgm_work_group(device, options, n_labels)
     prg = device.build("sgm", {"SGM_NL": n_labels, "SGM_WG": wg})
     queue = device.queue
     guide_d = cla.to_device(queue, g)
+    # The kernel reads base only when banded; a one-entry buffer stands in otherwise.
+    base_d = cla.to_device(queue, base if base is not None else np.zeros(1, np.int32))
     n_pix = h * w
     i32, f32 = np.int32, np.float32
     if pixel_major:
@@ -449,18 +479,19 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
         # Pixel-major copy of the costs (invalid entries replaced), aggregated in that layout.
         buf, _, owned = _as_device_volume(device, cost_volume, shape)
         cost_pm = cla.empty(queue, (h, w, n_labels), np.float32)
-        cl.Kernel(prg, "sgm_to_pixel_major")(queue, (n_pix,), None, buf, cost_pm.data,
+        device.kernel(prg, "sgm_to_pixel_major")(queue, (n_pix,), None, buf, cost_pm.data,
                                              i32(n_pix), f32(scale))
         if owned:
             buf.release()  # the uploaded host volume is no longer needed on the device
     agg_pm = cla.empty(queue, (h, w, n_labels), np.float32)
     inv_sigma = 0.0 if options.sgm_p2_sigma == 0.0 else 1.0 / options.sgm_p2_sigma
-    kernel = cl.Kernel(prg, "sgm_path")
+    kernel = device.kernel(prg, "sgm_path")
     for i, (dx, dy) in enumerate(SGM_DIRECTIONS[:options.sgm_paths]):
         n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
         kernel(queue, (n_lines * wg,), (wg,), cost_pm.data, guide_d.data, agg_pm.data, i32(w),
                i32(h), i32(dx), i32(dy), f32(options.sgm_p1 * scale), f32(options.sgm_p2 * scale),
-               f32(inv_sigma), i32(1 if i > 0 else 0))
+               f32(inv_sigma), i32(1 if i > 0 else 0), base_d.data,
+               i32(0 if base is None else 1))
     queue.finish()
     if not pixel_major:
         cost_pm.data.release()
@@ -471,7 +502,6 @@ def _wta_state(device: Device, agg_pm) -> np.ndarray:
     """wta.cl's winner-take-all state (8, H, W) of a whole PIXEL-MAJOR (H, W, L) device volume,
     in one pass (``wta_pixel_major``: the same state as streaming the planes through
     ``wta_update``, without turning the volume plane-major first)."""
-    import pyopencl as cl  # noqa: PLC0415
     import pyopencl.array as cla  # noqa: PLC0415
 
     h, w, n_labels = agg_pm.shape
@@ -479,7 +509,7 @@ def _wta_state(device: Device, agg_pm) -> np.ndarray:
     prg = device.build("wta", {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1, "WTA_VEC": WTA_VEC})
     queue = device.queue
     state = cla.empty(queue, (_WTA_NSTATE, h, w), np.float32)
-    cl.Kernel(prg, "wta_pixel_major")(queue, (-(-h * w // WTA_VEC),), None, agg_pm.data,
+    device.kernel(prg, "wta_pixel_major")(queue, (-(-h * w // WTA_VEC),), None, agg_pm.data,
                                       np.int32(h * w), np.int32(n_labels), state.data)
     return state.get()
 
@@ -487,23 +517,27 @@ def _wta_state(device: Device, agg_pm) -> np.ndarray:
 def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions, *,
                cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
                shape: tuple[int, int, int] | None = None,
-               pixel_major: bool = False) -> MRFResult:
+               pixel_major: bool = False, label_base=None) -> MRFResult:
     """SGM aggregation, then winner-take-all with sub-plane refinement and confidence.
 
     The argmin, the parabola and the second local minimum are those of the sweep's WTA
     (wta.cl, run on the aggregated volume); the confidence margin is divided by
     ``sgm_paths * cost_scale`` since each path adds about one cost. See ``sgm_aggregate`` for the
-    inputs (and ``pixel_major``) and ``MRFResult`` for the outputs.
+    inputs (``pixel_major``, ``label_base``) and ``MRFResult`` for the outputs; with
+    ``label_base``, ``heights`` holds every plane and ``visible`` must be 2-D.
     """
     t0 = time.perf_counter()
     dims = _pixel_major_volume(device, cost_volume) if pixel_major \
         else _volume_shape(cost_volume, shape)
     n_labels = dims[0]
-    hts = _check_heights(heights, n_labels)
+    hts = _check_heights(heights, n_labels, banded=label_base is not None)
+    base = _check_label_base(label_base, dims[1:], n_labels, hts.size)
     vis = _check_visible(visible, dims)
+    if base is not None and vis is not None and vis.ndim == 3:
+        raise InputError(None, "visible: with label_base, give one mask per pixel (H, W)")
     agg_pm, _ = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
                                            cost_scale=cost_scale, shape=shape,
-                                           pixel_major=pixel_major)
+                                           pixel_major=pixel_major, label_base=base)
     try:
         s = _wta_state(device, agg_pm).astype(np.float64)
     finally:
@@ -523,7 +557,7 @@ def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions,
     c2 = np.where(m2 < _WTA_BIG, m2, s[_S_MAX])
     conf = (c2 - m1) / (options.sgm_paths * _check_scale(cost_scale))
     return _finish(i1, offset, conf, m1, hts, vis, reject_range_edges,
-                   time.perf_counter() - t0)
+                   time.perf_counter() - t0, label_base=base, n_labels=n_labels)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -875,7 +909,8 @@ def wta_labels(cost_volume) -> np.ndarray:
 
 def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptions, *,
            cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
-           initial_labels=None, pixel_major: bool = False) -> MRFResult | None:
+           initial_labels=None, pixel_major: bool = False,
+           label_base=None) -> MRFResult | None:
     """Dispatch on ``options.method``: None for ``none`` (keep the sweep's WTA), else the result.
 
     SGM needs ``device`` (and alone takes a ``pixel_major`` device volume, see
@@ -889,7 +924,10 @@ def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptio
             raise DeviceError("MRF method sgm needs an OpenCL device")
         return sgm_refine(device, cost_volume, guide, heights, options, cost_scale=cost_scale,
                           visible=visible, reject_range_edges=reject_range_edges,
-                          pixel_major=pixel_major)
+                          pixel_major=pixel_major, label_base=label_base)
+    if label_base is not None:
+        raise InputError(None, f"label_base: MRF method {options.method} takes no label bands "
+                               "(SGM does)")
     if pixel_major:
         raise InputError(None, f"cost_volume: MRF method {options.method} takes a plane-major "
                                "host volume, not a pixel-major device volume")

@@ -304,10 +304,13 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     reference that fits one tile gives exactly the untiled result. The images are
     prefiltered once, whole (the MRF's guide is the reference as given); the left-right check
     (``sweep.lr_check``) runs once on the assembled winner-take-all map, as the untiled sweep
-    does. The sweep runs with ``mrf_sweep_options(sweep, mrf)``.
+    does. The sweep runs with ``mrf_sweep_options(sweep, mrf)``. With ``sweep.search =
+    "coarse_to_fine"`` and SGM, the reference is first swept and refined at half resolution
+    (``coarse_plane_index``) and each tile then sweeps plane windows (``satsweep.coarse``).
     ``progress(done, total)`` is called after each tile. Returns (SweepResult with
     n_tiles = the MRF tiles, MRF seconds).
     """
+    from .coarse import plane_windows  # noqa: PLC0415
     from .mrf import refine  # noqa: PLC0415
     from .sweep import PlaneSweep, SweepResult, prefilter, tile_grid  # noqa: PLC0415
 
@@ -321,9 +324,13 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     engine = PlaneSweep(device, mrf_sweep_options(sweep, mrf).replace(lr_check=False,
                                                                       prefilter_sigma_px=0.0))
     h_img, w_img = ref.shape
-    side = mrf_tile_side(hts.size, mrf, engine.budget_bytes(), device.max_alloc_bytes)
     # SGM runs on the device: the tile's volume stays there. The graph cut runs on the host.
     on_device = mrf.method == "sgm"
+    seconds = 0.0
+    coarse = None
+    if sweep.search == "coarse_to_fine" and on_device and not sweep.lr_check:
+        coarse, seconds = coarse_plane_index(device, ref, srcs, hom, hts, sweep, mrf)
+    side = mrf_tile_side(hts.size, mrf, engine.budget_bytes(), device.max_alloc_bytes)
     height = np.full((h_img, w_img), np.nan)
     plane_index = np.zeros((h_img, w_img), np.float32)
     confidence = np.zeros((h_img, w_img), np.float32)
@@ -331,7 +338,7 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     valid = np.zeros((h_img, w_img), bool)
     wta_index = np.zeros((h_img, w_img), np.float32)
     wta_valid = np.zeros((h_img, w_img), bool)
-    n_tiles, peak, seconds = 0, 0, 0.0
+    n_tiles, peak, window_planes = 0, 0, 0
     tiles = list(tile_grid(w_img, h_img, side, side, mrf.tile_overlap_px))
     for x0, y0, x1, y1, tx0, ty0, tx1, ty1 in tiles:
         shift = np.array([[1.0, 0.0, tx0], [0.0, 1.0, ty0], [0.0, 0.0, 1.0]])
@@ -344,17 +351,26 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
             back = np.array([[[1.0, 0.0, -wx0], [0.0, 1.0, -wy0], [0.0, 0.0, 1.0]]
                              for wx0, wy0, _, _ in windows])
             tile_hom = back[None] @ tile_hom
+        windows = None
+        if coarse is not None:
+            windows = plane_windows(coarse[ty0:ty1, tx0:tx1], hts.size,
+                                    block=sweep.window_block_px, halo=sweep.window_halo_px,
+                                    margin=sweep.window_margin_planes,
+                                    max_fraction=sweep.window_max_fraction)
         r = engine.run(ref[ty0:ty1, tx0:tx1], tile_srcs, tile_hom, hts, keep_volume=True,
-                       volume_on_device=on_device)
+                       volume_on_device=on_device, plane_windows=windows)
+        window_planes = max(window_planes, hts.size if windows is None else windows.n_planes)
         initial = np.clip(np.rint(r.plane_index), 0, hts.size - 1).astype(np.int32)
         try:
             m = refine(device, r.volume, guide[ty0:ty1, tx0:tx1], hts, mrf,
                        cost_scale=float(sweep.census_bits),
                        reject_range_edges=sweep.reject_range_edges, initial_labels=initial,
-                       pixel_major=on_device)
+                       pixel_major=on_device, label_base=r.plane_base)
         finally:
             if on_device:
                 r.volume.data.release()
+        if windows is not None:
+            _reject_unswept_labels(m, r.plane_base, windows, sweep.reject_range_edges)
         keep = (slice(y0 - ty0, y1 - ty0), slice(x0 - tx0, x1 - tx0))
         out = (slice(y0, y1), slice(x0, x1))
         wta_index[out], wta_valid[out] = r.plane_index[keep], r.valid[keep]
@@ -373,7 +389,43 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
         valid &= engine.lr_mask(wta_index, wta_valid, ref, srcs, hom, hts)
     height[~valid] = np.nan
     return SweepResult(height=height, plane_index=plane_index, confidence=confidence, valid=valid,
-                       cost_min=cost_min, n_tiles=n_tiles, peak_device_bytes=peak), seconds
+                       cost_min=cost_min, n_tiles=n_tiles, peak_device_bytes=peak,
+                       window_planes=window_planes if coarse is not None else None), seconds
+
+
+def _reject_unswept_labels(result, plane_base: np.ndarray, windows, reject_edges: bool) -> None:
+    """An MRF label among the window's unswept planes (worst cost, no evidence) is invalid; so
+    is one at either end of the swept planes with ``reject_edges`` (the minimum may lie past
+    it), as at the ends of the whole range."""
+    first, count = windows.swept_labels(plane_base.shape)
+    label = result.labels - plane_base - first
+    edge = 1 if reject_edges else 0
+    result.valid &= (label >= edge) & (label <= count - 1 - edge)
+    result.height[~result.valid] = np.nan
+
+
+def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, heights,
+                       sweep: SweepOptions, mrf: MRFOptions) -> tuple[np.ndarray | None, float]:
+    """The coarse pass of a coarse-to-fine sweep: the images at half resolution
+    (``coarse.downsample2``) swept over every other plane and refined by ``mrf`` (a full search,
+    tiled as ``sweep_refine_tiled`` tiles), as a map of full-resolution plane indices (NaN where
+    invalid) over the reference's pixels. Returns (None, 0) when the reference is too small or
+    has too few planes to gain (``coarse.worth_a_coarse_pass``); else (map, MRF seconds).
+    """
+    from .coarse import (downsample2, half_resolution_homographies,  # noqa: PLC0415
+                         upsample_index, worth_a_coarse_pass)
+
+    hts = np.asarray(heights, dtype=np.float64)
+    shape = np.shape(ref_image)
+    if not worth_a_coarse_pass(shape, hts.size):
+        return None, 0.0
+    every_other = slice(0, hts.size, 2)
+    half, seconds = sweep_refine_tiled(
+        device, downsample2(ref_image), [downsample2(s) for s in src_images],
+        half_resolution_homographies(np.asarray(homographies)[every_other]), hts[every_other],
+        sweep.replace(search="full"), mrf)
+    index = np.where(half.valid, 2.0 * half.plane_index, np.nan)
+    return upsample_index(index, shape), seconds
 
 
 def _sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
@@ -420,6 +472,7 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
             "planes": int(len(heights)),
             "plane_step_m": float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
             "valid_fraction": float(valid.mean()), "tiles": int(result.n_tiles),
+            "window_planes": result.window_planes,
             "mrf": mrf_info,
         })
         per_view.append({"index": r, "height": result.height, "valid": valid,

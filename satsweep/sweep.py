@@ -110,6 +110,16 @@ class SweepOptions(Options):
     # times faster on PoCL, tools/bench_sweep.py); "staged" does both in one work-group kernel
     # with the warped patch in local memory (sweep_census_cost). Same costs, bit for bit.
     work_group: tuple[int, int] = (16, 16)  # work-group size of the staged census kernel (x, y)
+    search: Literal["full", "coarse_to_fine"] = "full"  # with SGM: "coarse_to_fine" sweeps and
+    # refines the reference at half resolution over every other plane first, then sweeps each
+    # block of the reference over a window of the planes only (satsweep/coarse.py); "full"
+    # sweeps every plane everywhere. The winner-take-all path (--mrf none) always sweeps all
+    window_block_px: int = 64  # coarse_to_fine: side of the blocks that share a plane window
+    window_halo_px: int = 8  # coarse_to_fine: pixels around a block whose coarse heights its
+    # window also spans (the coarse map's edges lie a pixel or two off)
+    window_margin_planes: int = 4  # coarse_to_fine: planes added below and above each window
+    window_max_fraction: float = 0.6  # coarse_to_fine: sweep all planes when the windows would
+    # hold more than this fraction of them (too little to gain)
 
     def check(self) -> None:
         rows, cols = self.census_window
@@ -146,6 +156,14 @@ class SweepOptions(Options):
         wx, wy = self.work_group
         self._require(1 <= wx <= 256 and 1 <= wy <= 256 and wx * wy <= 1024, "work_group",
                       "sizes must be in [1, 256] with a product <= 1024")
+        self._require(8 <= self.window_block_px <= 4096, "window_block_px",
+                      "must be in [8, 4096] pixels")
+        self._require(0 <= self.window_halo_px <= 256, "window_halo_px",
+                      "must be in [0, 256] pixels")
+        self._require(0 <= self.window_margin_planes <= 256, "window_margin_planes",
+                      "must be in [0, 256] planes")
+        self._require(math.isfinite(self.window_max_fraction) and 0 < self.window_max_fraction <= 1,
+                      "window_max_fraction", "must be in (0, 1]")
 
     @property
     def census_radii(self) -> tuple[int, int]:
@@ -212,6 +230,10 @@ class SweepResult:
     # asked for it (``keep_volume``: an MRF refinement needs every plane's cost); None otherwise.
     volume: np.ndarray | None = None
     altitude: np.ndarray | None = None  # heights above the WGS84 ellipsoid (sweep_views + frame)
+    # With plane windows: (H, W) int32, the plane of the volume's first label at each pixel
+    # (label d of pixel p is plane plane_base[p] + d); None when every pixel has every plane.
+    plane_base: np.ndarray | None = None
+    window_planes: int | None = None  # planes per window of a coarse-to-fine sweep (else None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -229,6 +251,73 @@ class TilePlan:
     @property
     def total_bytes(self) -> int:
         return self.resident_bytes + self.tile_bytes
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PlaneWindows:
+    """Which planes a coarse-to-fine sweep evaluates: square blocks of the reference, each with a
+    window of ``n_planes`` consecutive planes (``satsweep.coarse`` derives them from a coarse
+    height map). Block (i, j) covers reference rows [i block, (i + 1) block) and columns
+    [j block, (j + 1) block); its labels are planes first[i, j] .. first[i, j] + n_planes - 1,
+    of which it sweeps ``count[i, j]`` from plane ``swept[i, j]`` (all of them when these are
+    None); the labels it does not sweep get the worst cost (``SweepOptions.max_cost``), so that
+    every pixel has the same number of labels (SGM's volume) while a block on gentle terrain
+    sweeps fewer planes than one across a cliff.
+    """
+
+    block: int  # block side (pixels); the blocks start at the reference's pixel (0, 0)
+    first: np.ndarray  # (ceil(H / block), ceil(W / block)) int: first plane of each block
+    n_planes: int  # planes per window
+    swept: np.ndarray | None = None  # like first: the first plane swept (None: first)
+    count: np.ndarray | None = None  # like first: planes swept (None: n_planes)
+
+    def sweep_range(self, i: int, j: int) -> tuple[int, int]:
+        """(first plane swept, planes swept) of block (i, j)."""
+        if self.swept is None:
+            return int(self.first[i, j]), self.n_planes
+        return int(self.swept[i, j]), int(self.count[i, j])
+
+    def check(self, shape: tuple[int, int], total_planes: int) -> None:
+        """Raise InputError unless the windows fit a reference of ``shape`` and the planes."""
+        h, w = shape
+        want = (-(-h // self.block), -(-w // self.block)) if self.block >= 1 else None
+        first = np.asarray(self.first)
+        if want is None or first.shape != want or not np.issubdtype(first.dtype, np.integer):
+            raise InputError(None, f"plane_windows: first must be integers of shape {want} for "
+                                   f"blocks of {self.block} px over {w} x {h}, got "
+                                   f"{first.dtype} {first.shape}")
+        if not 1 <= self.n_planes <= total_planes or first.min() < 0 \
+                or first.max() + self.n_planes > total_planes:
+            raise InputError(None, f"plane_windows: windows of {self.n_planes} planes from planes "
+                                   f"{first.min()}..{first.max()} leave the {total_planes} planes")
+        if (self.swept is None) != (self.count is None):
+            raise InputError(None, "plane_windows: give both swept and count, or neither")
+        if self.swept is not None:
+            swept, count = np.asarray(self.swept), np.asarray(self.count)
+            if swept.shape != first.shape or count.shape != first.shape \
+                    or not np.all(count >= 1) or not np.all(swept >= first) \
+                    or not np.all(swept + count <= first + self.n_planes):
+                raise InputError(None, "plane_windows: each block's swept planes must lie "
+                                       "inside its window")
+
+    def per_pixel(self, shape: tuple[int, int]) -> np.ndarray:
+        """(H, W) int32: the first plane of every pixel's window."""
+        h, w = shape
+        return self._expand(self.first, shape)
+
+    def swept_labels(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) int32 pair: the first swept label (window index) of every pixel, and the
+        number of swept labels."""
+        if self.swept is None:
+            return (np.zeros(shape, np.int32), np.full(shape, self.n_planes, np.int32))
+        return (self._expand(np.asarray(self.swept) - np.asarray(self.first), shape),
+                self._expand(self.count, shape))
+
+    def _expand(self, per_block, shape: tuple[int, int]) -> np.ndarray:
+        h, w = shape
+        b = np.asarray(per_block, dtype=np.int32)
+        return np.ascontiguousarray(np.repeat(np.repeat(b, self.block, axis=0), self.block,
+                                              axis=1)[:h, :w])
 
 
 # -- plane spacing ------------------------------------------------------------------------------
@@ -547,7 +636,8 @@ class PlaneSweep:
 
     # -- public entry point ---------------------------------------------------------------------
     def run(self, ref_image, src_images: Sequence, homographies, heights, *,
-            keep_volume: bool = False, volume_on_device: bool = False) -> SweepResult:
+            keep_volume: bool = False, volume_on_device: bool = False,
+            plane_windows: PlaneWindows | None = None) -> SweepResult:
         """Sweep ``ref_image`` against ``src_images`` over the planes ``heights``.
 
         homographies: (n_planes, n_src, 3, 3), plane p and source s mapping homogeneous reference
@@ -558,6 +648,11 @@ class PlaneSweep:
         layout SGM aggregates in, so that it needs no copy of its own): a
         ``pyopencl.array.Array`` (H, W, n_planes) float32 that the caller releases, counted in
         the memory budget; else it is copied to the host (numpy, (n_planes, H, W)).
+        plane_windows: sweep each block of the reference over its own window of the planes only
+        (coarse-to-fine); the volume then holds ``plane_windows.n_planes`` labels per pixel,
+        label d of pixel p standing for plane ``SweepResult.plane_base[p] + d``; the results'
+        plane indices and heights are absolute, and a best plane at either end of a window is
+        invalid with ``reject_range_edges``. Not with ``lr_check``.
         """
         ref = _check_image("ref_image", ref_image)
         srcs = [_check_image(f"src_images[{i}]", s) for i, s in enumerate(src_images)]
@@ -576,11 +671,16 @@ class PlaneSweep:
             d = np.diff(hts)
             if not ((d > 0).all() or (d < 0).all()):
                 raise InputError(None, "heights: must be strictly monotonic")
+        if plane_windows is not None:
+            plane_windows.check(ref.shape, hts.size)
+            if self.options.lr_check:
+                raise InputError(None, "plane_windows: the left-right check sweeps every plane; "
+                                       "set lr_check = false for a coarse-to-fine sweep")
         if self.options.prefilter_sigma_px > 0:
             ref = prefilter(ref, self.options.prefilter_sigma_px)
             srcs = [prefilter(s, self.options.prefilter_sigma_px) for s in srcs]
         result = self._sweep(ref, srcs, hom, hts, keep_volume=keep_volume,
-                             volume_on_device=volume_on_device)
+                             volume_on_device=volume_on_device, windows=plane_windows)
         if self.options.lr_check:
             self._lr_check(result, ref, srcs, hom, hts)
         return result
@@ -621,13 +721,16 @@ class PlaneSweep:
     # -- implementation -------------------------------------------------------------------------
     def _sweep(self, ref: np.ndarray, srcs: list[np.ndarray], hom: np.ndarray,
                hts: np.ndarray, *, keep_volume: bool = False,
-               volume_on_device: bool = False) -> SweepResult:
+               volume_on_device: bool = False,
+               windows: PlaneWindows | None = None) -> SweepResult:
         import pyopencl as cl  # noqa: PLC0415
         import pyopencl.array as cla  # noqa: PLC0415
 
         o = self.options
         queue = self.device.queue
-        n_src, n_planes = len(srcs), hts.size
+        n_src, n_total = len(srcs), hts.size
+        # With windows, every tile (one block) sweeps n_planes planes of its own.
+        n_planes = n_total if windows is None else windows.n_planes
         h_img, w_img = ref.shape
         census_prg, sweep_prg, filt_prg, wta_prg = self._programs(n_src)
         on_device = keep_volume and volume_on_device
@@ -640,6 +743,14 @@ class PlaneSweep:
         plan = plan_tiles(o, ref.shape, [s.shape for s in srcs], n_planes, self.budget_bytes(),
                           self.device.max_alloc_bytes,
                           extra_resident_bytes=volume_bytes if on_device else 0)
+        tile_w, tile_h = plan.tile_w, plan.tile_h
+        if windows is not None:
+            if min(tile_w, w_img) < min(windows.block, w_img) \
+                    or min(tile_h, h_img) < min(windows.block, h_img):
+                raise DeviceError(f"memory budget of {self.budget_bytes() / 2**20:.0f} MiB holds "
+                                  f"tiles of {tile_w} x {tile_h} px, smaller than the plane "
+                                  f"windows' {windows.block} px blocks: use smaller blocks")
+            tile_w = tile_h = windows.block
         bufs = _Buffers(self.device.context)
         i32 = np.int32
         rx, ry = o.census_radii
@@ -650,7 +761,7 @@ class PlaneSweep:
         offsets = np.concatenate([[0], np.cumsum([s.size for s in srcs])[:-1]]).astype(np.int64)
         size_buf = bufs.alloc(sizes.nbytes, sizes)
         off_buf = bufs.alloc(offsets.nbytes, offsets)
-        census_k = cl.Kernel(census_prg, "census_transform")
+        census_k = self.device.kernel(census_prg, "census_transform")
         if o.cost_mode == "sampled_codes":
             # Each source's codes computed on the device once, into one concatenated buffer.
             src_buf = bufs.alloc(8 * sum(s.size for s in srcs))
@@ -664,50 +775,69 @@ class PlaneSweep:
                                 byte_count=8 * img.size)
                 queue.finish()
                 bufs.free(img_buf, tmp)
-            sweep_k = cl.Kernel(sweep_prg, "sweep_code_cost")
+            sweep_k = self.device.kernel(sweep_prg, "sweep_code_cost")
         else:
             src_buf = bufs.alloc(4 * sum(s.size for s in srcs),
                                  np.concatenate([s.ravel() for s in srcs]))
-            sweep_k = (cl.Kernel(sweep_prg, "sweep_warp"), cl.Kernel(sweep_prg, "sweep_warped_cost")) \
-                if _split_census(o) else cl.Kernel(sweep_prg, "sweep_census_cost")
+            kern = self.device.kernel
+            sweep_k = (kern(sweep_prg, "sweep_warp"), kern(sweep_prg, "sweep_warped_cost")) \
+                if _split_census(o) else kern(sweep_prg, "sweep_census_cost")
 
         out_index = np.zeros((h_img, w_img), np.float32)
         out_conf = np.zeros((h_img, w_img), np.float32)
         out_cost = np.zeros((h_img, w_img), np.float32)
         out_valid = np.zeros((h_img, w_img), np.uint8)
         volume = volume_k = None
+        # Labels that a block's window holds but does not sweep keep the worst cost.
+        padded = windows is not None and windows.swept is not None \
+            and bool(np.any(np.asarray(windows.count) < n_planes))
         if on_device:
             volume = bufs.alloc(volume_bytes)
-            volume_k = cl.Kernel(sweep_prg, "volume_pixel_major")
+            volume_k = self.device.kernel(sweep_prg, "volume_pixel_major")
+            if padded:
+                cl.enqueue_fill_buffer(queue, volume, np.float32(o.max_cost), 0, volume_bytes)
         elif keep_volume:
-            volume = np.empty((n_planes, h_img, w_img), np.float32)
-        n_batches = 0
+            volume = np.full((n_planes, h_img, w_img), o.max_cost, np.float32)
+        n_batches = n_tiles = 0
         m = plan.margin
-        for ix0, iy0, ix1, iy1, tx0, ty0, tx1, ty1 in tile_grid(w_img, h_img, plan.tile_w,
-                                                                plan.tile_h, m):
+        for ix0, iy0, ix1, iy1, tx0, ty0, tx1, ty1 in tile_grid(w_img, h_img, tile_w, tile_h, m):
             tile = _Tile(tx0, ty0, tx1 - tx0, ty1 - ty0, ix0 - tx0, iy0 - ty0, ix1 - ix0,
                          iy1 - iy0)
+            first, count, label0 = 0, n_planes, 0
+            if windows is not None:
+                bi, bj = iy0 // tile_h, ix0 // tile_w
+                first, count = windows.sweep_range(bi, bj)
+                label0 = first - int(windows.first[bi, bj])
             n_batches += self._sweep_tile(
-                tile, plan.planes_per_batch, hom, n_planes, bufs, ref_buf, src_buf, off_buf,
-                size_buf, census_k, sweep_k, filt_prg, wta_prg, (w_img, h_img),
-                (out_index, out_conf, out_cost, out_valid), (ix0, iy0), volume, volume_k)
+                tile, plan.planes_per_batch, hom[first:first + count], count, bufs,
+                ref_buf, src_buf, off_buf, size_buf, census_k, sweep_k, filt_prg, wta_prg,
+                (w_img, h_img), (out_index, out_conf, out_cost, out_valid), (ix0, iy0), volume,
+                volume_k, n_labels=n_planes, label0=label0)
+            out_index[iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
+            n_tiles += 1
         bufs.free(ref_buf, src_buf, off_buf, size_buf)
         index = out_index
         if not o.subplane:
             index = np.rint(index).astype(np.float32)
         valid = out_valid.astype(bool)
-        height = np.interp(index.astype(np.float64), np.arange(n_planes), hts) if n_planes > 1 \
+        height = np.interp(index.astype(np.float64), np.arange(n_total), hts) if n_total > 1 \
             else np.full(index.shape, hts[0])
         height[~valid] = np.nan
         if on_device:
             volume = cla.Array(queue, (h_img, w_img, n_planes), np.float32, data=volume)
         return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
-                           cost_min=out_cost, n_tiles=plan.n_tiles, n_batches=n_batches,
-                           peak_device_bytes=bufs.peak, volume=volume)
+                           cost_min=out_cost, n_tiles=n_tiles, n_batches=n_batches,
+                           peak_device_bytes=bufs.peak, volume=volume,
+                           plane_base=None if windows is None else windows.per_pixel(ref.shape))
 
     def _sweep_tile(self, tile, nb_max, hom, n_planes, bufs, ref_buf, src_buf, off_buf, size_buf,
                     census_k, sweep_k, filt_prg, wta_prg, ref_size, outs, interior_origin,
-                    volume=None, volume_k=None) -> int:
+                    volume=None, volume_k=None, n_labels=None, label0=0) -> int:
+        """Sweep one tile over the n_planes planes of ``hom``; a kept volume of ``n_labels``
+        labels per pixel (default n_planes) receives them as labels label0 .. label0 +
+        n_planes - 1."""
+        if n_labels is None:
+            n_labels = n_planes
         import pyopencl as cl  # noqa: PLC0415
 
         o = self.options
@@ -742,8 +872,8 @@ class PlaneSweep:
 
         iw, ih = tile.iw, tile.ih
         state = bufs.alloc(4 * _WTA_NSTATE * iw * ih)
-        wta_init = cl.Kernel(wta_prg, "wta_init")
-        wta_update = cl.Kernel(wta_prg, "wta_update")
+        wta_init = self.device.kernel(wta_prg, "wta_init")
+        wta_update = self.device.kernel(wta_prg, "wta_update")
         _launch(wta_init, queue, (iw, ih), state, i32(iw), i32(ih))
 
         warped = seen = None
@@ -786,14 +916,14 @@ class PlaneSweep:
             if isinstance(volume, np.ndarray):  # MRF path: the filtered interior to the host
                 batch = np.empty((nb, th, tw), np.float32)
                 cl.enqueue_copy(queue, batch, vol_a)
-                volume[p0:p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
+                volume[label0 + p0:label0 + p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
                     batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
             elif volume is not None:  # MRF path: the interior into the pixel-major volume
                 with self._stage("copy"):
                     _launch(volume_k, queue, (iw, ih), vol_a,
                             i32(tw), i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih),
-                            i32(nb), volume, i32(w_img), i32(ix0), i32(iy0), i32(n_planes),
-                            i32(p0))
+                            i32(nb), volume, i32(w_img), i32(ix0), i32(iy0), i32(n_labels),
+                            i32(label0 + p0))
             with self._stage("wta"):
                 _launch(wta_update, queue, (_ceil_div(iw, WTA_VEC), ih), vol_a, i32(tw), i32(th),
                         i32(tile.mx), i32(tile.my), i32(iw), i32(ih), i32(nb), i32(p0), state)
@@ -804,7 +934,7 @@ class PlaneSweep:
         best = bufs.alloc(4 * iw * ih)
         valid = bufs.alloc(iw * ih)
         with self._stage("wta"):
-            _launch(cl.Kernel(wta_prg, "wta_finalize"), queue, (iw, ih), state, i32(iw),
+            _launch(self.device.kernel(wta_prg, "wta_finalize"), queue, (iw, ih), state, i32(iw),
                     i32(ih), i32(n_planes), i32(tile.mx), i32(tile.my), hom_buf, size_buf,
                     i32(1 if o.reject_range_edges else 0), index, conf, best, valid)
         ix0, iy0 = interior_origin
@@ -820,22 +950,21 @@ class PlaneSweep:
 
     def _guide_stats(self, prg, tile, ref_buf, w_img, guide_i, guide_mean, scratch) -> None:
         """guide_i = I and guide_mean = [box mean of I | box mean of I^2] over the tile."""
-        import pyopencl as cl  # noqa: PLC0415
 
         queue = self.device.queue
         i32 = np.int32
         tw, th = tile.tw, tile.th
         chunk = box_chunk(self.options.filter_radius)
-        _launch(cl.Kernel(prg, "gf_guide_fields"), queue, (tw, th), ref_buf, i32(w_img),
+        _launch(self.device.kernel(prg, "gf_guide_fields"), queue, (tw, th), ref_buf, i32(w_img),
                 i32(tile.tx0), i32(tile.ty0), i32(tw), i32(th), guide_i, guide_mean)
-        _launch(cl.Kernel(prg, "box_cols_sum"), queue, (_ceil_div(tw, GF_COLS_VEC), _ceil_div(th, chunk), 2),
+        _launch(self.device.kernel(prg, "box_cols_sum"), queue,
+                (_ceil_div(tw, GF_COLS_VEC), _ceil_div(th, chunk), 2),
                 guide_mean, scratch, i32(tw), i32(th))
-        _launch(cl.Kernel(prg, "box_rows_mean"), queue, (_ceil_div(tw, chunk), th, 2),
+        _launch(self.device.kernel(prg, "box_rows_mean"), queue, (_ceil_div(tw, chunk), th, 2),
                 scratch, guide_mean, i32(tw), i32(th))
 
     def _filter(self, prg, tile, nb, vol_a, vol_b, guide_i, guide_mean) -> None:
         """Filter the nb cost planes at the start of vol_a in place (through vol_b)."""
-        import pyopencl as cl  # noqa: PLC0415
 
         o = self.options
         if o.cost_filter == "none":
@@ -847,20 +976,20 @@ class PlaneSweep:
         ncx, ncy = _ceil_div(tw, chunk), _ceil_div(th, chunk)
         ncv = _ceil_div(tw, GF_COLS_VEC)  # column kernels: GF_COLS_VEC columns per work-item
         if o.cost_filter == "box":
-            _launch(cl.Kernel(prg, "box_cols_sum"), queue, (ncv, ncy, nb), vol_a, vol_b, i32(tw),
+            _launch(self.device.kernel(prg, "box_cols_sum"), queue, (ncv, ncy, nb), vol_a, vol_b, i32(tw),
                     i32(th))
-            _launch(cl.Kernel(prg, "box_rows_mean"), queue, (ncx, th, nb), vol_b, vol_a, i32(tw),
+            _launch(self.device.kernel(prg, "box_rows_mean"), queue, (ncx, th, nb), vol_b, vol_a, i32(tw),
                     i32(th))
             return
         # Guided: p = vol_a[0:nb] -> vol_b = [colsum p | colsum I p] -> vol_a = [a | b]
         # -> vol_b = [colsum a | colsum b] -> vol_a[0:nb] = q.
-        _launch(cl.Kernel(prg, "gf_cols_p"), queue, (ncv, ncy, nb), vol_a, guide_i, vol_b,
+        _launch(self.device.kernel(prg, "gf_cols_p"), queue, (ncv, ncy, nb), vol_a, guide_i, vol_b,
                 i32(tw), i32(th), i32(nb))
-        _launch(cl.Kernel(prg, "gf_rows_ab"), queue, (ncx, th, nb), vol_b, guide_mean, vol_a,
+        _launch(self.device.kernel(prg, "gf_rows_ab"), queue, (ncx, th, nb), vol_b, guide_mean, vol_a,
                 i32(tw), i32(th), i32(nb))
-        _launch(cl.Kernel(prg, "box_cols_sum"), queue, (ncv, ncy, 2 * nb), vol_a, vol_b,
+        _launch(self.device.kernel(prg, "box_cols_sum"), queue, (ncv, ncy, 2 * nb), vol_a, vol_b,
                 i32(tw), i32(th))
-        _launch(cl.Kernel(prg, "gf_rows_q"), queue, (ncx, th, nb), vol_b, guide_i, vol_a,
+        _launch(self.device.kernel(prg, "gf_rows_q"), queue, (ncx, th, nb), vol_b, guide_i, vol_a,
                 i32(tw), i32(th), i32(nb))
 
     def _lr_check(self, result: SweepResult, ref: np.ndarray, srcs: list[np.ndarray],

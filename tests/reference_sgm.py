@@ -8,7 +8,9 @@ of one scanline per work-group), so that an indexing or boundary mistake in eith
     m        = min_k Lr(p-r, k)
     P2'      = max(P1, P2 / (1 + |I(p) - I(p-r)| * inv_sigma))
 
-with Lr(p, d) = C(p, d) where p-r lies outside the image. Cost entries at or below
+with Lr(p, d) = C(p, d) where p-r lies outside the image. With label bases (``label_base``), label d of
+pixel p is plane base[p] + d and Lr(p-r, .) is read at d + base[p] - base[p-r] (+inf outside its
+window), as documented in sgm.cl. Cost entries at or below
 SATSWEEP_INVALID / 2 are replaced by ``missing_cost``. The aggregated volume is the sum of the
 Lr over the paths, added in the order of ``SGM_DIRECTIONS[:n_paths]`` starting from the first.
 """
@@ -27,21 +29,37 @@ def _sanitise(cost: np.ndarray, missing_cost: float) -> np.ndarray:
     return np.where(c > F32(0.5 * SATSWEEP_INVALID), c, F32(missing_cost)).astype(F32)
 
 
+def _shifted(prev: np.ndarray, delta: np.ndarray, offset: int) -> np.ndarray:
+    """prev[d + delta + offset] per column (delta (n,)), +inf outside [0, L)."""
+    n_labels = prev.shape[0]
+    j = np.arange(n_labels)[:, None] + delta[None, :] + offset
+    inside = (j >= 0) & (j < n_labels)
+    out = np.take_along_axis(prev, np.clip(j, 0, n_labels - 1), axis=0)
+    return np.where(inside, out, F32(np.inf)).astype(F32)
+
+
 def _step(c: np.ndarray, prev: np.ndarray, gcur: np.ndarray, gprev: np.ndarray,
-          p1: np.float32, p2: np.float32, inv_sigma: np.float32) -> np.ndarray:
-    """One step of the recurrence for a batch: c, prev (L, n); gcur, gprev (n,)."""
+          p1: np.float32, p2: np.float32, inv_sigma: np.float32,
+          delta: np.ndarray | None = None) -> np.ndarray:
+    """One step of the recurrence for a batch: c, prev (L, n); gcur, gprev (n,); delta (n,) the
+    base differences base[p] - base[p-r] (None: all 0)."""
     p2a = np.maximum(p1, p2 / (F32(1.0) + np.abs(gcur - gprev) * inv_sigma)).astype(F32)
     m = prev.min(axis=0)
-    best = np.minimum(prev, m + p2a)
-    best[1:] = np.minimum(best[1:], prev[:-1] + p1)
-    best[:-1] = np.minimum(best[:-1], prev[1:] + p1)
+    if delta is None:
+        delta = np.zeros(prev.shape[1], np.int64)
+    best = np.minimum(_shifted(prev, delta, 0), m + p2a)
+    best = np.minimum(best, _shifted(prev, delta, -1) + p1)
+    best = np.minimum(best, _shifted(prev, delta, 1) + p1)
     return (c + (best - m)).astype(F32)
 
 
 def path_cost(cost: np.ndarray, guide: np.ndarray, dx: int, dy: int, *, p1: float, p2: float,
-              inv_sigma: float, missing_cost: float) -> np.ndarray:
+              inv_sigma: float, missing_cost: float,
+              label_base: np.ndarray | None = None) -> np.ndarray:
     """Lr for the single direction r = (dx, dy): (L, H, W) float32."""
     c = _sanitise(cost, missing_cost)
+    base = np.zeros(c.shape[1:], np.int64) if label_base is None \
+        else np.asarray(label_base, np.int64)
     g = np.asarray(guide, dtype=F32)
     p1f, p2f, isf = F32(p1), F32(p2), F32(inv_sigma)
     n_labels, h, w = c.shape
@@ -58,7 +76,8 @@ def path_cost(cost: np.ndarray, guide: np.ndarray, dx: int, dy: int, *, p1: floa
             inside = (yp >= 0) & (yp < h)
             out[:, ~inside, x] = c[:, ~inside, x]
             yi, ypi = ys[inside], yp[inside]
-            out[:, yi, x] = _step(c[:, yi, x], out[:, ypi, xp], g[yi, x], g[ypi, xp], p1f, p2f, isf)
+            out[:, yi, x] = _step(c[:, yi, x], out[:, ypi, xp], g[yi, x], g[ypi, xp], p1f, p2f, isf,
+                                  base[yi, x] - base[ypi, xp])
     else:
         ys = range(h) if dy > 0 else range(h - 1, -1, -1)
         for i, y in enumerate(ys):
@@ -66,16 +85,17 @@ def path_cost(cost: np.ndarray, guide: np.ndarray, dx: int, dy: int, *, p1: floa
                 out[:, y, :] = c[:, y, :]
                 continue
             out[:, y, :] = _step(c[:, y, :], out[:, y - dy, :], g[y, :], g[y - dy, :],
-                                 p1f, p2f, isf)
+                                 p1f, p2f, isf, base[y, :] - base[y - dy, :])
     return out
 
 
 def aggregate(cost: np.ndarray, guide: np.ndarray, *, n_paths: int, p1: float, p2: float,
-              inv_sigma: float, missing_cost: float) -> np.ndarray:
+              inv_sigma: float, missing_cost: float,
+              label_base: np.ndarray | None = None) -> np.ndarray:
     """Sum of the path costs over the first ``n_paths`` directions, in float32, in order."""
     total = None
     for dx, dy in SGM_DIRECTIONS[:n_paths]:
         lr = path_cost(cost, guide, dx, dy, p1=p1, p2=p2, inv_sigma=inv_sigma,
-                       missing_cost=missing_cost)
+                       missing_cost=missing_cost, label_base=label_base)
         total = lr if total is None else (total + lr).astype(F32)
     return total

@@ -112,6 +112,56 @@ def test_sgm_label_counts_off_the_vector_width_match_reference(cl_device, n_labe
     np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
 
 
+def _block_bases(seed: int, shape: tuple[int, int], block: int, n_labels: int) -> np.ndarray:
+    """Label bases constant over blocks, as the coarse-to-fine sweep makes them, with
+    neighbouring windows that overlap a little, a lot, or not at all (jumps beyond the window)."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    coarse = rng.integers(0, 3 * n_labels, (-(-h // block), -(-w // block)))
+    return np.repeat(np.repeat(coarse, block, axis=0), block, axis=1)[:h, :w].astype(np.int32)
+
+
+@pytest.mark.parametrize("work_group", [1, 8])
+@pytest.mark.parametrize("n_labels", [5, 16, 21])
+def test_sgm_label_bands_match_reference(cl_device, work_group, n_labels):
+    """Label windows that move from pixel to pixel (kernels/sgm.cl, label bands): the kernel
+    compares the same planes across each step, as the reference does; both path variants."""
+    scale = 24.0
+    cost, guide = _random_volume(4, shape=(n_labels, 23, 29), scale=scale)
+    base = _block_bases(5, cost.shape[1:], 4, n_labels)
+    opts = mrf.MRFOptions(sgm_paths=8, sgm_work_group=work_group, sgm_p1=0.08, sgm_p2=0.6,
+                          sgm_p2_sigma=0.2)
+    got = mrf.sgm_aggregate(cl_device, cost, guide, opts, cost_scale=scale,
+                            label_base=base).get()
+    want = reference_aggregate(cost, guide, n_paths=8, p1=0.08 * scale, p2=0.6 * scale,
+                               inv_sigma=1.0 / 0.2, missing_cost=scale, label_base=base)
+    np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
+    plain = reference_aggregate(cost, guide, n_paths=8, p1=0.08 * scale, p2=0.6 * scale,
+                                inv_sigma=1.0 / 0.2, missing_cost=scale)
+    assert np.abs(plain - want).max() > 1.0  # the bands change the sums (the test can fail)
+
+
+def test_sgm_bands_of_one_window_are_plain_sgm_on_it(cl_device, roof_scene):
+    """Every pixel with the same window [b, b + L): the sums are plain SGM's on that slice of the
+    volume, and sgm_refine reports absolute planes (label + b) and heights of those planes."""
+    vol = roof_scene
+    b, n_win = 7, 24
+    window = np.ascontiguousarray(vol.cost[b:b + n_win])
+    base = np.full(window.shape[1:], b, np.int32)
+    opts = mrf.MRFOptions()
+    banded = mrf.sgm_refine(cl_device, window, vol.guide, vol.heights, opts, label_base=base,
+                            cost_scale=vol.cost_scale)
+    plain = mrf.sgm_refine(cl_device, window, vol.guide, vol.heights[b:b + n_win], opts,
+                           cost_scale=vol.cost_scale)
+    np.testing.assert_array_equal(banded.labels, plain.labels + b)
+    np.testing.assert_allclose(banded.plane_index, plain.plane_index + b, atol=INDEX_TOL)
+    np.testing.assert_array_equal(banded.valid, plain.valid)
+    np.testing.assert_allclose(banded.height[banded.valid], plain.height[plain.valid], atol=1e-9)
+    with pytest.raises(InputError, match="label_base"):
+        mrf.sgm_refine(cl_device, window, vol.guide, vol.heights, opts,
+                       label_base=base + vol.heights.size)
+
+
 def test_sgm_without_p2_adaptation_matches_reference(cl_device):
     cost, guide = _random_volume(2, shape=(5, 9, 7), scale=1.0)
     opts = mrf.MRFOptions(sgm_p2_sigma=0.0, sgm_p1=0.2, sgm_p2=0.7)

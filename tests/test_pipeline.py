@@ -125,6 +125,21 @@ def test_tiled_mrf_reconstruction_is_as_accurate_and_reports_its_tiles(scene, re
     assert all(v["mrf"]["tiles"] == 1 for v in one["sweep"])
 
 
+def test_coarse_to_fine_reconstruction_is_as_accurate_and_reports_its_windows(scene, tmp_path):
+    """[sweep] search = "coarse_to_fine" (half-resolution pass, then plane windows per block):
+    the same accuracy bounds, and each reference's window size in the report, below its planes."""
+    config = PipelineConfig.from_mapping({**FAST_CAMERA, "sweep": {
+        "search": "coarse_to_fine", "window_block_px": 32, "window_max_fraction": 1.0}})
+    res = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
+                      alt_range=_alt(scene), config=config, truth=scene.truth_dsm, verbose=False)
+    a = res.evaluation["aligned"]
+    assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M, res.evaluation
+    assert a["completeness_1m"] >= MIN_COMPLETENESS_1M, res.evaluation
+    rep = json.loads((res.out_dir / "report.json").read_text())
+    assert all(v["window_planes"] is not None and v["window_planes"] <= v["planes"]
+               for v in rep["sweep"]), rep["sweep"]
+
+
 def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
     """No --alt-range and no DEM: the RPCs' coarse range is narrowed by tie points (reported),
     and the reconstruction still succeeds against the truth."""

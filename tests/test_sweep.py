@@ -13,7 +13,7 @@ import pytest
 
 import reference_sweep as ref
 from satsweep.errors import DeviceError, InputError, OptionsError
-from satsweep.sweep import (PlaneSweep, SweepOptions, lr_consistent, plan_tiles,
+from satsweep.sweep import (PlaneSweep, PlaneWindows, SweepOptions, lr_consistent, plan_tiles,
                             plane_heights_for, prefilter, translation_homographies)
 
 # Parallax of the synthetic pair: base-to-height 0.26 at 0.5 m/px -> 0.52 px per metre.
@@ -32,6 +32,9 @@ COMPLETENESS_MIN = 0.9
 # differences by the curvature (down to ~0.1 bit per plane^2), which amplifies that to ~2e-3 of
 # a plane (measured). Argmin flips between near-equal planes are not expected on these scenes.
 TILE_INDEX_ATOL = 1e-2
+# A windowed sweep's plane index is the window's float32 index plus the window's first plane,
+# rounded once more than the full sweep's: a few float32 ulp of indices below 64.
+WINDOW_INDEX_ATOL = 1e-5
 # Guided-filtered costs (0..62 bits) of the device versus the float64 reference: float32 means
 # and the division by var + eps (eps = 1e-3 in that test) give errors of ~1e-3 bits (measured).
 PIPELINE_COST_ATOL = 2e-2
@@ -353,6 +356,51 @@ def test_sweep_views_with_plane_parallax_projections(cl_device):
     assert np.nanmedian(np.abs(res.height[inner] - ground)) < MEDIAN_ERROR_MAX_M
     # Near the frame origin the ellipsoidal height is alt0 + u (curvature < 1 mm over 16 m).
     np.testing.assert_allclose(res.altitude[res.valid], 100.0 + res.height[res.valid], atol=1e-3)
+
+
+def test_plane_windows_sweep_the_same_costs_of_fewer_planes(cl_device):
+    """A coarse-to-fine sweep (plane windows per block) computes, for each pixel, exactly the
+    costs that the full sweep computes for the planes of its window (each block is a tile with
+    the filter's margin; census alone and a box filter give integer costs, summed exactly), and
+    where the full sweep's best plane lies inside a window, the same plane index."""
+    rng = np.random.default_rng(6)
+    ref = rng.random((45, 58)).astype(np.float32)
+    src = np.roll(ref, 3, axis=1) + 0.01 * rng.random(ref.shape).astype(np.float32)
+    heights = np.linspace(0.0, 15.0, 31)
+    hom = translation_homographies(np.array([[0.4, 0.0]]), heights)
+    box = SweepOptions(cost_filter="box", ad_weight=0.0, grad_weight=0.0)
+    whole = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True)
+    block, n_win = 16, 9
+    first = np.array([[3, 12, 20, 0], [14, 6, 22, 9], [18, 1, 11, 16]])
+    windows = PlaneWindows(block=block, first=first, n_planes=n_win)
+    part = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True,
+                                          plane_windows=windows)
+    base = windows.per_pixel(ref.shape)
+    np.testing.assert_array_equal(part.plane_base, base)
+    assert part.volume.shape == (n_win, *ref.shape) and part.n_tiles == first.size
+    labels = base[None] + np.arange(n_win)[:, None, None]
+    want = np.take_along_axis(whole.volume, labels, axis=0)
+    np.testing.assert_array_equal(part.volume, want)
+    best = np.argmin(whole.volume, axis=0)
+    inside = (best > base) & (best < base + n_win - 1) & whole.valid
+    assert inside.mean() > 0.2
+    np.testing.assert_allclose(part.plane_index[inside], whole.plane_index[inside], rtol=0,
+                               atol=WINDOW_INDEX_ATOL)
+    np.testing.assert_allclose(part.height[inside], whole.height[inside], rtol=0,
+                               atol=WINDOW_INDEX_ATOL * (heights[1] - heights[0]))
+    # pixel-major on the device, SGM's layout: the same costs
+    dev = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True,
+                                         volume_on_device=True, plane_windows=windows)
+    try:
+        np.testing.assert_array_equal(dev.volume.get().transpose(2, 0, 1), want)
+    finally:
+        dev.volume.data.release()
+    with pytest.raises(InputError, match="plane_windows"):
+        PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
+            block=block, first=first + 20, n_planes=n_win))
+    with pytest.raises(InputError, match="plane_windows"):
+        PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
+            block=8, first=first, n_planes=n_win))
 
 
 def test_kept_volume_matches_the_wta_and_does_not_depend_on_tiling(cl_device):
