@@ -447,7 +447,7 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
     queue = device.queue
     agg = cla.empty(queue, (n_labels, h, w), np.float32)
     device.kernel(prg, "sgm_to_plane_major")(queue, (h * w,), None, agg_pm.data, agg.data,
-                                         np.int32(h * w))
+                                             np.int32(h * w))
     queue.finish()
     agg_pm.data.release()
     return agg
@@ -480,7 +480,7 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
         buf, _, owned = _as_device_volume(device, cost_volume, shape)
         cost_pm = cla.empty(queue, (h, w, n_labels), np.float32)
         device.kernel(prg, "sgm_to_pixel_major")(queue, (n_pix,), None, buf, cost_pm.data,
-                                             i32(n_pix), f32(scale))
+                                                 i32(n_pix), f32(scale))
         if owned:
             buf.release()  # the uploaded host volume is no longer needed on the device
     agg_pm = cla.empty(queue, (h, w, n_labels), np.float32)
@@ -510,7 +510,7 @@ def _wta_state(device: Device, agg_pm) -> np.ndarray:
     queue = device.queue
     state = cla.empty(queue, (_WTA_NSTATE, h, w), np.float32)
     device.kernel(prg, "wta_pixel_major")(queue, (-(-h * w // WTA_VEC),), None, agg_pm.data,
-                                      np.int32(h * w), np.int32(n_labels), state.data)
+                                          np.int32(h * w), np.int32(n_labels), state.data)
     return state.get()
 
 

@@ -315,7 +315,7 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     from .sweep import PlaneSweep, SweepResult, prefilter, tile_grid  # noqa: PLC0415
 
     ref = guide = np.ascontiguousarray(ref_image, dtype=np.float32)
-    srcs = [np.ascontiguousarray(s, dtype=np.float32) for s in src_images]
+    srcs = raw_srcs = [np.ascontiguousarray(s, dtype=np.float32) for s in src_images]
     if sweep.prefilter_sigma_px > 0:
         ref = prefilter(ref, sweep.prefilter_sigma_px)
         srcs = [prefilter(s, sweep.prefilter_sigma_px) for s in srcs]
@@ -329,7 +329,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     seconds = 0.0
     coarse = None
     if sweep.search == "coarse_to_fine" and on_device and not sweep.lr_check:
-        coarse, seconds = coarse_plane_index(device, ref, srcs, hom, hts, sweep, mrf)
+        # From the images as given: the coarse pass prefilters its own half-resolution images.
+        coarse, seconds = coarse_plane_index(device, guide, raw_srcs, hom, hts, sweep, mrf)
     side = mrf_tile_side(hts.size, mrf, engine.budget_bytes(), device.max_alloc_bytes)
     height = np.full((h_img, w_img), np.nan)
     plane_index = np.zeros((h_img, w_img), np.float32)
@@ -351,15 +352,15 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
             back = np.array([[[1.0, 0.0, -wx0], [0.0, 1.0, -wy0], [0.0, 0.0, 1.0]]
                              for wx0, wy0, _, _ in windows])
             tile_hom = back[None] @ tile_hom
-        windows = None
+        planes = None  # this tile's plane windows (coarse-to-fine), else every plane
         if coarse is not None:
-            windows = plane_windows(coarse[ty0:ty1, tx0:tx1], hts.size,
-                                    block=sweep.window_block_px, halo=sweep.window_halo_px,
-                                    margin=sweep.window_margin_planes,
-                                    max_fraction=sweep.window_max_fraction)
+            planes = plane_windows(coarse[ty0:ty1, tx0:tx1], hts.size,
+                                   block=sweep.window_block_px, halo=sweep.window_halo_px,
+                                   margin=sweep.window_margin_planes,
+                                   max_fraction=sweep.window_max_fraction)
         r = engine.run(ref[ty0:ty1, tx0:tx1], tile_srcs, tile_hom, hts, keep_volume=True,
-                       volume_on_device=on_device, plane_windows=windows)
-        window_planes = max(window_planes, hts.size if windows is None else windows.n_planes)
+                       volume_on_device=on_device, plane_windows=planes)
+        window_planes = max(window_planes, hts.size if planes is None else planes.n_planes)
         initial = np.clip(np.rint(r.plane_index), 0, hts.size - 1).astype(np.int32)
         try:
             m = refine(device, r.volume, guide[ty0:ty1, tx0:tx1], hts, mrf,
@@ -369,8 +370,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
         finally:
             if on_device:
                 r.volume.data.release()
-        if windows is not None:
-            _reject_unswept_labels(m, r.plane_base, windows, sweep.reject_range_edges)
+        if planes is not None:
+            _reject_unswept_labels(m, r.plane_base, planes, sweep.reject_range_edges)
         keep = (slice(y0 - ty0, y1 - ty0), slice(x0 - tx0, x1 - tx0))
         out = (slice(y0, y1), slice(x0, x1))
         wta_index[out], wta_valid[out] = r.plane_index[keep], r.valid[keep]

@@ -302,7 +302,6 @@ class PlaneWindows:
 
     def per_pixel(self, shape: tuple[int, int]) -> np.ndarray:
         """(H, W) int32: the first plane of every pixel's window."""
-        h, w = shape
         return self._expand(self.first, shape)
 
     def swept_labels(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -797,7 +796,8 @@ class PlaneSweep:
             if padded:
                 cl.enqueue_fill_buffer(queue, volume, np.float32(o.max_cost), 0, volume_bytes)
         elif keep_volume:
-            volume = np.full((n_planes, h_img, w_img), o.max_cost, np.float32)
+            volume = np.full((n_planes, h_img, w_img), o.max_cost, np.float32) if padded \
+                else np.empty((n_planes, h_img, w_img), np.float32)
         n_batches = n_tiles = 0
         m = plan.margin
         for ix0, iy0, ix1, iy1, tx0, ty0, tx1, ty1 in tile_grid(w_img, h_img, tile_w, tile_h, m):
@@ -836,10 +836,10 @@ class PlaneSweep:
         """Sweep one tile over the n_planes planes of ``hom``; a kept volume of ``n_labels``
         labels per pixel (default n_planes) receives them as labels label0 .. label0 +
         n_planes - 1."""
-        if n_labels is None:
-            n_labels = n_planes
         import pyopencl as cl  # noqa: PLC0415
 
+        if n_labels is None:
+            n_labels = n_planes
         o = self.options
         queue = self.device.queue
         i32 = np.int32
@@ -950,46 +950,46 @@ class PlaneSweep:
 
     def _guide_stats(self, prg, tile, ref_buf, w_img, guide_i, guide_mean, scratch) -> None:
         """guide_i = I and guide_mean = [box mean of I | box mean of I^2] over the tile."""
-
         queue = self.device.queue
+        kern = self.device.kernel
         i32 = np.int32
         tw, th = tile.tw, tile.th
         chunk = box_chunk(self.options.filter_radius)
-        _launch(self.device.kernel(prg, "gf_guide_fields"), queue, (tw, th), ref_buf, i32(w_img),
+        _launch(kern(prg, "gf_guide_fields"), queue, (tw, th), ref_buf, i32(w_img),
                 i32(tile.tx0), i32(tile.ty0), i32(tw), i32(th), guide_i, guide_mean)
-        _launch(self.device.kernel(prg, "box_cols_sum"), queue,
+        _launch(kern(prg, "box_cols_sum"), queue,
                 (_ceil_div(tw, GF_COLS_VEC), _ceil_div(th, chunk), 2),
                 guide_mean, scratch, i32(tw), i32(th))
-        _launch(self.device.kernel(prg, "box_rows_mean"), queue, (_ceil_div(tw, chunk), th, 2),
+        _launch(kern(prg, "box_rows_mean"), queue, (_ceil_div(tw, chunk), th, 2),
                 scratch, guide_mean, i32(tw), i32(th))
 
     def _filter(self, prg, tile, nb, vol_a, vol_b, guide_i, guide_mean) -> None:
         """Filter the nb cost planes at the start of vol_a in place (through vol_b)."""
-
         o = self.options
         if o.cost_filter == "none":
             return
         queue = self.device.queue
+        kern = self.device.kernel
         i32 = np.int32
         tw, th = tile.tw, tile.th
         chunk = box_chunk(o.filter_radius)
         ncx, ncy = _ceil_div(tw, chunk), _ceil_div(th, chunk)
         ncv = _ceil_div(tw, GF_COLS_VEC)  # column kernels: GF_COLS_VEC columns per work-item
         if o.cost_filter == "box":
-            _launch(self.device.kernel(prg, "box_cols_sum"), queue, (ncv, ncy, nb), vol_a, vol_b, i32(tw),
+            _launch(kern(prg, "box_cols_sum"), queue, (ncv, ncy, nb), vol_a, vol_b, i32(tw),
                     i32(th))
-            _launch(self.device.kernel(prg, "box_rows_mean"), queue, (ncx, th, nb), vol_b, vol_a, i32(tw),
+            _launch(kern(prg, "box_rows_mean"), queue, (ncx, th, nb), vol_b, vol_a, i32(tw),
                     i32(th))
             return
         # Guided: p = vol_a[0:nb] -> vol_b = [colsum p | colsum I p] -> vol_a = [a | b]
         # -> vol_b = [colsum a | colsum b] -> vol_a[0:nb] = q.
-        _launch(self.device.kernel(prg, "gf_cols_p"), queue, (ncv, ncy, nb), vol_a, guide_i, vol_b,
+        _launch(kern(prg, "gf_cols_p"), queue, (ncv, ncy, nb), vol_a, guide_i, vol_b,
                 i32(tw), i32(th), i32(nb))
-        _launch(self.device.kernel(prg, "gf_rows_ab"), queue, (ncx, th, nb), vol_b, guide_mean, vol_a,
+        _launch(kern(prg, "gf_rows_ab"), queue, (ncx, th, nb), vol_b, guide_mean, vol_a,
                 i32(tw), i32(th), i32(nb))
-        _launch(self.device.kernel(prg, "box_cols_sum"), queue, (ncv, ncy, 2 * nb), vol_a, vol_b,
+        _launch(kern(prg, "box_cols_sum"), queue, (ncv, ncy, 2 * nb), vol_a, vol_b,
                 i32(tw), i32(th))
-        _launch(self.device.kernel(prg, "gf_rows_q"), queue, (ncx, th, nb), vol_b, guide_i, vol_a,
+        _launch(kern(prg, "gf_rows_q"), queue, (ncx, th, nb), vol_b, guide_i, vol_a,
                 i32(tw), i32(th), i32(nb))
 
     def _lr_check(self, result: SweepResult, ref: np.ndarray, srcs: list[np.ndarray],
