@@ -312,7 +312,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     """
     from .coarse import plane_windows  # noqa: PLC0415
     from .mrf import refine  # noqa: PLC0415
-    from .sweep import PlaneSweep, SweepResult, prefilter, tile_grid  # noqa: PLC0415
+    from .sweep import (PlaneSweep, SweepResult, prefilter, tile_grid,  # noqa: PLC0415
+                        visible_at)
 
     ref = guide = np.ascontiguousarray(ref_image, dtype=np.float32)
     srcs = raw_srcs = [np.ascontiguousarray(s, dtype=np.float32) for s in src_images]
@@ -326,6 +327,9 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     h_img, w_img = ref.shape
     # SGM runs on the device: the tile's volume stays there. The graph cut runs on the host.
     on_device = mrf.method == "sgm"
+    # The sweep's own winner-take-all: the graph cut starts from it (and the left-right check
+    # compares it); SGM needs only the volume.
+    with_wta = not on_device or sweep.lr_check
     seconds = 0.0
     coarse = None
     if sweep.search == "coarse_to_fine" and on_device and not sweep.lr_check:
@@ -359,9 +363,11 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
                                    margin=sweep.window_margin_planes,
                                    max_fraction=sweep.window_max_fraction)
         r = engine.run(ref[ty0:ty1, tx0:tx1], tile_srcs, tile_hom, hts, keep_volume=True,
-                       volume_on_device=on_device, plane_windows=planes)
+                       volume_on_device=on_device, plane_windows=planes,
+                       winner_take_all=with_wta)
         window_planes = max(window_planes, hts.size if planes is None else planes.n_planes)
-        initial = np.clip(np.rint(r.plane_index), 0, hts.size - 1).astype(np.int32)
+        initial = None if not with_wta else \
+            np.clip(np.rint(r.plane_index), 0, hts.size - 1).astype(np.int32)
         try:
             m = refine(device, r.volume, guide[ty0:ty1, tx0:tx1], hts, mrf,
                        cost_scale=float(sweep.census_bits),
@@ -374,9 +380,11 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
             _reject_unswept_labels(m, r.plane_base, planes, sweep.reject_range_edges)
         keep = (slice(y0 - ty0, y1 - ty0), slice(x0 - tx0, x1 - tx0))
         out = (slice(y0, y1), slice(x0, x1))
-        wta_index[out], wta_valid[out] = r.plane_index[keep], r.valid[keep]
-        # Pixels the sweep found unseen by every source stay invalid.
-        valid[out] = m.valid[keep] & r.valid[keep]
+        # Pixels that no source sees at the chosen plane are invalid.
+        seen = visible_at(tile_hom, m.labels, [a.shape for a in tile_srcs])
+        valid[out] = m.valid[keep] & seen[keep]
+        if with_wta:
+            wta_index[out], wta_valid[out] = r.plane_index[keep], r.valid[keep]
         height[out] = m.height[keep]
         plane_index[out] = m.plane_index[keep]
         confidence[out] = m.confidence[keep]
@@ -505,8 +513,14 @@ def _nanmean_stack(arrays: list[np.ndarray], shape: tuple[int, int]) -> np.ndarr
     return np.where(n > 0, total / np.maximum(n, 1), np.nan).astype(np.float32)
 
 
+# Metres added around the pixel centres' box for the ENU -> map fit: the footprint sub-samples
+# lie within half a pixel of their centres (well under this at any satellite's ground sampling).
+FOOTPRINT_PAD_M = 5.0
+
+
 def _enu_to_map(frame, epsg: int, points: list[tuple[np.ndarray, ...]]):
-    """The ENU -> (UTM, height) map (``dsm.ENUToMap``) fitted over the bounding box of the points."""
+    """The ENU -> (UTM, height) map (``dsm.ENUToMap``) fitted over the bounding box of the
+    points, widened by ``FOOTPRINT_PAD_M`` for their footprint sub-samples."""
     from .dsm import ENUToMap
 
     lo, hi = np.zeros(3), np.ones(3)  # any box when there is no point at all
@@ -514,14 +528,17 @@ def _enu_to_map(frame, epsg: int, points: list[tuple[np.ndarray, ...]]):
     if present:  # the box of every view's points, without concatenating millions of them
         lo = np.array([min(p[k].min() for p in present) for k in range(3)])
         hi = np.array([max(p[k].max() for p in present) for k in range(3)])
+        lo[:2] -= FOOTPRINT_PAD_M
+        hi[:2] += FOOTPRINT_PAD_M
     return ENUToMap.fit(frame, epsg, e_range=(lo[0], hi[0]), n_range=(lo[1], hi[1]),
                         u_range=(lo[2], hi[2]))
 
 
 def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunReport,
               out: OutputFolder, truth, names):
-    from .dsm import (cross_check_heights, dsm_grid_for_aoi, fill_small_holes, fuse_dsms,
-                      height_map_to_enu, rasterise_max, write_dsm_geotiff)
+    from .dsm import (cross_check_heights, dsm_grid_for_aoi, fill_small_holes, flat_cells,
+                      fuse_dsms, height_map_to_enu, map_view_points, rasterise_max_cells,
+                      write_dsm_geotiff)
     from .imageio import write_geotiff
     from .ply import write_ply
     from .render import height_png
@@ -536,25 +553,23 @@ def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunRe
             checked = cross_check_heights(
                 heights, [cameras.views[pv["index"]].camera.P for pv in per_view],
                 tolerance_m=d.cross_check_m, min_agreeing=d.cross_check_views)
-        # Points of every view in ENU: the footprint sub-samples for the rasters, the pixel
-        # centres for the cloud; then one polynomial ENU -> UTM map fitted over all of them.
-        splats, centres = [], []
-        for pv, height, keep in zip(per_view, heights, checked):
-            P = cameras.views[pv["index"]].camera.P
-            splats.append(height_map_to_enu(height, keep, P, subsamples=d.subsamples))
-            centres.append(height_map_to_enu(height, keep, P, subsamples=1)
-                           if config.reconstruct.write_cloud else None)
-        to_map = _enu_to_map(cameras.frame, grid.epsg, splats)
+        # Every view's pixel centres in ENU, one polynomial ENU -> UTM map fitted over all of
+        # them; then each view's centres (the cloud) and footprint sub-samples (the rasters).
+        centres = [height_map_to_enu(height, keep, cameras.views[pv["index"]].camera.P)
+                   for pv, height, keep in zip(per_view, heights, checked)]
+        to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
         rasters, conf_rasters, clouds = [], [], []
-        for pv, (e, n, u, pixel), centre in zip(per_view, splats, centres):
-            x, y, z = to_map(e=e, n=n, u=u)
-            rasters.append(rasterise_max(x, y, z, grid))
+        for pv, centre, height, keep in zip(per_view, centres, heights, checked):
+            (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
+                centre, height, keep, cameras.views[pv["index"]].camera.P, to_map,
+                subsamples=d.subsamples)
+            cells = flat_cells(sx, sy, grid)
+            rasters.append(rasterise_max_cells(cells, sz, grid))
             if pv["confidence"] is not None:
-                conf_rasters.append(rasterise_max(x, y, np.ravel(pv["confidence"])[pixel], grid))
-            if centre is None:
+                conf_rasters.append(rasterise_max_cells(cells, np.ravel(pv["confidence"])[spix],
+                                                        grid))
+            if not config.reconstruct.write_cloud:
                 continue
-            e, n, u, pixel = centre
-            x, y, z = to_map(e=e, n=n, u=u)
             gray = np.clip(np.nan_to_num(images[pv["index"]]) * 255.0, 0, 255).astype(np.uint8)
             # The cloud covers the AOI's DSM grid, like the DSM (the crops extend beyond it).
             keep = ((x >= grid.x_min) & (x <= grid.x_min + grid.width * grid.resolution)

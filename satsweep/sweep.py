@@ -636,7 +636,8 @@ class PlaneSweep:
     # -- public entry point ---------------------------------------------------------------------
     def run(self, ref_image, src_images: Sequence, homographies, heights, *,
             keep_volume: bool = False, volume_on_device: bool = False,
-            plane_windows: PlaneWindows | None = None) -> SweepResult:
+            plane_windows: PlaneWindows | None = None,
+            winner_take_all: bool = True) -> SweepResult:
         """Sweep ``ref_image`` against ``src_images`` over the planes ``heights``.
 
         homographies: (n_planes, n_src, 3, 3), plane p and source s mapping homogeneous reference
@@ -652,6 +653,10 @@ class PlaneSweep:
         label d of pixel p standing for plane ``SweepResult.plane_base[p] + d``; the results'
         plane indices and heights are absolute, and a best plane at either end of a window is
         invalid with ``reject_range_edges``. Not with ``lr_check``.
+        winner_take_all: False skips the per-pixel winner-take-all (for a caller that refines
+        the kept volume and needs nothing else, as SGM does): the result then has ``volume``
+        (keep_volume is required), ``plane_base`` and the counts, and None for the per-pixel
+        maps (``visible_at`` gives the visibility of any plane choice). Not with ``lr_check``.
         """
         ref = _check_image("ref_image", ref_image)
         srcs = [_check_image(f"src_images[{i}]", s) for i, s in enumerate(src_images)]
@@ -670,6 +675,12 @@ class PlaneSweep:
             d = np.diff(hts)
             if not ((d > 0).all() or (d < 0).all()):
                 raise InputError(None, "heights: must be strictly monotonic")
+        if not winner_take_all and not keep_volume:
+            raise InputError(None, "winner_take_all = False leaves nothing to return without "
+                                   "keep_volume")
+        if not winner_take_all and self.options.lr_check:
+            raise InputError(None, "winner_take_all = False: the left-right check needs the "
+                                   "winner-take-all map; set lr_check = false")
         if plane_windows is not None:
             plane_windows.check(ref.shape, hts.size)
             if self.options.lr_check:
@@ -679,7 +690,8 @@ class PlaneSweep:
             ref = prefilter(ref, self.options.prefilter_sigma_px)
             srcs = [prefilter(s, self.options.prefilter_sigma_px) for s in srcs]
         result = self._sweep(ref, srcs, hom, hts, keep_volume=keep_volume,
-                             volume_on_device=volume_on_device, windows=plane_windows)
+                             volume_on_device=volume_on_device, windows=plane_windows,
+                             wta=winner_take_all)
         if self.options.lr_check:
             self._lr_check(result, ref, srcs, hom, hts)
         return result
@@ -721,7 +733,7 @@ class PlaneSweep:
     def _sweep(self, ref: np.ndarray, srcs: list[np.ndarray], hom: np.ndarray,
                hts: np.ndarray, *, keep_volume: bool = False,
                volume_on_device: bool = False,
-               windows: PlaneWindows | None = None) -> SweepResult:
+               windows: PlaneWindows | None = None, wta: bool = True) -> SweepResult:
         import pyopencl as cl  # noqa: PLC0415
         import pyopencl.array as cla  # noqa: PLC0415
 
@@ -811,11 +823,19 @@ class PlaneSweep:
             n_batches += self._sweep_tile(
                 tile, plan.planes_per_batch, hom[first:first + count], count, bufs,
                 ref_buf, src_buf, off_buf, size_buf, census_k, sweep_k, filt_prg, wta_prg,
-                (w_img, h_img), (out_index, out_conf, out_cost, out_valid), (ix0, iy0), volume,
-                volume_k, n_labels=n_planes, label0=label0)
-            out_index[iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
+                (w_img, h_img), (out_index, out_conf, out_cost, out_valid) if wta else None,
+                (ix0, iy0), volume, volume_k, n_labels=n_planes, label0=label0)
+            if wta:
+                out_index[iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
             n_tiles += 1
         bufs.free(ref_buf, src_buf, off_buf, size_buf)
+        plane_base = None if windows is None else windows.per_pixel(ref.shape)
+        if on_device:
+            volume = cla.Array(queue, (h_img, w_img, n_planes), np.float32, data=volume)
+        if not wta:
+            return SweepResult(height=None, plane_index=None, confidence=None, valid=None,
+                               cost_min=None, n_tiles=n_tiles, n_batches=n_batches,
+                               peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base)
         index = out_index
         if not o.subplane:
             index = np.rint(index).astype(np.float32)
@@ -823,19 +843,16 @@ class PlaneSweep:
         height = np.interp(index.astype(np.float64), np.arange(n_total), hts) if n_total > 1 \
             else np.full(index.shape, hts[0])
         height[~valid] = np.nan
-        if on_device:
-            volume = cla.Array(queue, (h_img, w_img, n_planes), np.float32, data=volume)
         return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
                            cost_min=out_cost, n_tiles=n_tiles, n_batches=n_batches,
-                           peak_device_bytes=bufs.peak, volume=volume,
-                           plane_base=None if windows is None else windows.per_pixel(ref.shape))
+                           peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base)
 
     def _sweep_tile(self, tile, nb_max, hom, n_planes, bufs, ref_buf, src_buf, off_buf, size_buf,
                     census_k, sweep_k, filt_prg, wta_prg, ref_size, outs, interior_origin,
                     volume=None, volume_k=None, n_labels=None, label0=0) -> int:
         """Sweep one tile over the n_planes planes of ``hom``; a kept volume of ``n_labels``
         labels per pixel (default n_planes) receives them as labels label0 .. label0 +
-        n_planes - 1."""
+        n_planes - 1. outs = None: no winner-take-all (the volume only)."""
         import pyopencl as cl  # noqa: PLC0415
 
         if n_labels is None:
@@ -871,10 +888,13 @@ class PlaneSweep:
                 self._guide_stats(filt_prg, tile, ref_buf, w_img, guide_i, guide_mean, vol_b)
 
         iw, ih = tile.iw, tile.ih
-        state = bufs.alloc(4 * _WTA_NSTATE * iw * ih)
-        wta_init = self.device.kernel(wta_prg, "wta_init")
-        wta_update = self.device.kernel(wta_prg, "wta_update")
-        _launch(wta_init, queue, (iw, ih), state, i32(iw), i32(ih))
+        wta = outs is not None
+        state = None
+        if wta:
+            state = bufs.alloc(4 * _WTA_NSTATE * iw * ih)
+            wta_update = self.device.kernel(wta_prg, "wta_update")
+            _launch(self.device.kernel(wta_prg, "wta_init"), queue, (iw, ih), state, i32(iw),
+                    i32(ih))
 
         warped = seen = None
         if _split_census(o):
@@ -924,11 +944,17 @@ class PlaneSweep:
                             i32(tw), i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih),
                             i32(nb), volume, i32(w_img), i32(ix0), i32(iy0), i32(n_labels),
                             i32(label0 + p0))
-            with self._stage("wta"):
-                _launch(wta_update, queue, (_ceil_div(iw, WTA_VEC), ih), vol_a, i32(tw), i32(th),
-                        i32(tile.mx), i32(tile.my), i32(iw), i32(ih), i32(nb), i32(p0), state)
+            if wta:
+                with self._stage("wta"):
+                    _launch(wta_update, queue, (_ceil_div(iw, WTA_VEC), ih), vol_a, i32(tw),
+                            i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih), i32(nb),
+                            i32(p0), state)
             n_batches += 1
 
+        if not wta:
+            queue.finish()
+            bufs.free(hom_buf, code_buf, vol_a, vol_b, guide_i, guide_mean, warped, seen)
+            return n_batches
         index = bufs.alloc(4 * iw * ih)
         conf = bufs.alloc(4 * iw * ih)
         best = bufs.alloc(4 * iw * ih)
@@ -1109,6 +1135,48 @@ def ellipsoid_heights(height: np.ndarray, ref_proj, frame) -> np.ndarray:
         rho = fourth_from_height(ref_proj, cols, rows, u)
         e, n, uu = enu_from_fourth(ref_proj, cols, rows, rho)
         out[rows, cols] = frame.to_geodetic(e=e, n=n, u=uu)[2]
+    return out
+
+
+def visible_at(homographies, plane_index, src_shapes: Sequence[tuple[int, int]]) -> np.ndarray:
+    """Where a reference pixel maps into at least one source at its plane (H, W) bool.
+
+    homographies: (n_planes, n_src, 3, 3) reference pixel -> source pixel, as ``PlaneSweep.run``
+    takes them; plane_index: (H, W) integer plane of each pixel; src_shapes: (rows, cols) of
+    each source. The rule of the sweep's winner-take-all (wta.cl): the homogeneous scale is
+    positive and the point lies in [0, cols - 1] x [0, rows - 1] (computed here in float64).
+    """
+    hom = np.asarray(homographies, dtype=np.float64)
+    idx = np.asarray(plane_index)
+    if not np.issubdtype(idx.dtype, np.integer) or idx.ndim != 2:
+        raise InputError(None, f"plane_index: expected a 2-D integer array, got {idx.dtype} "
+                               f"{idx.shape}")
+    if hom.ndim != 4 or hom.shape[1:] != (len(src_shapes), 3, 3):
+        raise InputError(None, f"homographies: shape {hom.shape}, expected (n_planes, "
+                               f"{len(src_shapes)}, 3, 3)")
+    if idx.size and (idx.min() < 0 or idx.max() >= hom.shape[0]):
+        raise InputError(None, f"plane_index: values must be in [0, {hom.shape[0] - 1}]")
+    h, w = idx.shape
+    out = np.zeros(idx.shape, bool)
+    ys, xs = np.mgrid[0:h, 0:w]
+    flat = idx.ravel()
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(hom.shape[0] + 1))
+    for p in range(hom.shape[0]):  # the pixels of each plane together
+        pix = order[bounds[p]:bounds[p + 1]]
+        if pix.size == 0:
+            continue
+        x, y = xs.ravel()[pix].astype(np.float64), ys.ravel()[pix].astype(np.float64)
+        seen = np.zeros(pix.size, bool)
+        for s, (rows, cols) in enumerate(src_shapes):
+            H = hom[p, s] / hom[p, s, 2, 2]
+            wz = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+            ok = wz > 0
+            safe = np.where(ok, wz, 1.0)
+            u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / safe
+            v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / safe
+            seen |= ok & (u >= 0) & (u <= cols - 1) & (v >= 0) & (v <= rows - 1)
+        out.ravel()[pix] = seen
     return out
 
 

@@ -183,6 +183,82 @@ def test_height_map_to_enu_matches_the_points_and_names_their_pixels():
         np.testing.assert_array_equal(u, height[rows, cols])
 
 
+def _map_for(P, height, valid):
+    """An ENUToMap over a height map's points (with room for their footprints)."""
+    from satsweep.geo import utm_epsg
+
+    e, n, u, _ = dsm.height_map_to_enu(height, valid, P)
+    return dsm.ENUToMap.fit(FRAME, utm_epsg(lon=FRAME.lon0, lat=FRAME.lat0),
+                            e_range=(e.min() - 5, e.max() + 5), n_range=(n.min() - 5, n.max() + 5),
+                            u_range=(u.min(), u.max()))
+
+
+@pytest.mark.parametrize("subsamples", [2, 3])
+def test_footprint_splats_match_the_exact_sub_samples(subsamples):
+    # A 2000 x 1500 px view, 25 degrees off nadir, heights over 150 m: the Jacobian moves each
+    # sub-sample from its centre as solving and mapping it exactly would, within SPLAT_TOL_M.
+    P, *_ = _satellite_camera(2000, 1500, off_nadir_deg=25.0)
+    rng = np.random.default_rng(7)
+    height = rng.uniform(-50.0, 100.0, (1500, 2000))
+    valid = rng.random(height.shape) > 0.995
+    valid[[0, 0, -1, -1], [0, -1, 0, -1]] = True  # the corners
+    to_map = _map_for(P, height, valid)
+    centres = dsm.height_map_to_enu(height, valid, P)
+    (x, y, z, pixel), (sx, sy, sz, spix) = dsm.map_view_points(centres, height, valid, P, to_map,
+                                                               subsamples=subsamples)
+    e, n, u, ref_pix = dsm.height_map_to_enu(height, valid, P, subsamples=subsamples)
+    rx, ry, rz = dsm._exact_enu_to_map(FRAME, to_map.epsg, e, n, u)
+    np.testing.assert_array_equal(spix, ref_pix)
+    assert dsm.footprint_jacobian(P, to_map, col=pixel % 2000, row=pixel // 2000, u=z) is not None
+    for got, ref in ((sx, rx), (sy, ry), (sz, rz)):
+        np.testing.assert_allclose(got, ref, rtol=0, atol=dsm.SPLAT_TOL_M)
+    # The centres are the exact points themselves.
+    ce, cn, cu, _ = centres
+    cx, cy, cz = dsm._exact_enu_to_map(FRAME, to_map.epsg, ce, cn, cu)
+    np.testing.assert_allclose(x, cx, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(z, cz, rtol=0, atol=1e-5)
+
+
+def test_footprint_jacobian_refuses_a_varying_footprint():
+    # A camera 6 km up (not a satellite): footprints change by far more than SPLAT_TOL_M across the
+    # view, so the sub-samples are solved one by one, and still match the exact points.
+    P, K, R, C = _satellite_camera(400, 300, off_nadir_deg=40.0)
+    C, K = C / 100.0, np.diag([0.01, 0.01, 1.0]) @ K  # still about 0.5 m pixels
+    P = K @ R @ np.hstack([np.eye(3), -C[:, None]])
+    rng = np.random.default_rng(8)
+    height = rng.uniform(-50.0, 100.0, (300, 400))
+    valid = rng.random(height.shape) > 0.9
+    to_map = _map_for(P, height, valid)
+    centres = dsm.height_map_to_enu(height, valid, P)
+    e, n, u, pixel = centres
+    assert dsm.footprint_jacobian(P, to_map, col=pixel % 400, row=pixel // 400, u=u) is None
+    _, (sx, sy, sz, spix) = dsm.map_view_points(centres, height, valid, P, to_map, subsamples=2)
+    e2, n2, u2, ref_pix = dsm.height_map_to_enu(height, valid, P, subsamples=2)
+    rx, ry, rz = to_map(e=e2, n=n2, u=u2)
+    np.testing.assert_array_equal(spix, ref_pix)
+    np.testing.assert_array_equal(sx, rx)
+    np.testing.assert_array_equal(sz, rz)
+
+
+def test_rasterise_max_cells_shares_the_cells_of_rasterise_max():
+    grid = dsm.DSMGrid(epsg=32740, x_min=100.0, y_max=50.0, resolution=0.5, width=30, height=20)
+    rng = np.random.default_rng(9)
+    x, y = rng.uniform(95.0, 120.0, 4000), rng.uniform(35.0, 55.0, 4000)
+    x[:10] = 100.0 + 0.5 * np.arange(10)  # on cell boundaries
+    z = rng.normal(size=4000)
+    z[20] = np.nan
+    cells = dsm.flat_cells(x, y, grid)
+    inside = (x >= 100.0) & (x < 115.0) & (y > 40.0) & (y <= 50.0)
+    np.testing.assert_array_equal(cells >= 0, inside)
+    ref = np.full(grid.shape, np.nan, np.float32)
+    for xi, yi, zi in zip(x, y, z):  # the documented rule, point by point
+        i, j = math.floor((50.0 - yi) / 0.5), math.floor((xi - 100.0) / 0.5)
+        if 0 <= i < 20 and 0 <= j < 30 and np.isfinite(zi):
+            ref[i, j] = zi if np.isnan(ref[i, j]) else max(ref[i, j], np.float32(zi))
+    np.testing.assert_array_equal(dsm.rasterise_max_cells(cells, z, grid), ref)
+    np.testing.assert_array_equal(dsm.rasterise_max(x, y, z, grid), ref)
+
+
 # The polynomial ENU -> UTM map must reproduce pyproj to this (m) over an AOI-sized box.
 ENU_MAP_CHECK_TOL_M = 1e-6
 

@@ -14,7 +14,7 @@ import pytest
 import reference_sweep as ref
 from satsweep.errors import DeviceError, InputError, OptionsError
 from satsweep.sweep import (PlaneSweep, PlaneWindows, SweepOptions, lr_consistent, plan_tiles,
-                            plane_heights_for, prefilter, translation_homographies)
+                            plane_heights_for, prefilter, translation_homographies, visible_at)
 
 # Parallax of the synthetic pair: base-to-height 0.26 at 0.5 m/px -> 0.52 px per metre.
 PX_PER_M = 0.52
@@ -401,6 +401,61 @@ def test_plane_windows_sweep_the_same_costs_of_fewer_planes(cl_device):
     with pytest.raises(InputError, match="plane_windows"):
         PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
             block=8, first=first, n_planes=n_win))
+
+
+def test_volume_without_winner_take_all(cl_device):
+    """winner_take_all = False (SGM's path) returns the same kept volume with no per-pixel maps,
+    and needs keep_volume and no left-right check."""
+    rng = np.random.default_rng(6)
+    ref = rng.random((36, 44)).astype(np.float32)
+    src = np.roll(ref, 2, axis=1) + 0.01 * rng.random(ref.shape).astype(np.float32)
+    heights = np.linspace(0.0, 10.0, 12)
+    hom = translation_homographies(np.array([[0.5, 0.0]]), heights)
+    opts = SweepOptions(max_planes_per_batch=5)
+    engine = PlaneSweep(cl_device, opts)
+    full = engine.run(ref, [src], hom, heights, keep_volume=True, volume_on_device=True)
+    bare = engine.run(ref, [src], hom, heights, keep_volume=True, volume_on_device=True,
+                      winner_take_all=False)
+    try:
+        np.testing.assert_array_equal(bare.volume.get(), full.volume.get())
+        assert bare.plane_index is None and bare.valid is None and bare.height is None
+    finally:
+        full.volume.data.release()
+        bare.volume.data.release()
+    with pytest.raises(InputError, match="keep_volume"):
+        engine.run(ref, [src], hom, heights, winner_take_all=False)
+    with pytest.raises(InputError, match="left-right check"):
+        PlaneSweep(cl_device, opts.replace(lr_check=True)).run(
+            ref, [src], hom, heights, keep_volume=True, winner_take_all=False)
+
+
+def test_visible_at_is_the_winner_take_all_rule(cl_device):
+    """The host's visibility of a plane choice equals the sweep's validity rule (wta.cl): swept
+    over one plane at a time, the winner-take-all is that plane at every pixel."""
+    rng = np.random.default_rng(7)
+    ref = rng.random((30, 40)).astype(np.float32)
+    srcs = [rng.random((30, 40)).astype(np.float32), rng.random((26, 45)).astype(np.float32)]
+    shapes = [a.shape for a in srcs]
+    heights = np.linspace(0.0, 20.0, 5)
+    # Shifts of several pixels per plane, so that pixels leave either source over the range.
+    hom = translation_homographies(np.array([[0.97, 0.11], [0.79, -0.23]]), heights)
+    engine = PlaneSweep(cl_device, SweepOptions(reject_range_edges=False))
+    seen_any = []
+    for p in range(heights.size):
+        res = engine.run(ref, srcs, hom[p:p + 1], heights[p:p + 1])
+        seen = visible_at(hom, np.full(ref.shape, p), shapes)
+        np.testing.assert_array_equal(seen, res.valid)
+        seen_any.append(seen.mean())
+    assert min(seen_any) < 0.9 and max(seen_any) == 1.0  # pixels leave the sources
+    # One pixel by hand, from the homographies themselves.
+    x, y, p = 39, 29, 4
+    inside = [0 <= (q := hom[p, s] @ [x, y, 1.0])[0] / q[2] <= shapes[s][1] - 1
+              and 0 <= q[1] / q[2] <= shapes[s][0] - 1 for s in range(2)]
+    assert visible_at(hom, np.full(ref.shape, p), shapes)[y, x] == any(inside)
+    with pytest.raises(InputError, match="plane_index"):
+        visible_at(hom, np.full(ref.shape, heights.size), shapes)
+    with pytest.raises(InputError, match="plane_index"):
+        visible_at(hom, np.zeros(ref.shape), shapes)
 
 
 def test_kept_volume_matches_the_wta_and_does_not_depend_on_tiling(cl_device):

@@ -17,7 +17,8 @@ from satsweep.errors import DeviceError
 from satsweep.mrf import MRFOptions, refine
 from satsweep.pipeline import (MIN_MRF_TILE_PX, _source_windows, mrf_sweep_options,
                                mrf_tile_side, sweep_refine_tiled)
-from satsweep.sweep import PlaneSweep, SweepOptions, plane_heights_for, translation_homographies
+from satsweep.sweep import (PlaneSweep, SweepOptions, plane_heights_for, translation_homographies,
+                            visible_at)
 
 SHIFTS = ((0.52, 0.0), (0.1, -0.4))
 ALT_RANGE = (0.0, 20.0)
@@ -37,14 +38,16 @@ def _scene(shape, seed=3):
 
 
 def _untiled(device, ref_img, srcs, hom, heights, sweep, mrf):
-    """The reference computation: one whole-image sweep keeping its volume, then refine."""
+    """The reference computation: one whole-image sweep keeping its volume, then refine; valid
+    where the refinement is, a source sees the chosen plane and (lr_check) the check passed."""
     r = PlaneSweep(device, mrf_sweep_options(sweep, mrf)).run(ref_img, srcs, hom, heights,
                                                               keep_volume=True)
     initial = np.clip(np.rint(r.plane_index), 0, heights.size - 1).astype(np.int32)
     m = refine(device, r.volume, ref_img, heights, mrf,
                cost_scale=float(sweep.census_bits), reject_range_edges=sweep.reject_range_edges,
                initial_labels=initial)
-    return m, m.valid & r.valid
+    valid = m.valid & visible_at(hom, m.labels, [s.shape for s in srcs])
+    return m, valid & r.valid if sweep.lr_check else valid
 
 
 @pytest.mark.parametrize("method", ["sgm", "graphcut"])
