@@ -44,12 +44,15 @@
  *
  * Work size of sgm_path: global = n_lines * SGM_WG, local = SGM_WG (required): one work-group per
  *   scanline. Its SGM_WG work-items share the labels (work-item l handles d = l, l + SGM_WG, ...)
- *   and find min_k Lr by a tree reduction in local memory. SGM_WG = 1 is one work-item per
- *   scanline (best on CPUs), which then steps through the labels SGM_VEC at a time in vector
- *   types; a GPU wants 32 or 64 so that a warp shares one scanline.
+ *   and find min_k Lr by a tree reduction in local memory (the argument lines must be 1).
+ *   SGM_WG = 1 (best on CPUs) is instead one work-item per `lines` scanlines (the argument,
+ *   1..SGM_LINES), global = ceil(n_lines / lines), local = 1, which
+ *   steps through the labels SGM_VEC at a time in vector types; a GPU wants SGM_WG = 32 or 64 so
+ *   that a warp shares one scanline.
  *
  * Compile-time constants: SGM_NL number of labels (1..SGM_MAX_LABELS), SGM_WG work-items per
- *   scanline (a power of two, default 1).
+ *   scanline (a power of two, default 1), SGM_LINES the most scanlines per work-item when
+ *   SGM_WG == 1 (default 1; sizes the private arrays).
  *
  * Floating point: contraction into fused multiply-adds is disabled, so that each device rounds
  *   the documented sequence of float32 operations (the numpy reference in tests/reference_sgm.py
@@ -63,6 +66,12 @@
 #endif
 #ifndef SGM_WG
 #define SGM_WG 1
+#endif
+#ifndef SGM_LINES
+#define SGM_LINES 1
+#endif
+#if SGM_LINES < 1 || (SGM_WG > 1 && SGM_LINES != 1)
+#error "SGM_LINES must be >= 1, and 1 with SGM_WG > 1"
 #endif
 #define SGM_MAX_LABELS 1024
 #if SGM_NL < 1 || SGM_NL > SGM_MAX_LABELS
@@ -99,77 +108,112 @@ inline void sgm_line_start(const int line, const int w, const int h, const int d
 }
 
 #if SGM_WG == 1
-/* One work-item per scanline (CPUs): the labels of a step are processed SGM_VEC at a time with
- * OpenCL vector types, so that the CPU's SIMD lanes share them (PoCL vectorises across
- * work-items, and a scanline has only one). Lr(p - r, .) lives in a private array with +inf
- * guards at d = -1 and d = SGM_NL, so that the terms in d - 1 and d + 1 need no test at the range
- * ends (fmin(m, inf + P1) = m: the same values as the per-label code below), and the current and
- * previous steps swap arrays instead of copying. Before the first pixel of a scanline the
- * previous step is all zeros with minimum 0, so the recurrence gives exactly Lr = C there
- * (every term is >= 0 and the zero term wins: C + (0 - 0)). */
+/* One work-item per `lines` adjacent scanlines (CPUs): the labels of a step are processed
+ * SGM_VEC at a time with OpenCL vector types, so that the CPU's SIMD lanes share them (PoCL
+ * vectorises across work-items, and a scanline has only one). Lr(p - r, .) lives in a private
+ * array with +inf guards at d = -1 and d = SGM_NL, so that the terms in d - 1 and d + 1 need no
+ * test at the range ends (fmin(m, inf + P1) = m: the same values as the per-label code below),
+ * and the current and previous steps swap arrays instead of copying. Before the first pixel of a
+ * scanline the previous step is all zeros with minimum 0, so the recurrence gives exactly Lr = C
+ * there (every term is >= 0 and the zero term wins: C + (0 - 0)).
+ * The work-item's `lines` scanlines (1 <= lines <= SGM_LINES; lines g lines .. g lines + lines - 1)
+ * advance one step each in turn: scanlines of a vertical or diagonal direction that start side by side
+ * stay side by side, so each round of steps reads and writes neighbouring pixels, whose labels
+ * are contiguous in the pixel-major volumes (one scanline at a time jumps a whole image row per
+ * step, which the CPU's caches and prefetchers serve poorly). Each scanline's values are those
+ * of the same recurrence computed alone. */
 #define SGM_VEC 8
+#define SGM_BUF (SGM_NL + 2 * SGM_GUARD)
+
+/* One step of scanline k's recurrence at pixel idx: cur = Lr(p, .), agg (+)= cur; returns
+ * min_d Lr(p, d). prev points at Lr(p - r, .) shifted by the band delta (see above). */
+inline float sgm_step(__global const float *c, __global float *a, const float *pv, float *cur,
+                      const float prev_min, const float jump, const float p1,
+                      const int accumulate)
+{
+    const float8 jump8 = (float8)(jump), p18 = (float8)(p1), min8 = (float8)(prev_min);
+    float8 vmin = (float8)(MAXFLOAT);
+    float cmin = MAXFLOAT;
+    int d = 0;
+    for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
+        float8 m = fmin(vload8(0, pv + d), jump8);
+        m = fmin(m, vload8(0, pv + d - 1) + p18);
+        m = fmin(m, vload8(0, pv + d + 1) + p18);
+        const float8 v = vload8(0, c + d) + (m - min8);
+        vstore8(v, 0, cur + d);
+        vstore8(accumulate ? vload8(0, a + d) + v : v, 0, a + d);
+        vmin = fmin(vmin, v);
+    }
+    for (; d < SGM_NL; ++d) {
+        float m = fmin(pv[d], jump);
+        m = fmin(m, pv[d - 1] + p1);
+        m = fmin(m, pv[d + 1] + p1);
+        const float v = c[d] + (m - prev_min);
+        cur[d] = v;
+        a[d] = accumulate ? a[d] + v : v;
+        cmin = fmin(cmin, v);
+    }
+    const float4 m4 = fmin(vmin.lo, vmin.hi);
+    const float2 m2 = fmin(m4.lo, m4.hi);
+    return fmin(cmin, fmin(m2.x, m2.y));
+}
+
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
 void sgm_path(__global const float *cost, __global const float *guide, __global float *agg,
               const int w, const int h, const int dx, const int dy,
               const float p1, const float p2, const float inv_sigma, const int accumulate,
-              __global const int *base, const int banded)
+              __global const int *base, const int banded, const int lines)
 {
     /* Each step's labels sit between +inf guards of SGM_GUARD entries, so that a band shift
      * delta (clamped to +-(SGM_NL + 1), beyond which the windows do not meet) reads only guards
      * outside the window. */
-    float buf_a[SGM_NL + 2 * SGM_GUARD], buf_b[SGM_NL + 2 * SGM_GUARD];
-    float *prev = buf_a + SGM_GUARD, *cur = buf_b + SGM_GUARD;
-    for (int i = 0; i < SGM_GUARD; ++i) {
-        buf_a[i] = buf_b[i] = INFINITY;
-        prev[SGM_NL + i] = cur[SGM_NL + i] = INFINITY;
+    float buf[SGM_LINES][2][SGM_BUF];
+    float *prev[SGM_LINES], *cur[SGM_LINES];
+    int xs[SGM_LINES], ys[SGM_LINES], prev_base[SGM_LINES];
+    float prev_min[SGM_LINES], prev_guide[SGM_LINES];
+    const int n_lines = dy == 0 ? h : (dx == 0 ? w : w + h - 1);
+    for (int k = 0; k < lines; ++k) {
+        for (int i = 0; i < SGM_GUARD; ++i) {
+            buf[k][0][i] = buf[k][1][i] = INFINITY;
+            buf[k][0][SGM_GUARD + SGM_NL + i] = buf[k][1][SGM_GUARD + SGM_NL + i] = INFINITY;
+        }
+        prev[k] = buf[k][0] + SGM_GUARD;
+        cur[k] = buf[k][1] + SGM_GUARD;
+        for (int d = 0; d < SGM_NL; ++d) prev[k][d] = 0.0f;
+        const int line = get_global_id(0) * lines + k;
+        if (line < n_lines) {
+            sgm_line_start(line, w, h, dx, dy, &xs[k], &ys[k]);
+        } else {
+            xs[k] = -1;  /* no such line: outside from the start */
+            ys[k] = -1;
+        }
+        prev_min[k] = 0.0f;
+        prev_guide[k] = 0.0f;
+        prev_base[k] = (banded && xs[k] >= 0) ? base[(size_t)ys[k] * (size_t)w + (size_t)xs[k]] : 0;
     }
-    for (int d = 0; d < SGM_NL; ++d) prev[d] = 0.0f;
-
-    int x, y;
-    sgm_line_start(get_group_id(0), w, h, dx, dy, &x, &y);
-    float prev_min = 0.0f;
-    float prev_guide = 0.0f;
-    int prev_base = banded ? base[(size_t)y * (size_t)w + (size_t)x] : 0;
-    while (x >= 0 && x < w && y >= 0 && y < h) {
-        const size_t idx = (size_t)y * (size_t)w + (size_t)x;
-        __global const float *c = cost + idx * SGM_NL;
-        __global float *a = agg + idx * SGM_NL;
-        const float gv = guide[idx];
-        const float jump = prev_min + fmax(p1, p2 / (1.0f + fabs(gv - prev_guide) * inv_sigma));
-        const float8 jump8 = (float8)(jump), p18 = (float8)(p1), min8 = (float8)(prev_min);
-        const int cur_base = banded ? base[idx] : 0;
-        const float *pv = prev + clamp(cur_base - prev_base, -(SGM_NL + 1), SGM_NL + 1);
-        float8 vmin = (float8)(MAXFLOAT);
-        float cmin = MAXFLOAT;
-        int d = 0;
-        for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
-            float8 m = fmin(vload8(0, pv + d), jump8);
-            m = fmin(m, vload8(0, pv + d - 1) + p18);
-            m = fmin(m, vload8(0, pv + d + 1) + p18);
-            const float8 v = vload8(0, c + d) + (m - min8);
-            vstore8(v, 0, cur + d);
-            vstore8(accumulate ? vload8(0, a + d) + v : v, 0, a + d);
-            vmin = fmin(vmin, v);
+    int running = 1;
+    while (running) {
+        running = 0;
+        for (int k = 0; k < lines; ++k) {
+            const int x = xs[k], y = ys[k];
+            if (!(x >= 0 && x < w && y >= 0 && y < h)) continue;
+            running = 1;
+            const size_t idx = (size_t)y * (size_t)w + (size_t)x;
+            const float gv = guide[idx];
+            const float jump = prev_min[k]
+                               + fmax(p1, p2 / (1.0f + fabs(gv - prev_guide[k]) * inv_sigma));
+            const int cur_base = banded ? base[idx] : 0;
+            const float *pv = prev[k] + clamp(cur_base - prev_base[k], -(SGM_NL + 1), SGM_NL + 1);
+            prev_min[k] = sgm_step(cost + idx * SGM_NL, agg + idx * SGM_NL, pv, cur[k],
+                                   prev_min[k], jump, p1, accumulate);
+            float *t = prev[k];
+            prev[k] = cur[k];
+            cur[k] = t;
+            prev_guide[k] = gv;
+            prev_base[k] = cur_base;
+            xs[k] = x + dx;
+            ys[k] = y + dy;
         }
-        for (; d < SGM_NL; ++d) {
-            float m = fmin(pv[d], jump);
-            m = fmin(m, pv[d - 1] + p1);
-            m = fmin(m, pv[d + 1] + p1);
-            const float v = c[d] + (m - prev_min);
-            cur[d] = v;
-            a[d] = accumulate ? a[d] + v : v;
-            cmin = fmin(cmin, v);
-        }
-        const float4 m4 = fmin(vmin.lo, vmin.hi);
-        const float2 m2 = fmin(m4.lo, m4.hi);
-        prev_min = fmin(cmin, fmin(m2.x, m2.y));
-        float *t = prev;
-        prev = cur;
-        cur = t;
-        prev_guide = gv;
-        prev_base = cur_base;
-        x += dx;
-        y += dy;
     }
 }
 #else
@@ -177,7 +221,7 @@ __kernel __attribute__((reqd_work_group_size(SGM_WG, 1, 1)))
 void sgm_path(__global const float *cost, __global const float *guide, __global float *agg,
               const int w, const int h, const int dx, const int dy,
               const float p1, const float p2, const float inv_sigma, const int accumulate,
-              __global const int *base, const int banded)
+              __global const int *base, const int banded, const int lines)
 {
     __local float prev[SGM_NL];   /* Lr(p - r, .) */
     __local float red[SGM_WG];    /* reduction scratch for min_k */

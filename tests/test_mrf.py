@@ -162,6 +162,36 @@ def test_sgm_bands_of_one_window_are_plain_sgm_on_it(cl_device, roof_scene):
                        label_base=base + vol.heights.size)
 
 
+@pytest.mark.parametrize("banded", [False, True])
+def test_sgm_scanlines_per_work_item_do_not_change_the_sums(cl_device, banded):
+    """sgm_path with several scanlines per work-item (CPUs, ``lines``) runs each scanline's
+    recurrence as alone: the same sums bit for bit, for every direction, with work-items whose
+    last scanlines do not exist (23 + 29 - 1 diagonals, 29 columns: not multiples of 3 or 8)."""
+    import pyopencl.array as cla
+
+    n_labels, h, w = 13, 23, 29
+    cost, guide = _random_volume(6, shape=(n_labels, h, w))
+    cost_pm = np.ascontiguousarray(np.nan_to_num(cost.transpose(1, 2, 0), nan=24.0))
+    base = _block_bases(7, (h, w), 4, n_labels) if banded else np.zeros(1, np.int32)
+    prg = cl_device.build("sgm", {"SGM_NL": n_labels, "SGM_WG": 1, "SGM_LINES": 8})
+    kernel = cl_device.kernel(prg, "sgm_path")
+    q = cl_device.queue
+    c_d, g_d, b_d = (cla.to_device(q, a) for a in (cost_pm, guide, base))
+    i32, f32 = np.int32, np.float32
+    for dx, dy in mrf.SGM_DIRECTIONS:
+        n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
+        sums = []
+        for lines in (1, 3, 8):
+            agg = cla.zeros(q, (h, w, n_labels), np.float32)
+            kernel(q, (-(-n_lines // lines),), (1,), c_d.data, g_d.data, agg.data, i32(w), i32(h),
+                   i32(dx), i32(dy), f32(2.0), f32(14.0), f32(5.0), i32(0), b_d.data,
+                   i32(1 if banded else 0), i32(lines))
+            sums.append(agg.get())
+        assert np.isfinite(sums[0]).all()
+        np.testing.assert_array_equal(sums[1], sums[0])
+        np.testing.assert_array_equal(sums[2], sums[0])
+
+
 def test_sgm_without_p2_adaptation_matches_reference(cl_device):
     cost, guide = _random_volume(2, shape=(5, 9, 7), scale=1.0)
     opts = mrf.MRFOptions(sgm_p2_sigma=0.0, sgm_p1=0.2, sgm_p2=0.7)
