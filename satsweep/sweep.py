@@ -216,6 +216,8 @@ class SweepResult:
     cost_min: the best (filtered) cost, in census bits (plus the AD and gradient terms; float32).
     n_tiles, n_batches: how the work was split; peak_device_bytes: the most device memory held
         by this run's buffers at once.
+    A run with ``winner_take_all=False`` (the volume only) has None for height, plane_index,
+    confidence, valid and cost_min.
     """
 
     height: np.ndarray
