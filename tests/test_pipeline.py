@@ -52,12 +52,25 @@ def _aoi_arg(scene) -> str:
     return f"{a.lon_min},{a.lat_min},{a.lon_max},{a.lat_max}"
 
 
+def _reconstruct(scene, out: Path, mapping: dict, *, with_range: bool = True):
+    """reconstruct the scene's views into ``out`` with the config ``mapping``, evaluated against
+    its truth; with the scene's altitude range (widened) unless ``with_range`` is False."""
+    return reconstruct([v.image for v in scene.views], scene.aoi, out,
+                       alt_range=_alt(scene) if with_range else None,
+                       config=PipelineConfig.from_mapping(mapping), truth=scene.truth_dsm,
+                       verbose=False)
+
+
+def _check_accuracy(result) -> None:
+    """The aligned accuracy bounds of every reconstruction of the scene."""
+    a = result.evaluation["aligned"]
+    assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M, result.evaluation
+    assert a["completeness_1m"] >= MIN_COMPLETENESS_1M, result.evaluation
+
+
 @pytest.fixture(scope="module")
 def reconstruction(scene, tmp_path_factory):
-    out = tmp_path_factory.mktemp("rec") / "out"
-    config = PipelineConfig.from_mapping(FAST_CAMERA)
-    return reconstruct([v.image for v in scene.views], scene.aoi, out, alt_range=_alt(scene),
-                       config=config, truth=scene.truth_dsm, verbose=False)
+    return _reconstruct(scene, tmp_path_factory.mktemp("rec") / "out", FAST_CAMERA)
 
 
 def test_reconstruct_writes_every_output(reconstruction):
@@ -111,13 +124,9 @@ def test_tiled_mrf_reconstruction_is_as_accurate_and_reports_its_tiles(scene, re
                                                                           tmp_path):
     """mrf.tile_px small enough to cut each reference into several tiles: same accuracy bounds,
     the tiles and the MRF's own time in the report."""
-    config = PipelineConfig.from_mapping({**FAST_CAMERA,
-                                          "mrf": {"tile_px": 96, "tile_overlap_px": 32}})
-    tiled = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
-                        alt_range=_alt(scene), config=config, truth=scene.truth_dsm, verbose=False)
-    a = tiled.evaluation["aligned"]
-    assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M, tiled.evaluation
-    assert a["completeness_1m"] >= MIN_COMPLETENESS_1M, tiled.evaluation
+    tiled = _reconstruct(scene, tmp_path / "out",
+                         {**FAST_CAMERA, "mrf": {"tile_px": 96, "tile_overlap_px": 32}})
+    _check_accuracy(tiled)
     rep = json.loads((tiled.out_dir / "report.json").read_text())
     assert all(v["mrf"]["tiles"] >= 4 for v in rep["sweep"])
     assert rep["timings_s"]["mrf"] > 0
@@ -128,13 +137,9 @@ def test_tiled_mrf_reconstruction_is_as_accurate_and_reports_its_tiles(scene, re
 def test_coarse_to_fine_reconstruction_is_as_accurate_and_reports_its_windows(scene, tmp_path):
     """[sweep] search = "coarse_to_fine" (half-resolution pass, then plane windows per block):
     the same accuracy bounds, and each reference's window size in the report, below its planes."""
-    config = PipelineConfig.from_mapping({**FAST_CAMERA, "sweep": {
+    res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "sweep": {
         "search": "coarse_to_fine", "window_block_px": 32, "window_max_fraction": 1.0}})
-    res = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
-                      alt_range=_alt(scene), config=config, truth=scene.truth_dsm, verbose=False)
-    a = res.evaluation["aligned"]
-    assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M, res.evaluation
-    assert a["completeness_1m"] >= MIN_COMPLETENESS_1M, res.evaluation
+    _check_accuracy(res)
     rep = json.loads((res.out_dir / "report.json").read_text())
     assert all(v["window_planes"] is not None and v["window_planes"] <= v["planes"]
                for v in rep["sweep"]), rep["sweep"]
@@ -143,9 +148,7 @@ def test_coarse_to_fine_reconstruction_is_as_accurate_and_reports_its_windows(sc
 def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
     """No --alt-range and no DEM: the RPCs' coarse range is narrowed by tie points (reported),
     and the reconstruction still succeeds against the truth."""
-    config = PipelineConfig.from_mapping(FAST_CAMERA)
-    res = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out", config=config,
-                      truth=scene.truth_dsm, verbose=False)
+    res = _reconstruct(scene, tmp_path / "out", FAST_CAMERA, with_range=False)
     alt = res.report["altitude_range"]
     assert alt["source"] == "tie points" and alt["tie_points"] >= 20
     lo, hi = scene.alt_range
@@ -154,8 +157,7 @@ def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
     assert alt["min"] <= lo and alt["max"] > lo + 1.0
     assert alt["rpc_range"][0] <= alt["min"] and alt["max"] <= alt["rpc_range"][1]
     assert "altitude" in res.report["timings_s"]
-    a = res.evaluation["aligned"]  # the bounds of the run given the range
-    assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M and a["completeness_1m"] >= MIN_COMPLETENESS_1M
+    _check_accuracy(res)  # the bounds of the run given the range
 
 
 def test_config_written_is_the_config_used(reconstruction):

@@ -54,6 +54,18 @@ def _scene(shape=(96, 96), shifts=((PX_PER_M, 0.0),), seed=1, noise=0.01):
     return ref_img, srcs, truth, fn(heights), heights
 
 
+def _rolled_pair(seed: int, shape: tuple[int, int], roll_px: int, px_per_m: float,
+                 max_height_m: float, n_planes: int):
+    """A random reference, its copy rolled by ``roll_px`` columns plus 1% noise as the source,
+    ``n_planes`` heights over 0..max_height_m and their homographies (``px_per_m`` columns per
+    metre): (ref, src, heights, hom)."""
+    rng = np.random.default_rng(seed)
+    ref_img = rng.random(shape).astype(np.float32)
+    src = np.roll(ref_img, roll_px, axis=1) + 0.01 * rng.random(shape).astype(np.float32)
+    heights = np.linspace(0.0, max_height_m, n_planes)
+    return ref_img, src, heights, translation_homographies(np.array([[px_per_m, 0.0]]), heights)
+
+
 def _errors(res, truth):
     err = np.abs(res.height - truth)[BORDER:-BORDER, BORDER:-BORDER]
     valid = res.valid[BORDER:-BORDER, BORDER:-BORDER]
@@ -363,11 +375,7 @@ def test_plane_windows_sweep_the_same_costs_of_fewer_planes(cl_device):
     costs that the full sweep computes for the planes of its window (each block is a tile with
     the filter's margin; census alone and a box filter give integer costs, summed exactly), and
     where the full sweep's best plane lies inside a window, the same plane index."""
-    rng = np.random.default_rng(6)
-    ref = rng.random((45, 58)).astype(np.float32)
-    src = np.roll(ref, 3, axis=1) + 0.01 * rng.random(ref.shape).astype(np.float32)
-    heights = np.linspace(0.0, 15.0, 31)
-    hom = translation_homographies(np.array([[0.4, 0.0]]), heights)
+    ref, src, heights, hom = _rolled_pair(6, (45, 58), 3, 0.4, 15.0, 31)
     box = SweepOptions(cost_filter="box", ad_weight=0.0, grad_weight=0.0)
     whole = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True)
     block, n_win = 16, 9
@@ -406,11 +414,7 @@ def test_plane_windows_sweep_the_same_costs_of_fewer_planes(cl_device):
 def test_volume_without_winner_take_all(cl_device):
     """winner_take_all = False (SGM's path) returns the same kept volume with no per-pixel maps,
     and needs keep_volume and no left-right check."""
-    rng = np.random.default_rng(6)
-    ref = rng.random((36, 44)).astype(np.float32)
-    src = np.roll(ref, 2, axis=1) + 0.01 * rng.random(ref.shape).astype(np.float32)
-    heights = np.linspace(0.0, 10.0, 23)
-    hom = translation_homographies(np.array([[0.5, 0.0]]), heights)
+    ref, src, heights, hom = _rolled_pair(6, (36, 44), 2, 0.5, 10.0, 23)
     # Batches of 11 planes and rows of 44 pixels: the pixel-major copy's 8 x 8 blocks and its
     # partial tails (labels and pixels) all occur.
     opts = SweepOptions(max_planes_per_batch=11)
@@ -463,11 +467,7 @@ def test_kept_volume_matches_the_wta_and_does_not_depend_on_tiling(cl_device):
     """keep_volume (the MRF path) returns the filtered cost of every plane: its per-pixel argmin
     is the WTA's best plane, and a tiled run returns the same volume as a single-tile run (bit
     for bit: census alone has integer costs, whose box sums float32 adds exactly in any order)."""
-    rng = np.random.default_rng(5)
-    ref = rng.random((40, 52)).astype(np.float32)
-    src = np.roll(ref, 2, axis=1) + 0.01 * rng.random(ref.shape).astype(np.float32)
-    heights = np.linspace(0.0, 10.0, 12)
-    hom = translation_homographies(np.array([[0.5, 0.0]]), heights)
+    ref, src, heights, hom = _rolled_pair(5, (40, 52), 2, 0.5, 10.0, 12)
     box = SweepOptions(cost_filter="box", ad_weight=0.0, grad_weight=0.0)
     whole = PlaneSweep(cl_device, box).run(
         ref, [src], hom, heights, keep_volume=True)
