@@ -341,8 +341,9 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     confidence = np.zeros((h_img, w_img), np.float32)
     cost_min = np.zeros((h_img, w_img), np.float32)
     valid = np.zeros((h_img, w_img), bool)
-    wta_index = np.zeros((h_img, w_img), np.float32)
-    wta_valid = np.zeros((h_img, w_img), bool)
+    if with_wta:  # the sweep's winner-take-all map, for the left-right check
+        wta_index = np.zeros((h_img, w_img), np.float32)
+        wta_valid = np.zeros((h_img, w_img), bool)
     n_tiles, peak, window_planes = 0, 0, 0
     tiles = list(tile_grid(w_img, h_img, side, side, mrf.tile_overlap_px))
     for x0, y0, x1, y1, tx0, ty0, tx1, ty1 in tiles:

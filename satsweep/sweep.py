@@ -796,10 +796,10 @@ class PlaneSweep:
             sweep_k = (kern(sweep_prg, "sweep_warp"), kern(sweep_prg, "sweep_warped_cost")) \
                 if _split_census(o) else kern(sweep_prg, "sweep_census_cost")
 
-        out_index = np.zeros((h_img, w_img), np.float32)
-        out_conf = np.zeros((h_img, w_img), np.float32)
-        out_cost = np.zeros((h_img, w_img), np.float32)
-        out_valid = np.zeros((h_img, w_img), np.uint8)
+        # The winner-take-all's per-pixel maps (index, confidence, cost, validity), if asked for.
+        outs = (np.zeros((h_img, w_img), np.float32), np.zeros((h_img, w_img), np.float32),
+                np.zeros((h_img, w_img), np.float32), np.zeros((h_img, w_img), np.uint8)) \
+            if wta else None
         volume = volume_k = None
         # Labels that a block's window holds but does not sweep keep the worst cost.
         padded = windows is not None and windows.swept is not None \
@@ -825,10 +825,10 @@ class PlaneSweep:
             n_batches += self._sweep_tile(
                 tile, plan.planes_per_batch, hom[first:first + count], count, bufs,
                 ref_buf, src_buf, off_buf, size_buf, census_k, sweep_k, filt_prg, wta_prg,
-                (w_img, h_img), (out_index, out_conf, out_cost, out_valid) if wta else None,
-                (ix0, iy0), volume, volume_k, n_labels=n_planes, label0=label0)
+                (w_img, h_img), outs, (ix0, iy0), volume, volume_k, n_labels=n_planes,
+                label0=label0)
             if wta:
-                out_index[iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
+                outs[0][iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
             n_tiles += 1
         bufs.free(ref_buf, src_buf, off_buf, size_buf)
         plane_base = None if windows is None else windows.per_pixel(ref.shape)
@@ -838,7 +838,7 @@ class PlaneSweep:
             return SweepResult(height=None, plane_index=None, confidence=None, valid=None,
                                cost_min=None, n_tiles=n_tiles, n_batches=n_batches,
                                peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base)
-        index = out_index
+        index, out_conf, out_cost, out_valid = outs
         if not o.subplane:
             index = np.rint(index).astype(np.float32)
         valid = out_valid.astype(bool)
