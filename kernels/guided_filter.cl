@@ -17,6 +17,8 @@
  *                             [g COLS_VEC, (g + 1) COLS_VEC) (clipped to tw) of plane p;
  *   box_rows_mean, gf_rows_ab, gf_rows_q : global (ncx, th, planes); work-item (c, y, p) handles
  *                             columns [c BOX_CHUNK, (c + 1) BOX_CHUNK) of row y of plane p;
+ *   gf_rows_q_pixel_major    : global (ncx, ih); work-item (c, y) handles columns
+ *                             [c BOX_CHUNK, (c + 1) BOX_CHUNK) of interior row y, all planes;
  *   gf_guide_fields          : global (tw, th); work-item (x, y) handles one pixel.
  *
  * Guided filter of a cost slice p with guide I (the reference tile), He et al. (2013), eq. 7-8:
@@ -24,7 +26,8 @@
  *   q = mean(a) I + mean(b).
  * Host sequence: gf_guide_fields -> box_cols_sum -> box_rows_mean gives the guide means (once per
  * tile); per batch of nb planes: gf_cols_p (p -> [colsum p | colsum I p], 2 nb planes),
- * gf_rows_ab (-> [a | b]), box_cols_sum on the 2 nb planes, gf_rows_q (-> q, nb planes).
+ * gf_rows_ab (-> [a | b]), box_cols_sum on the 2 nb planes, gf_rows_q (-> q, nb planes), or,
+ * when the filtered interior goes straight to SGM's pixel-major volume, gf_rows_q_pixel_major.
  * Compile-time constants: BOX_R (radius, pixels), BOX_CHUNK, COLS_VEC (columns per work-item of
  * the column kernels: 8), GF_EPS (float, guide units squared).
  */
@@ -298,6 +301,37 @@ __kernel void gf_rows_ab(__global const float *sums, __global const float *guide
 #endif
 }
 
+/* q over the columns [x0, x1) of one row (chunk start x0, as gf_rows_q's work-items), from the
+ * rows ra, rb of the column sums of a and b and the guide row ri: STORE8(x, q8) stores columns
+ * x .. x + 7, STORE1(x, q) column x. A macro, so that gf_rows_q and gf_rows_q_pixel_major run
+ * the same float32 operations on every column and store them differently. */
+#if BOX_R <= ROW_DIRECT_MAX_R
+#define GF_Q_ROW(ra, rb, ri, x0, x1, tw, ny, STORE8, STORE1)                                  \
+    for (int x = (x0); x < (x1); x += ROW_VEC) {                                              \
+        if (row_group_inside(x, (x1), (tw))) {                                                \
+            const float n = (float)((ny) * (2 * BOX_R + 1));                                  \
+            const float8 q8 = (row_sum8((ra), x) / n) * vload8(0, (ri) + x)                   \
+                              + row_sum8((rb), x) / n;                                        \
+            STORE8(x, q8);                                                                    \
+            continue;                                                                         \
+        }                                                                                     \
+        for (int xx = x; xx < min(x + ROW_VEC, (x1)); ++xx) {                                 \
+            const float n = (float)((ny) * window_count(xx, (tw)));                           \
+            STORE1(xx, (row_sum1((ra), xx, (tw)) / n) * (ri)[xx] + row_sum1((rb), xx, (tw)) / n); \
+        }                                                                                     \
+    }
+#else
+#define GF_Q_ROW(ra, rb, ri, x0, x1, tw, ny, STORE8, STORE1)                                  \
+    {                                                                                         \
+        float2 s = row_pair_window((ra), (rb), (x0), (tw));                                   \
+        for (int x = (x0); x < (x1); ++x) {                                                   \
+            const float n = (float)((ny) * window_count(x, (tw)));                            \
+            STORE1(x, (s.x / n) * (ri)[x] + s.y / n);                                         \
+            s = row_pair_slide(s, (ra), (rb), x, (tw));                                       \
+        }                                                                                     \
+    }
+#endif
+
 /* From column sums [a | b]: q[b] = mean(a) I + mean(b). */
 __kernel void gf_rows_q(__global const float *sums, __global const float *guide_i,
                         __global float *q, const int tw, const int th, const int nb)
@@ -313,25 +347,55 @@ __kernel void gf_rows_q(__global const float *sums, __global const float *guide_
     __global const float *ri = guide_i + row;
     __global float *rq = q + b * plane + row;
     const int ny = window_count(y, th);
-#if BOX_R <= ROW_DIRECT_MAX_R
-    for (int x = x0; x < x1; x += ROW_VEC) {
-        if (row_group_inside(x, x1, tw)) {
-            const float n = (float)(ny * (2 * BOX_R + 1));
-            vstore8((row_sum8(ra, x) / n) * vload8(0, ri + x) + row_sum8(rb, x) / n, 0, rq + x);
-            continue;
+#define Q_STORE8(x, v) vstore8((v), 0, rq + (x))
+#define Q_STORE1(x, v) (rq[x] = (v))
+    GF_Q_ROW(ra, rb, ri, x0, x1, tw, ny, Q_STORE8, Q_STORE1)
+#undef Q_STORE8
+#undef Q_STORE1
+}
+
+/* gf_rows_q_pixel_major: gf_rows_q's q of the tile interior (origin (mx, my) in the tile, size
+ * iw x ih) written straight into the PIXEL-MAJOR volume of the whole reference that SGM
+ * aggregates (the layout of sweep.cl's volume_pixel_major):
+ *   out[((oy + y) out_w + ox + x) n_planes + plane0 + b] = q[b][my + y][mx + x],
+ * with the same float32 operations per column as gf_rows_q (the same chunks of the tile's rows),
+ * so the same values, without the plane-major q and the copy. Each work-item writes all nb labels
+ * of its pixels, so each pixel's run of nb floats is written whole.
+ * Work size: global = (ncx, ih) (ncx = ceil(tw / BOX_CHUNK)), each rounded up to any multiple;
+ *   local = any. Work-item (c, y) computes columns [c BOX_CHUNK, (c + 1) BOX_CHUNK) (clipped to
+ *   tw) of tile row my + y for planes 0 .. nb - 1 and writes those inside [mx, mx + iw). */
+__kernel void gf_rows_q_pixel_major(__global const float *sums, __global const float *guide_i,
+                                    const int tw, const int th, const int nb, const int mx,
+                                    const int my, const int iw, const int ih,
+                                    __global float *out, const int out_w, const int ox,
+                                    const int oy, const int n_planes, const int plane0)
+{
+    const int c = get_global_id(0), yi = get_global_id(1);
+    const int x0 = c * BOX_CHUNK;
+    if (yi >= ih || x0 >= tw) return;
+    const int x1 = min(x0 + BOX_CHUNK, tw);
+    if (x1 <= mx || x0 >= mx + iw) return;
+    const int y = my + yi;
+    const size_t plane = (size_t)tw * th;
+    const size_t row = (size_t)y * tw;
+    __global const float *ri = guide_i + row;
+    /* o[(x - mx) n_planes] is label plane0 + b of tile column x of this row, x in [mx, mx + iw) */
+    __global float *o = out + ((size_t)(oy + yi) * out_w + ox) * n_planes + plane0;
+    const int ny = window_count(y, th);
+    for (int b = 0; b < nb; ++b, ++o) {
+        __global const float *ra = sums + b * plane + row;
+        __global const float *rb = sums + (nb + b) * plane + row;
+#define PM_STORE1(x, v) if ((x) >= mx && (x) < mx + iw) o[(size_t)((x) - mx) * n_planes] = (v)
+#define PM_STORE8(x, v)                                                                       \
+        {                                                                                     \
+            const float8 qv = (v);                                                            \
+            PM_STORE1((x), qv.s0); PM_STORE1((x) + 1, qv.s1); PM_STORE1((x) + 2, qv.s2);      \
+            PM_STORE1((x) + 3, qv.s3); PM_STORE1((x) + 4, qv.s4); PM_STORE1((x) + 5, qv.s5);  \
+            PM_STORE1((x) + 6, qv.s6); PM_STORE1((x) + 7, qv.s7);                             \
         }
-        for (int xx = x; xx < min(x + ROW_VEC, x1); ++xx) {
-            const float n = (float)(ny * window_count(xx, tw));
-            rq[xx] = (row_sum1(ra, xx, tw) / n) * ri[xx] + row_sum1(rb, xx, tw) / n;
-        }
+        GF_Q_ROW(ra, rb, ri, x0, x1, tw, ny, PM_STORE8, PM_STORE1)
+#undef PM_STORE8
+#undef PM_STORE1
     }
-#else
-    float2 s = row_pair_window(ra, rb, x0, tw);
-    for (int x = x0; x < x1; ++x) {
-        const float n = (float)(ny * window_count(x, tw));
-        rq[x] = (s.x / n) * ri[x] + s.y / n;
-        s = row_pair_slide(s, ra, rb, x, tw);
-    }
-#endif
 }
 #endif

@@ -932,15 +932,21 @@ class PlaneSweep:
                 else:
                     _launch(sweep_k, queue, (tw, th, nb), src_buf, off_buf, size_buf, hom_buf,
                             code_buf, i32(tw), i32(th), i32(p0), vol_a)
-            with self._stage("filter"):
-                self._filter(filt_prg, tile, nb, vol_a, vol_b, guide_i, guide_mean)
             ix0, iy0 = interior_origin
+            # Without winner-take-all, the guided filter's last pass writes the interior straight
+            # into the pixel-major volume (no plane-major q, no copy).
+            fused = (volume is not None and not isinstance(volume, np.ndarray) and not wta
+                     and o.cost_filter == "guided")
+            to_volume = ((tile.mx, tile.my, iw, ih, volume, w_img, ix0, iy0, n_labels, label0 + p0)
+                         if fused else None)
+            with self._stage("filter"):
+                self._filter(filt_prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume)
             if isinstance(volume, np.ndarray):  # MRF path: the filtered interior to the host
                 batch = np.empty((nb, th, tw), np.float32)
                 cl.enqueue_copy(queue, batch, vol_a)
                 volume[label0 + p0:label0 + p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
                     batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
-            elif volume is not None:  # MRF path: the interior into the pixel-major volume
+            elif volume is not None and not fused:  # MRF path: the interior, pixel-major
                 with self._stage("copy"):
                     _launch(volume_k, queue, (iw, ih), vol_a,
                             i32(tw), i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih),
@@ -991,8 +997,13 @@ class PlaneSweep:
         _launch(kern(prg, "box_rows_mean"), queue, (_ceil_div(tw, chunk), th, 2),
                 scratch, guide_mean, i32(tw), i32(th))
 
-    def _filter(self, prg, tile, nb, vol_a, vol_b, guide_i, guide_mean) -> None:
-        """Filter the nb cost planes at the start of vol_a in place (through vol_b)."""
+    def _filter(self, prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume=None) -> None:
+        """Filter the nb cost planes at the start of vol_a in place (through vol_b).
+
+        With ``to_volume`` = (mx, my, iw, ih, volume, out_w, ox, oy, n_planes, plane0) (guided
+        filter only), the filtered interior goes straight into the pixel-major ``volume`` instead
+        (gf_rows_q_pixel_major; vol_a is left holding the [a | b] coefficients).
+        """
         o = self.options
         if o.cost_filter == "none":
             return
@@ -1017,8 +1028,14 @@ class PlaneSweep:
                 i32(tw), i32(th), i32(nb))
         _launch(kern(prg, "box_cols_sum"), queue, (ncv, ncy, 2 * nb), vol_a, vol_b,
                 i32(tw), i32(th))
-        _launch(kern(prg, "gf_rows_q"), queue, (ncx, th, nb), vol_b, guide_i, vol_a,
-                i32(tw), i32(th), i32(nb))
+        if to_volume is None:
+            _launch(kern(prg, "gf_rows_q"), queue, (ncx, th, nb), vol_b, guide_i, vol_a,
+                    i32(tw), i32(th), i32(nb))
+            return
+        mx, my, iw, ih, volume, out_w, ox, oy, n_planes, plane0 = to_volume
+        _launch(kern(prg, "gf_rows_q_pixel_major"), queue, (ncx, ih), vol_b, guide_i, i32(tw),
+                i32(th), i32(nb), i32(mx), i32(my), i32(iw), i32(ih), volume, i32(out_w),
+                i32(ox), i32(oy), i32(n_planes), i32(plane0))
 
     def _lr_check(self, result: SweepResult, ref: np.ndarray, srcs: list[np.ndarray],
                   hom: np.ndarray, hts: np.ndarray) -> None:

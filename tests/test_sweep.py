@@ -413,10 +413,12 @@ def test_plane_windows_sweep_the_same_costs_of_fewer_planes(cl_device):
 
 def test_volume_without_winner_take_all(cl_device):
     """winner_take_all = False (SGM's path) returns the same kept volume with no per-pixel maps,
-    and needs keep_volume and no left-right check."""
+    and needs keep_volume and no left-right check. Its guided filter writes the pixel-major
+    volume itself (gf_rows_q_pixel_major): the same values as the plane-major q that the
+    winner-take-all path reads, bit for bit, in one tile and in several."""
     ref, src, heights, hom = _rolled_pair(6, (36, 44), 2, 0.5, 10.0, 23)
-    # Batches of 11 planes and rows of 44 pixels: the pixel-major copy's 8 x 8 blocks and its
-    # partial tails (labels and pixels) all occur.
+    # Batches of 11 planes and rows of 44 pixels: partial batches and a row chunk narrower than
+    # the kernels' 8-column groups occur.
     opts = SweepOptions(max_planes_per_batch=11)
     engine = PlaneSweep(cl_device, opts)
     host = engine.run(ref, [src], hom, heights, keep_volume=True)
@@ -427,6 +429,20 @@ def test_volume_without_winner_take_all(cl_device):
         assert bare.plane_index is None and bare.valid is None and bare.height is None
     finally:
         bare.volume.data.release()
+    # Tiles whose kept interiors start inside them (the filter's margins), and batches of 4,
+    # against the winner-take-all path's copy of the same tiles (the plan is the same: tiles
+    # change the filter's float32 sums, so the single-tile volume is no reference here).
+    volume_bytes = 4 * heights.size * ref.size
+    tiled_engine = PlaneSweep(cl_device, opts.replace(
+        memory_budget_bytes=4 * 2 * ref.size + volume_bytes + 200_000, max_planes_per_batch=4))
+    kept = [tiled_engine.run(ref, [src], hom, heights, keep_volume=True, volume_on_device=True,
+                             winner_take_all=wta) for wta in (True, False)]
+    try:
+        assert kept[0].n_tiles == kept[1].n_tiles > 1
+        np.testing.assert_array_equal(kept[1].volume.get(), kept[0].volume.get())
+    finally:
+        for res in kept:
+            res.volume.data.release()
     with pytest.raises(InputError, match="keep_volume"):
         engine.run(ref, [src], hom, heights, winner_take_all=False)
     with pytest.raises(InputError, match="left-right check"):
