@@ -907,7 +907,12 @@ class PlaneSweep:
             seen = bufs.alloc(positions)
 
         # The cost of a batch lands in vol_a (first nb planes); the filters use vol_b (and the
-        # rest of vol_a) as temporaries and leave the filtered cost in vol_a.
+        # rest of vol_a) as temporaries and leave the filtered cost in vol_a. Without
+        # winner-take-all, the guided filter's last pass writes the interior straight into the
+        # pixel-major volume instead (no plane-major q, no copy).
+        ix0, iy0 = interior_origin
+        fused = (volume is not None and not isinstance(volume, np.ndarray) and not wta
+                 and o.cost_filter == "guided")
         wgx, wgy = o.work_group
         n_batches = 0
         for p0 in range(0, n_planes, nb_max):
@@ -932,13 +937,7 @@ class PlaneSweep:
                 else:
                     _launch(sweep_k, queue, (tw, th, nb), src_buf, off_buf, size_buf, hom_buf,
                             code_buf, i32(tw), i32(th), i32(p0), vol_a)
-            ix0, iy0 = interior_origin
-            # Without winner-take-all, the guided filter's last pass writes the interior straight
-            # into the pixel-major volume (no plane-major q, no copy).
-            fused = (volume is not None and not isinstance(volume, np.ndarray) and not wta
-                     and o.cost_filter == "guided")
-            to_volume = ((tile.mx, tile.my, iw, ih, volume, w_img, ix0, iy0, n_labels, label0 + p0)
-                         if fused else None)
+            to_volume = (volume, w_img, ix0, iy0, n_labels, label0 + p0) if fused else None
             with self._stage("filter"):
                 self._filter(filt_prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume)
             if isinstance(volume, np.ndarray):  # MRF path: the filtered interior to the host
@@ -971,7 +970,6 @@ class PlaneSweep:
             _launch(self.device.kernel(wta_prg, "wta_finalize"), queue, (iw, ih), state, i32(iw),
                     i32(ih), i32(n_planes), i32(tile.mx), i32(tile.my), hom_buf, size_buf,
                     i32(1 if o.reject_range_edges else 0), index, conf, best, valid)
-        ix0, iy0 = interior_origin
         for dev_buf, host, dtype in zip((index, conf, best, valid), outs,
                                         (np.float32, np.float32, np.float32, np.uint8)):
             tmp = np.empty((ih, iw), dtype)
@@ -1000,9 +998,10 @@ class PlaneSweep:
     def _filter(self, prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume=None) -> None:
         """Filter the nb cost planes at the start of vol_a in place (through vol_b).
 
-        With ``to_volume`` = (mx, my, iw, ih, volume, out_w, ox, oy, n_planes, plane0) (guided
-        filter only), the filtered interior goes straight into the pixel-major ``volume`` instead
-        (gf_rows_q_pixel_major; vol_a is left holding the [a | b] coefficients).
+        With ``to_volume`` = (volume, out_w, ox, oy, n_planes, plane0) (guided filter only), the
+        tile's interior goes straight into the pixel-major ``volume`` instead, at (ox, oy) and
+        labels plane0 .. plane0 + nb - 1 (gf_rows_q_pixel_major; vol_a is left holding the
+        [a | b] coefficients).
         """
         o = self.options
         if o.cost_filter == "none":
@@ -1032,9 +1031,10 @@ class PlaneSweep:
             _launch(kern(prg, "gf_rows_q"), queue, (ncx, th, nb), vol_b, guide_i, vol_a,
                     i32(tw), i32(th), i32(nb))
             return
-        mx, my, iw, ih, volume, out_w, ox, oy, n_planes, plane0 = to_volume
-        _launch(kern(prg, "gf_rows_q_pixel_major"), queue, (ncx, ih), vol_b, guide_i, i32(tw),
-                i32(th), i32(nb), i32(mx), i32(my), i32(iw), i32(ih), volume, i32(out_w),
+        volume, out_w, ox, oy, n_planes, plane0 = to_volume
+        _launch(kern(prg, "gf_rows_q_pixel_major"), queue, (ncx, tile.ih), vol_b, guide_i,
+                i32(tw), i32(th), i32(nb), i32(tile.mx), i32(tile.my), i32(tile.iw),
+                i32(tile.ih), volume, i32(out_w),
                 i32(ox), i32(oy), i32(n_planes), i32(plane0))
 
     def _lr_check(self, result: SweepResult, ref: np.ndarray, srcs: list[np.ndarray],
