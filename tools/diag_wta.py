@@ -44,6 +44,9 @@ from satsweep.views import load_views  # noqa: E402
 
 # The altitude range is widened so that the surface never sits on the first or last plane.
 ALT_MARGIN_M = 5.0
+# --calibration's view angles (off-nadir, azimuth): B/H tan 8 + tan 7 deg = 0.26, as in
+# tools/bench_e2e.py.
+CALIBRATION_ANGLES = ((8.0, 20.0), (7.0, 200.0))
 # "Flat": the true height varies by less than this over the window around the pixel.
 FLAT_RANGE_M = 0.5
 FLAT_WINDOW_PX = 9
@@ -58,13 +61,19 @@ DISTANCE_BINS_M = (0.0, 1.5, 3.0, 5.0, 8.0, np.inf)
 CAMERA_CHECK_POINTS = 3000
 
 
-def get_scene(cache: Path | None, seed: int, size: int, noise: float) -> Scene:
-    """The 2-view scene of these options, generated into ``cache`` unless it is already there."""
-    options = SynthOptions(seed=seed, n_views=2, size_px=size, gsd_m=0.5, noise_dn=noise)
+def get_scene(cache: Path | None, seed: int, size: int, noise: float,
+              calibration: bool = False) -> Scene:
+    """The 2-view scene of these options, generated into ``cache`` unless it is already there;
+    ``calibration``: at the view angles of issue 8's calibration figure (B/H 0.26)."""
+    angles = {}
+    if calibration:
+        angles = dict(off_nadir_deg=tuple(a for a, _ in CALIBRATION_ANGLES),
+                      azimuth_deg=tuple(b for _, b in CALIBRATION_ANGLES))
+    options = SynthOptions(seed=seed, n_views=2, size_px=size, gsd_m=0.5, noise_dn=noise, **angles)
     if cache is None:
         import tempfile  # noqa: PLC0415
         cache = Path(tempfile.mkdtemp(prefix="diag_wta_"))
-    folder = cache / f"s{seed}_px{size}_n{noise:g}"
+    folder = cache / f"s{seed}_px{size}_n{noise:g}{'_cal' if calibration else ''}"
     if (folder / "scene.json").exists():
         scene = Scene.load(folder)
         if scene.options == options:
@@ -147,9 +156,11 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="SweepOptions override (repeatable); each run adds to the defaults")
     ap.add_argument("--device", default=None)
+    ap.add_argument("--calibration", action="store_true",
+                    help="views at B/H 0.26 (issue 8's calibration figure) instead of the built-in 0.20")
     args = ap.parse_args(argv)
 
-    scene = get_scene(args.scenes, args.seed, args.size, args.noise)
+    scene = get_scene(args.scenes, args.seed, args.size, args.noise, args.calibration)
     lo, hi = scene.alt_range
     alt = AltitudeRange(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M)
     views = load_views([v.image for v in scene.views], scene.aoi, alt)
