@@ -216,6 +216,184 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
         }
     }
 }
+
+/* sgm_scan (CPUs): the paths of 4 directions in ONE raster scan of the image, as in
+ * Hirschmueller's and OpenCV's SGBM, instead of one launch per direction: each pixel's costs are
+ * read once and its aggregate written once per scan, so the volumes travel through memory twice
+ * for 8 directions instead of 8 times (sgm_path reads the costs and reads and writes agg once
+ * per direction).
+ *
+ *   Work-item 0 (the forward scan) visits rows top to bottom and each row left to right and
+ *   computes the directions (1, 0), (0, 1), (1, 1), (-1, 1): their predecessors (x - 1, y),
+ *   (x, y - 1), (x - 1, y - 1), (x + 1, y - 1) are visited before (x, y). Work-item 1 (the
+ *   backward scan) visits the image in reverse order and computes (-1, 0), (0, -1), (-1, -1),
+ *   (1, -1). With paths == 4 only the horizontal and vertical directions are computed (the first
+ *   four of satsweep.mrf.SGM_DIRECTIONS), with paths == 8 all of them. A scan's sum at a pixel
+ *   is F = ((Lr(1,0) + Lr(0,1)) + Lr(1,1)) + Lr(-1,1) (B likewise, backward directions), each
+ *   Lr the recurrence documented above (plain, not banded), bit for bit the values of sgm_path.
+ *   agg = F + B: sgm_path's sum up to the order of the additions.
+ *   The scans share agg without a third volume, in two launches (phase 0, then phase 1) that
+ *   meet at row h / 2: in phase 0 the forward scan stores F in rows [0, h / 2) and the backward
+ *   scan B in rows [h / 2, h); in phase 1 each goes on through the other's rows and adds its sum
+ *   to what is there (the launches run in order on the queue, so those rows are complete).
+ *   scratch: SGM_SCAN_SCRATCH(w) floats per work-item, kept from phase 0 to phase 1: the steps of
+ *   the 3 directions that come from the row before, for two rows (row yi in slot yi % 2,
+ *   2 x 3 x w steps), two steps of the horizontal direction, and the minima of the rows'
+ *   steps (2 x 3 x w); every step between +inf guards of SGM_SCAN_GUARD entries, which phase 0
+ *   writes first.
+ *
+ * Work size of sgm_scan: global = 2, local = 1 (required): the two scans run side by side, one
+ *   per core. A scan visits the image in order, so it does not use more cores; GPUs use
+ *   sgm_path with a work-group per scanline.
+ */
+#define SGM_SCAN_GUARD 8
+#define SGM_SCAN_STEP (SGM_NL + 2 * SGM_SCAN_GUARD)
+#define SGM_SCAN_SCRATCH(w) ((size_t)(6 * (w) + 2) * SGM_SCAN_STEP + (size_t)6 * (w))
+
+/* cur = Lr(p, .) of one direction from pv = Lr(p - r, .) (guards +inf on both sides), as
+ * sgm_step without the aggregate; returns min_d Lr(p, d). */
+inline float sgm_scan_step(__global const float *c, __global const float *pv, __global float *cur,
+                           const float prev_min, const float jump, const float p1)
+{
+    const float8 jump8 = (float8)(jump), p18 = (float8)(p1), min8 = (float8)(prev_min);
+    float8 vmin = (float8)(MAXFLOAT);
+    float cmin = MAXFLOAT;
+    int d = 0;
+    for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
+        float8 m = fmin(vload8(0, pv + d), jump8);
+        m = fmin(m, vload8(0, pv + d - 1) + p18);
+        m = fmin(m, vload8(0, pv + d + 1) + p18);
+        const float8 v = vload8(0, c + d) + (m - min8);
+        vstore8(v, 0, cur + d);
+        vmin = fmin(vmin, v);
+    }
+    for (; d < SGM_NL; ++d) {
+        float m = fmin(pv[d], jump);
+        m = fmin(m, pv[d - 1] + p1);
+        m = fmin(m, pv[d + 1] + p1);
+        const float v = c[d] + (m - prev_min);
+        cur[d] = v;
+        cmin = fmin(cmin, v);
+    }
+    const float4 m4 = fmin(vmin.lo, vmin.hi);
+    const float2 m2 = fmin(m4.lo, m4.hi);
+    return fmin(cmin, fmin(m2.x, m2.y));
+}
+
+/* Lr(p, .) = C(p, .) at the first pixel of a scanline (what sgm_path's zero start gives). */
+inline float sgm_scan_first(__global const float *c, __global float *cur)
+{
+    float cmin = MAXFLOAT;
+    for (int d = 0; d < SGM_NL; ++d) {
+        cur[d] = c[d];
+        cmin = fmin(cmin, c[d]);
+    }
+    return cmin;
+}
+
+/* One direction at a pixel (guide value gv): from the predecessor's step pv (guide value gp,
+ * minimum pmin) when it is inside the image, else the first step. */
+inline float sgm_scan_dir(__global const float *c, __global const float *pv, __global float *cur,
+                          const int inside, const float pmin, const float gv, const float gp,
+                          const float p1, const float p2, const float inv_sigma)
+{
+    if (!inside) return sgm_scan_first(c, cur);
+    const float jump = pmin + fmax(p1, p2 / (1.0f + fabs(gv - gp) * inv_sigma));
+    return sgm_scan_step(c, pv, cur, pmin, jump, p1);
+}
+
+__kernel __attribute__((reqd_work_group_size(1, 1, 1)))
+void sgm_scan(__global const float *cost, __global const float *guide, __global float *agg,
+              __global float *scratch, const int w, const int h, const float p1, const float p2,
+              const float inv_sigma, const int paths, const int phase)
+{
+    const int back = get_global_id(0);
+    if (back > 1) return;
+    const int s = back ? -1 : 1;              /* step of x and y along the scan */
+    const int diag = paths == 8;
+    const int own = back ? h - h / 2 : h / 2; /* rows the scan stores in phase 0 */
+    __global float *sc = scratch + (size_t)back * SGM_SCAN_SCRATCH(w);
+    __global float *rows = sc;                                      /* [slot][k][x] steps */
+    __global float *hor = sc + (size_t)6 * w * SGM_SCAN_STEP;      /* two horizontal steps */
+    __global float *mins = hor + 2 * SGM_SCAN_STEP;                 /* [slot][k][x] minima */
+    if (phase == 0) {
+        for (size_t i = 0; i < (size_t)(6 * w + 2); ++i) {
+            __global float *step = sc + i * SGM_SCAN_STEP;
+            for (int g = 0; g < SGM_SCAN_GUARD; ++g) {
+                step[g] = INFINITY;
+                step[SGM_SCAN_GUARD + SGM_NL + g] = INFINITY;
+            }
+        }
+    }
+    const int add = phase != 0;
+    const int yi0 = add ? own : 0, yi1 = add ? h : own;
+    for (int yi = yi0; yi < yi1; ++yi) {
+        const int y = back ? h - 1 - yi : yi;
+        const int cs = yi & 1, ps = 1 - cs;   /* slots of this row and of the row before */
+        __global float *prow = rows + (size_t)ps * 3 * w * SGM_SCAN_STEP + SGM_SCAN_GUARD;
+        __global float *crow = rows + (size_t)cs * 3 * w * SGM_SCAN_STEP + SGM_SCAN_GUARD;
+        __global const float *pmins = mins + (size_t)ps * 3 * w;
+        __global float *cmins = mins + (size_t)cs * 3 * w;
+        int hs = 0;
+        float hmin = 0.0f, hguide = 0.0f;
+        for (int xi = 0; xi < w; ++xi) {
+            const int x = back ? w - 1 - xi : xi;
+            const size_t idx = (size_t)y * (size_t)w + (size_t)x;
+            __global const float *c = cost + idx * SGM_NL;
+            const float gv = guide[idx];
+            const int up = yi > 0;
+            const size_t iup = up ? (size_t)(y - s) * (size_t)w : 0;   /* row y - s */
+            /* horizontal (s, 0): predecessor (x - s, y) */
+            __global float *hp = hor + (size_t)hs * SGM_SCAN_STEP + SGM_SCAN_GUARD;
+            __global float *hc = hor + (size_t)(1 - hs) * SGM_SCAN_STEP + SGM_SCAN_GUARD;
+            hmin = sgm_scan_dir(c, hp, hc, xi > 0, hmin, gv, hguide, p1, p2, inv_sigma);
+            hguide = gv;
+            hs = 1 - hs;
+            /* vertical (0, s): predecessor (x, y - s) */
+            __global float *v0 = crow + (size_t)x * SGM_SCAN_STEP;
+            cmins[x] = sgm_scan_dir(c, prow + (size_t)x * SGM_SCAN_STEP, v0, up,
+                                    up ? pmins[x] : 0.0f, gv, up ? guide[iup + x] : 0.0f,
+                                    p1, p2, inv_sigma);
+            __global float *a = agg + idx * SGM_NL;
+            if (diag) {
+                /* (s, s): predecessor (x - s, y - s); (-s, s): predecessor (x + s, y - s) */
+                const int in1 = up && xi > 0, in2 = up && xi < w - 1;
+                const int xa = in1 ? x - s : x, xb = in2 ? x + s : x;
+                __global float *v1 = crow + ((size_t)w + (size_t)x) * SGM_SCAN_STEP;
+                __global float *v2 = crow + ((size_t)2 * w + (size_t)x) * SGM_SCAN_STEP;
+                cmins[w + x] = sgm_scan_dir(
+                    c, prow + ((size_t)w + (size_t)xa) * SGM_SCAN_STEP, v1, in1,
+                    in1 ? pmins[w + xa] : 0.0f, gv, in1 ? guide[iup + xa] : 0.0f, p1, p2,
+                    inv_sigma);
+                cmins[2 * w + x] = sgm_scan_dir(
+                    c, prow + ((size_t)2 * w + (size_t)xb) * SGM_SCAN_STEP, v2, in2,
+                    in2 ? pmins[2 * w + xb] : 0.0f, gv, in2 ? guide[iup + xb] : 0.0f, p1, p2,
+                    inv_sigma);
+                int d = 0;
+                for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
+                    const float8 f = ((vload8(0, hc + d) + vload8(0, v0 + d)) + vload8(0, v1 + d))
+                                     + vload8(0, v2 + d);
+                    vstore8(add ? vload8(0, a + d) + f : f, 0, a + d);
+                }
+                for (; d < SGM_NL; ++d) {
+                    const float f = ((hc[d] + v0[d]) + v1[d]) + v2[d];
+                    a[d] = add ? a[d] + f : f;
+                }
+            } else {
+                int d = 0;
+                for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
+                    const float8 f = vload8(0, hc + d) + vload8(0, v0 + d);
+                    vstore8(add ? vload8(0, a + d) + f : f, 0, a + d);
+                }
+                for (; d < SGM_NL; ++d) {
+                    const float f = hc[d] + v0[d];
+                    a[d] = add ? a[d] + f : f;
+                }
+            }
+        }
+    }
+}
+
 #else
 __kernel __attribute__((reqd_work_group_size(SGM_WG, 1, 1)))
 void sgm_path(__global const float *cost, __global const float *guide, __global float *agg,

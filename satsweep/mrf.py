@@ -78,6 +78,8 @@ _SGM_GPU_WORK_GROUP = 32
 # scanline, capped at SGM_PRIVATE_BYTES per work-item (fewer scanlines for many labels).
 SGM_CPU_LINES = 8
 SGM_PRIVATE_BYTES = 64 * 1024
+# sgm.cl's SGM_SCAN_GUARD: +inf entries on each side of a step in sgm_scan's scratch.
+_SGM_SCAN_GUARD = 8
 # Floats of per-pixel state of wta.cl (WTA_NSTATE) and their order there.
 _WTA_NSTATE = 8
 _S_M1, _S_I1, _S_M1P, _S_M1N, _S_M2, _S_PREV, _S_PREV2, _S_MAX = range(_WTA_NSTATE)
@@ -105,6 +107,10 @@ class MRFOptions(Options):
     sgm_p2_sigma: float = 0.05  # guide intensity difference (image in [0, 1]) at which P2 is
     # halved: P2' = max(P1, P2 / (1 + |dI| / sigma)); 0 disables the adaptation
     sgm_work_group: int = 0  # work-items per scanline (power of two); 0: 1 on CPUs, 32 on GPUs
+    sgm_scan: bool = True  # with one work-item per scanline (CPUs): all directions in two raster
+    # scans run side by side (sgm.cl sgm_scan), each pixel's volumes read and written once per
+    # scan instead of once per direction; the same path costs, summed in another order. False:
+    # one sgm_path launch per direction. Label windows (coarse-to-fine search) use sgm_path
     sgm_subplane: Literal["equiangular", "parabola"] = "equiangular"  # sub-plane fit through the
     # aggregated costs of the best plane and its neighbours: SGM's sums are V-shaped near their
     # minimum (linear P1 penalties), which a symmetric V fits; tools/bench_e2e.py, 4 scenes:
@@ -426,6 +432,11 @@ def _volume_shape(cost_volume, shape) -> tuple[int, int, int]:
     return dims  # type: ignore[return-value]
 
 
+def sgm_scan_scratch_floats(width: int, n_labels: int) -> int:
+    """Floats of sgm_scan's scratch for both scans (sgm.cl's 2 x SGM_SCAN_SCRATCH(w))."""
+    return 2 * ((6 * width + 2) * (n_labels + 2 * _SGM_SCAN_GUARD) + 6 * width)
+
+
 def _check_sgm_size(device: Device, dims: tuple[int, int, int]) -> None:
     """The label count fits sgm.cl and one volume fits a device allocation."""
     n_labels, h, w = dims
@@ -504,6 +515,11 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
             buf.release()  # the uploaded host volume is no longer needed on the device
     agg_pm = cla.empty(queue, (h, w, n_labels), np.float32)
     inv_sigma = 0.0 if options.sgm_p2_sigma == 0.0 else 1.0 / options.sgm_p2_sigma
+    if options.sgm_scan and wg == 1 and base is None:
+        _sgm_scans(device, prg, cost_pm, guide_d, agg_pm, options, scale, inv_sigma)
+        if not pixel_major:
+            cost_pm.data.release()
+        return agg_pm, prg
     kernel = device.kernel(prg, "sgm_path")
     for i, (dx, dy) in enumerate(SGM_DIRECTIONS[:options.sgm_paths]):
         n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
@@ -516,6 +532,27 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
     if not pixel_major:
         cost_pm.data.release()
     return agg_pm, prg
+
+
+def _sgm_scans(device: Device, prg, cost_pm, guide_d, agg_pm, options: MRFOptions, scale: float,
+               inv_sigma: float) -> None:
+    """agg_pm = the sum of the SGM path costs by sgm.cl's two raster scans (sgm_scan, its two
+    phases)."""
+    import pyopencl.array as cla  # noqa: PLC0415
+
+    h, w, n_labels = agg_pm.shape
+    queue = device.queue
+    scratch = cla.empty(queue, (sgm_scan_scratch_floats(w, n_labels),), np.float32)
+    try:
+        kernel = device.kernel(prg, "sgm_scan")
+        for phase in (0, 1):
+            kernel(queue, (2,), (1,), cost_pm.data, guide_d.data, agg_pm.data, scratch.data,
+                   np.int32(w), np.int32(h), np.float32(options.sgm_p1 * scale),
+                   np.float32(options.sgm_p2 * scale), np.float32(inv_sigma),
+                   np.int32(options.sgm_paths), np.int32(phase))
+        queue.finish()
+    finally:
+        scratch.data.release()
 
 
 def _wta_state(device: Device, agg_pm) -> np.ndarray:

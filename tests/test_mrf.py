@@ -67,12 +67,12 @@ def _random_volume(seed: int, shape=SMALL, scale: float = 24.0):
 # SGM
 # ---------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("paths", [4, 8])
-@pytest.mark.parametrize("work_group", [1, 8])
-def test_sgm_aggregate_matches_reference(cl_device, paths, work_group):
+@pytest.mark.parametrize("work_group, scan", [(1, True), (1, False), (8, False)])
+def test_sgm_aggregate_matches_reference(cl_device, paths, work_group, scan):
     scale = 24.0
     cost, guide = _random_volume(1, scale=scale)
     opts = mrf.MRFOptions(sgm_paths=paths, sgm_work_group=work_group, sgm_p1=0.08,
-                          sgm_p2=0.6, sgm_p2_sigma=0.2)
+                          sgm_p2=0.6, sgm_p2_sigma=0.2, sgm_scan=scan)
     got = mrf.sgm_aggregate(cl_device, cost, guide, opts, cost_scale=scale).get()
     want = reference_aggregate(cost, guide, n_paths=paths, p1=0.08 * scale, p2=0.6 * scale,
                                inv_sigma=1.0 / 0.2, missing_cost=scale)
@@ -190,6 +190,51 @@ def test_sgm_scanlines_per_work_item_do_not_change_the_sums(cl_device, banded):
         assert np.isfinite(sums[0]).all()
         np.testing.assert_array_equal(sums[1], sums[0])
         np.testing.assert_array_equal(sums[2], sums[0])
+
+
+@pytest.mark.parametrize("paths", [4, 8])
+@pytest.mark.parametrize("shape", [(13, 23, 29), (16, 1, 9), (9, 7, 1), (8, 2, 3)])
+def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape):
+    """sgm_scan's aggregate is F + B, F and B the sums of sgm_path's path costs of the forward
+    and backward scans' directions added in the documented order, bit for bit (odd sizes: label
+    tails beyond the 8-wide vectors, a single row, a single column, two rows)."""
+    import pyopencl.array as cla
+
+    n_labels, h, w = shape
+    rng = np.random.default_rng(8)
+    cost_pm = rng.uniform(0.0, 24.0, (h, w, n_labels)).astype(np.float32)
+    guide = rng.uniform(0.0, 1.0, (h, w)).astype(np.float32)
+    guide[:, w // 2:] += 0.5  # an edge where P2 drops
+    prg = cl_device.build("sgm", {"SGM_NL": n_labels, "SGM_WG": 1, "SGM_LINES": 1})
+    q = cl_device.queue
+    c_d, g_d = cla.to_device(q, cost_pm), cla.to_device(q, guide)
+    i32, f32 = np.int32, np.float32
+    p1, p2, inv_sigma = 2.0, 14.0, 5.0
+
+    def path(dx, dy):
+        agg = cla.zeros(q, (h, w, n_labels), np.float32)
+        n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
+        cl_device.kernel(prg, "sgm_path")(
+            q, (n_lines,), (1,), c_d.data, g_d.data, agg.data, i32(w), i32(h), i32(dx), i32(dy),
+            f32(p1), f32(p2), f32(inv_sigma), i32(0), g_d.data, i32(0), i32(1))
+        return agg.get()
+
+    agg = cla.zeros(q, (h, w, n_labels), np.float32)
+    scratch = cla.empty(q, (mrf.sgm_scan_scratch_floats(w, n_labels),), np.float32)
+    for phase in (0, 1):
+        cl_device.kernel(prg, "sgm_scan")(q, (2,), (1,), c_d.data, g_d.data, agg.data,
+                                          scratch.data, i32(w), i32(h), f32(p1), f32(p2),
+                                          f32(inv_sigma), i32(paths), i32(phase))
+    sums = []
+    for sx, sy in ((1, 1), (-1, -1)):
+        dirs = [(sx, 0), (0, sy)] + ([(sx, sy), (-sx, sy)] if paths == 8 else [])
+        total = path(*dirs[0])
+        for d in dirs[1:]:
+            total = total + path(*d)  # float32 additions in sgm_scan's order
+        sums.append(total)
+    want = sums[0] + sums[1]
+    assert np.isfinite(want).all()
+    np.testing.assert_array_equal(agg.get(), want)
 
 
 def test_sgm_without_p2_adaptation_matches_reference(cl_device):

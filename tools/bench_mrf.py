@@ -106,9 +106,24 @@ def main(argv=None) -> int:
     t_sgm, sgm = _best_time(lambda: mrf.sgm_refine(device, scene.cost, scene.guide, scene.heights,
                                                    opts, cost_scale=scene.cost_scale),
                             args.repeats)
-    rows_out.append((f"sgm ({opts.sgm_paths} paths)", t_sgm,
+    form = "two raster scans" if opts.sgm_scan else "a launch per direction"
+    rows_out.append((f"sgm ({opts.sgm_paths} paths, {form})", t_sgm,
                      _accuracy(sgm.height, sgm.valid, scene, scene.roof),
                      _accuracy(sgm.height, sgm.valid, scene, ~scene.roof)))
+    # The other form of SGM's aggregation (MRFOptions.sgm_scan), in the same run (CPUs only:
+    # GPUs run one work-group per scanline, which has no scan form).
+    if mrf.sgm_work_group(device, opts, args.planes) == 1:
+        other = opts.replace(sgm_scan=not opts.sgm_scan)
+        mrf.sgm_refine(device, scene.cost[:, :8, :8], scene.guide[:8, :8], scene.heights, other,
+                       cost_scale=scene.cost_scale)
+        t_other, res = _best_time(lambda: mrf.sgm_refine(device, scene.cost, scene.guide,
+                                                         scene.heights, other,
+                                                         cost_scale=scene.cost_scale),
+                                  args.repeats)
+        form = "two raster scans" if other.sgm_scan else "a launch per direction"
+        rows_out.append((f"sgm ({other.sgm_paths} paths, {form})", t_other,
+                         _accuracy(res.height, res.valid, scene, scene.roof),
+                         _accuracy(res.height, res.valid, scene, ~scene.roof)))
     t_gc, gc = _best_time(lambda: mrf.graphcut_refine(scene.cost, scene.guide, scene.heights,
                                                       opts, cost_scale=scene.cost_scale),
                           args.repeats)
