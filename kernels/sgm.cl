@@ -125,37 +125,50 @@ inline void sgm_line_start(const int line, const int w, const int h, const int d
 #define SGM_VEC 8
 #define SGM_BUF (SGM_NL + 2 * SGM_GUARD)
 
+/* The recurrence of one step over all labels, shared by sgm_step and sgm_scan_step (whose
+ * arrays live in different address spaces): cur[d] = Lr(p, d) from pv = Lr(p - r, .), then
+ * ON_VEC (after each SGM_VEC labels d.., value v) or ON_ONE (after each single label d, value
+ * v), and `result` = min_d Lr(p, d). */
+#define SGM_STEP_BODY(c, pv, cur, prev_min, jump, p1, ON_VEC, ON_ONE, result)                   \
+    do {                                                                                       \
+        const float8 jump8_ = (float8)(jump), p18_ = (float8)(p1), min8_ = (float8)(prev_min); \
+        float8 vmin_ = (float8)(MAXFLOAT);                                                     \
+        float cmin_ = MAXFLOAT;                                                                \
+        int d = 0;                                                                             \
+        for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {                                          \
+            float8 m_ = fmin(vload8(0, (pv) + d), jump8_);                                     \
+            m_ = fmin(m_, vload8(0, (pv) + d - 1) + p18_);                                     \
+            m_ = fmin(m_, vload8(0, (pv) + d + 1) + p18_);                                     \
+            const float8 v = vload8(0, (c) + d) + (m_ - min8_);                                \
+            vstore8(v, 0, (cur) + d);                                                          \
+            ON_VEC;                                                                            \
+            vmin_ = fmin(vmin_, v);                                                            \
+        }                                                                                      \
+        for (; d < SGM_NL; ++d) {                                                              \
+            float m_ = fmin((pv)[d], (jump));                                                  \
+            m_ = fmin(m_, (pv)[d - 1] + (p1));                                                 \
+            m_ = fmin(m_, (pv)[d + 1] + (p1));                                                 \
+            const float v = (c)[d] + (m_ - (prev_min));                                        \
+            (cur)[d] = v;                                                                      \
+            ON_ONE;                                                                            \
+            cmin_ = fmin(cmin_, v);                                                            \
+        }                                                                                      \
+        const float4 m4_ = fmin(vmin_.lo, vmin_.hi);                                           \
+        const float2 m2_ = fmin(m4_.lo, m4_.hi);                                               \
+        (result) = fmin(cmin_, fmin(m2_.x, m2_.y));                                            \
+    } while (0)
+
 /* One step of scanline k's recurrence at pixel idx: cur = Lr(p, .), agg (+)= cur; returns
  * min_d Lr(p, d). prev points at Lr(p - r, .) shifted by the band delta (see above). */
 inline float sgm_step(__global const float *c, __global float *a, const float *pv, float *cur,
                       const float prev_min, const float jump, const float p1,
                       const int accumulate)
 {
-    const float8 jump8 = (float8)(jump), p18 = (float8)(p1), min8 = (float8)(prev_min);
-    float8 vmin = (float8)(MAXFLOAT);
-    float cmin = MAXFLOAT;
-    int d = 0;
-    for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
-        float8 m = fmin(vload8(0, pv + d), jump8);
-        m = fmin(m, vload8(0, pv + d - 1) + p18);
-        m = fmin(m, vload8(0, pv + d + 1) + p18);
-        const float8 v = vload8(0, c + d) + (m - min8);
-        vstore8(v, 0, cur + d);
-        vstore8(accumulate ? vload8(0, a + d) + v : v, 0, a + d);
-        vmin = fmin(vmin, v);
-    }
-    for (; d < SGM_NL; ++d) {
-        float m = fmin(pv[d], jump);
-        m = fmin(m, pv[d - 1] + p1);
-        m = fmin(m, pv[d + 1] + p1);
-        const float v = c[d] + (m - prev_min);
-        cur[d] = v;
-        a[d] = accumulate ? a[d] + v : v;
-        cmin = fmin(cmin, v);
-    }
-    const float4 m4 = fmin(vmin.lo, vmin.hi);
-    const float2 m2 = fmin(m4.lo, m4.hi);
-    return fmin(cmin, fmin(m2.x, m2.y));
+    float result;
+    SGM_STEP_BODY(c, pv, cur, prev_min, jump, p1,
+                  vstore8(accumulate ? vload8(0, a + d) + v : v, 0, a + d),
+                  a[d] = accumulate ? a[d] + v : v, result);
+    return result;
 }
 
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
@@ -255,29 +268,9 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
 inline float sgm_scan_step(__global const float *c, __global const float *pv, __global float *cur,
                            const float prev_min, const float jump, const float p1)
 {
-    const float8 jump8 = (float8)(jump), p18 = (float8)(p1), min8 = (float8)(prev_min);
-    float8 vmin = (float8)(MAXFLOAT);
-    float cmin = MAXFLOAT;
-    int d = 0;
-    for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
-        float8 m = fmin(vload8(0, pv + d), jump8);
-        m = fmin(m, vload8(0, pv + d - 1) + p18);
-        m = fmin(m, vload8(0, pv + d + 1) + p18);
-        const float8 v = vload8(0, c + d) + (m - min8);
-        vstore8(v, 0, cur + d);
-        vmin = fmin(vmin, v);
-    }
-    for (; d < SGM_NL; ++d) {
-        float m = fmin(pv[d], jump);
-        m = fmin(m, pv[d - 1] + p1);
-        m = fmin(m, pv[d + 1] + p1);
-        const float v = c[d] + (m - prev_min);
-        cur[d] = v;
-        cmin = fmin(cmin, v);
-    }
-    const float4 m4 = fmin(vmin.lo, vmin.hi);
-    const float2 m2 = fmin(m4.lo, m4.hi);
-    return fmin(cmin, fmin(m2.x, m2.y));
+    float result;
+    SGM_STEP_BODY(c, pv, cur, prev_min, jump, p1, (void)0, (void)0, result);
+    return result;
 }
 
 /* Lr(p, .) = C(p, .) at the first pixel of a scanline (what sgm_path's zero start gives). */
