@@ -517,18 +517,16 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
     inv_sigma = 0.0 if options.sgm_p2_sigma == 0.0 else 1.0 / options.sgm_p2_sigma
     if options.sgm_scan and wg == 1 and base is None:
         _sgm_scans(device, prg, cost_pm, guide_d, agg_pm, options, scale, inv_sigma)
-        if not pixel_major:
-            cost_pm.data.release()
-        return agg_pm, prg
-    kernel = device.kernel(prg, "sgm_path")
-    for i, (dx, dy) in enumerate(SGM_DIRECTIONS[:options.sgm_paths]):
-        n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
-        lines = 1 if dy == 0 else max_lines  # scanlines per work-item (1 when wg > 1)
-        kernel(queue, (-(-n_lines // lines) * wg,), (wg,), cost_pm.data, guide_d.data,
-               agg_pm.data, i32(w), i32(h), i32(dx), i32(dy), f32(options.sgm_p1 * scale),
-               f32(options.sgm_p2 * scale), f32(inv_sigma), i32(1 if i > 0 else 0), base_d.data,
-               i32(0 if base is None else 1), i32(lines))
-    queue.finish()
+    else:
+        kernel = device.kernel(prg, "sgm_path")
+        for i, (dx, dy) in enumerate(SGM_DIRECTIONS[:options.sgm_paths]):
+            n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
+            lines = 1 if dy == 0 else max_lines  # scanlines per work-item (1 when wg > 1)
+            kernel(queue, (-(-n_lines // lines) * wg,), (wg,), cost_pm.data, guide_d.data,
+                   agg_pm.data, i32(w), i32(h), i32(dx), i32(dy), f32(options.sgm_p1 * scale),
+                   f32(options.sgm_p2 * scale), f32(inv_sigma), i32(1 if i > 0 else 0),
+                   base_d.data, i32(0 if base is None else 1), i32(lines))
+        queue.finish()
     if not pixel_major:
         cost_pm.data.release()
     return agg_pm, prg

@@ -218,13 +218,15 @@ def run_synthetic(args, config: PipelineConfig, out_root: Path, log) -> list[dic
 
 def split_by_relief(error_tif: Path, truth_tif: Path) -> dict:
     """Aligned errors (``satsweep evaluate``'s error raster) split between flat cells and others."""
-    import tifffile
     from scipy import ndimage
 
-    err = tifffile.imread(error_tif).astype(np.float64)
-    truth = tifffile.imread(truth_tif).astype(np.float64)
+    from satsweep.errors import InputError
+    from satsweep.evaluate import _read_dsm
+
+    err, _ = _read_dsm(error_tif)
+    truth, _ = _read_dsm(truth_tif)
     if err.shape != truth.shape:
-        raise OptionsError(f"{error_tif}: {err.shape} cells, not the truth's {truth.shape}")
+        raise InputError(error_tif, f"{err.shape} cells, not the truth's {truth.shape}")
     filled = np.where(np.isfinite(truth), truth, np.nanmedian(truth))
     relief = (ndimage.maximum_filter(filled, FLAT_WINDOW_CELLS)
               - ndimage.minimum_filter(filled, FLAT_WINDOW_CELLS))

@@ -42,11 +42,12 @@ from satsweep.synth import Scene, SynthOptions, generate_scene  # noqa: E402
 from satsweep.synth_scene import MATERIAL_NAMES, cast_rays  # noqa: E402
 from satsweep.views import load_views  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+# --calibration's view angles (B/H 0.26), those of bench_e2e's --calibration.
+from bench_e2e import CALIBRATION_ANGLES  # noqa: E402
+
 # The altitude range is widened so that the surface never sits on the first or last plane.
 ALT_MARGIN_M = 5.0
-# --calibration's view angles (off-nadir, azimuth): B/H tan 8 + tan 7 deg = 0.26, as in
-# tools/bench_e2e.py.
-CALIBRATION_ANGLES = ((8.0, 20.0), (7.0, 200.0))
 # "Flat": the true height varies by less than this over the window around the pixel.
 FLAT_RANGE_M = 0.5
 FLAT_WINDOW_PX = 9
