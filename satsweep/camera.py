@@ -69,6 +69,7 @@ __all__ = [
     "refine_projection",
     "decompose_projection",
     "skew_correct",
+    "skew_corrected_camera",
     "shear_rows",
     "PlaneParallaxProjection",
     "reparametrise",
@@ -563,20 +564,28 @@ def skew_correct(image: np.ndarray, camera: PerspectiveCamera) -> tuple[np.ndarr
     if (rows, cols) != (camera.height, camera.width):
         raise CameraError(f"skew_correct: image is {cols}x{rows} but the camera is "
                           f"{camera.width}x{camera.height}")
+    new, W = skew_corrected_camera(camera)
+    # new col c' = c - k r + tx  <=>  source c = c' + k r - tx
+    shift = -W[0, 1] * np.arange(rows, dtype=np.float64) - W[0, 2]
+    warped = shear_rows(image, shift, new.width)
+    return warped, new, W
+
+
+def skew_corrected_camera(camera: PerspectiveCamera) -> tuple[PerspectiveCamera, np.ndarray]:
+    """``skew_correct``'s camera and warp ``W`` without the image: (camera', W), camera' of the
+    sheared image's size (wider by the total shear, rounded up)."""
+    rows, cols = camera.height, camera.width
     k = camera.K[0, 1] / camera.K[1, 1]
     span = k * (rows - 1)  # column shift of the last row relative to the first
     tx = float(math.ceil(max(0.0, span) - 1e-9))  # keep the first column of every row
     out_width = cols + int(math.ceil(abs(span) - 1e-9))
     W = np.array([[1.0, -k, tx], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    # new col c' = c - k r + tx  <=>  source c = c' + k r - tx
-    shift = k * np.arange(rows, dtype=np.float64) - tx
-    warped = shear_rows(image, shift, out_width)
     K = W @ camera.K
     K[0, 1] = 0.0  # exactly: s - (s / fy) fy
     P = W @ camera.P
     new = PerspectiveCamera(K=K, R=camera.R.copy(), t=camera.t.copy(), P=P, width=out_width,
                             height=rows, error=camera.error)
-    return warped, new, W
+    return new, W
 
 
 # -- plane plus parallax -------------------------------------------------------------------------

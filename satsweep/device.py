@@ -9,7 +9,9 @@ builds kernels.
   exists: there is never a silent fallback to another device.
 - ``Device`` holds a context and an in-order queue and builds programs from ``kernels/`` with the
   folder on the include path and compile-time constants as ``-D`` options. pyopencl's binary cache
-  is used, so a second build of the same source and options is fast.
+  is used, so a second build of the same source and options is fast (though not free: 40-100 ms
+  per program on PoCL). ``Device.prebuild`` builds programs that a run will need in a background
+  thread while the host does other work; ``Device.build`` then waits for them.
 """
 
 from __future__ import annotations
@@ -18,8 +20,9 @@ import dataclasses
 import importlib.resources
 import os
 import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Mapping
+from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -226,6 +229,9 @@ class Device:
         self.queue = cl.CommandQueue(self.context)
         self._programs: dict[tuple, object] = {}
         self._kernels: dict[tuple, object] = {}
+        # Programs being built in the background (prebuild), and the lock over both dicts.
+        self._pending: dict[tuple, Future] = {}
+        self._lock = threading.Lock()
 
     @property
     def max_alloc_bytes(self) -> int:
@@ -235,12 +241,59 @@ class Device:
     def global_mem_bytes(self) -> int:
         return self.info.global_mem_bytes
 
+    @staticmethod
+    def _key(source: str, defines: Mapping[str, object] | None) -> tuple:
+        return source, tuple(sorted((defines or {}).items()))
+
     def build(self, source: str, defines: Mapping[str, object] | None = None):
-        """Build ``kernels/<source>.cl`` with ``-D`` constants; cached per (source, defines)."""
-        key = (source, tuple(sorted((defines or {}).items())))
-        prg = self._programs.get(key)
+        """Build ``kernels/<source>.cl`` with ``-D`` constants; cached per (source, defines).
+        A program that ``prebuild`` is building is waited for (its build error raised here)."""
+        key = self._key(source, defines)
+        with self._lock:
+            prg = self._programs.get(key)
+            pending = self._pending.get(key)
         if prg is not None:
             return prg
+        if pending is not None:
+            return pending.result()
+        prg = self._compile(source, defines)
+        with self._lock:
+            self._programs[key] = prg
+        return prg
+
+    def prebuild(self, requests: Iterable[tuple[str, Mapping[str, object] | None]]) -> None:
+        """Start building the (source, defines) ``requests`` one after the other in a background
+        thread and return at once; those already built or pending are skipped. pyopencl releases
+        the GIL while a program builds, so the builds overlap host work such as the camera fit
+        and the bundle adjustment. Nothing depends on the requests being right: a program that
+        is never asked for only cost background time, and one missing is built when asked for."""
+        todo = []
+        with self._lock:
+            for source, defines in requests:
+                key = self._key(source, defines)
+                if key not in self._programs and key not in self._pending:
+                    self._pending[key] = Future()
+                    todo.append((key, source, defines))
+        if not todo:
+            return
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="satsweep-prebuild")
+        pool.submit(self._prebuild, todo)
+        pool.shutdown(wait=False)  # the queued builds still run; the thread then ends
+
+    def _prebuild(self, todo) -> None:
+        for key, source, defines in todo:
+            future = self._pending[key]
+            try:
+                prg = self._compile(source, defines)
+            except BaseException as exc:  # handed to whoever asks for this program
+                future.set_exception(exc)
+                continue
+            with self._lock:
+                self._programs[key] = prg
+                del self._pending[key]
+            future.set_result(prg)
+
+    def _compile(self, source: str, defines: Mapping[str, object] | None):
         cl = _cl()
         path = kernel_dir() / f"{source}.cl"
         try:
@@ -248,13 +301,11 @@ class Device:
         except FileNotFoundError:
             raise KernelBuildError(f"{path}: kernel source does not exist") from None
         try:
-            prg = cl.Program(self.context, text).build(options=_options(defines))
+            return cl.Program(self.context, text).build(options=_options(defines))
         except cl.Error as exc:
             raise KernelBuildError(
                 f"{path}: build failed on {self.info.label}: {str(exc).strip()[:2000]}"
             ) from None
-        self._programs[key] = prg
-        return prg
 
     def kernel(self, program, name: str):
         """The kernel ``name`` of a built ``program``, created once: pyopencl sets up each new

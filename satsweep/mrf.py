@@ -354,6 +354,20 @@ def sgm_work_group(device: Device, options: MRFOptions, n_labels: int) -> int:
     return wg
 
 
+def sgm_program_requests(device: Device, options: MRFOptions,
+                         n_labels: int) -> list[tuple[str, dict]]:
+    """The (source, defines) of the programs that SGM over ``n_labels`` labels builds: sgm.cl,
+    and wta.cl for the winner-take-all of the sums (``Device.prebuild`` takes this list)."""
+    wg = sgm_work_group(device, options, n_labels)
+    return [("sgm", {"SGM_NL": n_labels, "SGM_WG": wg, "SGM_LINES": sgm_lines_per_item(wg, n_labels)}),
+            ("wta", _WTA_PIXEL_MAJOR_DEFINES)]
+
+
+# wta.cl's defines for wta_pixel_major: NSRC and the census radii matter only to wta_finalize,
+# which SGM does not use.
+_WTA_PIXEL_MAJOR_DEFINES = {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1, "WTA_VEC": WTA_VEC}
+
+
 def sgm_lines_per_item(work_group: int, n_labels: int) -> int:
     """Most scanlines one work-item of sgm_path steps together (sgm.cl's SGM_LINES): 1 with a
     work-group per scanline, else ``SGM_CPU_LINES`` within ``SGM_PRIVATE_BYTES`` of private
@@ -496,7 +510,7 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
     _check_sgm_size(device, (n_labels, h, w))
     wg = sgm_work_group(device, options, n_labels)
     max_lines = sgm_lines_per_item(wg, n_labels)
-    prg = device.build("sgm", {"SGM_NL": n_labels, "SGM_WG": wg, "SGM_LINES": max_lines})
+    prg = device.build(*sgm_program_requests(device, options, n_labels)[0])
     queue = device.queue
     guide_d = cla.to_device(queue, g)
     # The kernel reads base only when banded; a one-entry buffer stands in otherwise.
@@ -560,8 +574,7 @@ def _wta_state(device: Device, agg_pm) -> np.ndarray:
     import pyopencl.array as cla  # noqa: PLC0415
 
     h, w, n_labels = agg_pm.shape
-    # wta.cl needs NSRC and the census radii only for wta_finalize, which is not used here.
-    prg = device.build("wta", {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1, "WTA_VEC": WTA_VEC})
+    prg = device.build("wta", _WTA_PIXEL_MAJOR_DEFINES)
     queue = device.queue
     state = cla.empty(queue, (_WTA_NSTATE, h, w), np.float32)
     device.kernel(prg, "wta_pixel_major")(queue, (-(-h * w // WTA_VEC),), None, agg_pm.data,

@@ -29,7 +29,7 @@ import numpy as np
 
 from .aoi import AOI, AltitudeRange, resolve_altitude_range
 from .config import PipelineConfig
-from .errors import CameraError, DeviceError, InputError, OptionsError
+from .errors import CameraError, DeviceError, InputError, OptionsError, SatsweepError
 from .report import RunReport, to_json
 
 if TYPE_CHECKING:
@@ -181,6 +181,10 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
         }
         for w in cameras.warnings:
             rep.log(f"warning: {w}")
+
+    # The kernels the sweep stage will need, built in the background meanwhile.
+    device.prebuild(program_forecast(device, cameras, enu_height_range(cameras.frame, aoi, alt),
+                                     config))
 
     mode = config.reconstruct.adjust
     if mode == "off":
@@ -489,6 +493,48 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
                          "confidence": result.confidence})
     rep["sweep"] = sweeps
     return per_view
+
+
+def program_forecast(device, cameras, u_range: tuple[float, float],
+                     config: PipelineConfig) -> list:
+    """The (source, defines) of the programs that the sweep stage will build, forecast from the
+    cameras before adjustment (for ``Device.prebuild``): the view selection and the plane counts
+    of those cameras, skew-corrected as the skew stage will do. Adjusting the principal points
+    moves every plane's homography by the same translation, which leaves the plane spacing, and
+    so the plane count, as it is. A wrong forecast costs only background time. [] where the
+    forecast itself fails (the sweep stage then meets the error and reports it); the
+    coarse-to-fine search's SGM windows are not forecast (its coarse pass decides them)."""
+    from .camera import reparametrise, skew_corrected_camera
+    from .mrf import SGM_MAX_LABELS, sgm_program_requests
+    from .sweep import PlaneSweep, plane_heights
+    from .viewselect import select_views
+
+    try:
+        projections, shapes = [], []
+        for v in cameras.views:
+            cam = skew_corrected_camera(v.camera)[0] if config.reconstruct.skew_correct else v.camera
+            projections.append(reparametrise(cam, d=v.projection.d, zbar=v.projection.zbar))
+            shapes.append((cam.height, cam.width))
+        selection = select_views([v.camera for v in cameras.views],
+                                 mid_height=0.5 * (u_range[0] + u_range[1]), options=config.views)
+        method = config.mrf.method
+        if method == "none":
+            engine, wta = PlaneSweep(device, config.sweep), True
+        else:
+            engine = PlaneSweep(device, mrf_sweep_options(config.sweep, config.mrf))
+            wta = method != "sgm" or config.sweep.lr_check
+        requests = []
+        for r in selection.references:
+            srcs = list(selection.sources[r])
+            requests += [q for q in engine.program_requests(len(srcs), wta=wta) if q is not None]
+            if method == "sgm" and config.sweep.search != "coarse_to_fine":
+                heights = plane_heights(projections[r], [projections[s] for s in srcs], u_range,
+                                        config.sweep.step_px, ref_shape=shapes[r])
+                if heights.size <= SGM_MAX_LABELS:
+                    requests += sgm_program_requests(device, config.mrf, heights.size)
+        return requests
+    except SatsweepError:  # raised again, where it belongs, by the stage that meets it
+        return []
 
 
 def _check_sgm_labels(heights: np.ndarray, config: PipelineConfig) -> None:

@@ -600,26 +600,30 @@ class PlaneSweep:
         self.stage_seconds[name] = self.stage_seconds.get(name, 0.0) + time.perf_counter() - t0
 
     # -- programs -------------------------------------------------------------------------------
-    def _programs(self, n_src: int, *, wta: bool = True):
-        """The census, sweep, filter and (with ``wta``, else None) winner-take-all programs: a
-        volume-only sweep (SGM's) skips building wta.cl, about 0.06 s even from the caches."""
+    def program_requests(self, n_src: int, *, wta: bool = True) -> list[tuple[str, dict | None]]:
+        """The (source, defines) of the programs that ``run`` builds for ``n_src`` sources: census,
+        sweep, the cost filter (None for cost_filter = "none") and, with ``wta``, the
+        winner-take-all (else None: a volume-only sweep, SGM's, never launches it)."""
         o = self.options
         rx, ry = o.census_radii
-        census = self.device.build("census", {"CENSUS_RX": rx, "CENSUS_RY": ry})
         sweep_defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": o.best_k(n_src),
                       "AD_WEIGHT": float(o.ad_weight), "AD_TRUNC": float(o.ad_truncation),
                       "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation),
                       "SWEEP_VEC": SWEEP_VEC}
         if o.cost_mode == "warped_census" and o.census_kernel == "staged":
             sweep_defs.update({"WG_X": o.work_group[0], "WG_Y": o.work_group[1]})
-        sweep = self.device.build("sweep", sweep_defs)
-        wta_prg = None if not wta else self.device.build(
-            "wta", {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry, "AD_WEIGHT": float(o.ad_weight),
-                    "GRAD_WEIGHT": float(o.grad_weight), "WTA_VEC": WTA_VEC})
-        return census, sweep, self._filter_program(), wta_prg
+        wta_defs = {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry, "AD_WEIGHT": float(o.ad_weight),
+                    "GRAD_WEIGHT": float(o.grad_weight), "WTA_VEC": WTA_VEC}
+        return [("census", {"CENSUS_RX": rx, "CENSUS_RY": ry}), ("sweep", sweep_defs),
+                self._filter_request(), ("wta", wta_defs) if wta else None]
 
-    def _filter_program(self):
-        """The cost-filter program for the options (None for cost_filter = "none")."""
+    def _programs(self, n_src: int, *, wta: bool = True):
+        """The built programs of ``program_requests`` (None where it has None)."""
+        return tuple(None if r is None else self.device.build(*r)
+                     for r in self.program_requests(n_src, wta=wta))
+
+    def _filter_request(self) -> tuple[str, dict] | None:
+        """The cost-filter program's (source, defines) for the options (None for "none")."""
         o = self.options
         if o.cost_filter == "none":
             return None
@@ -627,7 +631,12 @@ class PlaneSweep:
         defs = {"BOX_R": r, "BOX_CHUNK": box_chunk(r), "COLS_VEC": GF_COLS_VEC}
         if o.cost_filter == "guided":
             defs["GF_EPS"] = float(o.gf_eps)
-        return self.device.build("guided_filter", defs)
+        return "guided_filter", defs
+
+    def _filter_program(self):
+        """The cost-filter program for the options (None for cost_filter = "none")."""
+        request = self._filter_request()
+        return None if request is None else self.device.build(*request)
 
     def budget_bytes(self) -> int:
         """The device memory budget of a run (bytes)."""

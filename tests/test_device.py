@@ -81,6 +81,51 @@ def test_missing_define_is_a_named_build_error(cl_device):
         cl_device.build("selftest", {})
 
 
+def _scale_of(device, prg) -> float:
+    """Run selftest's scale_add on ones and read back the scale the program was built with."""
+    n = 8
+    mf = cl.mem_flags
+    a_buf = cl.Buffer(device.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ones(n, np.float32))
+    out_buf = cl.Buffer(device.context, mf.WRITE_ONLY, 4 * n)
+    prg.scale_add(device.queue, (n,), None, a_buf, out_buf, np.int32(n))
+    out = np.empty(n, np.float32)
+    cl.enqueue_copy(device.queue, out, out_buf)
+    return float(out[0])
+
+
+def test_prebuilt_programs_are_built_once_and_returned_by_build(cl_device, monkeypatch):
+    """Requests built in the background come back from build (each its own defines), each
+    (source, defines) compiled once however often it is requested."""
+    device = sdev.Device(cl_device.info)  # a fresh program cache, not the session's
+    compiled = []
+    real = sdev.Device._compile
+
+    def spy(self, source, defines):
+        compiled.append((source, dict(defines or {})))
+        return real(self, source, defines)
+
+    monkeypatch.setattr(sdev.Device, "_compile", spy)
+    requests = [("selftest", {"SCALE": 1.5}), ("selftest", {"SCALE": 2.5}), ("selftest", {"SCALE": 1.5})]
+    device.prebuild(requests)
+    b = device.build("selftest", {"SCALE": 2.5})
+    a = device.build("selftest", {"SCALE": 1.5})
+    assert (_scale_of(device, a), _scale_of(device, b)) == (1.5, 2.5)
+    assert device.build("selftest", {"SCALE": 1.5}) is a
+    device.prebuild(requests)  # all built: nothing more to do
+    device.build("selftest", {"SCALE": 3.5})  # not requested: built in the foreground
+    assert compiled == [("selftest", {"SCALE": 1.5}), ("selftest", {"SCALE": 2.5}),
+                        ("selftest", {"SCALE": 3.5})]
+
+
+def test_a_prebuild_failure_is_raised_by_build_naming_the_file(cl_device):
+    device = sdev.Device(cl_device.info)
+    device.prebuild([("selftest", {"SCALE": "no_such_identifier"}), ("no_such_stage", None)])
+    with pytest.raises(KernelBuildError, match="selftest.cl: build failed"):
+        device.build("selftest", {"SCALE": "no_such_identifier"})
+    with pytest.raises(KernelBuildError, match="no_such_stage.cl: kernel source does not exist"):
+        device.build("no_such_stage")
+
+
 def test_missing_source_is_a_named_build_error(cl_device):
     with pytest.raises(KernelBuildError, match="does not exist"):
         cl_device.build("no_such_stage")

@@ -160,6 +160,40 @@ def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
     _check_accuracy(res)  # the bounds of the run given the range
 
 
+@pytest.mark.parametrize("mrf", ["sgm", "none"])
+def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, tmp_path,
+                                                                         monkeypatch, mrf):
+    """The kernels prebuilt while the cameras are adjusted are exactly the ones the sweep stage
+    then asks for (none built in the foreground, none built for nothing), bundle adjustment and
+    skew correction included."""
+    from satsweep import device as sdev
+
+    forecast, asked, foreground = set(), set(), []
+    real_build, real_prebuild = sdev.Device.build, sdev.Device.prebuild
+
+    def build(self, source, defines=None):
+        key = self._key(source, defines)
+        asked.add(key)
+        with self._lock:
+            if key not in self._programs and key not in self._pending:
+                foreground.append(key)
+        return real_build(self, source, defines)
+
+    def prebuild(self, requests):
+        requests = list(requests)
+        forecast.update(self._key(s, d) for s, d in requests)
+        return real_prebuild(self, requests)
+
+    monkeypatch.setattr(sdev.Device, "build", build)
+    monkeypatch.setattr(sdev.Device, "prebuild", prebuild)
+    res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "reconstruct": {"adjust": "on"},
+                                                 "mrf": {"method": mrf}})
+    assert "skipped" not in res.report["ba"]
+    assert foreground == [] and forecast == asked, (foreground, forecast ^ asked)
+    assert {k[0] for k in forecast} == ({"census", "sweep", "guided_filter", "sgm", "wta"}
+                                        if mrf == "sgm" else {"census", "sweep", "guided_filter", "wta"})
+
+
 def test_config_written_is_the_config_used(reconstruction):
     again = PipelineConfig.from_toml(reconstruction.out_dir / "config.toml")
     assert again == PipelineConfig.from_mapping(FAST_CAMERA)
