@@ -359,7 +359,8 @@ def sgm_program_requests(device: Device, options: MRFOptions,
     """The (source, defines) of the programs that SGM over ``n_labels`` labels builds: sgm.cl,
     and wta.cl for the winner-take-all of the sums (``Device.prebuild`` takes this list)."""
     wg = sgm_work_group(device, options, n_labels)
-    return [("sgm", {"SGM_NL": n_labels, "SGM_WG": wg, "SGM_LINES": sgm_lines_per_item(wg, n_labels)}),
+    lines = sgm_lines_per_item(wg, n_labels)
+    return [("sgm", {"SGM_NL": n_labels, "SGM_WG": wg, "SGM_LINES": lines}),
             ("wta", _WTA_PIXEL_MAJOR_DEFINES)]
 
 

@@ -510,12 +510,11 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
     from .viewselect import select_views
 
     try:
-        projections, shapes = [], []
-        for v in cameras.views:
-            cam = skew_corrected_camera(v.camera)[0] if config.reconstruct.skew_correct else v.camera
-            projections.append(reparametrise(cam, d=v.projection.d, zbar=v.projection.zbar))
-            shapes.append((cam.height, cam.width))
-        selection = select_views([v.camera for v in cameras.views],
+        cams = [skew_corrected_camera(v.camera)[0] if config.reconstruct.skew_correct else v.camera
+                for v in cameras.views]
+        projections = [reparametrise(cam, d=v.projection.d, zbar=v.projection.zbar)
+                       for cam, v in zip(cams, cameras.views)]
+        selection = select_views(cams,
                                  mid_height=0.5 * (u_range[0] + u_range[1]), options=config.views)
         method = config.mrf.method
         if method == "none":
@@ -529,7 +528,8 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
             requests += [q for q in engine.program_requests(len(srcs), wta=wta) if q is not None]
             if method == "sgm" and config.sweep.search != "coarse_to_fine":
                 heights = plane_heights(projections[r], [projections[s] for s in srcs], u_range,
-                                        config.sweep.step_px, ref_shape=shapes[r])
+                                        config.sweep.step_px,
+                                        ref_shape=(cams[r].height, cams[r].width))
                 if heights.size <= SGM_MAX_LABELS:
                     requests += sgm_program_requests(device, config.mrf, heights.size)
         return requests
