@@ -509,9 +509,9 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
     g = _check_guide(guide, (h, w))
     base = _check_label_base(label_base, (h, w), n_labels, None)
     _check_sgm_size(device, (n_labels, h, w))
-    wg = sgm_work_group(device, options, n_labels)
-    max_lines = sgm_lines_per_item(wg, n_labels)
-    prg = device.build(*sgm_program_requests(device, options, n_labels)[0])
+    source, defines = sgm_program_requests(device, options, n_labels)[0]
+    wg, max_lines = defines["SGM_WG"], defines["SGM_LINES"]
+    prg = device.build(source, defines)
     queue = device.queue
     guide_d = cla.to_device(queue, g)
     # The kernel reads base only when banded; a one-entry buffer stands in otherwise.

@@ -295,6 +295,12 @@ def mrf_sweep_options(sweep: SweepOptions, mrf: MRFOptions) -> SweepOptions:
     return sweep
 
 
+def mrf_sweep_wants_wta(sweep: SweepOptions, mrf: MRFOptions) -> bool:
+    """Whether the sweep under an MRF runs its own winner-take-all: the graph cut starts from it
+    (and the left-right check compares it); SGM needs only the volume."""
+    return mrf.method != "sgm" or sweep.lr_check
+
+
 def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, heights,
                        sweep: SweepOptions, mrf: MRFOptions, *,
                        progress: Callable[[int, int], None] | None = None):
@@ -331,9 +337,7 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     h_img, w_img = ref.shape
     # SGM runs on the device: the tile's volume stays there. The graph cut runs on the host.
     on_device = mrf.method == "sgm"
-    # The sweep's own winner-take-all: the graph cut starts from it (and the left-right check
-    # compares it); SGM needs only the volume.
-    with_wta = not on_device or sweep.lr_check
+    with_wta = mrf_sweep_wants_wta(sweep, mrf)
     seconds = 0.0
     coarse = None
     if sweep.search == "coarse_to_fine" and on_device and not sweep.lr_check:
@@ -521,7 +525,7 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
             engine, wta = PlaneSweep(device, config.sweep), True
         else:
             engine = PlaneSweep(device, mrf_sweep_options(config.sweep, config.mrf))
-            wta = method != "sgm" or config.sweep.lr_check
+            wta = mrf_sweep_wants_wta(config.sweep, config.mrf)
         requests = []
         for r in selection.references:
             srcs = list(selection.sources[r])
