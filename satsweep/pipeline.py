@@ -216,7 +216,8 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
         for w in selection.warnings:
             rep.log(f"warning: {w}")
 
-    per_view = _sweep_references(device, cameras, images, selection, u_range, config, rep, names)
+    per_view = _sweep_references(device, cameras, images, selection, u_range, config, rep, names,
+                                 aoi=aoi, alt_range=alt)
 
     dsm_path, evaluation = _make_dsm(per_view, cameras, images, aoi, config, rep, out, truth, names)
 
@@ -446,15 +447,73 @@ def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, he
     return upsample_index(index, shape), seconds
 
 
+# Pixels of context kept around the AOI's footprint in a reference view (``reference_window``):
+# at least the guided filter's margin (2 r = 4-6 px at the default radii), so that every AOI
+# pixel is filtered over its whole window, plus a few pixels for SGM's paths to enter the AOI
+# with some history. The rest of the crop margin (``crop_margin_px``, which the sources need)
+# lies outside the AOI at every height and is not swept.
+REFERENCE_CONTEXT_PX = 8
+# Samples per edge of the AOI box and altitudes projected to find its footprint (the box's edges
+# are curves in the image; the sampled box is grown by a pixel for what lies between samples).
+_FOOTPRINT_EDGE_SAMPLES = 17
+_FOOTPRINT_ALTITUDES = 5
+
+
+def reference_window(camera, frame, aoi: AOI, alt_range: AltitudeRange, shape: tuple[int, int],
+                     context_px: int = REFERENCE_CONTEXT_PX) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1), end exclusive: the pixels of a reference image of ``shape`` that see the
+    AOI cube (the AOI box x the altitude range), through ``camera`` (ENU -> pixels, the image's
+    own, skew-corrected where the image is), grown by ``context_px`` and clipped to the image.
+    A point of the DSM lies inside the AOI, so only these pixels can contribute to it."""
+    t = np.linspace(0.0, 1.0, _FOOTPRINT_EDGE_SAMPLES)
+    lon = aoi.lon_min + t * (aoi.lon_max - aoi.lon_min)
+    lat = aoi.lat_min + t * (aoi.lat_max - aoi.lat_min)
+    edge_lon = np.concatenate([lon, lon, np.full_like(t, aoi.lon_min), np.full_like(t, aoi.lon_max)])
+    edge_lat = np.concatenate([np.full_like(t, aoi.lat_min), np.full_like(t, aoi.lat_max), lat, lat])
+    alts = np.linspace(alt_range.min, alt_range.max, _FOOTPRINT_ALTITUDES)
+    lon_all = np.tile(edge_lon, alts.size)
+    lat_all = np.tile(edge_lat, alts.size)
+    alt_all = np.repeat(alts, edge_lon.size)
+    e, n, u = frame.from_geodetic(lon=lon_all, lat=lat_all, alt=alt_all)
+    x = np.asarray(camera.P, dtype=np.float64) @ np.stack([e, n, u, np.ones_like(e)])
+    if not np.all(x[2] > 0):
+        return 0, 0, shape[1], shape[0]  # the cube reaches behind the camera: keep everything
+    col, row = x[0] / x[2], x[1] / x[2]
+    grow = context_px + 1
+    h, w = shape
+    x0 = min(max(int(math.floor(col.min())) - grow, 0), w - 1)
+    y0 = min(max(int(math.floor(row.min())) - grow, 0), h - 1)
+    x1 = max(min(int(math.ceil(col.max())) + grow + 1, w), x0 + 1)
+    y1 = max(min(int(math.ceil(row.max())) + grow + 1, h), y0 + 1)
+    return x0, y0, x1, y1
+
+
+def _placed(result, window: tuple[int, int, int, int], shape: tuple[int, int]):
+    """The per-pixel maps of a sweep of the reference window ``window``, placed in full-size maps
+    of ``shape`` (no height, invalid, zero confidence outside the window)."""
+    x0, y0, x1, y1 = window
+    if (x0, y0, x1, y1) == (0, 0, shape[1], shape[0]):
+        return result.height, np.asarray(result.valid, bool), result.confidence
+    height = np.full(shape, np.nan)
+    valid = np.zeros(shape, bool)
+    confidence = np.zeros(shape, np.float32)
+    height[y0:y1, x0:x1] = result.height
+    valid[y0:y1, x0:x1] = result.valid
+    confidence[y0:y1, x0:x1] = result.confidence
+    return height, valid, confidence
+
+
 def _sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
-                      rep: RunReport, names) -> list[dict]:
+                      rep: RunReport, names, *, aoi: AOI, alt_range: AltitudeRange) -> list[dict]:
     """Sweep every reference view against its sources; MRF refinement per the options.
 
-    Without an MRF, the sweep's winner-take-all (its own tiling keeps the cost volume on the
-    device). With one, ``sweep_refine_tiled``, timed as the "sweep" stage, whose refinement time
-    is then moved to the "mrf" stage and also given in the view's entry with its tile count.
+    Each reference is swept over its ``reference_window`` only (the pixels that see the AOI cube,
+    with some context), not over the crop's whole margin; the plane spacing is that of the whole
+    image. Without an MRF, the sweep's winner-take-all (its own tiling keeps the cost volume on
+    the device). With one, ``sweep_refine_tiled``, timed as the "sweep" stage, whose refinement
+    time is then moved to the "mrf" stage and also given in the view's entry with its tile count.
     """
-    from .sweep import plane_heights, sweep_views, view_homographies
+    from .sweep import PlaneSweep, plane_heights, view_homographies
 
     per_view, sweeps = [], []
     progress = rep.progress("sweep", len(selection.references))
@@ -463,38 +522,42 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
         srcs = list(selection.sources[r])
         ref_proj = cameras.views[r].projection
         src_projs = [cameras.views[s].projection for s in srcs]
+        shape = images[r].shape
+        window = reference_window(cameras.views[r].camera, cameras.frame, aoi, alt_range, shape)
+        x0, y0, x1, y1 = window
         mrf_info = None
-        if with_mrf:
-            with rep.stage("sweep"):
-                heights = plane_heights(ref_proj, src_projs, u_range, config.sweep.step_px,
-                                        ref_shape=images[r].shape)
+        with rep.stage("sweep"):
+            heights = plane_heights(ref_proj, src_projs, u_range, config.sweep.step_px,
+                                    ref_shape=shape)
+            shift = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+            hom = view_homographies(ref_proj, src_projs, heights) @ shift
+            ref_image = np.ascontiguousarray(images[r][y0:y1, x0:x1])
+            src_images = [images[s] for s in srcs]
+            if with_mrf:
                 _check_sgm_labels(heights, config)
                 result, seconds = sweep_refine_tiled(
-                    device, images[r], [images[s] for s in srcs],
-                    view_homographies(ref_proj, src_projs, heights), heights,
-                    config.sweep, config.mrf,
+                    device, ref_image, src_images, hom, heights, config.sweep, config.mrf,
                     progress=rep.progress("sweep tiles", 1).callback(names[r]))
+            else:
+                result = PlaneSweep(device, config.sweep).run(ref_image, src_images, hom, heights)
+        if with_mrf:
             rep.move_time("sweep", "mrf", seconds)
             mrf_info = {"method": config.mrf.method, "seconds": seconds,
                         "tiles": int(result.n_tiles),
                         "valid_fraction": float(np.mean(result.valid))}
-        else:
-            with rep.stage("sweep"):
-                result, heights = sweep_views(device, images[r], [images[s] for s in srcs],
-                                              ref_proj, src_projs, alt_range=u_range,
-                                              options=config.sweep)
         progress.update(k + 1, names[r])
-        valid = np.asarray(result.valid, bool)
+        height, valid, confidence = _placed(result, window, shape)
         sweeps.append({
             "reference": names[r], "sources": [names[s] for s in srcs],
             "planes": int(len(heights)),
             "plane_step_m": float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
-            "valid_fraction": float(valid.mean()), "tiles": int(result.n_tiles),
+            "window": [int(v) for v in window],
+            "valid_fraction": float(np.mean(result.valid)), "tiles": int(result.n_tiles),
             "window_planes": result.window_planes,
             "mrf": mrf_info,
         })
-        per_view.append({"index": r, "height": result.height, "valid": valid,
-                         "confidence": result.confidence})
+        per_view.append({"index": r, "height": height, "valid": valid,
+                         "confidence": confidence})
     rep["sweep"] = sweeps
     return per_view
 

@@ -120,6 +120,55 @@ def test_report_records_settings_device_timings_and_views(reconstruction):
     assert rep["evaluation"]["prediction"] == str(reconstruction.out_dir / "dsm.tif")
 
 
+# How far inside its reference window a point of the AOI cube may project, in pixels, less than
+# the window's own context: the window is found with the pipeline's perspective cameras, the
+# check uses the exact RPCs, which they approximate to well under 0.05 px, and the adjustment's
+# principal-point shifts, a fraction of a pixel on this unbiased scene.
+FOOTPRINT_TOLERANCE_PX = 1.0
+
+
+def test_each_reference_is_swept_over_its_aoi_footprint_only(reconstruction, scene):
+    """The sweep covers every pixel that sees the AOI cube (its corners and random points of it
+    projected by the exact RPCs, then into the skew-corrected crop) with REFERENCE_CONTEXT_PX
+    around them,
+    and leaves out the rest of the crop's margin."""
+    from satsweep.pipeline import REFERENCE_CONTEXT_PX
+    from satsweep.rpc import RPCModel
+
+    rep = json.loads((reconstruction.out_dir / "report.json").read_text())
+    cams = {Path(v["image"]).name: v for v in
+            json.loads((reconstruction.out_dir / "cameras.json").read_text())["views"]}
+    rng = np.random.default_rng(0)
+    a, alt = scene.aoi, _alt(scene)
+    lon = rng.uniform(a.lon_min, a.lon_max, 20000)
+    lat = rng.uniform(a.lat_min, a.lat_max, 20000)
+    h = rng.uniform(alt.min, alt.max, 20000)
+    # with the cube's 8 corners, where its image reaches furthest
+    lon = np.concatenate([lon, np.tile([a.lon_min, a.lon_max, a.lon_min, a.lon_max], 2)])
+    lat = np.concatenate([lat, np.tile([a.lat_min, a.lat_min, a.lat_max, a.lat_max], 2)])
+    h = np.concatenate([h, np.repeat([alt.min, alt.max], 4)])
+    paths = {Path(v.image).name: v.image for v in scene.views}
+    for entry in rep["sweep"]:
+        cam = cams[entry["reference"]]
+        col, row = RPCModel.from_image(paths[entry["reference"]]).projection(lon=lon, lat=lat, alt=h)
+        ox, oy = cam["crop_offset"]
+        x = np.array(cam["skew_warp"]) @ np.stack([col - ox, row - oy, np.ones_like(col)])
+        col, row = x[0] / x[2], x[1] / x[2]
+        x0, y0, x1, y1 = entry["window"]
+        w, h_img = cam["width"], cam["height"]
+        inner = REFERENCE_CONTEXT_PX - FOOTPRINT_TOLERANCE_PX
+        # every side: at least the context beyond the cube's pixels, unless at the crop's edge
+        assert x0 == 0 or x0 <= col.min() - inner, (entry, col.min())
+        assert y0 == 0 or y0 <= row.min() - inner, (entry, row.min())
+        assert x1 == w or x1 - 1 >= col.max() + inner, (entry, col.max())
+        assert y1 == h_img or y1 - 1 >= row.max() + inner, (entry, row.max())
+        # and not much more: the crop's margin (32 px) is left out
+        slack = REFERENCE_CONTEXT_PX + 2 + FOOTPRINT_TOLERANCE_PX
+        assert x0 >= col.min() - slack and y0 >= row.min() - slack, entry
+        assert x1 - 1 <= col.max() + slack and y1 - 1 <= row.max() + slack, entry
+        assert (x1 - x0) * (y1 - y0) < w * h_img, entry
+
+
 def test_tiled_mrf_reconstruction_is_as_accurate_and_reports_its_tiles(scene, reconstruction,
                                                                           tmp_path):
     """mrf.tile_px small enough to cut each reference into several tiles: same accuracy bounds,
