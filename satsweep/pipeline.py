@@ -453,10 +453,6 @@ def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, he
 # with some history. The rest of the crop margin (``crop_margin_px``, which the sources need)
 # lies outside the AOI at every height and is not swept.
 REFERENCE_CONTEXT_PX = 8
-# Samples per edge of the AOI box and altitudes projected to find its footprint (the box's edges
-# are curves in the image; the sampled box is grown by a pixel for what lies between samples).
-_FOOTPRINT_EDGE_SAMPLES = 17
-_FOOTPRINT_ALTITUDES = 5
 
 
 def reference_window(camera, frame, aoi: AOI, alt_range: AltitudeRange, shape: tuple[int, int],
@@ -464,27 +460,31 @@ def reference_window(camera, frame, aoi: AOI, alt_range: AltitudeRange, shape: t
     """(x0, y0, x1, y1), end exclusive: the pixels of a reference image of ``shape`` that see the
     AOI cube (the AOI box x the altitude range), through ``camera`` (ENU -> pixels, the image's
     own, skew-corrected where the image is), grown by ``context_px`` and clipped to the image.
-    A point of the DSM lies inside the AOI, so only these pixels can contribute to it."""
-    t = np.linspace(0.0, 1.0, _FOOTPRINT_EDGE_SAMPLES)
-    lon = aoi.lon_min + t * (aoi.lon_max - aoi.lon_min)
-    lat = aoi.lat_min + t * (aoi.lat_max - aoi.lat_min)
-    edge_lon = np.concatenate([lon, lon, np.full_like(t, aoi.lon_min), np.full_like(t, aoi.lon_max)])
-    edge_lat = np.concatenate([np.full_like(t, aoi.lat_min), np.full_like(t, aoi.lat_max), lat, lat])
-    alts = np.linspace(alt_range.min, alt_range.max, _FOOTPRINT_ALTITUDES)
-    lon_all = np.tile(edge_lon, alts.size)
-    lat_all = np.tile(edge_lat, alts.size)
-    alt_all = np.repeat(alts, edge_lon.size)
-    e, n, u = frame.from_geodetic(lon=lon_all, lat=lat_all, alt=alt_all)
-    x = np.asarray(camera.P, dtype=np.float64) @ np.stack([e, n, u, np.ones_like(e)])
-    if not np.all(x[2] > 0):
-        return 0, 0, shape[1], shape[0]  # the cube reaches behind the camera: keep everything
-    col, row = x[0] / x[2], x[1] / x[2]
-    grow = context_px + 1
+    The cube's box is the crop's (``views.projected_aoi_box``), grown by one more pixel for the
+    edges' curvature between its samples. A point of the DSM lies inside the AOI, so only these
+    pixels can contribute to it."""
+    from .errors import AOIError  # noqa: PLC0415
+    from .views import projected_aoi_box  # noqa: PLC0415
+
+    P = np.asarray(camera.P, dtype=np.float64)
+
+    def project(*, lon, lat, alt):
+        lon, lat, alt = (np.ravel(a) for a in np.broadcast_arrays(lon, lat, alt))
+        e, n, u = frame.from_geodetic(lon=lon, lat=lat, alt=alt)
+        x = P @ np.stack([e, n, u, np.ones_like(e)])
+        x[:, x[2] <= 0] = np.nan  # behind the camera: projected_aoi_box refuses non-finite pixels
+        return x[0] / x[2], x[1] / x[2]
+
     h, w = shape
-    x0 = min(max(int(math.floor(col.min())) - grow, 0), w - 1)
-    y0 = min(max(int(math.floor(row.min())) - grow, 0), h - 1)
-    x1 = max(min(int(math.ceil(col.max())) + grow + 1, w), x0 + 1)
-    y1 = max(min(int(math.ceil(row.max())) + grow + 1, h), y0 + 1)
+    try:
+        c0, r0, c1, r1 = projected_aoi_box(project, aoi, alt_range)
+    except AOIError:
+        return 0, 0, w, h  # the cube reaches behind the camera: keep everything
+    grow = context_px + 1
+    x0 = min(max(int(math.floor(c0)) - grow, 0), w - 1)
+    y0 = min(max(int(math.floor(r0)) - grow, 0), h - 1)
+    x1 = max(min(int(math.ceil(c1)) + grow + 1, w), x0 + 1)
+    y1 = max(min(int(math.ceil(r1)) + grow + 1, h), y0 + 1)
     return x0, y0, x1, y1
 
 
@@ -492,8 +492,6 @@ def _placed(result, window: tuple[int, int, int, int], shape: tuple[int, int]):
     """The per-pixel maps of a sweep of the reference window ``window``, placed in full-size maps
     of ``shape`` (no height, invalid, zero confidence outside the window)."""
     x0, y0, x1, y1 = window
-    if (x0, y0, x1, y1) == (0, 0, shape[1], shape[0]):
-        return result.height, np.asarray(result.valid, bool), result.confidence
     height = np.full(shape, np.nan)
     valid = np.zeros(shape, bool)
     confidence = np.zeros(shape, np.float32)
@@ -531,7 +529,7 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
                                     ref_shape=shape)
             shift = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
             hom = view_homographies(ref_proj, src_projs, heights) @ shift
-            ref_image = np.ascontiguousarray(images[r][y0:y1, x0:x1])
+            ref_image = images[r][y0:y1, x0:x1]  # a view: the sweep makes its own copy
             src_images = [images[s] for s in srcs]
             if with_mrf:
                 _check_sgm_labels(heights, config)

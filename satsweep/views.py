@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -65,11 +65,14 @@ class View:
         return os.path.basename(self.path)
 
 
-def _projected_box(rpc: Any, aoi: AOI, alt_range: AltitudeRange) -> tuple[float, float, float, float]:
-    """(col_min, row_min, col_max, row_max) of the AOI box's edges at both altitude bounds."""
+def projected_aoi_box(project: Callable[..., tuple], aoi: AOI,
+                      alt_range: AltitudeRange) -> tuple[float, float, float, float]:
+    """(col_min, row_min, col_max, row_max) of the AOI box's edges at both altitude bounds (a
+    vertical projects to a segment, so these bound the whole cube), projected by
+    ``project(lon=, lat=, alt=) -> (col, row)`` (an RPC's ``projection``, or a camera's)."""
     lon, lat = aoi.boundary()
     alt = np.array([alt_range.min, alt_range.max], dtype=np.float64)
-    col, row = rpc.projection(lon=lon[None, :], lat=lat[None, :], alt=alt[:, None])
+    col, row = project(lon=lon[None, :], lat=lat[None, :], alt=alt[:, None])
     col, row = np.asarray(col, np.float64), np.asarray(row, np.float64)
     if not (np.isfinite(col).all() and np.isfinite(row).all()):
         raise AOIError(f"the RPC projects the AOI {aoi} to non-finite pixel coordinates")
@@ -97,7 +100,7 @@ def aoi_footprint(
         raise OptionsError(f"margin_px = {margin_px!r}: must be an integer >= 0")
     height, width = int(image_shape[0]), int(image_shape[1])
     where = f"{os.fspath(path)}: " if path is not None else ""
-    c0, r0, c1, r1 = _projected_box(rpc, aoi, alt_range)
+    c0, r0, c1, r1 = projected_aoi_box(rpc.projection, aoi, alt_range)
     # Pixel centres are integers: pixels floor(c0) .. ceil(c1) cover [c0, c1].
     bx0, by0 = int(np.floor(c0)) - int(margin_px), int(np.floor(r0)) - int(margin_px)
     bx1, by1 = int(np.ceil(c1)) + 1 + int(margin_px), int(np.ceil(r1)) + 1 + int(margin_px)

@@ -130,8 +130,7 @@ FOOTPRINT_TOLERANCE_PX = 1.0
 def test_each_reference_is_swept_over_its_aoi_footprint_only(reconstruction, scene):
     """The sweep covers every pixel that sees the AOI cube (its corners and random points of it
     projected by the exact RPCs, then into the skew-corrected crop) with REFERENCE_CONTEXT_PX
-    around them,
-    and leaves out the rest of the crop's margin."""
+    around them, and leaves out the rest of the crop's margin."""
     from satsweep.pipeline import REFERENCE_CONTEXT_PX
     from satsweep.rpc import RPCModel
 
