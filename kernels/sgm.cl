@@ -28,12 +28,17 @@
  *   (inv_sigma = 0: no adaptation, P2' = max(P1, P2)). The terms in d-1, d+1 are absent at the
  *   label range ends. Subtracting m keeps Lr bounded (Lr <= max C + P2').
  *
- * Label bands (coarse-to-fine search): with banded != 0, label d of pixel p stands for the plane
- *   base[p] + d (base: one int per pixel, pixel-major like the volume), so neighbouring pixels may
- *   cover different windows of SGM_NL planes. The recurrence then compares the same PLANES: with
- *   delta = base[p] - base[p-r], Lr(p-r, d + delta) takes the place of Lr(p-r, d) (and d + delta
- *   +- 1 that of d +- 1), labels outside p-r's window counting as +inf; m is still the minimum over
- *   p-r's window. banded == 0 is the plain recurrence (delta = 0; base is not read).
+ * Label bands (coarse-to-fine search): with banded != 0, pixel p has count[p] labels
+ *   (1 <= count[p] <= SGM_NL; base and count: one int per pixel, pixel-major like the volume),
+ *   label d < count[p] standing for the plane base[p] + d, so neighbouring pixels may cover
+ *   different windows of planes, of different lengths. The recurrence then compares the same
+ *   PLANES: with delta = base[p] - base[p-r], Lr(p-r, d + delta) takes the place of Lr(p-r, d)
+ *   (and d + delta +- 1 that of d +- 1), labels outside p-r's window [0, count[p-r]) counting as
+ *   +inf; m is the minimum over p-r's window. A pixel's labels from count[p] to SGM_NL - 1 are
+ *   neither read in cost nor written in agg (the volumes keep SGM_NL labels per pixel, so that
+ *   a pixel's labels start at idx * SGM_NL; a pixel costs time in proportion to its count).
+ *   banded == 0 is the plain recurrence (delta = 0, every pixel SGM_NL labels; base and count are
+ *   not read).
  *
  * Scanlines of a direction: dy == 0: one per row (H lines) starting at column 0 (dx > 0) or
  *   W-1; dx == 0: one per column (W lines) starting at row 0 (dy > 0) or H-1; diagonal: W + H - 1
@@ -125,17 +130,17 @@ inline void sgm_line_start(const int line, const int w, const int h, const int d
 #define SGM_VEC 8
 #define SGM_BUF (SGM_NL + 2 * SGM_GUARD)
 
-/* The recurrence of one step over all labels, shared by sgm_step and sgm_scan_step (whose
+/* The recurrence of one step over labels 0 .. n_ - 1, shared by sgm_step and sgm_scan_step (whose
  * arrays live in different address spaces): cur[d] = Lr(p, d) from pv = Lr(p - r, .), then
  * ON_VEC (after each SGM_VEC labels d.., value v) or ON_ONE (after each single label d, value
  * v), and `result` = min_d Lr(p, d). */
-#define SGM_STEP_BODY(c, pv, cur, prev_min, jump, p1, ON_VEC, ON_ONE, result)                   \
+#define SGM_STEP_BODY(c, pv, cur, n_, prev_min, jump, p1, ON_VEC, ON_ONE, result)               \
     do {                                                                                       \
         const float8 jump8_ = (float8)(jump), p18_ = (float8)(p1), min8_ = (float8)(prev_min); \
         float8 vmin_ = (float8)(MAXFLOAT);                                                     \
         float cmin_ = MAXFLOAT;                                                                \
         int d = 0;                                                                             \
-        for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {                                          \
+        for (; d + SGM_VEC <= (n_); d += SGM_VEC) {                                            \
             float8 m_ = fmin(vload8(0, (pv) + d), jump8_);                                     \
             m_ = fmin(m_, vload8(0, (pv) + d - 1) + p18_);                                     \
             m_ = fmin(m_, vload8(0, (pv) + d + 1) + p18_);                                     \
@@ -144,7 +149,7 @@ inline void sgm_line_start(const int line, const int w, const int h, const int d
             ON_VEC;                                                                            \
             vmin_ = fmin(vmin_, v);                                                            \
         }                                                                                      \
-        for (; d < SGM_NL; ++d) {                                                              \
+        for (; d < (n_); ++d) {                                                                \
             float m_ = fmin((pv)[d], (jump));                                                  \
             m_ = fmin(m_, (pv)[d - 1] + (p1));                                                 \
             m_ = fmin(m_, (pv)[d + 1] + (p1));                                                 \
@@ -158,14 +163,15 @@ inline void sgm_line_start(const int line, const int w, const int h, const int d
         (result) = fmin(cmin_, fmin(m2_.x, m2_.y));                                            \
     } while (0)
 
-/* One step of scanline k's recurrence at pixel idx: cur = Lr(p, .), agg (+)= cur; returns
- * min_d Lr(p, d). prev points at Lr(p - r, .) shifted by the band delta (see above). */
+/* One step of scanline k's recurrence at pixel idx over its n labels: cur = Lr(p, .),
+ * agg (+)= cur; returns min_d Lr(p, d). prev points at Lr(p - r, .) shifted by the band delta
+ * (see above). */
 inline float sgm_step(__global const float *c, __global float *a, const float *pv, float *cur,
-                      const float prev_min, const float jump, const float p1,
+                      const int n, const float prev_min, const float jump, const float p1,
                       const int accumulate)
 {
     float result;
-    SGM_STEP_BODY(c, pv, cur, prev_min, jump, p1,
+    SGM_STEP_BODY(c, pv, cur, n, prev_min, jump, p1,
                   vstore8(accumulate ? vload8(0, a + d) + v : v, 0, a + d),
                   a[d] = accumulate ? a[d] + v : v, result);
     return result;
@@ -175,14 +181,17 @@ __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
 void sgm_path(__global const float *cost, __global const float *guide, __global float *agg,
               const int w, const int h, const int dx, const int dy,
               const float p1, const float p2, const float inv_sigma, const int accumulate,
-              __global const int *base, const int banded, const int lines)
+              __global const int *base, __global const int *count, const int banded,
+              const int lines)
 {
     /* Each step's labels sit between +inf guards of SGM_GUARD entries, so that a band shift
      * delta (clamped to +-(SGM_NL + 1), beyond which the windows do not meet) reads only guards
-     * outside the window. */
+     * outside the window. A step of n < SGM_NL labels leaves entries n .. SGM_NL - 1 of its
+     * array stale: the next step sets those it reads to +inf first (prev_n: the count of the
+     * step in prev). */
     float buf[SGM_LINES][2][SGM_BUF];
     float *prev[SGM_LINES], *cur[SGM_LINES];
-    int xs[SGM_LINES], ys[SGM_LINES], prev_base[SGM_LINES];
+    int xs[SGM_LINES], ys[SGM_LINES], prev_base[SGM_LINES], prev_n[SGM_LINES];
     float prev_min[SGM_LINES], prev_guide[SGM_LINES];
     const int n_lines = dy == 0 ? h : (dx == 0 ? w : w + h - 1);
     for (int k = 0; k < lines; ++k) {
@@ -203,6 +212,7 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
         prev_min[k] = 0.0f;
         prev_guide[k] = 0.0f;
         prev_base[k] = (banded && xs[k] >= 0) ? base[(size_t)ys[k] * (size_t)w + (size_t)xs[k]] : 0;
+        prev_n[k] = SGM_NL;  /* the zero start: every entry valid */
     }
     int running = 1;
     while (running) {
@@ -216,9 +226,13 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
             const float jump = prev_min[k]
                                + fmax(p1, p2 / (1.0f + fabs(gv - prev_guide[k]) * inv_sigma));
             const int cur_base = banded ? base[idx] : 0;
-            const float *pv = prev[k] + clamp(cur_base - prev_base[k], -(SGM_NL + 1), SGM_NL + 1);
-            prev_min[k] = sgm_step(cost + idx * SGM_NL, agg + idx * SGM_NL, pv, cur[k],
-                                   prev_min[k], jump, p1, accumulate);
+            const int n = banded ? count[idx] : SGM_NL;
+            const int delta = clamp(cur_base - prev_base[k], -(SGM_NL + 1), SGM_NL + 1);
+            /* this step reads prev up to entry n - 1 + delta + 1 */
+            for (int j = prev_n[k]; j < min(n + delta + 1, SGM_NL); ++j) prev[k][j] = INFINITY;
+            prev_min[k] = sgm_step(cost + idx * SGM_NL, agg + idx * SGM_NL, prev[k] + delta, cur[k],
+                                   n, prev_min[k], jump, p1, accumulate);
+            prev_n[k] = n;
             float *t = prev[k];
             prev[k] = cur[k];
             cur[k] = t;
@@ -243,7 +257,9 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
  *   (1, -1). With paths == 4 only the horizontal and vertical directions are computed (the first
  *   four of satsweep.mrf.SGM_DIRECTIONS), with paths == 8 all of them. A scan's sum at a pixel
  *   is F = ((Lr(1,0) + Lr(0,1)) + Lr(1,1)) + Lr(-1,1) (B likewise, backward directions), each
- *   Lr the recurrence documented above (plain, not banded), bit for bit the values of sgm_path.
+ *   Lr the recurrence documented above, bit for bit the values of sgm_path, with label bands and
+ *   counts when banded != 0 (base, count as for sgm_path; a pixel's labels past its count are
+ *   neither read nor written).
  *   agg = F + B: sgm_path's sum up to the order of the additions.
  *   The scans share agg without a third volume, in two launches (phase 0, then phase 1) that
  *   meet at row h / 2: in phase 0 the forward scan stores F in rows [0, h / 2) and the backward
@@ -263,42 +279,110 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
 #define SGM_SCAN_STEP (SGM_NL + 2 * SGM_SCAN_GUARD)
 #define SGM_SCAN_SCRATCH(w) ((size_t)(6 * (w) + 2) * SGM_SCAN_STEP + (size_t)6 * (w))
 
-/* cur = Lr(p, .) of one direction from pv = Lr(p - r, .) (guards +inf on both sides), as
- * sgm_step without the aggregate; returns min_d Lr(p, d). */
+/* cur = Lr(p, .) over n labels of one direction from pv = Lr(p - r, .) (its entries d - 1 and
+ * d + 1 +inf where they lie outside its window), as sgm_step without the aggregate; returns
+ * min_d Lr(p, d). */
 inline float sgm_scan_step(__global const float *c, __global const float *pv, __global float *cur,
-                           const float prev_min, const float jump, const float p1)
+                           const int n, const float prev_min, const float jump, const float p1)
 {
     float result;
-    SGM_STEP_BODY(c, pv, cur, prev_min, jump, p1, (void)0, (void)0, result);
+    SGM_STEP_BODY(c, pv, cur, n, prev_min, jump, p1, (void)0, (void)0, result);
     return result;
 }
 
 /* Lr(p, .) = C(p, .) at the first pixel of a scanline (what sgm_path's zero start gives). */
-inline float sgm_scan_first(__global const float *c, __global float *cur)
+inline float sgm_scan_first(__global const float *c, __global float *cur, const int n)
 {
     float cmin = MAXFLOAT;
-    for (int d = 0; d < SGM_NL; ++d) {
+    for (int d = 0; d < n; ++d) {
         cur[d] = c[d];
         cmin = fmin(cmin, c[d]);
     }
     return cmin;
 }
 
-/* One direction at a pixel (guide value gv): from the predecessor's step pv (guide value gp,
- * minimum pmin) when it is inside the image, else the first step. */
-inline float sgm_scan_dir(__global const float *c, __global const float *pv, __global float *cur,
-                          const int inside, const float pmin, const float gv, const float gp,
-                          const float p1, const float p2, const float inv_sigma)
+/* Label d (cost cd) of a banded step, its predecessor's label j = d + delta read only inside the
+ * predecessor's n_prev labels (+inf outside). */
+inline float sgm_band_one(const float cd, __global const float *pv, const int j, const int n_prev,
+                          const float prev_min, const float jump, const float p1)
 {
-    if (!inside) return sgm_scan_first(c, cur);
-    const float jump = pmin + fmax(p1, p2 / (1.0f + fabs(gv - gp) * inv_sigma));
-    return sgm_scan_step(c, pv, cur, pmin, jump, p1);
+    float m = jump;
+    if (j >= 0 && j < n_prev) m = fmin(m, pv[j]);
+    if (j >= 1 && j - 1 < n_prev) m = fmin(m, pv[j - 1] + p1);
+    if (j + 1 >= 0 && j + 1 < n_prev) m = fmin(m, pv[j + 1] + p1);
+    return cd + (m - prev_min);
 }
 
+/* sgm_scan_step over n labels from a predecessor step pv of n_prev labels whose label j stands
+ * for this pixel's label j - delta (label bands and counts): the labels whose three
+ * predecessor entries all lie inside pv run SGM_VEC at a time, the others one by one with
+ * tests; no guard entries are read. The same values as the guarded step. */
+inline float sgm_band_step(__global const float *c, __global const float *pv, __global float *cur,
+                           const int n, const int n_prev, const int delta, const float prev_min,
+                           const float jump, const float p1)
+{
+    const int a = clamp(1 - delta, 0, n);
+    const int b = max(a, min(n, n_prev - 1 - delta));
+    float cmin = MAXFLOAT;
+    int d = 0;
+    for (; d < a; ++d) {
+        const float v = sgm_band_one(c[d], pv, d + delta, n_prev, prev_min, jump, p1);
+        cur[d] = v;
+        cmin = fmin(cmin, v);
+    }
+    const float8 jump8 = (float8)(jump), p18 = (float8)(p1), min8 = (float8)(prev_min);
+    float8 vmin = (float8)(MAXFLOAT);
+    __global const float *q = pv + delta;  /* read at d - 1 .. d + 8 for d >= a: inside pv */
+    for (; d + SGM_VEC <= b; d += SGM_VEC) {
+        float8 m = fmin(vload8(0, q + d), jump8);
+        m = fmin(m, vload8(0, q + d - 1) + p18);
+        m = fmin(m, vload8(0, q + d + 1) + p18);
+        const float8 v = vload8(0, c + d) + (m - min8);
+        vstore8(v, 0, cur + d);
+        vmin = fmin(vmin, v);
+    }
+    for (; d < n; ++d) {
+        const float v = sgm_band_one(c[d], pv, d + delta, n_prev, prev_min, jump, p1);
+        cur[d] = v;
+        cmin = fmin(cmin, v);
+    }
+    const float4 m4 = fmin(vmin.lo, vmin.hi);
+    const float2 m2 = fmin(m4.lo, m4.hi);
+    return fmin(cmin, fmin(m2.x, m2.y));
+}
+
+/* One direction at a pixel of n labels (guide value gv): from the predecessor's step pv (guide
+ * value gp, minimum pmin, n_prev labels, band offset delta) when it is inside the image, else
+ * the first step. Every step keeps +inf just past its labels (entry n; entries -SGM_SCAN_GUARD
+ * .. -1 are +inf from phase 0 on), so that a step whose reads, entries delta - 1 .. n + delta of
+ * pv, lie within -SGM_SCAN_GUARD .. n_prev (every pixel of a plain volume, and those inside a
+ * block of one window) runs the guarded step; the others test their reads (sgm_band_step). */
+inline float sgm_scan_dir(__global const float *c, __global const float *pv, __global float *cur,
+                          const int inside, const float pmin, const float gv, const float gp,
+                          const float p1, const float p2, const float inv_sigma, const int n,
+                          const int n_prev, const int delta)
+{
+    float result;
+    if (!inside) {
+        result = sgm_scan_first(c, cur, n);
+    } else {
+        const float jump = pmin + fmax(p1, p2 / (1.0f + fabs(gv - gp) * inv_sigma));
+        result = (delta >= 1 - SGM_SCAN_GUARD && n + delta <= n_prev)
+                     ? sgm_scan_step(c, pv + delta, cur, n, pmin, jump, p1)
+                     : sgm_band_step(c, pv, cur, n, n_prev, delta, pmin, jump, p1);
+    }
+    if (n < SGM_NL) cur[n] = INFINITY;
+    return result;
+}
+
+/* the window (first plane, label count) of pixel i in sgm_scan */
+#define B(i) (banded ? base[i] : 0)
+#define N(i) (banded ? count[i] : SGM_NL)
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
 void sgm_scan(__global const float *cost, __global const float *guide, __global float *agg,
               __global float *scratch, const int w, const int h, const float p1, const float p2,
-              const float inv_sigma, const int paths, const int phase)
+              const float inv_sigma, const int paths, const int phase,
+              __global const int *base, __global const int *count, const int banded)
 {
     const int back = get_global_id(0);
     if (back > 1) return;
@@ -327,7 +411,7 @@ void sgm_scan(__global const float *cost, __global const float *guide, __global 
         __global float *crow = rows + (size_t)cs * 3 * w * SGM_SCAN_STEP + SGM_SCAN_GUARD;
         __global const float *pmins = mins + (size_t)ps * 3 * w;
         __global float *cmins = mins + (size_t)cs * 3 * w;
-        int hs = 0;
+        int hs = 0, hbase = 0, hn = SGM_NL;
         float hmin = 0.0f, hguide = 0.0f;
         for (int xi = 0; xi < w; ++xi) {
             const int x = back ? w - 1 - xi : xi;
@@ -336,17 +420,23 @@ void sgm_scan(__global const float *cost, __global const float *guide, __global 
             const float gv = guide[idx];
             const int up = yi > 0;
             const size_t iup = up ? (size_t)(y - s) * (size_t)w : 0;   /* row y - s */
+            /* this pixel's window (plain: 0, SGM_NL); B(i), N(i): predecessor i's */
+            const int pb = B(idx), n = N(idx);
             /* horizontal (s, 0): predecessor (x - s, y) */
             __global float *hp = hor + (size_t)hs * SGM_SCAN_STEP + SGM_SCAN_GUARD;
             __global float *hc = hor + (size_t)(1 - hs) * SGM_SCAN_STEP + SGM_SCAN_GUARD;
-            hmin = sgm_scan_dir(c, hp, hc, xi > 0, hmin, gv, hguide, p1, p2, inv_sigma);
+            hmin = sgm_scan_dir(c, hp, hc, xi > 0, hmin, gv, hguide, p1, p2, inv_sigma, n, hn,
+                                pb - hbase);
             hguide = gv;
             hs = 1 - hs;
+            hbase = pb;
+            hn = n;
             /* vertical (0, s): predecessor (x, y - s) */
             __global float *v0 = crow + (size_t)x * SGM_SCAN_STEP;
             cmins[x] = sgm_scan_dir(c, prow + (size_t)x * SGM_SCAN_STEP, v0, up,
                                     up ? pmins[x] : 0.0f, gv, up ? guide[iup + x] : 0.0f,
-                                    p1, p2, inv_sigma);
+                                    p1, p2, inv_sigma, n, up ? N(iup + x) : SGM_NL,
+                                    up ? pb - B(iup + x) : 0);
             __global float *a = agg + idx * SGM_NL;
             if (diag) {
                 /* (s, s): predecessor (x - s, y - s); (-s, s): predecessor (x + s, y - s) */
@@ -357,28 +447,28 @@ void sgm_scan(__global const float *cost, __global const float *guide, __global 
                 cmins[w + x] = sgm_scan_dir(
                     c, prow + ((size_t)w + (size_t)xa) * SGM_SCAN_STEP, v1, in1,
                     in1 ? pmins[w + xa] : 0.0f, gv, in1 ? guide[iup + xa] : 0.0f, p1, p2,
-                    inv_sigma);
+                    inv_sigma, n, in1 ? N(iup + xa) : SGM_NL, in1 ? pb - B(iup + xa) : 0);
                 cmins[2 * w + x] = sgm_scan_dir(
                     c, prow + ((size_t)2 * w + (size_t)xb) * SGM_SCAN_STEP, v2, in2,
                     in2 ? pmins[2 * w + xb] : 0.0f, gv, in2 ? guide[iup + xb] : 0.0f, p1, p2,
-                    inv_sigma);
+                    inv_sigma, n, in2 ? N(iup + xb) : SGM_NL, in2 ? pb - B(iup + xb) : 0);
                 int d = 0;
-                for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
+                for (; d + SGM_VEC <= n; d += SGM_VEC) {
                     const float8 f = ((vload8(0, hc + d) + vload8(0, v0 + d)) + vload8(0, v1 + d))
                                      + vload8(0, v2 + d);
                     vstore8(add ? vload8(0, a + d) + f : f, 0, a + d);
                 }
-                for (; d < SGM_NL; ++d) {
+                for (; d < n; ++d) {
                     const float f = ((hc[d] + v0[d]) + v1[d]) + v2[d];
                     a[d] = add ? a[d] + f : f;
                 }
             } else {
                 int d = 0;
-                for (; d + SGM_VEC <= SGM_NL; d += SGM_VEC) {
+                for (; d + SGM_VEC <= n; d += SGM_VEC) {
                     const float8 f = vload8(0, hc + d) + vload8(0, v0 + d);
                     vstore8(add ? vload8(0, a + d) + f : f, 0, a + d);
                 }
-                for (; d < SGM_NL; ++d) {
+                for (; d < n; ++d) {
                     const float f = hc[d] + v0[d];
                     a[d] = add ? a[d] + f : f;
                 }
@@ -386,13 +476,16 @@ void sgm_scan(__global const float *cost, __global const float *guide, __global 
         }
     }
 }
+#undef B
+#undef N
 
 #else
 __kernel __attribute__((reqd_work_group_size(SGM_WG, 1, 1)))
 void sgm_path(__global const float *cost, __global const float *guide, __global float *agg,
               const int w, const int h, const int dx, const int dy,
               const float p1, const float p2, const float inv_sigma, const int accumulate,
-              __global const int *base, const int banded, const int lines)
+              __global const int *base, __global const int *count, const int banded,
+              const int lines)
 {
     __local float prev[SGM_NL];   /* Lr(p - r, .) */
     __local float red[SGM_WG];    /* reduction scratch for min_k */
@@ -406,6 +499,7 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
     float prev_guide = 0.0f;
     int first = 1;
     int prev_base = 0;
+    int prev_n = SGM_NL;
 
     /* x, y are the same for every work-item of the group, so the loop and its barriers are
      * uniform across the group. */
@@ -416,20 +510,21 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
                                 : fmax(p1, p2 / (1.0f + fabs(gv - prev_guide) * inv_sigma));
         const float jump = prev_min + p2a;
         const int cur_base = banded ? base[idx] : 0;
+        const int n = banded ? count[idx] : SGM_NL;
         const int delta = first ? 0 : cur_base - prev_base;
         float cmin = MAXFLOAT;
         for (int k = 0; k < SGM_LPT; ++k) {
             const int d = lid + k * SGM_WG;
-            if (d < SGM_NL) {
+            if (d < n) {
                 const size_t o = idx * SGM_NL + d;
                 const float c = cost[o];
                 float v = c;
                 if (!first) {
                     const int j = d + delta;  /* the same plane in p - r's window */
                     float m = jump;
-                    if (j >= 0 && j < SGM_NL) m = fmin(m, prev[j]);
-                    if (j - 1 >= 0 && j - 1 < SGM_NL) m = fmin(m, prev[j - 1] + p1);
-                    if (j + 1 >= 0 && j + 1 < SGM_NL) m = fmin(m, prev[j + 1] + p1);
+                    if (j >= 0 && j < prev_n) m = fmin(m, prev[j]);
+                    if (j - 1 >= 0 && j - 1 < prev_n) m = fmin(m, prev[j - 1] + p1);
+                    if (j + 1 >= 0 && j + 1 < prev_n) m = fmin(m, prev[j + 1] + p1);
                     v = c + (m - prev_min);
                 }
                 cur[k] = v;
@@ -440,7 +535,7 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
         barrier(CLK_LOCAL_MEM_FENCE);   /* everyone has read prev */
         for (int k = 0; k < SGM_LPT; ++k) {
             const int d = lid + k * SGM_WG;
-            if (d < SGM_NL) prev[d] = cur[k];
+            if (d < n) prev[d] = cur[k];
         }
         red[lid] = cmin;
         barrier(CLK_LOCAL_MEM_FENCE);
@@ -452,6 +547,7 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
         barrier(CLK_LOCAL_MEM_FENCE);   /* everyone has read red[0] before it is overwritten */
         prev_guide = gv;
         prev_base = cur_base;
+        prev_n = n;
         first = 0;
         x += dx;
         y += dy;

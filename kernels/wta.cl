@@ -21,7 +21,9 @@
  *                  cost[i * n_planes + d] (the layout SGM aggregates in), in one pass: equal to
  *                  wta_init then wta_update over planes 0 .. n_planes - 1. Work size: global =
  *                  (ceil(n_pix / WTA_VEC)), rounded up to any multiple; local = any; work-item g
- *                  writes pixels [g WTA_VEC, (g + 1) WTA_VEC) (clipped to n_pix).
+ *                  writes pixels [g WTA_VEC, (g + 1) WTA_VEC) (clipped to n_pix). With
+ *                  counted != 0, pixel i has only its first count[i] planes (1 .. n_planes; the
+ *                  label counts of sgm.cl's bands): its state is that after those planes.
  *   wta_finalize : after the last of n_planes planes: fractional plane index (parabola through the
  *                  best plane and its neighbours, offset clamped to [-0.5, 0.5], none at the first
  *                  and last planes), confidence = (c2 - M1) / COST_MAX clamped to [0, 1]
@@ -192,7 +194,23 @@ __kernel void wta_update(__global const float *cost, const int tw, const int th,
     state_store8(state, n, k, st);
 }
 
+/* state_push8 on the lanes where `on` is set; the others keep their state. */
+inline void state_push8_lanes(wta_state8 *st, const int p, const float8 c, const int8 on)
+{
+    wta_state8 t = *st;
+    state_push8(&t, p, c);
+    st->m1 = select(st->m1, t.m1, on);
+    st->i1 = select(st->i1, t.i1, on);
+    st->m1p = select(st->m1p, t.m1p, on);
+    st->m1n = select(st->m1n, t.m1n, on);
+    st->m2 = select(st->m2, t.m2, on);
+    st->prev = select(st->prev, t.prev, on);
+    st->prev2 = select(st->prev2, t.prev2, on);
+    st->cmax = select(st->cmax, t.cmax, on);
+}
+
 __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const int n_planes,
+                              __global const int *count, const int counted,
                               __global float *state)
 {
     const int i0 = get_global_id(0) * WTA_VEC;
@@ -201,7 +219,8 @@ __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const
         for (int i = i0; i < n_pix; ++i) {
             wta_state st = state_fresh();
             __global const float *c = cost + (size_t)i * n_planes;
-            for (int p = 0; p < n_planes; ++p) state_push(&st, p, c[p]);
+            const int n = counted ? count[i] : n_planes;
+            for (int p = 0; p < n; ++p) state_push(&st, p, c[p]);
             state_store(state, (size_t)n_pix, i, st);
         }
         return;
@@ -211,9 +230,19 @@ __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const
                      (float8)one.m2, (float8)one.prev, (float8)one.prev2, (float8)one.cmax};
     __global const float *c = cost + (size_t)i0 * n_planes;
     const size_t d = (size_t)n_planes;
-    for (int p = 0; p < n_planes; ++p)
+    const int8 n8 = counted ? vload8(0, count + i0) : (int8)(n_planes);
+    const int4 lo4 = min(n8.lo, n8.hi), hi4 = max(n8.lo, n8.hi);
+    const int2 lo2 = min(lo4.lo, lo4.hi), hi2 = max(hi4.lo, hi4.hi);
+    const int n_all = min(lo2.x, lo2.y);  /* planes every lane has */
+    const int n_any = max(hi2.x, hi2.y);  /* planes some lane has */
+    int p = 0;
+    for (; p < n_all; ++p)
         state_push8(&st, p, (float8)(c[p], c[d + p], c[2 * d + p], c[3 * d + p], c[4 * d + p],
                                      c[5 * d + p], c[6 * d + p], c[7 * d + p]));
+    for (; p < n_any; ++p)
+        state_push8_lanes(&st, p, (float8)(c[p], c[d + p], c[2 * d + p], c[3 * d + p],
+                                           c[4 * d + p], c[5 * d + p], c[6 * d + p],
+                                           c[7 * d + p]), (int8)(p) < n8);
     state_store8(state, (size_t)n_pix, i0, st);
 }
 

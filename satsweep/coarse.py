@@ -5,7 +5,8 @@ of them. This stage gives each square block of the reference a window of consecu
 reference is first swept (and refined by SGM) at half resolution over every other plane; each
 block's window then spans the coarse plane indices found in the block and a halo around it, plus
 a margin of planes on each side. The full-resolution sweep and SGM evaluate only the windows
-(``sweep.PlaneWindows``; SGM compares the same planes across blocks, kernels/sgm.cl).
+(``sweep.PlaneWindows``; SGM compares the same planes across blocks and steps through each
+pixel's own window, so that a block across a cliff does not widen the others', kernels/sgm.cl).
 
 Conventions: a half-resolution pixel (i, j) is the mean of full-resolution pixels (2i, 2j) to
 (2i + 1, 2j + 1), so its centre lies at full-resolution (2j + 0.5, 2i + 0.5) (pixel (0, 0) = the
@@ -20,7 +21,8 @@ import numpy as np
 
 from .sweep import PlaneWindows
 
-# Window sizes are rounded up to a multiple of this (SGM steps through labels 8 at a time).
+# The volume's labels per pixel (the widest window) are rounded up to a multiple of this, so that
+# runs with similar windows share SGM's compiled programs (its label count is a -D constant).
 WINDOW_QUANTUM = 8
 # Fewest planes, and smallest image side (pixels), for which a coarse pass is worth its cost.
 MIN_PLANES = 24
@@ -67,11 +69,10 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
 
     ``plane_index``: (H, W), NaN where the coarse pass found nothing (filled from the nearest
     known pixel). Each block sweeps floor(min) - margin .. ceil(max) + margin (within the
-    planes) of the indices in the block grown by ``halo`` pixels. Every block's window holds as
-    many labels as the widest of these, rounded up to ``WINDOW_QUANTUM`` planes (SGM's volume
-    has one label count), placed around the planes it sweeps. Returns None (sweep every plane)
-    when nothing is known or when the blocks would sweep more than ``max_fraction`` of the
-    planes on average.
+    planes) of the indices in the block grown by ``halo`` pixels; the volume holds as many
+    labels per pixel as the widest of these windows, rounded up to ``WINDOW_QUANTUM`` (within
+    the planes). Returns None (sweep every plane) when nothing is known or when the blocks would
+    sweep more than ``max_fraction`` of the planes on average.
     """
     from scipy import ndimage  # noqa: PLC0415
 
@@ -97,5 +98,4 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
     if count.mean() > max_fraction * n_planes:
         return None
     n_win = min(n_planes, math.ceil(count.max() / WINDOW_QUANTUM) * WINDOW_QUANTUM)
-    first = np.clip(lo - (n_win - count) // 2, 0, n_planes - n_win)
-    return PlaneWindows(block=block, first=first, n_planes=n_win, swept=lo, count=count)
+    return PlaneWindows(block=block, first=lo, n_planes=n_win, count=count)

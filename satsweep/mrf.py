@@ -109,8 +109,8 @@ class MRFOptions(Options):
     sgm_work_group: int = 0  # work-items per scanline (power of two); 0: 1 on CPUs, 32 on GPUs
     sgm_scan: bool = True  # with one work-item per scanline (CPUs): all directions in two raster
     # scans run side by side (sgm.cl sgm_scan), each pixel's volumes read and written once per
-    # scan instead of once per direction; the same path costs, summed in another order. False:
-    # one sgm_path launch per direction. Label windows (coarse-to-fine search) use sgm_path
+    # scan instead of once per direction; the same path costs, summed in another order (label
+    # windows of a coarse-to-fine search too). False: one sgm_path launch per direction
     sgm_subplane: Literal["equiangular", "parabola"] = "equiangular"  # sub-plane fit through the
     # aggregated costs of the best plane and its neighbours: SGM's sums are V-shaped near their
     # minimum (linear P1 penalties), which a symmetric V fits; tools/bench_e2e.py, 4 scenes:
@@ -237,19 +237,34 @@ def _check_visible(visible, shape: tuple[int, int, int]) -> np.ndarray | None:
 
 
 def _check_label_base(label_base, shape: tuple[int, int], n_labels: int,
-                      n_planes: int | None) -> np.ndarray | None:
-    """The (H, W) int32 first plane of each pixel's label window (None: no bands): label d of
+                      n_planes: int | None, label_count=None) -> tuple[np.ndarray | None,
+                                                                       np.ndarray | None]:
+    """The (H, W) int32 first plane of each pixel's label window and its (H, W) int32 label
+    count (None, None: no bands; a count of None: n_labels everywhere): label d < count[p] of
     pixel p stands for plane label_base[p] + d, which must lie in [0, n_planes)."""
     if label_base is None:
-        return None
+        if label_count is not None:
+            raise InputError(None, "label_count: needs label_base (the windows' first planes)")
+        return None, None
     b = np.asarray(label_base)
     if b.shape != shape or not np.issubdtype(b.dtype, np.integer):
         raise InputError(None, f"label_base: expected integers of shape {shape}, got "
                                f"{b.dtype} {b.shape}")
-    if b.size and (b.min() < 0 or (n_planes is not None and b.max() + n_labels > n_planes)):
-        raise InputError(None, f"label_base: windows of {n_labels} labels from planes "
+    if label_count is None:
+        n = np.full(shape, n_labels, np.int32)
+    else:
+        n = np.asarray(label_count)
+        if n.shape != shape or not np.issubdtype(n.dtype, np.integer):
+            raise InputError(None, f"label_count: expected integers of shape {shape}, got "
+                                   f"{n.dtype} {n.shape}")
+        if n.size and (n.min() < 1 or n.max() > n_labels):
+            raise InputError(None, f"label_count: counts {n.min()}..{n.max()} outside 1.."
+                                   f"{n_labels} (the volume's labels per pixel)")
+    if b.size and (b.min() < 0 or (n_planes is not None and (b + n).max() > n_planes)):
+        raise InputError(None, f"label_base: windows of {n.min()}..{n.max()} labels from planes "
                                f"{b.min()}..{b.max()} leave the {n_planes} planes")
-    return np.ascontiguousarray(b, dtype=np.int32)
+    return (np.ascontiguousarray(b, dtype=np.int32),
+            None if label_count is None else np.ascontiguousarray(n, dtype=np.int32))
 
 
 def _check_scale(cost_scale: float) -> float:
@@ -307,9 +322,9 @@ def _finish(labels: np.ndarray, offset: np.ndarray, confidence: np.ndarray, cost
             seconds: float, energy: float = math.nan, *, label_base: np.ndarray | None = None,
             n_labels: int | None = None) -> MRFResult:
     """Labels (and offsets) -> plane indices and heights. With ``label_base``, label d of a pixel
-    is plane label_base + d of ``heights``, its window holds ``n_labels`` labels, and the range
-    edges that ``reject_range_edges`` refuses are the window's (a minimum there may lie outside
-    it)."""
+    is plane label_base + d of ``heights``, its window holds ``n_labels`` labels (an int, or one
+    per pixel), and the range edges that ``reject_range_edges`` refuses are the window's (a
+    minimum there may lie outside it)."""
     if n_labels is None:
         n_labels = heights.size
     window = labels.astype(np.int64)
@@ -467,7 +482,7 @@ def _check_sgm_size(device: Device, dims: tuple[int, int, int]) -> None:
 
 def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
                   cost_scale: float = 1.0, shape: tuple[int, int, int] | None = None,
-                  pixel_major: bool = False, label_base=None):
+                  pixel_major: bool = False, label_base=None, label_count=None):
     """Sum of the SGM path costs over ``options.sgm_paths`` directions, on the device.
 
     ``cost_volume``: (L, H, W) float32 as a numpy array, a ``pyopencl.array.Array`` in the
@@ -479,14 +494,17 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
     ``pyopencl.array.Array`` (H, W, L) (as ``PlaneSweep.run(volume_on_device=True)`` leaves
     it), whose entries are all valid costs, and it is aggregated as it is. ``label_base``
     ((H, W) integers, optional): label d of pixel p is plane label_base[p] + d (label bands of a
-    coarse-to-fine search, kernels/sgm.cl). Returns a ``pyopencl.array.Array`` (L, H, W) float32
-    on the device.
+    coarse-to-fine search, kernels/sgm.cl). ``label_count`` ((H, W) integers in 1..L, with
+    ``label_base``): pixel p has only labels d < label_count[p]; its other labels are neither
+    read nor written (their sums are undefined). Returns a ``pyopencl.array.Array`` (L, H, W)
+    float32 on the device.
     """
     import pyopencl.array as cla  # noqa: PLC0415
 
     agg_pm, prg = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
                                              cost_scale=cost_scale, shape=shape,
-                                             pixel_major=pixel_major, label_base=label_base)
+                                             pixel_major=pixel_major, label_base=label_base,
+                                             label_count=label_count)
     h, w, n_labels = agg_pm.shape
     queue = device.queue
     agg = cla.empty(queue, (n_labels, h, w), np.float32)
@@ -499,7 +517,7 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
 
 def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFOptions, *,
                                cost_scale: float, shape: tuple[int, int, int] | None,
-                               pixel_major: bool = False, label_base=None):
+                               pixel_major: bool = False, label_base=None, label_count=None):
     """``sgm_aggregate`` without the final transposition: ((H, W, L) device array, program)."""
     import pyopencl.array as cla  # noqa: PLC0415
 
@@ -507,15 +525,18 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
     n_labels, h, w = _pixel_major_volume(device, cost_volume) if pixel_major \
         else _volume_shape(cost_volume, shape)
     g = _check_guide(guide, (h, w))
-    base = _check_label_base(label_base, (h, w), n_labels, None)
+    base, count = _check_label_base(label_base, (h, w), n_labels, None, label_count)
     _check_sgm_size(device, (n_labels, h, w))
     source, defines = sgm_program_requests(device, options, n_labels)[0]
     wg, max_lines = defines["SGM_WG"], defines["SGM_LINES"]
     prg = device.build(source, defines)
     queue = device.queue
     guide_d = cla.to_device(queue, g)
-    # The kernel reads base only when banded; a one-entry buffer stands in otherwise.
+    # The kernel reads base and count only when banded; one-entry buffers stand in otherwise.
     base_d = cla.to_device(queue, base if base is not None else np.zeros(1, np.int32))
+    if base is not None and count is None:
+        count = np.full((h, w), n_labels, np.int32)
+    count_d = cla.to_device(queue, count if count is not None else np.zeros(1, np.int32))
     n_pix = h * w
     i32, f32 = np.int32, np.float32
     if pixel_major:
@@ -530,8 +551,9 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
             buf.release()  # the uploaded host volume is no longer needed on the device
     agg_pm = cla.empty(queue, (h, w, n_labels), np.float32)
     inv_sigma = 0.0 if options.sgm_p2_sigma == 0.0 else 1.0 / options.sgm_p2_sigma
-    if options.sgm_scan and wg == 1 and base is None:
-        _sgm_scans(device, prg, cost_pm, guide_d, agg_pm, options, scale, inv_sigma)
+    if options.sgm_scan and wg == 1:
+        _sgm_scans(device, prg, cost_pm, guide_d, agg_pm, options, scale, inv_sigma,
+                   (base_d, count_d, base is not None))
     else:
         kernel = device.kernel(prg, "sgm_path")
         for i, (dx, dy) in enumerate(SGM_DIRECTIONS[:options.sgm_paths]):
@@ -540,7 +562,7 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
             kernel(queue, (-(-n_lines // lines) * wg,), (wg,), cost_pm.data, guide_d.data,
                    agg_pm.data, i32(w), i32(h), i32(dx), i32(dy), f32(options.sgm_p1 * scale),
                    f32(options.sgm_p2 * scale), f32(inv_sigma), i32(1 if i > 0 else 0),
-                   base_d.data, i32(0 if base is None else 1), i32(lines))
+                   base_d.data, count_d.data, i32(0 if base is None else 1), i32(lines))
         queue.finish()
     if not pixel_major:
         cost_pm.data.release()
@@ -548,9 +570,10 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
 
 
 def _sgm_scans(device: Device, prg, cost_pm, guide_d, agg_pm, options: MRFOptions, scale: float,
-               inv_sigma: float) -> None:
+               inv_sigma: float, bands) -> None:
     """agg_pm = the sum of the SGM path costs by sgm.cl's two raster scans (sgm_scan, its two
-    phases)."""
+    phases); bands = (base, count, banded) as sgm_scan takes them."""
+    base_d, count_d, banded = bands
     import pyopencl.array as cla  # noqa: PLC0415
 
     h, w, n_labels = agg_pm.shape
@@ -562,56 +585,64 @@ def _sgm_scans(device: Device, prg, cost_pm, guide_d, agg_pm, options: MRFOption
             kernel(queue, (2,), (1,), cost_pm.data, guide_d.data, agg_pm.data, scratch.data,
                    np.int32(w), np.int32(h), np.float32(options.sgm_p1 * scale),
                    np.float32(options.sgm_p2 * scale), np.float32(inv_sigma),
-                   np.int32(options.sgm_paths), np.int32(phase))
+                   np.int32(options.sgm_paths), np.int32(phase), base_d.data, count_d.data,
+                   np.int32(1 if banded else 0))
         queue.finish()
     finally:
         scratch.data.release()
 
 
-def _wta_state(device: Device, agg_pm) -> np.ndarray:
+def _wta_state(device: Device, agg_pm, label_count=None) -> np.ndarray:
     """wta.cl's winner-take-all state (8, H, W) of a whole PIXEL-MAJOR (H, W, L) device volume,
     in one pass (``wta_pixel_major``: the same state as streaming the planes through
-    ``wta_update``, without turning the volume plane-major first)."""
+    ``wta_update``, without turning the volume plane-major first); with ``label_count`` ((H, W)
+    int32), each pixel's state after its first label_count planes."""
     import pyopencl.array as cla  # noqa: PLC0415
 
     h, w, n_labels = agg_pm.shape
     prg = device.build("wta", _WTA_PIXEL_MAJOR_DEFINES)
     queue = device.queue
     state = cla.empty(queue, (_WTA_NSTATE, h, w), np.float32)
+    count_d = cla.to_device(queue, label_count if label_count is not None
+                            else np.zeros(1, np.int32))
     device.kernel(prg, "wta_pixel_major")(queue, (-(-h * w // WTA_VEC),), None, agg_pm.data,
-                                          np.int32(h * w), np.int32(n_labels), state.data)
+                                          np.int32(h * w), np.int32(n_labels), count_d.data,
+                                          np.int32(0 if label_count is None else 1), state.data)
     return state.get()
 
 
 def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions, *,
                cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
                shape: tuple[int, int, int] | None = None,
-               pixel_major: bool = False, label_base=None) -> MRFResult:
+               pixel_major: bool = False, label_base=None, label_count=None) -> MRFResult:
     """SGM aggregation, then winner-take-all with sub-plane refinement and confidence.
 
     The argmin, the parabola and the second local minimum are those of the sweep's WTA
     (wta.cl, run on the aggregated volume); the confidence margin is divided by
     ``sgm_paths * cost_scale`` since each path adds about one cost. See ``sgm_aggregate`` for the
-    inputs (``pixel_major``, ``label_base``) and ``MRFResult`` for the outputs; with
-    ``label_base``, ``heights`` holds every plane and ``visible`` must be 2-D.
+    inputs (``pixel_major``, ``label_base``, ``label_count``) and ``MRFResult`` for the outputs;
+    with ``label_base``, ``heights`` holds every plane and ``visible`` must be 2-D, and the range
+    edges are each pixel's window's (its first and its label_count-th label).
     """
     t0 = time.perf_counter()
     dims = _pixel_major_volume(device, cost_volume) if pixel_major \
         else _volume_shape(cost_volume, shape)
     n_labels = dims[0]
     hts = _check_heights(heights, n_labels, banded=label_base is not None)
-    base = _check_label_base(label_base, dims[1:], n_labels, hts.size)
+    base, count = _check_label_base(label_base, dims[1:], n_labels, hts.size, label_count)
     vis = _check_visible(visible, dims)
     if base is not None and vis is not None and vis.ndim == 3:
         raise InputError(None, "visible: with label_base, give one mask per pixel (H, W)")
     agg_pm, _ = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
                                            cost_scale=cost_scale, shape=shape,
-                                           pixel_major=pixel_major, label_base=base)
+                                           pixel_major=pixel_major, label_base=base,
+                                           label_count=count)
     try:
-        s = _wta_state(device, agg_pm).astype(np.float64)
+        s = _wta_state(device, agg_pm, count).astype(np.float64)
     finally:
         agg_pm.data.release()
     # Finish as wta_finalize does: the last plane is tested as a local minimum against +inf.
+    n_last = n_labels if count is None else count  # labels per pixel
     m1, i1, m1p, m1n, m2 = s[_S_M1], s[_S_I1], s[_S_M1P], s[_S_M1N], s[_S_M2]
     last, before = s[_S_PREV], s[_S_PREV2]
     is_min = (last < before) & (last <= _WTA_BIG)
@@ -620,13 +651,13 @@ def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions,
     m1 = np.where(better, last, m1)
     m1p = np.where(better, before, m1p)
     m1n = np.where(better, _WTA_BIG, m1n)
-    i1 = np.where(better, n_labels - 1, i1).astype(np.int64)
+    i1 = np.where(better, n_last - 1, i1).astype(np.int64)
     fit = _equiangular_offset if options.sgm_subplane == "equiangular" else _parabola_offset
-    offset = fit(m1p, m1, m1n, (i1 > 0) & (i1 < n_labels - 1))
+    offset = fit(m1p, m1, m1n, (i1 > 0) & (i1 < n_last - 1))
     c2 = np.where(m2 < _WTA_BIG, m2, s[_S_MAX])
     conf = (c2 - m1) / (options.sgm_paths * _check_scale(cost_scale))
     return _finish(i1, offset, conf, m1, hts, vis, reject_range_edges,
-                   time.perf_counter() - t0, label_base=base, n_labels=n_labels)
+                   time.perf_counter() - t0, label_base=base, n_labels=n_last)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -979,7 +1010,7 @@ def wta_labels(cost_volume) -> np.ndarray:
 def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptions, *,
            cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
            initial_labels=None, pixel_major: bool = False,
-           label_base=None) -> MRFResult | None:
+           label_base=None, label_count=None) -> MRFResult | None:
     """Dispatch on ``options.method``: None for ``none`` (keep the sweep's WTA), else the result.
 
     SGM needs ``device`` (and alone takes a ``pixel_major`` device volume, see
@@ -993,8 +1024,9 @@ def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptio
             raise DeviceError("MRF method sgm needs an OpenCL device")
         return sgm_refine(device, cost_volume, guide, heights, options, cost_scale=cost_scale,
                           visible=visible, reject_range_edges=reject_range_edges,
-                          pixel_major=pixel_major, label_base=label_base)
-    if label_base is not None:
+                          pixel_major=pixel_major, label_base=label_base,
+                          label_count=label_count)
+    if label_base is not None or label_count is not None:
         raise InputError(None, f"label_base: MRF method {options.method} takes no label bands "
                                "(SGM does)")
     if pixel_major:

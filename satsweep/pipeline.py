@@ -382,12 +382,11 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
             m = refine(device, r.volume, guide[ty0:ty1, tx0:tx1], hts, mrf,
                        cost_scale=float(sweep.census_bits),
                        reject_range_edges=sweep.reject_range_edges, initial_labels=initial,
-                       pixel_major=on_device, label_base=r.plane_base)
+                       pixel_major=on_device, label_base=r.plane_base,
+                       label_count=r.plane_count)
         finally:
             if on_device:
                 r.volume.data.release()
-        if planes is not None:
-            _reject_unswept_labels(m, r.plane_base, planes, sweep.reject_range_edges)
         keep = (slice(y0 - ty0, y1 - ty0), slice(x0 - tx0, x1 - tx0))
         out = (slice(y0, y1), slice(x0, x1))
         # Pixels that no source sees at the chosen plane are invalid.
@@ -410,17 +409,6 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     return SweepResult(height=height, plane_index=plane_index, confidence=confidence, valid=valid,
                        cost_min=cost_min, n_tiles=n_tiles, peak_device_bytes=peak,
                        window_planes=window_planes if coarse is not None else None), seconds
-
-
-def _reject_unswept_labels(result, plane_base: np.ndarray, windows, reject_edges: bool) -> None:
-    """An MRF label among the window's unswept planes (worst cost, no evidence) is invalid; so
-    is one at either end of the swept planes with ``reject_edges`` (the minimum may lie past
-    it), as at the ends of the whole range."""
-    first, count = windows.swept_labels(plane_base.shape)
-    label = result.labels - plane_base - first
-    edge = 1 if reject_edges else 0
-    result.valid &= (label >= edge) & (label <= count - 1 - edge)
-    result.height[~result.valid] = np.nan
 
 
 def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, heights,

@@ -235,6 +235,9 @@ class SweepResult:
     # With plane windows: (H, W) int32, the plane of the volume's first label at each pixel
     # (label d of pixel p is plane plane_base[p] + d); None when every pixel has every plane.
     plane_base: np.ndarray | None = None
+    # With plane windows: (H, W) int32, the labels of each pixel's window (labels d >= count of
+    # a kept device volume are left unwritten; SGM's label counts skip them).
+    plane_count: np.ndarray | None = None
     window_planes: int | None = None  # planes per window of a coarse-to-fine sweep (else None)
 
 
@@ -258,26 +261,22 @@ class TilePlan:
 @dataclasses.dataclass(frozen=True, eq=False)
 class PlaneWindows:
     """Which planes a coarse-to-fine sweep evaluates: square blocks of the reference, each with a
-    window of ``n_planes`` consecutive planes (``satsweep.coarse`` derives them from a coarse
-    height map). Block (i, j) covers reference rows [i block, (i + 1) block) and columns
-    [j block, (j + 1) block); its labels are planes first[i, j] .. first[i, j] + n_planes - 1,
-    of which it sweeps ``count[i, j]`` from plane ``swept[i, j]`` (all of them when these are
-    None); the labels it does not sweep get the worst cost (``SweepOptions.max_cost``), so that
-    every pixel has the same number of labels (SGM's volume) while a block on gentle terrain
-    sweeps fewer planes than one across a cliff.
+    window of consecutive planes (``satsweep.coarse`` derives them from a coarse height map).
+    Block (i, j) covers reference rows [i block, (i + 1) block) and columns [j block, (j + 1)
+    block); it sweeps the ``count[i, j]`` planes from first[i, j] (``n_planes`` when count is
+    None), which become its labels 0 .. count - 1. A kept volume holds ``n_planes`` labels per
+    pixel (the most of any block): a block on gentle terrain sweeps fewer planes than one across
+    a cliff, and SGM refines each pixel over its own count (``mrf.sgm_refine``'s label_count).
     """
 
     block: int  # block side (pixels); the blocks start at the reference's pixel (0, 0)
     first: np.ndarray  # (ceil(H / block), ceil(W / block)) int: first plane of each block
-    n_planes: int  # planes per window
-    swept: np.ndarray | None = None  # like first: the first plane swept (None: first)
-    count: np.ndarray | None = None  # like first: planes swept (None: n_planes)
+    n_planes: int  # labels per pixel of the volume (the widest window)
+    count: np.ndarray | None = None  # like first: planes of each block's window (None: n_planes)
 
     def sweep_range(self, i: int, j: int) -> tuple[int, int]:
-        """(first plane swept, planes swept) of block (i, j)."""
-        if self.swept is None:
-            return int(self.first[i, j]), self.n_planes
-        return int(self.swept[i, j]), int(self.count[i, j])
+        """(first plane, planes) of block (i, j)."""
+        return int(self.first[i, j]), self.n_planes if self.count is None else int(self.count[i, j])
 
     def check(self, shape: tuple[int, int], total_planes: int) -> None:
         """Raise InputError unless the windows fit a reference of ``shape`` and the planes."""
@@ -288,31 +287,26 @@ class PlaneWindows:
             raise InputError(None, f"plane_windows: first must be integers of shape {want} for "
                                    f"blocks of {self.block} px over {w} x {h}, got "
                                    f"{first.dtype} {first.shape}")
-        if not 1 <= self.n_planes <= total_planes or first.min() < 0 \
-                or first.max() + self.n_planes > total_planes:
-            raise InputError(None, f"plane_windows: windows of {self.n_planes} planes from planes "
+        count = np.full(first.shape, self.n_planes) if self.count is None \
+            else np.asarray(self.count)
+        if count.shape != first.shape or not np.issubdtype(count.dtype, np.integer):
+            raise InputError(None, f"plane_windows: count must be integers of shape {want}, got "
+                                   f"{count.dtype} {count.shape}")
+        if not 1 <= self.n_planes <= total_planes or first.min() < 0 or count.min() < 1 \
+                or count.max() > self.n_planes or (first + count).max() > total_planes:
+            raise InputError(None, f"plane_windows: windows of {count.min()}..{count.max()} "
+                                   f"planes (at most {self.n_planes}) from planes "
                                    f"{first.min()}..{first.max()} leave the {total_planes} planes")
-        if (self.swept is None) != (self.count is None):
-            raise InputError(None, "plane_windows: give both swept and count, or neither")
-        if self.swept is not None:
-            swept, count = np.asarray(self.swept), np.asarray(self.count)
-            if swept.shape != first.shape or count.shape != first.shape \
-                    or not np.all(count >= 1) or not np.all(swept >= first) \
-                    or not np.all(swept + count <= first + self.n_planes):
-                raise InputError(None, "plane_windows: each block's swept planes must lie "
-                                       "inside its window")
 
     def per_pixel(self, shape: tuple[int, int]) -> np.ndarray:
         """(H, W) int32: the first plane of every pixel's window."""
         return self._expand(self.first, shape)
 
-    def swept_labels(self, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        """(H, W) int32 pair: the first swept label (window index) of every pixel, and the
-        number of swept labels."""
-        if self.swept is None:
-            return (np.zeros(shape, np.int32), np.full(shape, self.n_planes, np.int32))
-        return (self._expand(np.asarray(self.swept) - np.asarray(self.first), shape),
-                self._expand(self.count, shape))
+    def counts(self, shape: tuple[int, int]) -> np.ndarray:
+        """(H, W) int32: the planes of every pixel's window."""
+        if self.count is None:
+            return np.full(shape, self.n_planes, np.int32)
+        return self._expand(self.count, shape)
 
     def _expand(self, per_block, shape: tuple[int, int]) -> np.ndarray:
         h, w = shape
@@ -662,9 +656,11 @@ class PlaneSweep:
         the memory budget; else it is copied to the host (numpy, (n_planes, H, W)).
         plane_windows: sweep each block of the reference over its own window of the planes only
         (coarse-to-fine); the volume then holds ``plane_windows.n_planes`` labels per pixel,
-        label d of pixel p standing for plane ``SweepResult.plane_base[p] + d``; the results'
-        plane indices and heights are absolute, and a best plane at either end of a window is
-        invalid with ``reject_range_edges``. Not with ``lr_check``.
+        label d < ``SweepResult.plane_count[p]`` of pixel p standing for plane
+        ``SweepResult.plane_base[p] + d`` (a device volume's other labels are left unwritten, a
+        host volume's hold the worst cost); the results' plane indices and heights are
+        absolute, and a best plane at either end of a window is invalid with
+        ``reject_range_edges``. Not with ``lr_check``.
         winner_take_all: False skips the per-pixel winner-take-all (for a caller that refines
         the kept volume and needs nothing else, as SGM does): the result then has ``volume``
         (keep_volume is required), ``plane_base`` and the counts, and None for the per-pixel
@@ -811,14 +807,13 @@ class PlaneSweep:
                 np.zeros((h_img, w_img), np.float32), np.zeros((h_img, w_img), np.uint8)) \
             if wta else None
         volume = volume_k = None
-        # Labels that a block's window holds but does not sweep keep the worst cost.
-        padded = windows is not None and windows.swept is not None \
+        # A host volume's labels past a block's window get the worst cost; a device volume's are
+        # left unwritten (SGM skips them by its label counts).
+        padded = windows is not None and windows.count is not None \
             and bool(np.any(np.asarray(windows.count) < n_planes))
         if on_device:
             volume = bufs.alloc(volume_bytes)
             volume_k = self.device.kernel(sweep_prg, "volume_pixel_major")
-            if padded:
-                cl.enqueue_fill_buffer(queue, volume, np.float32(o.max_cost), 0, volume_bytes)
         elif keep_volume:
             volume = np.full((n_planes, h_img, w_img), o.max_cost, np.float32) if padded \
                 else np.empty((n_planes, h_img, w_img), np.float32)
@@ -827,27 +822,26 @@ class PlaneSweep:
         for ix0, iy0, ix1, iy1, tx0, ty0, tx1, ty1 in tile_grid(w_img, h_img, tile_w, tile_h, m):
             tile = _Tile(tx0, ty0, tx1 - tx0, ty1 - ty0, ix0 - tx0, iy0 - ty0, ix1 - ix0,
                          iy1 - iy0)
-            first, count, label0 = 0, n_planes, 0
+            first, count = 0, n_planes
             if windows is not None:
-                bi, bj = iy0 // tile_h, ix0 // tile_w
-                first, count = windows.sweep_range(bi, bj)
-                label0 = first - int(windows.first[bi, bj])
+                first, count = windows.sweep_range(iy0 // tile_h, ix0 // tile_w)
             n_batches += self._sweep_tile(
                 tile, plan.planes_per_batch, hom[first:first + count], count, bufs,
                 ref_buf, src_buf, off_buf, size_buf, census_k, sweep_k, filt_prg, wta_prg,
-                (w_img, h_img), outs, (ix0, iy0), volume, volume_k, n_labels=n_planes,
-                label0=label0)
+                (w_img, h_img), outs, (ix0, iy0), volume, volume_k, n_labels=n_planes)
             if wta:
                 outs[0][iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
             n_tiles += 1
         bufs.free(ref_buf, src_buf, off_buf, size_buf)
         plane_base = None if windows is None else windows.per_pixel(ref.shape)
+        plane_count = None if windows is None else windows.counts(ref.shape)
         if on_device:
             volume = cla.Array(queue, (h_img, w_img, n_planes), np.float32, data=volume)
         if not wta:
             return SweepResult(height=None, plane_index=None, confidence=None, valid=None,
                                cost_min=None, n_tiles=n_tiles, n_batches=n_batches,
-                               peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base)
+                               peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base,
+                               plane_count=plane_count)
         index, out_conf, out_cost, out_valid = outs
         if not o.subplane:
             index = np.rint(index).astype(np.float32)
@@ -857,14 +851,15 @@ class PlaneSweep:
         height[~valid] = np.nan
         return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
                            cost_min=out_cost, n_tiles=n_tiles, n_batches=n_batches,
-                           peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base)
+                           peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base,
+                               plane_count=plane_count)
 
     def _sweep_tile(self, tile, nb_max, hom, n_planes, bufs, ref_buf, src_buf, off_buf, size_buf,
                     census_k, sweep_k, filt_prg, wta_prg, ref_size, outs, interior_origin,
-                    volume=None, volume_k=None, n_labels=None, label0=0) -> int:
+                    volume=None, volume_k=None, n_labels=None) -> int:
         """Sweep one tile over the n_planes planes of ``hom``; a kept volume of ``n_labels``
-        labels per pixel (default n_planes) receives them as labels label0 .. label0 +
-        n_planes - 1. outs = None: no winner-take-all (the volume only)."""
+        labels per pixel (default n_planes) receives them as its labels 0 .. n_planes - 1.
+        outs = None: no winner-take-all (the volume only)."""
         import pyopencl as cl  # noqa: PLC0415
 
         if n_labels is None:
@@ -947,20 +942,20 @@ class PlaneSweep:
                 else:
                     _launch(sweep_k, queue, (tw, th, nb), src_buf, off_buf, size_buf, hom_buf,
                             code_buf, i32(tw), i32(th), i32(p0), vol_a)
-            to_volume = (volume, w_img, ix0, iy0, n_labels, label0 + p0) if fused else None
+            to_volume = (volume, w_img, ix0, iy0, n_labels, p0) if fused else None
             with self._stage("filter"):
                 self._filter(filt_prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume)
             if isinstance(volume, np.ndarray):  # MRF path: the filtered interior to the host
                 batch = np.empty((nb, th, tw), np.float32)
                 cl.enqueue_copy(queue, batch, vol_a)
-                volume[label0 + p0:label0 + p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
+                volume[p0:p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
                     batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
             elif volume is not None and not fused:  # MRF path: the interior, pixel-major
                 with self._stage("copy"):
                     _launch(volume_k, queue, (iw, ih), vol_a,
                             i32(tw), i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih),
                             i32(nb), volume, i32(w_img), i32(ix0), i32(iy0), i32(n_labels),
-                            i32(label0 + p0))
+                            i32(p0))
             if wta:
                 with self._stage("wta"):
                     _launch(wta_update, queue, (_ceil_div(iw, WTA_VEC), ih), vol_a, i32(tw),

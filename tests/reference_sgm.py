@@ -10,7 +10,10 @@ of one scanline per work-group), so that an indexing or boundary mistake in eith
 
 with Lr(p, d) = C(p, d) where p-r lies outside the image. With label bases (``label_base``), label d of
 pixel p is plane base[p] + d and Lr(p-r, .) is read at d + base[p] - base[p-r] (+inf outside its
-window), as documented in sgm.cl. Cost entries at or below
+window), as documented in sgm.cl; with label counts (``label_count``), pixel p has only labels
+d < count[p]: the others are +inf here, so that they never win a minimum and read as outside
+the window (the kernel leaves them alone; compare labels below the counts only). Cost entries at
+or below
 SATSWEEP_INVALID / 2 are replaced by ``missing_cost``. The aggregated volume is the sum of the
 Lr over the paths, added in the order of ``SGM_DIRECTIONS[:n_paths]`` starting from the first.
 """
@@ -55,9 +58,13 @@ def _step(c: np.ndarray, prev: np.ndarray, gcur: np.ndarray, gprev: np.ndarray,
 
 def path_cost(cost: np.ndarray, guide: np.ndarray, dx: int, dy: int, *, p1: float, p2: float,
               inv_sigma: float, missing_cost: float,
-              label_base: np.ndarray | None = None) -> np.ndarray:
+              label_base: np.ndarray | None = None,
+              label_count: np.ndarray | None = None) -> np.ndarray:
     """Lr for the single direction r = (dx, dy): (L, H, W) float32."""
     c = _sanitise(cost, missing_cost)
+    if label_count is not None:
+        beyond = np.arange(c.shape[0])[:, None, None] >= np.asarray(label_count)[None]
+        c = np.where(beyond, F32(np.inf), c).astype(F32)
     base = np.zeros(c.shape[1:], np.int64) if label_base is None \
         else np.asarray(label_base, np.int64)
     g = np.asarray(guide, dtype=F32)
@@ -91,11 +98,13 @@ def path_cost(cost: np.ndarray, guide: np.ndarray, dx: int, dy: int, *, p1: floa
 
 def aggregate(cost: np.ndarray, guide: np.ndarray, *, n_paths: int, p1: float, p2: float,
               inv_sigma: float, missing_cost: float,
-              label_base: np.ndarray | None = None) -> np.ndarray:
+              label_base: np.ndarray | None = None,
+              label_count: np.ndarray | None = None) -> np.ndarray:
     """Sum of the path costs over the first ``n_paths`` directions, in float32, in order."""
     total = None
     for dx, dy in SGM_DIRECTIONS[:n_paths]:
         lr = path_cost(cost, guide, dx, dy, p1=p1, p2=p2, inv_sigma=inv_sigma,
-                       missing_cost=missing_cost, label_base=label_base)
+                       missing_cost=missing_cost, label_base=label_base,
+                       label_count=label_count)
         total = lr if total is None else (total + lr).astype(F32)
     return total

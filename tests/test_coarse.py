@@ -51,21 +51,19 @@ def _step_map(shape=(96, 128), low=10.0, high=40.0, step_x=70):
 def test_plane_windows_cover_the_coarse_planes_of_each_block():
     """Two plateaus (planes 10 and 40) meeting at column 70, blocks of 32 px, halo 4, margin 3:
     blocks away from the step sweep 7 planes around their plateau; the block across it sweeps
-    from 7 to 43; every window has the widest block's size rounded up to 8 labels and holds
-    its block's swept planes."""
+    from 7 to 43; the volume holds the widest window rounded up to 8 labels."""
     idx = _step_map()
     n = 64
     win = coarse.plane_windows(idx, n, block=32, halo=4, margin=3, max_fraction=0.9)
     assert win is not None and win.first.shape == (3, 4)
     assert win.n_planes == 40  # 37 planes across the step, rounded up to a multiple of 8
-    np.testing.assert_array_equal(win.swept[:, 0], 7)
+    np.testing.assert_array_equal(win.first[:, 0], 7)
     np.testing.assert_array_equal(win.count[:, 0], 7)
-    np.testing.assert_array_equal(win.swept[:, 2], 7)  # columns 64..95 hold the step
+    np.testing.assert_array_equal(win.first[:, 2], 7)  # columns 64..95 hold the step
     np.testing.assert_array_equal(win.count[:, 2], 37)
-    np.testing.assert_array_equal(win.swept[:, 3], 37)
-    assert np.all(win.first <= win.swept)
-    assert np.all(win.swept + win.count <= win.first + win.n_planes)
-    assert np.all(win.first + win.n_planes <= n) and np.all(win.first >= 0)
+    np.testing.assert_array_equal(win.first[:, 3], 37)
+    np.testing.assert_array_equal(win.count[:, 3], 7)
+    assert np.all(win.count <= win.n_planes) and np.all(win.first + win.count <= n)
     win.check(idx.shape, n)
     # the halo widens a block next to the step: with 8 px, columns 32..63 see plane 40 too
     wide = coarse.plane_windows(idx, n, block=32, halo=8, margin=3, max_fraction=0.9)

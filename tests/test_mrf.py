@@ -30,6 +30,10 @@ CONF_TOL = 1e-5
 # Labels are compared only where the best aggregated cost beats the second best by more than
 # this fraction of the volume's maximum (ties may resolve differently under device rounding).
 ARGMIN_MARGIN = 1e-4
+# Textured terrain whose true plane lies inside its label window: SGM over the windows takes
+# (within one plane) the label of the full search at least this often; paths that cannot pass
+# through a neighbouring block's window change a few labels near the block edges.
+WINDOWED_AGREEMENT = 0.9
 # Graph-cut energies are float64 sums of a few hundred float32 terms.
 ENERGY_TOL = 1e-6
 # Weak-texture roof: WTA finds the roof plane for about 14 % of its pixels and has a median
@@ -121,24 +125,82 @@ def _block_bases(seed: int, shape: tuple[int, int], block: int, n_labels: int) -
     return np.repeat(np.repeat(coarse, block, axis=0), block, axis=1)[:h, :w].astype(np.int32)
 
 
-@pytest.mark.parametrize("work_group", [1, 8])
+def _block_counts(seed: int, shape: tuple[int, int], block: int, n_labels: int) -> np.ndarray:
+    """Label counts constant over blocks, from 1 to n_labels (with whole windows among them)."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    coarse = rng.integers(1, n_labels + 1, (-(-h // block), -(-w // block)))
+    coarse.flat[::5] = n_labels
+    return np.repeat(np.repeat(coarse, block, axis=0), block, axis=1)[:h, :w].astype(np.int32)
+
+
+@pytest.mark.parametrize("counted", [False, True])
+@pytest.mark.parametrize("work_group, scan", [(1, True), (1, False), (8, False)])
 @pytest.mark.parametrize("n_labels", [5, 16, 21])
-def test_sgm_label_bands_match_reference(cl_device, work_group, n_labels):
+def test_sgm_label_bands_match_reference(cl_device, work_group, scan, n_labels, counted):
     """Label windows that move from pixel to pixel (kernels/sgm.cl, label bands): the kernel
-    compares the same planes across each step, as the reference does; both path variants."""
+    compares the same planes across each step, as the reference does; the raster scans and both
+    path variants. With
+    label counts, windows of different lengths (the kernel's stale labels past a shorter
+    predecessor's count read as +inf): the sums below each pixel's count match."""
     scale = 24.0
     cost, guide = _random_volume(4, shape=(n_labels, 23, 29), scale=scale)
     base = _block_bases(5, cost.shape[1:], 4, n_labels)
+    count = _block_counts(8, cost.shape[1:], 4, n_labels) if counted else None
     opts = mrf.MRFOptions(sgm_paths=8, sgm_work_group=work_group, sgm_p1=0.08, sgm_p2=0.6,
-                          sgm_p2_sigma=0.2)
+                          sgm_p2_sigma=0.2, sgm_scan=scan)
     got = mrf.sgm_aggregate(cl_device, cost, guide, opts, cost_scale=scale,
-                            label_base=base).get()
+                            label_base=base, label_count=count).get()
     want = reference_aggregate(cost, guide, n_paths=8, p1=0.08 * scale, p2=0.6 * scale,
-                               inv_sigma=1.0 / 0.2, missing_cost=scale, label_base=base)
-    np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
-    plain = reference_aggregate(cost, guide, n_paths=8, p1=0.08 * scale, p2=0.6 * scale,
-                                inv_sigma=1.0 / 0.2, missing_cost=scale)
-    assert np.abs(plain - want).max() > 1.0  # the bands change the sums (the test can fail)
+                               inv_sigma=1.0 / 0.2, missing_cost=scale, label_base=base,
+                               label_count=count)
+    inside = np.ones(cost.shape, bool) if count is None \
+        else np.arange(n_labels)[:, None, None] < count[None]
+    assert np.isfinite(want[inside]).all()
+    np.testing.assert_allclose(got[inside], want[inside], rtol=0,
+                               atol=SGM_REL_TOL * float(np.abs(want[inside]).max()))
+    other = reference_aggregate(cost, guide, n_paths=8, p1=0.08 * scale, p2=0.6 * scale,
+                                inv_sigma=1.0 / 0.2, missing_cost=scale,
+                                label_base=base if counted else None)
+    # the bands (and the counts) change the sums (the test can fail)
+    assert np.abs(other[inside] - want[inside]).max() > 1.0
+
+
+def test_sgm_refine_with_label_counts_stays_in_each_window(cl_device, roof_scene):
+    """sgm_refine with label counts: every pixel's label lies in its own window, range edges are
+    each window's own (invalid at its first and last label), and a pixel whose window holds its
+    true plane finds it as the full search does on most of the textured terrain."""
+    vol = roof_scene
+    n_total = vol.heights.size
+    h, w = vol.guide.shape
+    # Windows of 8 px blocks around the truth, of 5..20 planes, stored with a stride of 20 labels.
+    rng = np.random.default_rng(3)
+    blocks = (-(-h // 8), -(-w // 8))
+    lo_t = np.minimum.reduceat(np.minimum.reduceat(vol.truth_labels, np.arange(0, h, 8), axis=0),
+                               np.arange(0, w, 8), axis=1)
+    count_b = rng.integers(5, 21, blocks)
+    first_b = np.clip(lo_t - rng.integers(1, 3, blocks), 0, n_total - count_b)
+    first = np.repeat(np.repeat(first_b, 8, 0), 8, 1)[:h, :w].astype(np.int32)
+    count = np.repeat(np.repeat(count_b, 8, 0), 8, 1)[:h, :w].astype(np.int32)
+    stride = 20
+    d = np.arange(stride)[:, None, None]
+    planes = np.minimum(first[None] + d, n_total - 1)
+    window = np.take_along_axis(vol.cost, planes, axis=0)
+    window[d >= count[None]] = np.float32(1e30)  # never read: a huge value would show if it were
+    opts = mrf.MRFOptions()
+    got = mrf.sgm_refine(cl_device, window, vol.guide, vol.heights, opts, label_base=first,
+                         label_count=count, cost_scale=vol.cost_scale)
+    rel = got.labels - first
+    assert (rel >= 0).all() and (rel < count).all()
+    assert not got.valid[(rel == 0) | (rel == count - 1)].any()
+    full = mrf.sgm_refine(cl_device, vol.cost, vol.guide, vol.heights, opts,
+                          cost_scale=vol.cost_scale)
+    holds = (vol.truth_labels >= first + 1) & (vol.truth_labels < first + count - 1) & ~vol.roof
+    same = np.abs(got.labels[holds] - full.labels[holds]) <= 1
+    assert holds.sum() > 500 and same.mean() > WINDOWED_AGREEMENT
+    with pytest.raises(InputError, match="label_count"):
+        mrf.sgm_refine(cl_device, window, vol.guide, vol.heights, opts, label_base=first,
+                       label_count=count + stride)
 
 
 def test_sgm_bands_of_one_window_are_plain_sgm_on_it(cl_device, roof_scene):
@@ -173,10 +235,11 @@ def test_sgm_scanlines_per_work_item_do_not_change_the_sums(cl_device, banded):
     cost, guide = _random_volume(6, shape=(n_labels, h, w))
     cost_pm = np.ascontiguousarray(np.nan_to_num(cost.transpose(1, 2, 0), nan=24.0))
     base = _block_bases(7, (h, w), 4, n_labels) if banded else np.zeros(1, np.int32)
+    count = _block_counts(9, (h, w), 4, n_labels) if banded else np.zeros(1, np.int32)
     prg = cl_device.build("sgm", {"SGM_NL": n_labels, "SGM_WG": 1, "SGM_LINES": 8})
     kernel = cl_device.kernel(prg, "sgm_path")
     q = cl_device.queue
-    c_d, g_d, b_d = (cla.to_device(q, a) for a in (cost_pm, guide, base))
+    c_d, g_d, b_d, n_d = (cla.to_device(q, a) for a in (cost_pm, guide, base, count))
     i32, f32 = np.int32, np.float32
     for dx, dy in mrf.SGM_DIRECTIONS:
         n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
@@ -185,19 +248,21 @@ def test_sgm_scanlines_per_work_item_do_not_change_the_sums(cl_device, banded):
             agg = cla.zeros(q, (h, w, n_labels), np.float32)
             kernel(q, (-(-n_lines // lines),), (1,), c_d.data, g_d.data, agg.data, i32(w), i32(h),
                    i32(dx), i32(dy), f32(2.0), f32(14.0), f32(5.0), i32(0), b_d.data,
-                   i32(1 if banded else 0), i32(lines))
+                   n_d.data, i32(1 if banded else 0), i32(lines))
             sums.append(agg.get())
         assert np.isfinite(sums[0]).all()
         np.testing.assert_array_equal(sums[1], sums[0])
         np.testing.assert_array_equal(sums[2], sums[0])
 
 
+@pytest.mark.parametrize("banded", [False, True])
 @pytest.mark.parametrize("paths", [4, 8])
 @pytest.mark.parametrize("shape", [(13, 23, 29), (16, 1, 9), (9, 7, 1), (8, 2, 3)])
-def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape):
+def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape, banded):
     """sgm_scan's aggregate is F + B, F and B the sums of sgm_path's path costs of the forward
     and backward scans' directions added in the documented order, bit for bit (odd sizes: label
-    tails beyond the 8-wide vectors, a single row, a single column, two rows)."""
+    tails beyond the 8-wide vectors, a single row, a single column, two rows); with label bands
+    and counts too, on each pixel's labels."""
     import pyopencl.array as cla
 
     n_labels, h, w = shape
@@ -205,18 +270,21 @@ def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape):
     cost_pm = rng.uniform(0.0, 24.0, (h, w, n_labels)).astype(np.float32)
     guide = rng.uniform(0.0, 1.0, (h, w)).astype(np.float32)
     guide[:, w // 2:] += 0.5  # an edge where P2 drops
+    base = _block_bases(10, (h, w), 3, n_labels) if banded else np.zeros(1, np.int32)
+    count = _block_counts(11, (h, w), 3, n_labels) if banded else np.zeros(1, np.int32)
     prg = cl_device.build("sgm", {"SGM_NL": n_labels, "SGM_WG": 1, "SGM_LINES": 1})
     q = cl_device.queue
-    c_d, g_d = cla.to_device(q, cost_pm), cla.to_device(q, guide)
+    c_d, g_d, b_d, n_d = (cla.to_device(q, a) for a in (cost_pm, guide, base, count))
     i32, f32 = np.int32, np.float32
     p1, p2, inv_sigma = 2.0, 14.0, 5.0
+    band = i32(1 if banded else 0)
 
     def path(dx, dy):
         agg = cla.zeros(q, (h, w, n_labels), np.float32)
         n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
         cl_device.kernel(prg, "sgm_path")(
             q, (n_lines,), (1,), c_d.data, g_d.data, agg.data, i32(w), i32(h), i32(dx), i32(dy),
-            f32(p1), f32(p2), f32(inv_sigma), i32(0), g_d.data, i32(0), i32(1))
+            f32(p1), f32(p2), f32(inv_sigma), i32(0), b_d.data, n_d.data, band, i32(1))
         return agg.get()
 
     agg = cla.zeros(q, (h, w, n_labels), np.float32)
@@ -224,7 +292,8 @@ def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape):
     for phase in (0, 1):
         cl_device.kernel(prg, "sgm_scan")(q, (2,), (1,), c_d.data, g_d.data, agg.data,
                                           scratch.data, i32(w), i32(h), f32(p1), f32(p2),
-                                          f32(inv_sigma), i32(paths), i32(phase))
+                                          f32(inv_sigma), i32(paths), i32(phase), b_d.data,
+                                          n_d.data, band)
     sums = []
     for sx, sy in ((1, 1), (-1, -1)):
         dirs = [(sx, 0), (0, sy)] + ([(sx, sy), (-sx, sy)] if paths == 8 else [])
@@ -233,8 +302,10 @@ def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape):
             total = total + path(*d)  # float32 additions in sgm_scan's order
         sums.append(total)
     want = sums[0] + sums[1]
-    assert np.isfinite(want).all()
-    np.testing.assert_array_equal(agg.get(), want)
+    mine = np.arange(n_labels)[None, None, :] < count[..., None] if banded \
+        else np.ones(want.shape, bool)
+    assert np.isfinite(want[mine]).all()
+    np.testing.assert_array_equal(agg.get()[mine], want[mine])
 
 
 def test_sgm_without_p2_adaptation_matches_reference(cl_device):

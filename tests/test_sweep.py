@@ -403,6 +403,28 @@ def test_plane_windows_sweep_the_same_costs_of_fewer_planes(cl_device):
         np.testing.assert_array_equal(dev.volume.get().transpose(2, 0, 1), want)
     finally:
         dev.volume.data.release()
+    # Windows of their own lengths (at most n_win): each pixel's first count labels are the
+    # same costs; a host volume's labels past them hold the worst cost, a device volume's are
+    # not written (SGM skips them).
+    count = np.array([[9, 1, 4, 9], [5, 9, 2, 7], [3, 8, 9, 6]])
+    ragged = PlaneWindows(block=block, first=first, n_planes=n_win, count=count)
+    host = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True,
+                                          plane_windows=ragged)
+    counts = ragged.counts(ref.shape)
+    np.testing.assert_array_equal(host.plane_count, counts)
+    mine = np.arange(n_win)[:, None, None] < counts[None]
+    np.testing.assert_array_equal(host.volume[mine], want[mine])
+    assert (host.volume[~mine] == box.max_cost).all()
+    dev = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True,
+                                         volume_on_device=True, plane_windows=ragged,
+                                         winner_take_all=False)
+    try:
+        np.testing.assert_array_equal(dev.volume.get().transpose(2, 0, 1)[mine], want[mine])
+    finally:
+        dev.volume.data.release()
+    with pytest.raises(InputError, match="plane_windows"):
+        PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
+            block=block, first=first, n_planes=n_win, count=count + 1))
     with pytest.raises(InputError, match="plane_windows"):
         PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
             block=block, first=first + 20, n_planes=n_win))
