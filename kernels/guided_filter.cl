@@ -357,7 +357,7 @@ __kernel void gf_rows_q(__global const float *sums, __global const float *guide_
 /* gf_rows_q_pixel_major: gf_rows_q's q of the tile interior (origin (mx, my) in the tile, size
  * iw x ih) written straight into the PIXEL-MAJOR volume of the whole reference that SGM
  * aggregates (the layout of sweep.cl's volume_pixel_major):
- *   out[((oy + y) out_w + ox + x) n_planes + plane0 + b] = q[b][my + y][mx + x],
+ *   out[out_offset + ((oy + y) out_w + ox + x) n_planes + plane0 + b] = q[b][my + y][mx + x],
  * with the same float32 operations per column as gf_rows_q (the same chunks of the tile's rows),
  * so the same values, without the plane-major q and the copy. Each work-item writes all nb labels
  * of its pixels, so each pixel's run of nb floats is written whole.
@@ -368,7 +368,8 @@ __kernel void gf_rows_q_pixel_major(__global const float *sums, __global const f
                                     const int tw, const int th, const int nb, const int mx,
                                     const int my, const int iw, const int ih,
                                     __global float *out, const int out_w, const int ox,
-                                    const int oy, const int n_planes, const int plane0)
+                                    const int oy, const int n_planes, const int plane0,
+                                    const ulong out_offset)
 {
     const int c = get_global_id(0), yi = get_global_id(1);
     const int x0 = c * BOX_CHUNK;
@@ -380,7 +381,7 @@ __kernel void gf_rows_q_pixel_major(__global const float *sums, __global const f
     const size_t row = (size_t)y * tw;
     __global const float *ri = guide_i + row;
     /* o[(x - mx) n_planes] is label plane0 + b of tile column x of this row, x in [mx, mx + iw) */
-    __global float *o = out + ((size_t)(oy + yi) * out_w + ox) * n_planes + plane0;
+    __global float *o = out + out_offset + ((size_t)(oy + yi) * out_w + ox) * n_planes + plane0;
     const int ny = window_count(y, th);
     for (int b = 0; b < nb; ++b, ++o) {
         __global const float *ra = sums + b * plane + row;

@@ -34,11 +34,12 @@
  *   different windows of planes, of different lengths. The recurrence then compares the same
  *   PLANES: with delta = base[p] - base[p-r], Lr(p-r, d + delta) takes the place of Lr(p-r, d)
  *   (and d + delta +- 1 that of d +- 1), labels outside p-r's window [0, count[p-r]) counting as
- *   +inf; m is the minimum over p-r's window. A pixel's labels from count[p] to SGM_NL - 1 are
- *   neither read in cost nor written in agg (the volumes keep SGM_NL labels per pixel, so that
- *   a pixel's labels start at idx * SGM_NL; a pixel costs time in proportion to its count).
- *   banded == 0 is the plain recurrence (delta = 0, every pixel SGM_NL labels; base and count are
- *   not read).
+ *   +inf; m is the minimum over p-r's window. The labels of pixel p then start at
+ *   offset[p] (one ulong per pixel, in floats) in both cost and agg, so that a volume may hold
+ *   just the count[p] labels of each pixel (a ragged volume; offset[p] = p SGM_NL is the regular
+ *   layout, whose labels past count[p] are neither read nor written), and a pixel costs time and
+ *   memory in proportion to its count. banded == 0 is the plain recurrence (delta = 0, every
+ *   pixel SGM_NL labels from p SGM_NL; base, count and offset are not read).
  *
  * Scanlines of a direction: dy == 0: one per row (H lines) starting at column 0 (dx > 0) or
  *   W-1; dx == 0: one per column (W lines) starting at row 0 (dy > 0) or H-1; diagonal: W + H - 1
@@ -181,8 +182,8 @@ __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
 void sgm_path(__global const float *cost, __global const float *guide, __global float *agg,
               const int w, const int h, const int dx, const int dy,
               const float p1, const float p2, const float inv_sigma, const int accumulate,
-              __global const int *base, __global const int *count, const int banded,
-              const int lines)
+              __global const int *base, __global const int *count,
+              __global const ulong *offset, const int banded, const int lines)
 {
     /* Each step's labels sit between +inf guards of SGM_GUARD entries, so that a band shift
      * delta (clamped to +-(SGM_NL + 1), beyond which the windows do not meet) reads only guards
@@ -230,8 +231,9 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
             const int delta = clamp(cur_base - prev_base[k], -(SGM_NL + 1), SGM_NL + 1);
             /* this step reads prev up to entry n - 1 + delta + 1 */
             for (int j = prev_n[k]; j < min(n + delta + 1, SGM_NL); ++j) prev[k][j] = INFINITY;
-            prev_min[k] = sgm_step(cost + idx * SGM_NL, agg + idx * SGM_NL, prev[k] + delta, cur[k],
-                                   n, prev_min[k], jump, p1, accumulate);
+            const size_t at = banded ? offset[idx] : idx * SGM_NL;
+            prev_min[k] = sgm_step(cost + at, agg + at, prev[k] + delta, cur[k], n, prev_min[k],
+                                   jump, p1, accumulate);
             prev_n[k] = n;
             float *t = prev[k];
             prev[k] = cur[k];
@@ -382,7 +384,8 @@ __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
 void sgm_scan(__global const float *cost, __global const float *guide, __global float *agg,
               __global float *scratch, const int w, const int h, const float p1, const float p2,
               const float inv_sigma, const int paths, const int phase,
-              __global const int *base, __global const int *count, const int banded)
+              __global const int *base, __global const int *count,
+              __global const ulong *offset, const int banded)
 {
     const int back = get_global_id(0);
     if (back > 1) return;
@@ -416,7 +419,8 @@ void sgm_scan(__global const float *cost, __global const float *guide, __global 
         for (int xi = 0; xi < w; ++xi) {
             const int x = back ? w - 1 - xi : xi;
             const size_t idx = (size_t)y * (size_t)w + (size_t)x;
-            __global const float *c = cost + idx * SGM_NL;
+            const size_t at = banded ? offset[idx] : idx * SGM_NL;
+            __global const float *c = cost + at;
             const float gv = guide[idx];
             const int up = yi > 0;
             const size_t iup = up ? (size_t)(y - s) * (size_t)w : 0;   /* row y - s */
@@ -437,7 +441,7 @@ void sgm_scan(__global const float *cost, __global const float *guide, __global 
                                     up ? pmins[x] : 0.0f, gv, up ? guide[iup + x] : 0.0f,
                                     p1, p2, inv_sigma, n, up ? N(iup + x) : SGM_NL,
                                     up ? pb - B(iup + x) : 0);
-            __global float *a = agg + idx * SGM_NL;
+            __global float *a = agg + at;
             if (diag) {
                 /* (s, s): predecessor (x - s, y - s); (-s, s): predecessor (x + s, y - s) */
                 const int in1 = up && xi > 0, in2 = up && xi < w - 1;
@@ -484,8 +488,8 @@ __kernel __attribute__((reqd_work_group_size(SGM_WG, 1, 1)))
 void sgm_path(__global const float *cost, __global const float *guide, __global float *agg,
               const int w, const int h, const int dx, const int dy,
               const float p1, const float p2, const float inv_sigma, const int accumulate,
-              __global const int *base, __global const int *count, const int banded,
-              const int lines)
+              __global const int *base, __global const int *count,
+              __global const ulong *offset, const int banded, const int lines)
 {
     __local float prev[SGM_NL];   /* Lr(p - r, .) */
     __local float red[SGM_WG];    /* reduction scratch for min_k */
@@ -511,12 +515,13 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
         const float jump = prev_min + p2a;
         const int cur_base = banded ? base[idx] : 0;
         const int n = banded ? count[idx] : SGM_NL;
+        const size_t at = banded ? offset[idx] : idx * SGM_NL;
         const int delta = first ? 0 : cur_base - prev_base;
         float cmin = MAXFLOAT;
         for (int k = 0; k < SGM_LPT; ++k) {
             const int d = lid + k * SGM_WG;
             if (d < n) {
-                const size_t o = idx * SGM_NL + d;
+                const size_t o = at + d;
                 const float c = cost[o];
                 float v = c;
                 if (!first) {

@@ -23,7 +23,8 @@
  *                  (ceil(n_pix / WTA_VEC)), rounded up to any multiple; local = any; work-item g
  *                  writes pixels [g WTA_VEC, (g + 1) WTA_VEC) (clipped to n_pix). With
  *                  counted != 0, pixel i has only its first count[i] planes (1 .. n_planes; the
- *                  label counts of sgm.cl's bands): its state is that after those planes.
+ *                  label counts of sgm.cl's bands), from cost[offset[i]] on (a ragged volume):
+ *                  its state is that after those planes.
  *   wta_finalize : after the last of n_planes planes: fractional plane index (parabola through the
  *                  best plane and its neighbours, offset clamped to [-0.5, 0.5], none at the first
  *                  and last planes), confidence = (c2 - M1) / COST_MAX clamped to [0, 1]
@@ -210,15 +211,15 @@ inline void state_push8_lanes(wta_state8 *st, const int p, const float8 c, const
 }
 
 __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const int n_planes,
-                              __global const int *count, const int counted,
-                              __global float *state)
+                              __global const int *count, __global const ulong *offset,
+                              const int counted, __global float *state)
 {
     const int i0 = get_global_id(0) * WTA_VEC;
     if (i0 >= n_pix) return;
     if (i0 + WTA_VEC > n_pix) {
         for (int i = i0; i < n_pix; ++i) {
             wta_state st = state_fresh();
-            __global const float *c = cost + (size_t)i * n_planes;
+            __global const float *c = cost + (counted ? offset[i] : (size_t)i * n_planes);
             const int n = counted ? count[i] : n_planes;
             for (int p = 0; p < n; ++p) state_push(&st, p, c[p]);
             state_store(state, (size_t)n_pix, i, st);
@@ -228,21 +229,29 @@ __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const
     const wta_state one = state_fresh();
     wta_state8 st = {(float8)one.m1, (float8)one.i1, (float8)one.m1p, (float8)one.m1n,
                      (float8)one.m2, (float8)one.prev, (float8)one.prev2, (float8)one.cmax};
-    __global const float *c = cost + (size_t)i0 * n_planes;
-    const size_t d = (size_t)n_planes;
     const int8 n8 = counted ? vload8(0, count + i0) : (int8)(n_planes);
     const int4 lo4 = min(n8.lo, n8.hi), hi4 = max(n8.lo, n8.hi);
     const int2 lo2 = min(lo4.lo, lo4.hi), hi2 = max(hi4.lo, hi4.hi);
     const int n_all = min(lo2.x, lo2.y);  /* planes every lane has */
     const int n_any = max(hi2.x, hi2.y);  /* planes some lane has */
+    /* the 8 pixels' labels (a lane past its count reads another pixel's label, or its own
+     * unwritten one, and ignores it) */
+    __global const float *c0, *c1, *c2, *c3, *c4, *c5, *c6, *c7;
+    if (counted) {
+        c0 = cost + offset[i0]; c1 = cost + offset[i0 + 1]; c2 = cost + offset[i0 + 2];
+        c3 = cost + offset[i0 + 3]; c4 = cost + offset[i0 + 4]; c5 = cost + offset[i0 + 5];
+        c6 = cost + offset[i0 + 6]; c7 = cost + offset[i0 + 7];
+    } else {
+        const size_t d = (size_t)n_planes;
+        c0 = cost + (size_t)i0 * d; c1 = c0 + d; c2 = c1 + d; c3 = c2 + d; c4 = c3 + d;
+        c5 = c4 + d; c6 = c5 + d; c7 = c6 + d;
+    }
     int p = 0;
     for (; p < n_all; ++p)
-        state_push8(&st, p, (float8)(c[p], c[d + p], c[2 * d + p], c[3 * d + p], c[4 * d + p],
-                                     c[5 * d + p], c[6 * d + p], c[7 * d + p]));
+        state_push8(&st, p, (float8)(c0[p], c1[p], c2[p], c3[p], c4[p], c5[p], c6[p], c7[p]));
     for (; p < n_any; ++p)
-        state_push8_lanes(&st, p, (float8)(c[p], c[d + p], c[2 * d + p], c[3 * d + p],
-                                           c[4 * d + p], c[5 * d + p], c[6 * d + p],
-                                           c[7 * d + p]), (int8)(p) < n8);
+        state_push8_lanes(&st, p, (float8)(c0[p], c1[p], c2[p], c3[p], c4[p], c5[p], c6[p], c7[p]),
+                          (int8)(p) < n8);
     state_store8(state, (size_t)n_pix, i0, st);
 }
 

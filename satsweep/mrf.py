@@ -462,6 +462,32 @@ def _volume_shape(cost_volume, shape) -> tuple[int, int, int]:
     return dims  # type: ignore[return-value]
 
 
+def _ragged_dims(device: Device, cost_volume, label_count, label_offset) -> tuple[int, int, int]:
+    """(L, H, W) of a RAGGED pixel-major device volume: a 1-D float32 ``pyopencl.array.Array``
+    whose pixel p holds its label_count[p] labels from label_offset[p] on; L, the labels SGM is
+    built for, is the largest count rounded up to 8 (so that runs share programs)."""
+    import pyopencl.array as cla  # noqa: PLC0415
+
+    if label_count is None:
+        raise InputError(None, "label_offset: needs label_count (a ragged volume's labels)")
+    if not isinstance(cost_volume, cla.Array) or cost_volume.ndim != 1 \
+            or cost_volume.dtype != np.float32 or cost_volume.offset != 0 \
+            or cost_volume.context != device.context:
+        raise InputError(None, "cost_volume: a ragged volume (label_offset) must be a 1-D float32 "
+                               "pyopencl Array of this device's context without offset")
+    n = np.asarray(label_count)
+    o = np.asarray(label_offset)
+    if n.ndim != 2 or o.shape != n.shape or o.dtype != np.uint64 \
+            or not np.issubdtype(n.dtype, np.integer):
+        raise InputError(None, f"label_offset: expected uint64 of the label counts' shape "
+                               f"{n.shape}, got {o.dtype} {o.shape}")
+    if n.size and (n.min() < 1 or int((o + n.astype(np.uint64)).max()) > cost_volume.size):
+        raise InputError(None, f"label_offset: pixels' labels reach past the volume's "
+                               f"{cost_volume.size} floats")
+    n_labels = min(SGM_MAX_LABELS, -(-int(n.max()) // 8) * 8)
+    return n_labels, n.shape[0], n.shape[1]
+
+
 def sgm_scan_scratch_floats(width: int, n_labels: int) -> int:
     """Floats of sgm_scan's scratch for both scans (sgm.cl's 2 x SGM_SCAN_SCRATCH(w))."""
     return 2 * ((6 * width + 2) * (n_labels + 2 * _SGM_SCAN_GUARD) + 6 * width)
@@ -517,16 +543,26 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
 
 def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFOptions, *,
                                cost_scale: float, shape: tuple[int, int, int] | None,
-                               pixel_major: bool = False, label_base=None, label_count=None):
-    """``sgm_aggregate`` without the final transposition: ((H, W, L) device array, program)."""
+                               pixel_major: bool = False, label_base=None, label_count=None,
+                               label_offset=None):
+    """``sgm_aggregate`` without the final transposition: ((H, W, L) device array, program),
+    or for a ragged volume (``label_offset``) a 1-D device array laid out like it."""
     import pyopencl.array as cla  # noqa: PLC0415
 
     scale = _check_scale(cost_scale)
-    n_labels, h, w = _pixel_major_volume(device, cost_volume) if pixel_major \
+    ragged = label_offset is not None
+    if ragged and not pixel_major:
+        raise InputError(None, "label_offset: a ragged volume is a pixel-major device volume "
+                               "(pixel_major = True)")
+    n_labels, h, w = _ragged_dims(device, cost_volume, label_count, label_offset) if ragged \
+        else _pixel_major_volume(device, cost_volume) if pixel_major \
         else _volume_shape(cost_volume, shape)
     g = _check_guide(guide, (h, w))
     base, count = _check_label_base(label_base, (h, w), n_labels, None, label_count)
-    _check_sgm_size(device, (n_labels, h, w))
+    if ragged and base is None:
+        raise InputError(None, "label_offset: needs label_base (the windows' first planes)")
+    if not ragged:
+        _check_sgm_size(device, (n_labels, h, w))
     source, defines = sgm_program_requests(device, options, n_labels)[0]
     wg, max_lines = defines["SGM_WG"], defines["SGM_LINES"]
     prg = device.build(source, defines)
@@ -537,6 +573,10 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
     if base is not None and count is None:
         count = np.full((h, w), n_labels, np.int32)
     count_d = cla.to_device(queue, count if count is not None else np.zeros(1, np.int32))
+    if base is not None and not ragged:  # the regular layout: pixel p's labels from p L on
+        label_offset = np.arange(h * w, dtype=np.uint64).reshape(h, w) * np.uint64(n_labels)
+    offset_d = cla.to_device(queue, np.ascontiguousarray(label_offset, dtype=np.uint64)
+                             if base is not None else np.zeros(1, np.uint64))
     n_pix = h * w
     i32, f32 = np.int32, np.float32
     if pixel_major:
@@ -549,11 +589,11 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
                                                  i32(n_pix), f32(scale))
         if owned:
             buf.release()  # the uploaded host volume is no longer needed on the device
-    agg_pm = cla.empty(queue, (h, w, n_labels), np.float32)
+    agg_pm = cla.empty(queue, cost_volume.shape if ragged else (h, w, n_labels), np.float32)
     inv_sigma = 0.0 if options.sgm_p2_sigma == 0.0 else 1.0 / options.sgm_p2_sigma
     if options.sgm_scan and wg == 1:
-        _sgm_scans(device, prg, cost_pm, guide_d, agg_pm, options, scale, inv_sigma,
-                   (base_d, count_d, base is not None))
+        _sgm_scans(device, prg, cost_pm, guide_d, agg_pm, (h, w, n_labels), options, scale,
+                   inv_sigma, (base_d, count_d, offset_d, base is not None))
     else:
         kernel = device.kernel(prg, "sgm_path")
         for i, (dx, dy) in enumerate(SGM_DIRECTIONS[:options.sgm_paths]):
@@ -562,21 +602,23 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
             kernel(queue, (-(-n_lines // lines) * wg,), (wg,), cost_pm.data, guide_d.data,
                    agg_pm.data, i32(w), i32(h), i32(dx), i32(dy), f32(options.sgm_p1 * scale),
                    f32(options.sgm_p2 * scale), f32(inv_sigma), i32(1 if i > 0 else 0),
-                   base_d.data, count_d.data, i32(0 if base is None else 1), i32(lines))
+                   base_d.data, count_d.data, offset_d.data, i32(0 if base is None else 1),
+                   i32(lines))
         queue.finish()
     if not pixel_major:
         cost_pm.data.release()
     return agg_pm, prg
 
 
-def _sgm_scans(device: Device, prg, cost_pm, guide_d, agg_pm, options: MRFOptions, scale: float,
-               inv_sigma: float, bands) -> None:
+def _sgm_scans(device: Device, prg, cost_pm, guide_d, agg_pm, dims: tuple[int, int, int],
+               options: MRFOptions, scale: float, inv_sigma: float, bands) -> None:
     """agg_pm = the sum of the SGM path costs by sgm.cl's two raster scans (sgm_scan, its two
-    phases); bands = (base, count, banded) as sgm_scan takes them."""
-    base_d, count_d, banded = bands
+    phases) over dims = (H, W, L); bands = (base, count, offset, banded) as sgm_scan takes
+    them."""
+    base_d, count_d, offset_d, banded = bands
     import pyopencl.array as cla  # noqa: PLC0415
 
-    h, w, n_labels = agg_pm.shape
+    h, w, n_labels = dims
     queue = device.queue
     scratch = cla.empty(queue, (sgm_scan_scratch_floats(w, n_labels),), np.float32)
     try:
@@ -586,35 +628,43 @@ def _sgm_scans(device: Device, prg, cost_pm, guide_d, agg_pm, options: MRFOption
                    np.int32(w), np.int32(h), np.float32(options.sgm_p1 * scale),
                    np.float32(options.sgm_p2 * scale), np.float32(inv_sigma),
                    np.int32(options.sgm_paths), np.int32(phase), base_d.data, count_d.data,
-                   np.int32(1 if banded else 0))
+                   offset_d.data, np.int32(1 if banded else 0))
         queue.finish()
     finally:
         scratch.data.release()
 
 
-def _wta_state(device: Device, agg_pm, label_count=None) -> np.ndarray:
-    """wta.cl's winner-take-all state (8, H, W) of a whole PIXEL-MAJOR (H, W, L) device volume,
-    in one pass (``wta_pixel_major``: the same state as streaming the planes through
+def _wta_state(device: Device, agg_pm, dims: tuple[int, int, int], label_count=None,
+               label_offset=None) -> np.ndarray:
+    """wta.cl's winner-take-all state (8, H, W) of a whole PIXEL-MAJOR device volume of dims
+    (H, W, L), in one pass (``wta_pixel_major``: the same state as streaming the planes through
     ``wta_update``, without turning the volume plane-major first); with ``label_count`` ((H, W)
-    int32), each pixel's state after its first label_count planes."""
+    int32), each pixel's state after its first label_count planes, which start at
+    ``label_offset`` (uint64; None: the regular layout)."""
     import pyopencl.array as cla  # noqa: PLC0415
 
-    h, w, n_labels = agg_pm.shape
+    h, w, n_labels = dims
     prg = device.build("wta", _WTA_PIXEL_MAJOR_DEFINES)
     queue = device.queue
     state = cla.empty(queue, (_WTA_NSTATE, h, w), np.float32)
-    count_d = cla.to_device(queue, label_count if label_count is not None
-                            else np.zeros(1, np.int32))
+    counted = label_count is not None
+    if counted and label_offset is None:
+        label_offset = np.arange(h * w, dtype=np.uint64) * np.uint64(n_labels)
+    count_d = cla.to_device(queue, label_count if counted else np.zeros(1, np.int32))
+    offset_d = cla.to_device(queue, np.ascontiguousarray(label_offset, dtype=np.uint64)
+                             if counted else np.zeros(1, np.uint64))
     device.kernel(prg, "wta_pixel_major")(queue, (-(-h * w // WTA_VEC),), None, agg_pm.data,
                                           np.int32(h * w), np.int32(n_labels), count_d.data,
-                                          np.int32(0 if label_count is None else 1), state.data)
+                                          offset_d.data, np.int32(1 if counted else 0),
+                                          state.data)
     return state.get()
 
 
 def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions, *,
                cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
                shape: tuple[int, int, int] | None = None,
-               pixel_major: bool = False, label_base=None, label_count=None) -> MRFResult:
+               pixel_major: bool = False, label_base=None, label_count=None,
+               label_offset=None) -> MRFResult:
     """SGM aggregation, then winner-take-all with sub-plane refinement and confidence.
 
     The argmin, the parabola and the second local minimum are those of the sweep's WTA
@@ -622,13 +672,19 @@ def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions,
     ``sgm_paths * cost_scale`` since each path adds about one cost. See ``sgm_aggregate`` for the
     inputs (``pixel_major``, ``label_base``, ``label_count``) and ``MRFResult`` for the outputs;
     with ``label_base``, ``heights`` holds every plane and ``visible`` must be 2-D, and the range
-    edges are each pixel's window's (its first and its label_count-th label).
+    edges are each pixel's window's (its first and its label_count-th label). ``label_offset``
+    ((H, W) uint64, with pixel_major, label_base and label_count): the volume is RAGGED, a 1-D
+    device array in which pixel p's label_count[p] labels start at label_offset[p] (as
+    ``PlaneSweep.run`` leaves a coarse-to-fine volume: each pixel holds just its window).
     """
     t0 = time.perf_counter()
-    dims = _pixel_major_volume(device, cost_volume) if pixel_major \
+    dims = _ragged_dims(device, cost_volume, label_count, label_offset) \
+        if label_offset is not None else _pixel_major_volume(device, cost_volume) if pixel_major \
         else _volume_shape(cost_volume, shape)
     n_labels = dims[0]
-    hts = _check_heights(heights, n_labels, banded=label_base is not None)
+    # (a ragged volume's L is its widest window rounded up, which may pass the last plane)
+    hts = _check_heights(heights, 1 if label_offset is not None else n_labels,
+                         banded=label_base is not None)
     base, count = _check_label_base(label_base, dims[1:], n_labels, hts.size, label_count)
     vis = _check_visible(visible, dims)
     if base is not None and vis is not None and vis.ndim == 3:
@@ -636,9 +692,10 @@ def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions,
     agg_pm, _ = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
                                            cost_scale=cost_scale, shape=shape,
                                            pixel_major=pixel_major, label_base=base,
-                                           label_count=count)
+                                           label_count=count, label_offset=label_offset)
     try:
-        s = _wta_state(device, agg_pm, count).astype(np.float64)
+        s = _wta_state(device, agg_pm, (dims[1], dims[2], n_labels), count,
+                       label_offset).astype(np.float64)
     finally:
         agg_pm.data.release()
     # Finish as wta_finalize does: the last plane is tested as a local minimum against +inf.
@@ -1010,7 +1067,7 @@ def wta_labels(cost_volume) -> np.ndarray:
 def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptions, *,
            cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
            initial_labels=None, pixel_major: bool = False,
-           label_base=None, label_count=None) -> MRFResult | None:
+           label_base=None, label_count=None, label_offset=None) -> MRFResult | None:
     """Dispatch on ``options.method``: None for ``none`` (keep the sweep's WTA), else the result.
 
     SGM needs ``device`` (and alone takes a ``pixel_major`` device volume, see
@@ -1025,8 +1082,8 @@ def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptio
         return sgm_refine(device, cost_volume, guide, heights, options, cost_scale=cost_scale,
                           visible=visible, reject_range_edges=reject_range_edges,
                           pixel_major=pixel_major, label_base=label_base,
-                          label_count=label_count)
-    if label_base is not None or label_count is not None:
+                          label_count=label_count, label_offset=label_offset)
+    if label_base is not None or label_count is not None or label_offset is not None:
         raise InputError(None, f"label_base: MRF method {options.method} takes no label bands "
                                "(SGM does)")
     if pixel_major:

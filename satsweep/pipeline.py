@@ -383,7 +383,7 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
                        cost_scale=float(sweep.census_bits),
                        reject_range_edges=sweep.reject_range_edges, initial_labels=initial,
                        pixel_major=on_device, label_base=r.plane_base,
-                       label_count=r.plane_count)
+                       label_count=r.plane_count, label_offset=r.plane_offset)
         finally:
             if on_device:
                 r.volume.data.release()

@@ -236,8 +236,11 @@ class SweepResult:
     # (label d of pixel p is plane plane_base[p] + d); None when every pixel has every plane.
     plane_base: np.ndarray | None = None
     # With plane windows: (H, W) int32, the labels of each pixel's window (labels d >= count of
-    # a kept device volume are left unwritten; SGM's label counts skip them).
+    # a kept regular volume are left unwritten; SGM's label counts skip them).
     plane_count: np.ndarray | None = None
+    # With plane windows of their own counts and the volume on the device: the volume is ragged
+    # (1-D), pixel p's plane_count[p] labels starting at float plane_offset[p] ((H, W) uint64).
+    plane_offset: np.ndarray | None = None
     window_planes: int | None = None  # planes per window of a coarse-to-fine sweep (else None)
 
 
@@ -753,7 +756,15 @@ class PlaneSweep:
         h_img, w_img = ref.shape
         census_prg, sweep_prg, filt_prg, wta_prg = self._programs(n_src, wta=wta)
         on_device = keep_volume and volume_on_device
-        volume_bytes = 4 * n_planes * h_img * w_img
+        # A device volume of windows with their own counts is RAGGED: each block's pixels hold
+        # just their window's labels, block after block (label_offset: where each pixel's start).
+        ragged = on_device and windows is not None and windows.count is not None
+        label_offset = block_start = None
+        if ragged:
+            label_offset, block_start = _ragged_layout(windows, ref.shape)
+            volume_bytes = 4 * int(block_start[-1])
+        else:
+            volume_bytes = 4 * n_planes * h_img * w_img
         if on_device and volume_bytes > self.device.max_alloc_bytes:
             raise DeviceError(f"{self.device.info.label}: a cost volume of "
                               f"{volume_bytes / 2**20:.0f} MiB ({n_planes} planes x {h_img} x "
@@ -823,12 +834,19 @@ class PlaneSweep:
             tile = _Tile(tx0, ty0, tx1 - tx0, ty1 - ty0, ix0 - tx0, iy0 - ty0, ix1 - ix0,
                          iy1 - iy0)
             first, count = 0, n_planes
+            # where the tile's interior goes in a device volume: (row width, origin x, origin y,
+            # labels per pixel, start)
+            place = (w_img, ix0, iy0, n_planes, 0)
             if windows is not None:
-                first, count = windows.sweep_range(iy0 // tile_h, ix0 // tile_w)
+                bi, bj = iy0 // tile_h, ix0 // tile_w
+                first, count = windows.sweep_range(bi, bj)
+                if ragged:
+                    place = (ix1 - ix0, 0, 0, count, int(block_start[bi * windows.first.shape[1]
+                                                                     + bj]))
             n_batches += self._sweep_tile(
                 tile, plan.planes_per_batch, hom[first:first + count], count, bufs,
                 ref_buf, src_buf, off_buf, size_buf, census_k, sweep_k, filt_prg, wta_prg,
-                (w_img, h_img), outs, (ix0, iy0), volume, volume_k, n_labels=n_planes)
+                (w_img, h_img), outs, (ix0, iy0), volume, volume_k, place)
             if wta:
                 outs[0][iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
             n_tiles += 1
@@ -836,12 +854,13 @@ class PlaneSweep:
         plane_base = None if windows is None else windows.per_pixel(ref.shape)
         plane_count = None if windows is None else windows.counts(ref.shape)
         if on_device:
-            volume = cla.Array(queue, (h_img, w_img, n_planes), np.float32, data=volume)
+            volume = cla.Array(queue, (volume_bytes // 4,) if ragged else (h_img, w_img, n_planes),
+                               np.float32, data=volume)
         if not wta:
             return SweepResult(height=None, plane_index=None, confidence=None, valid=None,
                                cost_min=None, n_tiles=n_tiles, n_batches=n_batches,
                                peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base,
-                               plane_count=plane_count)
+                               plane_count=plane_count, plane_offset=label_offset)
         index, out_conf, out_cost, out_valid = outs
         if not o.subplane:
             index = np.rint(index).astype(np.float32)
@@ -852,18 +871,17 @@ class PlaneSweep:
         return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
                            cost_min=out_cost, n_tiles=n_tiles, n_batches=n_batches,
                            peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base,
-                               plane_count=plane_count)
+                               plane_count=plane_count, plane_offset=label_offset)
 
     def _sweep_tile(self, tile, nb_max, hom, n_planes, bufs, ref_buf, src_buf, off_buf, size_buf,
                     census_k, sweep_k, filt_prg, wta_prg, ref_size, outs, interior_origin,
-                    volume=None, volume_k=None, n_labels=None) -> int:
-        """Sweep one tile over the n_planes planes of ``hom``; a kept volume of ``n_labels``
-        labels per pixel (default n_planes) receives them as its labels 0 .. n_planes - 1.
+                    volume=None, volume_k=None, place=None) -> int:
+        """Sweep one tile over the n_planes planes of ``hom``; a kept volume receives them as
+        each pixel's labels 0 .. n_planes - 1: a host volume at the interior's origin, a device
+        volume as ``place`` = (out_w, ox, oy, labels per pixel, start) says (volume_pixel_major).
         outs = None: no winner-take-all (the volume only)."""
         import pyopencl as cl  # noqa: PLC0415
 
-        if n_labels is None:
-            n_labels = n_planes
         o = self.options
         queue = self.device.queue
         i32 = np.int32
@@ -942,7 +960,7 @@ class PlaneSweep:
                 else:
                     _launch(sweep_k, queue, (tw, th, nb), src_buf, off_buf, size_buf, hom_buf,
                             code_buf, i32(tw), i32(th), i32(p0), vol_a)
-            to_volume = (volume, w_img, ix0, iy0, n_labels, p0) if fused else None
+            to_volume = (volume, *place, p0) if fused else None
             with self._stage("filter"):
                 self._filter(filt_prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume)
             if isinstance(volume, np.ndarray):  # MRF path: the filtered interior to the host
@@ -952,10 +970,11 @@ class PlaneSweep:
                     batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
             elif volume is not None and not fused:  # MRF path: the interior, pixel-major
                 with self._stage("copy"):
+                    out_w, ox, oy, n_labels, start = place
                     _launch(volume_k, queue, (iw, ih), vol_a,
                             i32(tw), i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih),
-                            i32(nb), volume, i32(w_img), i32(ix0), i32(iy0), i32(n_labels),
-                            i32(p0))
+                            i32(nb), volume, i32(out_w), i32(ox), i32(oy), i32(n_labels),
+                            i32(p0), np.uint64(start))
             if wta:
                 with self._stage("wta"):
                     _launch(wta_update, queue, (_ceil_div(iw, WTA_VEC), ih), vol_a, i32(tw),
@@ -1003,10 +1022,10 @@ class PlaneSweep:
     def _filter(self, prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume=None) -> None:
         """Filter the nb cost planes at the start of vol_a in place (through vol_b).
 
-        With ``to_volume`` = (volume, out_w, ox, oy, n_planes, plane0) (guided filter only), the
-        tile's interior goes straight into the pixel-major ``volume`` instead, at (ox, oy) and
-        labels plane0 .. plane0 + nb - 1 (gf_rows_q_pixel_major; vol_a is left holding the
-        [a | b] coefficients).
+        With ``to_volume`` = (volume, out_w, ox, oy, n_planes, start, plane0) (guided filter
+        only), the tile's interior goes straight into the pixel-major ``volume`` instead, at
+        (ox, oy) of rows of out_w pixels from float ``start`` on, and labels plane0 .. plane0 +
+        nb - 1 (gf_rows_q_pixel_major; vol_a is left holding the [a | b] coefficients).
         """
         o = self.options
         if o.cost_filter == "none":
@@ -1036,11 +1055,11 @@ class PlaneSweep:
             _launch(kern(prg, "gf_rows_q"), queue, (ncx, th, nb), vol_b, guide_i, vol_a,
                     i32(tw), i32(th), i32(nb))
             return
-        volume, out_w, ox, oy, n_planes, plane0 = to_volume
+        volume, out_w, ox, oy, n_planes, start, plane0 = to_volume
         _launch(kern(prg, "gf_rows_q_pixel_major"), queue, (ncx, tile.ih), vol_b, guide_i,
                 i32(tw), i32(th), i32(nb), i32(tile.mx), i32(tile.my), i32(tile.iw),
                 i32(tile.ih), volume, i32(out_w),
-                i32(ox), i32(oy), i32(n_planes), i32(plane0))
+                i32(ox), i32(oy), i32(n_planes), i32(plane0), np.uint64(start))
 
     def _lr_check(self, result: SweepResult, ref: np.ndarray, srcs: list[np.ndarray],
                   hom: np.ndarray, hts: np.ndarray) -> None:
@@ -1080,6 +1099,28 @@ class _Tile:
     my: int
     iw: int  # interior size
     ih: int
+
+
+def _ragged_layout(windows: PlaneWindows, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The layout of a ragged pixel-major volume over plane windows: block after block (row-major
+    over the blocks), each block's pixels row by row, each pixel its block's count of labels.
+    Returns ((H, W) uint64 start of each pixel's labels, in floats; block starts, one per block
+    plus the total, in the same units)."""
+    h, w = shape
+    b = windows.block
+    nby, nbx = np.asarray(windows.first).shape
+    rows = np.minimum(b, h - b * np.arange(nby))   # pixel rows of each block row
+    cols = np.minimum(b, w - b * np.arange(nbx))   # pixel columns of each block column
+    count = np.asarray(windows.count, dtype=np.uint64)
+    size = rows[:, None].astype(np.uint64) * cols[None, :].astype(np.uint64) * count
+    block_start = np.concatenate([[0], np.cumsum(size.ravel())]).astype(np.uint64)
+    # pixel (y, x) of block (i, j): start + ((y - i b) cols[j] + (x - j b)) count[i, j]
+    y, x = np.arange(h), np.arange(w)
+    bi, bj = y // b, x // b
+    local = ((y - bi * b)[:, None] * cols[bj][None, :] + (x - bj * b)[None, :]).astype(np.uint64)
+    offset = block_start[:-1].reshape(nby, nbx)[bi[:, None], bj[None, :]] \
+        + local * count[bi[:, None], bj[None, :]]
+    return np.ascontiguousarray(offset, dtype=np.uint64), block_start
 
 
 def tile_grid(width: int, height: int, tile_w: int, tile_h: int, margin: int):

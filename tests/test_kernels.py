@@ -448,6 +448,7 @@ def test_wta_pixel_major_equals_streaming_state(cl_device, counted):
     pixel_major = np.ascontiguousarray(vol.transpose(1, 2, 0))
     cl.Kernel(prg, "wta_pixel_major")(q, (-(-h * w // WTA_VEC),), None, _buf(cl_device, pixel_major),
                                       i32(h * w), i32(n_planes), _buf(cl_device, count),
+                                      _buf(cl_device, np.arange(h * w, dtype=np.uint64) * n_planes),
                                       i32(1 if counted else 0), one_pass)
     got = _read(cl_device, one_pass, (8, h, w), np.float32)
     np.testing.assert_array_equal(got, want)

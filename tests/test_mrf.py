@@ -201,6 +201,24 @@ def test_sgm_refine_with_label_counts_stays_in_each_window(cl_device, roof_scene
     with pytest.raises(InputError, match="label_count"):
         mrf.sgm_refine(cl_device, window, vol.guide, vol.heights, opts, label_base=first,
                        label_count=count + stride)
+    # The same windows in a ragged device volume (each pixel just its labels, packed in reverse
+    # pixel order so that the offsets matter): the same result.
+    import pyopencl.array as cla
+
+    sizes = count.ravel()[::-1].astype(np.uint64)
+    offset = (np.cumsum(sizes) - sizes)[::-1].reshape(h, w)
+    packed = np.concatenate([window[:n, i, j] for (i, j), n in
+                             sorted(np.ndenumerate(count), key=lambda t: -(t[0][0] * w + t[0][1]))])
+    ragged = cla.to_device(cl_device.queue, packed.astype(np.float32))
+    try:
+        same_windows = mrf.sgm_refine(cl_device, ragged, vol.guide, vol.heights, opts,
+                                      label_base=first, label_count=count, label_offset=offset,
+                                      pixel_major=True, cost_scale=vol.cost_scale)
+    finally:
+        ragged.data.release()
+    np.testing.assert_array_equal(same_windows.labels, got.labels)
+    np.testing.assert_array_equal(same_windows.plane_index, got.plane_index)
+    np.testing.assert_array_equal(same_windows.valid, got.valid)
 
 
 def test_sgm_bands_of_one_window_are_plain_sgm_on_it(cl_device, roof_scene):
@@ -236,10 +254,11 @@ def test_sgm_scanlines_per_work_item_do_not_change_the_sums(cl_device, banded):
     cost_pm = np.ascontiguousarray(np.nan_to_num(cost.transpose(1, 2, 0), nan=24.0))
     base = _block_bases(7, (h, w), 4, n_labels) if banded else np.zeros(1, np.int32)
     count = _block_counts(9, (h, w), 4, n_labels) if banded else np.zeros(1, np.int32)
+    offset = np.arange(h * w, dtype=np.uint64) * np.uint64(n_labels)  # the regular layout
     prg = cl_device.build("sgm", {"SGM_NL": n_labels, "SGM_WG": 1, "SGM_LINES": 8})
     kernel = cl_device.kernel(prg, "sgm_path")
     q = cl_device.queue
-    c_d, g_d, b_d, n_d = (cla.to_device(q, a) for a in (cost_pm, guide, base, count))
+    c_d, g_d, b_d, n_d, o_d = (cla.to_device(q, a) for a in (cost_pm, guide, base, count, offset))
     i32, f32 = np.int32, np.float32
     for dx, dy in mrf.SGM_DIRECTIONS:
         n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
@@ -248,7 +267,7 @@ def test_sgm_scanlines_per_work_item_do_not_change_the_sums(cl_device, banded):
             agg = cla.zeros(q, (h, w, n_labels), np.float32)
             kernel(q, (-(-n_lines // lines),), (1,), c_d.data, g_d.data, agg.data, i32(w), i32(h),
                    i32(dx), i32(dy), f32(2.0), f32(14.0), f32(5.0), i32(0), b_d.data,
-                   n_d.data, i32(1 if banded else 0), i32(lines))
+                   n_d.data, o_d.data, i32(1 if banded else 0), i32(lines))
             sums.append(agg.get())
         assert np.isfinite(sums[0]).all()
         np.testing.assert_array_equal(sums[1], sums[0])
@@ -272,9 +291,10 @@ def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape, banded):
     guide[:, w // 2:] += 0.5  # an edge where P2 drops
     base = _block_bases(10, (h, w), 3, n_labels) if banded else np.zeros(1, np.int32)
     count = _block_counts(11, (h, w), 3, n_labels) if banded else np.zeros(1, np.int32)
+    offset = np.arange(h * w, dtype=np.uint64) * np.uint64(n_labels)  # the regular layout
     prg = cl_device.build("sgm", {"SGM_NL": n_labels, "SGM_WG": 1, "SGM_LINES": 1})
     q = cl_device.queue
-    c_d, g_d, b_d, n_d = (cla.to_device(q, a) for a in (cost_pm, guide, base, count))
+    c_d, g_d, b_d, n_d, o_d = (cla.to_device(q, a) for a in (cost_pm, guide, base, count, offset))
     i32, f32 = np.int32, np.float32
     p1, p2, inv_sigma = 2.0, 14.0, 5.0
     band = i32(1 if banded else 0)
@@ -284,7 +304,7 @@ def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape, banded):
         n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
         cl_device.kernel(prg, "sgm_path")(
             q, (n_lines,), (1,), c_d.data, g_d.data, agg.data, i32(w), i32(h), i32(dx), i32(dy),
-            f32(p1), f32(p2), f32(inv_sigma), i32(0), b_d.data, n_d.data, band, i32(1))
+            f32(p1), f32(p2), f32(inv_sigma), i32(0), b_d.data, n_d.data, o_d.data, band, i32(1))
         return agg.get()
 
     agg = cla.zeros(q, (h, w, n_labels), np.float32)
@@ -293,7 +313,7 @@ def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape, banded):
         cl_device.kernel(prg, "sgm_scan")(q, (2,), (1,), c_d.data, g_d.data, agg.data,
                                           scratch.data, i32(w), i32(h), f32(p1), f32(p2),
                                           f32(inv_sigma), i32(paths), i32(phase), b_d.data,
-                                          n_d.data, band)
+                                          n_d.data, o_d.data, band)
     sums = []
     for sx, sy in ((1, 1), (-1, -1)):
         dirs = [(sx, 0), (0, sy)] + ([(sx, sy), (-sx, sy)] if paths == 8 else [])
