@@ -235,8 +235,8 @@ class SweepResult:
     # With plane windows: (H, W) int32, the plane of the volume's first label at each pixel
     # (label d of pixel p is plane plane_base[p] + d); None when every pixel has every plane.
     plane_base: np.ndarray | None = None
-    # With plane windows: (H, W) int32, the labels of each pixel's window (labels d >= count of
-    # a kept regular volume are left unwritten; SGM's label counts skip them).
+    # With plane windows: (H, W) int32, the labels of each pixel's window (a kept host volume's
+    # labels past it hold the worst cost; a kept device volume is then ragged, see plane_offset).
     plane_count: np.ndarray | None = None
     # With plane windows of their own counts and the volume on the device: the volume is ragged
     # (1-D), pixel p's plane_count[p] labels starting at float plane_offset[p] ((H, W) uint64).
@@ -660,9 +660,10 @@ class PlaneSweep:
         plane_windows: sweep each block of the reference over its own window of the planes only
         (coarse-to-fine); the volume then holds ``plane_windows.n_planes`` labels per pixel,
         label d < ``SweepResult.plane_count[p]`` of pixel p standing for plane
-        ``SweepResult.plane_base[p] + d`` (a device volume's other labels are left unwritten, a
-        host volume's hold the worst cost); the results' plane indices and heights are
-        absolute, and a best plane at either end of a window is invalid with
+        ``SweepResult.plane_base[p] + d`` (a host volume's other labels hold the worst cost;
+        with windows of their own counts a device volume is ragged instead: 1-D, each pixel's
+        labels from ``SweepResult.plane_offset[p]`` on); the results' plane indices and heights
+        are absolute, and a best plane at either end of a window is invalid with
         ``reject_range_edges``. Not with ``lr_check``.
         winner_take_all: False skips the per-pixel winner-take-all (for a caller that refines
         the kept volume and needs nothing else, as SGM does): the result then has ``volume``
@@ -818,8 +819,8 @@ class PlaneSweep:
                 np.zeros((h_img, w_img), np.float32), np.zeros((h_img, w_img), np.uint8)) \
             if wta else None
         volume = volume_k = None
-        # A host volume's labels past a block's window get the worst cost; a device volume's are
-        # left unwritten (SGM skips them by its label counts).
+        # A host volume's labels past a block's window get the worst cost (a device volume with
+        # counts is ragged and has none).
         padded = windows is not None and windows.count is not None \
             and bool(np.any(np.asarray(windows.count) < n_planes))
         if on_device:
