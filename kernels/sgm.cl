@@ -260,8 +260,8 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
  *   four of satsweep.mrf.SGM_DIRECTIONS), with paths == 8 all of them. A scan's sum at a pixel
  *   is F = ((Lr(1,0) + Lr(0,1)) + Lr(1,1)) + Lr(-1,1) (B likewise, backward directions), each
  *   Lr the recurrence documented above, bit for bit the values of sgm_path, with label bands and
- *   counts when banded != 0 (base, count as for sgm_path; a pixel's labels past its count are
- *   neither read nor written).
+ *   counts when banded != 0 (base, count and offset as for sgm_path; a pixel's labels past its
+ *   count are neither read nor written).
  *   agg = F + B: sgm_path's sum up to the order of the additions.
  *   The scans share agg without a third volume, in two launches (phase 0, then phase 1) that
  *   meet at row h / 2: in phase 0 the forward scan stores F in rows [0, h / 2) and the backward
@@ -303,54 +303,39 @@ inline float sgm_scan_first(__global const float *c, __global float *cur, const 
     return cmin;
 }
 
-/* Label d (cost cd) of a banded step, its predecessor's label j = d + delta read only inside the
- * predecessor's n_prev labels (+inf outside). */
-inline float sgm_band_one(const float cd, __global const float *pv, const int j, const int n_prev,
-                          const float prev_min, const float jump, const float p1)
+/* cur[d] = Lr(p, d) of a banded step, its predecessor's label j = d + delta read only inside the
+ * predecessor's n_prev labels (+inf outside); returns it. */
+inline float sgm_band_one(__global const float *c, __global const float *pv, __global float *cur,
+                          const int d, const int delta, const int n_prev, const float prev_min,
+                          const float jump, const float p1)
 {
+    const int j = d + delta;
     float m = jump;
     if (j >= 0 && j < n_prev) m = fmin(m, pv[j]);
     if (j >= 1 && j - 1 < n_prev) m = fmin(m, pv[j - 1] + p1);
     if (j + 1 >= 0 && j + 1 < n_prev) m = fmin(m, pv[j + 1] + p1);
-    return cd + (m - prev_min);
+    const float v = c[d] + (m - prev_min);
+    cur[d] = v;
+    return v;
 }
 
 /* sgm_scan_step over n labels from a predecessor step pv of n_prev labels whose label j stands
- * for this pixel's label j - delta (label bands and counts): the labels whose three
- * predecessor entries all lie inside pv run SGM_VEC at a time, the others one by one with
- * tests; no guard entries are read. The same values as the guarded step. */
+ * for this pixel's label j - delta (label bands and counts): the labels [a, b) whose three
+ * predecessor entries all lie inside pv run as sgm_scan_step (no guard entries needed), the
+ * others one by one with tests. The same values as the guarded step. */
 inline float sgm_band_step(__global const float *c, __global const float *pv, __global float *cur,
                            const int n, const int n_prev, const int delta, const float prev_min,
                            const float jump, const float p1)
 {
     const int a = clamp(1 - delta, 0, n);
     const int b = max(a, min(n, n_prev - 1 - delta));
-    float cmin = MAXFLOAT;
-    int d = 0;
-    for (; d < a; ++d) {
-        const float v = sgm_band_one(c[d], pv, d + delta, n_prev, prev_min, jump, p1);
-        cur[d] = v;
-        cmin = fmin(cmin, v);
-    }
-    const float8 jump8 = (float8)(jump), p18 = (float8)(p1), min8 = (float8)(prev_min);
-    float8 vmin = (float8)(MAXFLOAT);
-    __global const float *q = pv + delta;  /* read at d - 1 .. d + 8 for d >= a: inside pv */
-    for (; d + SGM_VEC <= b; d += SGM_VEC) {
-        float8 m = fmin(vload8(0, q + d), jump8);
-        m = fmin(m, vload8(0, q + d - 1) + p18);
-        m = fmin(m, vload8(0, q + d + 1) + p18);
-        const float8 v = vload8(0, c + d) + (m - min8);
-        vstore8(v, 0, cur + d);
-        vmin = fmin(vmin, v);
-    }
-    for (; d < n; ++d) {
-        const float v = sgm_band_one(c[d], pv, d + delta, n_prev, prev_min, jump, p1);
-        cur[d] = v;
-        cmin = fmin(cmin, v);
-    }
-    const float4 m4 = fmin(vmin.lo, vmin.hi);
-    const float2 m2 = fmin(m4.lo, m4.hi);
-    return fmin(cmin, fmin(m2.x, m2.y));
+    float cmin = b > a ? sgm_scan_step(c + a, pv + delta + a, cur + a, b - a, prev_min, jump, p1)
+                       : MAXFLOAT;
+    for (int d = 0; d < a; ++d)
+        cmin = fmin(cmin, sgm_band_one(c, pv, cur, d, delta, n_prev, prev_min, jump, p1));
+    for (int d = b; d < n; ++d)
+        cmin = fmin(cmin, sgm_band_one(c, pv, cur, d, delta, n_prev, prev_min, jump, p1));
+    return cmin;
 }
 
 /* One direction at a pixel of n labels (guide value gv): from the predecessor's step pv (guide

@@ -234,8 +234,8 @@ __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const
     const int2 lo2 = min(lo4.lo, lo4.hi), hi2 = max(hi4.lo, hi4.hi);
     const int n_all = min(lo2.x, lo2.y);  /* planes every lane has */
     const int n_any = max(hi2.x, hi2.y);  /* planes some lane has */
-    /* the 8 pixels' labels (a lane past its count reads another pixel's label, or its own
-     * unwritten one, and ignores it) */
+    /* the 8 pixels' labels; a lane past its count rereads its last label (inside the volume,
+     * which a ragged one may end right after) and ignores it */
     __global const float *c0, *c1, *c2, *c3, *c4, *c5, *c6, *c7;
     if (counted) {
         c0 = cost + offset[i0]; c1 = cost + offset[i0 + 1]; c2 = cost + offset[i0 + 2];
@@ -249,9 +249,11 @@ __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const
     int p = 0;
     for (; p < n_all; ++p)
         state_push8(&st, p, (float8)(c0[p], c1[p], c2[p], c3[p], c4[p], c5[p], c6[p], c7[p]));
-    for (; p < n_any; ++p)
-        state_push8_lanes(&st, p, (float8)(c0[p], c1[p], c2[p], c3[p], c4[p], c5[p], c6[p], c7[p]),
-                          (int8)(p) < n8);
+    for (; p < n_any; ++p) {
+        const int8 q = min((int8)(p), n8 - 1);
+        state_push8_lanes(&st, p, (float8)(c0[q.s0], c1[q.s1], c2[q.s2], c3[q.s3], c4[q.s4],
+                                           c5[q.s5], c6[q.s6], c7[q.s7]), (int8)(p) < n8);
+    }
     state_store8(state, (size_t)n_pix, i0, st);
 }
 

@@ -527,10 +527,10 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
     """
     import pyopencl.array as cla  # noqa: PLC0415
 
-    agg_pm, prg = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
-                                             cost_scale=cost_scale, shape=shape,
-                                             pixel_major=pixel_major, label_base=label_base,
-                                             label_count=label_count)
+    agg_pm, prg, _ = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
+                                                cost_scale=cost_scale, shape=shape,
+                                                pixel_major=pixel_major, label_base=label_base,
+                                                label_count=label_count)
     h, w, n_labels = agg_pm.shape
     queue = device.queue
     agg = cla.empty(queue, (n_labels, h, w), np.float32)
@@ -545,8 +545,10 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
                                cost_scale: float, shape: tuple[int, int, int] | None,
                                pixel_major: bool = False, label_base=None, label_count=None,
                                label_offset=None):
-    """``sgm_aggregate`` without the final transposition: ((H, W, L) device array, program),
-    or for a ragged volume (``label_offset``) a 1-D device array laid out like it."""
+    """``sgm_aggregate`` without the final transposition: ((H, W, L) device array, program,
+    bands), or for a ragged volume (``label_offset``) a 1-D device array laid out like it;
+    bands: the (count, offset) device arrays of a banded volume (each pixel's labels and where
+    they start; the regular layout's when the caller gave none), else None."""
     import pyopencl.array as cla  # noqa: PLC0415
 
     scale = _check_scale(cost_scale)
@@ -607,7 +609,7 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
         queue.finish()
     if not pixel_major:
         cost_pm.data.release()
-    return agg_pm, prg
+    return agg_pm, prg, ((count_d, offset_d) if base is not None else None)
 
 
 def _sgm_scans(device: Device, prg, cost_pm, guide_d, agg_pm, dims: tuple[int, int, int],
@@ -634,25 +636,21 @@ def _sgm_scans(device: Device, prg, cost_pm, guide_d, agg_pm, dims: tuple[int, i
         scratch.data.release()
 
 
-def _wta_state(device: Device, agg_pm, dims: tuple[int, int, int], label_count=None,
-               label_offset=None) -> np.ndarray:
+def _wta_state(device: Device, agg_pm, dims: tuple[int, int, int], bands=None) -> np.ndarray:
     """wta.cl's winner-take-all state (8, H, W) of a whole PIXEL-MAJOR device volume of dims
     (H, W, L), in one pass (``wta_pixel_major``: the same state as streaming the planes through
-    ``wta_update``, without turning the volume plane-major first); with ``label_count`` ((H, W)
-    int32), each pixel's state after its first label_count planes, which start at
-    ``label_offset`` (uint64; None: the regular layout)."""
+    ``wta_update``, without turning the volume plane-major first); with ``bands`` (the (count,
+    offset) device arrays of ``_sgm_aggregate_pixel_major``), each pixel's state after its
+    count planes from its offset on."""
     import pyopencl.array as cla  # noqa: PLC0415
 
     h, w, n_labels = dims
     prg = device.build("wta", _WTA_PIXEL_MAJOR_DEFINES)
     queue = device.queue
     state = cla.empty(queue, (_WTA_NSTATE, h, w), np.float32)
-    counted = label_count is not None
-    if counted and label_offset is None:
-        label_offset = np.arange(h * w, dtype=np.uint64) * np.uint64(n_labels)
-    count_d = cla.to_device(queue, label_count if counted else np.zeros(1, np.int32))
-    offset_d = cla.to_device(queue, np.ascontiguousarray(label_offset, dtype=np.uint64)
-                             if counted else np.zeros(1, np.uint64))
+    counted = bands is not None
+    count_d, offset_d = bands if counted else (cla.to_device(queue, np.zeros(1, np.int32)),
+                                               cla.to_device(queue, np.zeros(1, np.uint64)))
     device.kernel(prg, "wta_pixel_major")(queue, (-(-h * w // WTA_VEC),), None, agg_pm.data,
                                           np.int32(h * w), np.int32(n_labels), count_d.data,
                                           offset_d.data, np.int32(1 if counted else 0),
@@ -689,13 +687,12 @@ def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions,
     vis = _check_visible(visible, dims)
     if base is not None and vis is not None and vis.ndim == 3:
         raise InputError(None, "visible: with label_base, give one mask per pixel (H, W)")
-    agg_pm, _ = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
-                                           cost_scale=cost_scale, shape=shape,
-                                           pixel_major=pixel_major, label_base=base,
-                                           label_count=count, label_offset=label_offset)
+    agg_pm, _, bands = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
+                                                  cost_scale=cost_scale, shape=shape,
+                                                  pixel_major=pixel_major, label_base=base,
+                                                  label_count=count, label_offset=label_offset)
     try:
-        s = _wta_state(device, agg_pm, (dims[1], dims[2], n_labels), count,
-                       label_offset).astype(np.float64)
+        s = _wta_state(device, agg_pm, (dims[1], dims[2], n_labels), bands).astype(np.float64)
     finally:
         agg_pm.data.release()
     # Finish as wta_finalize does: the last plane is tested as a local minimum against +inf.
