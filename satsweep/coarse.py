@@ -15,15 +15,10 @@ centre of the first pixel, as everywhere).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from .sweep import PlaneWindows
 
-# The volume's labels per pixel (the widest window) are rounded up to a multiple of this, so that
-# runs with similar windows share SGM's compiled programs (its label count is a -D constant).
-WINDOW_QUANTUM = 8
 # Fewest planes, and smallest image side (pixels), for which a coarse pass is worth its cost.
 MIN_PLANES = 24
 MIN_SIDE_PX = 32
@@ -69,9 +64,9 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
 
     ``plane_index``: (H, W), NaN where the coarse pass found nothing (filled from the nearest
     known pixel). Each block sweeps floor(min) - margin .. ceil(max) + margin (within the
-    planes) of the indices in the block grown by ``halo`` pixels; the volume holds as many
-    labels per pixel as the widest of these windows, rounded up to ``WINDOW_QUANTUM`` (within
-    the planes). Returns None (sweep every plane) when nothing is known or when the blocks would
+    planes) of the indices in the block grown by ``halo`` pixels; ``n_planes`` of the result is
+    the widest of these windows (SGM is built for every plane whatever the windows,
+    ``mrf.sgm_refine``, so that the pipeline builds its program ahead). Returns None (sweep every plane) when nothing is known or when the blocks would
     sweep more than ``max_fraction`` of the planes on average.
     """
     from scipy import ndimage  # noqa: PLC0415
@@ -97,5 +92,4 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
     count = hi - lo + 1
     if count.mean() > max_fraction * n_planes:
         return None
-    n_win = min(n_planes, math.ceil(count.max() / WINDOW_QUANTUM) * WINDOW_QUANTUM)
-    return PlaneWindows(block=block, first=lo, n_planes=n_win, count=count)
+    return PlaneWindows(block=block, first=lo, n_planes=int(count.max()), count=count)

@@ -462,10 +462,13 @@ def _volume_shape(cost_volume, shape) -> tuple[int, int, int]:
     return dims  # type: ignore[return-value]
 
 
-def _ragged_dims(device: Device, cost_volume, label_count, label_offset) -> tuple[int, int, int]:
+def _ragged_dims(device: Device, cost_volume, label_count, label_offset,
+                 capacity: int | None = None) -> tuple[int, int, int]:
     """(L, H, W) of a RAGGED pixel-major device volume: a 1-D float32 ``pyopencl.array.Array``
     whose pixel p holds its label_count[p] labels from label_offset[p] on; L, the labels SGM is
-    built for, is the largest count rounded up to 8 (so that runs share programs)."""
+    built for, is ``capacity`` (at least the largest count: the planes the windows are drawn
+    from, so that SGM's program is the full search's, which the pipeline builds ahead), else
+    the largest count rounded up to 8 (so that runs share programs)."""
     import pyopencl.array as cla  # noqa: PLC0415
 
     if label_count is None:
@@ -484,8 +487,12 @@ def _ragged_dims(device: Device, cost_volume, label_count, label_offset) -> tupl
     if n.size and (n.min() < 1 or int((o + n.astype(np.uint64)).max()) > cost_volume.size):
         raise InputError(None, f"label_offset: pixels' labels reach past the volume's "
                                f"{cost_volume.size} floats")
-    n_labels = min(SGM_MAX_LABELS, -(-int(n.max()) // 8) * 8)
-    return n_labels, n.shape[0], n.shape[1]
+    if capacity is None:
+        return min(SGM_MAX_LABELS, -(-int(n.max()) // 8) * 8), n.shape[0], n.shape[1]
+    if not int(n.max()) <= capacity <= SGM_MAX_LABELS:
+        raise InputError(None, f"label_count: counts up to {int(n.max())} outside the "
+                               f"{capacity} labels SGM is built for (at most {SGM_MAX_LABELS})")
+    return int(capacity), n.shape[0], n.shape[1]
 
 
 def sgm_scan_scratch_floats(width: int, n_labels: int) -> int:
@@ -544,11 +551,12 @@ def sgm_aggregate(device: Device, cost_volume, guide, options: MRFOptions, *,
 def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFOptions, *,
                                cost_scale: float, shape: tuple[int, int, int] | None,
                                pixel_major: bool = False, label_base=None, label_count=None,
-                               label_offset=None):
+                               label_offset=None, label_capacity: int | None = None):
     """``sgm_aggregate`` without the final transposition: ((H, W, L) device array, program,
     bands), or for a ragged volume (``label_offset``) a 1-D device array laid out like it;
     bands: the (count, offset) device arrays of a banded volume (each pixel's labels and where
-    they start; the regular layout's when the caller gave none), else None."""
+    they start; the regular layout's when the caller gave none), else None. ``label_capacity``:
+    the labels SGM is built for over a ragged volume (``_ragged_dims``)."""
     import pyopencl.array as cla  # noqa: PLC0415
 
     scale = _check_scale(cost_scale)
@@ -556,7 +564,8 @@ def _sgm_aggregate_pixel_major(device: Device, cost_volume, guide, options: MRFO
     if ragged and not pixel_major:
         raise InputError(None, "label_offset: a ragged volume is a pixel-major device volume "
                                "(pixel_major = True)")
-    n_labels, h, w = _ragged_dims(device, cost_volume, label_count, label_offset) if ragged \
+    n_labels, h, w = _ragged_dims(device, cost_volume, label_count, label_offset,
+                                  label_capacity) if ragged \
         else _pixel_major_volume(device, cost_volume) if pixel_major \
         else _volume_shape(cost_volume, shape)
     g = _check_guide(guide, (h, w))
@@ -676,13 +685,14 @@ def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions,
     ``PlaneSweep.run`` leaves a coarse-to-fine volume: each pixel holds just its window).
     """
     t0 = time.perf_counter()
-    dims = _ragged_dims(device, cost_volume, label_count, label_offset) \
-        if label_offset is not None else _pixel_major_volume(device, cost_volume) if pixel_major \
+    ragged = label_offset is not None
+    # SGM over a ragged volume is built for every plane, as over the full search's volume.
+    capacity = np.size(heights) if ragged else None
+    dims = _ragged_dims(device, cost_volume, label_count, label_offset, capacity) \
+        if ragged else _pixel_major_volume(device, cost_volume) if pixel_major \
         else _volume_shape(cost_volume, shape)
     n_labels = dims[0]
-    # (a ragged volume's L is its widest window rounded up, which may pass the last plane)
-    hts = _check_heights(heights, 1 if label_offset is not None else n_labels,
-                         banded=label_base is not None)
+    hts = _check_heights(heights, n_labels, banded=label_base is not None)
     base, count = _check_label_base(label_base, dims[1:], n_labels, hts.size, label_count)
     vis = _check_visible(visible, dims)
     if base is not None and vis is not None and vis.ndim == 3:
@@ -690,7 +700,8 @@ def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions,
     agg_pm, _, bands = _sgm_aggregate_pixel_major(device, cost_volume, guide, options,
                                                   cost_scale=cost_scale, shape=shape,
                                                   pixel_major=pixel_major, label_base=base,
-                                                  label_count=count, label_offset=label_offset)
+                                                  label_count=count, label_offset=label_offset,
+                                                  label_capacity=capacity)
     try:
         s = _wta_state(device, agg_pm, (dims[1], dims[2], n_labels), bands).astype(np.float64)
     finally:

@@ -341,7 +341,7 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     with_wta = mrf_sweep_wants_wta(sweep, mrf)
     seconds = 0.0
     coarse = None
-    if sweep.search == "coarse_to_fine" and on_device and not sweep.lr_check:
+    if coarse_pass_planes(sweep, mrf, ref.shape, hts.size):
         # From the images as given: the coarse pass prefilters its own half-resolution images.
         coarse, seconds = coarse_plane_index(device, guide, raw_srcs, hom, hts, sweep, mrf)
     side = mrf_tile_side(hts.size, mrf, engine.budget_bytes(), device.max_alloc_bytes)
@@ -411,6 +411,20 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
                        window_planes=window_planes if coarse is not None else None), seconds
 
 
+def coarse_pass_planes(sweep: SweepOptions, mrf: MRFOptions, shape: tuple[int, int],
+                       n_planes: int) -> int:
+    """The planes of the coarse pass that ``sweep_refine_tiled`` runs before sweeping a
+    reference of ``shape`` over ``n_planes`` planes (every other plane), or 0 where it runs none:
+    only a coarse-to-fine search under SGM without the left-right check has one, and only where
+    the reference gains from it (``coarse.worth_a_coarse_pass``)."""
+    from .coarse import worth_a_coarse_pass  # noqa: PLC0415
+
+    if sweep.search != "coarse_to_fine" or mrf.method != "sgm" or sweep.lr_check \
+            or not worth_a_coarse_pass(shape, n_planes):
+        return 0
+    return len(range(0, n_planes, 2))
+
+
 def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, heights,
                        sweep: SweepOptions, mrf: MRFOptions) -> tuple[np.ndarray | None, float]:
     """The coarse pass of a coarse-to-fine sweep: the images at half resolution
@@ -426,7 +440,7 @@ def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, he
     shape = np.shape(ref_image)
     if not worth_a_coarse_pass(shape, hts.size):
         return None, 0.0
-    every_other = slice(0, hts.size, 2)
+    every_other = slice(0, hts.size, 2)  # coarse_pass_planes counts these
     half, seconds = sweep_refine_tiled(
         device, downsample2(ref_image), [downsample2(s) for s in src_images],
         half_resolution_homographies(np.asarray(homographies)[every_other]), hts[every_other],
@@ -555,8 +569,7 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
     of those cameras, skew-corrected as the skew stage will do. Adjusting the principal points
     moves every plane's homography by the same translation, which leaves the plane spacing, and
     so the plane count, as it is. A wrong forecast costs only background time. [] where the
-    forecast itself fails (the sweep stage then meets the error and reports it); the
-    coarse-to-fine search's SGM windows are not forecast (its coarse pass decides them)."""
+    forecast itself fails (the sweep stage then meets the error and reports it)."""
     from .camera import reparametrise, skew_corrected_camera
     from .mrf import SGM_MAX_LABELS, sgm_program_requests
     from .sweep import PlaneSweep, plane_heights
@@ -579,12 +592,19 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
         for r in selection.references:
             srcs = list(selection.sources[r])
             requests += [q for q in engine.program_requests(len(srcs), wta=wta) if q is not None]
-            if method == "sgm" and config.sweep.search != "coarse_to_fine":
+            if method == "sgm":
+                shape = (cams[r].height, cams[r].width)
                 heights = plane_heights(projections[r], [projections[s] for s in srcs], u_range,
-                                        config.sweep.step_px,
-                                        ref_shape=(cams[r].height, cams[r].width))
-                if heights.size <= SGM_MAX_LABELS:
-                    requests += sgm_program_requests(device, config.mrf, heights.size)
+                                        config.sweep.step_px, ref_shape=shape)
+                # A coarse-to-fine search's windows are refined by the full search's program
+                # (sgm_refine builds SGM for every plane); its coarse pass, every other plane.
+                counts = [heights.size]
+                n_coarse = coarse_pass_planes(config.sweep, config.mrf, shape, heights.size)
+                if n_coarse:
+                    counts.append(n_coarse)
+                for n in counts:
+                    if n <= SGM_MAX_LABELS:
+                        requests += sgm_program_requests(device, config.mrf, n)
         return requests
     except SatsweepError:  # raised again, where it belongs, by the stage that meets it
         return []

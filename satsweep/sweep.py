@@ -110,10 +110,12 @@ class SweepOptions(Options):
     # times faster on PoCL, tools/bench_sweep.py); "staged" does both in one work-group kernel
     # with the warped patch in local memory (sweep_census_cost). Same costs, bit for bit.
     work_group: tuple[int, int] = (16, 16)  # work-group size of the staged census kernel (x, y)
-    search: Literal["full", "coarse_to_fine"] = "full"  # with SGM: "coarse_to_fine" sweeps and
-    # refines the reference at half resolution over every other plane first, then sweeps each
-    # block of the reference over a window of the planes only (satsweep/coarse.py); "full"
-    # sweeps every plane everywhere. The winner-take-all path (--mrf none) always sweeps all
+    search: Literal["full", "coarse_to_fine"] = "coarse_to_fine"  # with SGM: "coarse_to_fine"
+    # sweeps and refines the reference at half resolution over every other plane first, then
+    # sweeps each block of the reference over a window of the planes only (satsweep/coarse.py;
+    # as accurate, and faster where the altitude range spans many planes: README); "full"
+    # sweeps every plane everywhere. The winner-take-all path (--mrf none), the graph cut and
+    # the left-right check always sweep every plane.
     window_block_px: int = 64  # coarse_to_fine: side of the blocks that share a plane window
     window_halo_px: int = 8  # coarse_to_fine: pixels around a block whose coarse heights its
     # window also spans (the coarse map's edges lie a pixel or two off)

@@ -51,12 +51,12 @@ def _step_map(shape=(96, 128), low=10.0, high=40.0, step_x=70):
 def test_plane_windows_cover_the_coarse_planes_of_each_block():
     """Two plateaus (planes 10 and 40) meeting at column 70, blocks of 32 px, halo 4, margin 3:
     blocks away from the step sweep 7 planes around their plateau; the block across it sweeps
-    from 7 to 43; the volume holds the widest window rounded up to 8 labels."""
+    from 7 to 43; the volume holds the widest window's labels."""
     idx = _step_map()
     n = 64
     win = coarse.plane_windows(idx, n, block=32, halo=4, margin=3, max_fraction=0.9)
     assert win is not None and win.first.shape == (3, 4)
-    assert win.n_planes == 40  # 37 planes across the step, rounded up to a multiple of 8
+    assert win.n_planes == 37  # the widest window: 37 planes across the step
     np.testing.assert_array_equal(win.first[:, 0], 7)
     np.testing.assert_array_equal(win.count[:, 0], 7)
     np.testing.assert_array_equal(win.first[:, 2], 7)  # columns 64..95 hold the step

@@ -182,15 +182,21 @@ def test_tiled_mrf_reconstruction_is_as_accurate_and_reports_its_tiles(scene, re
     assert all(v["mrf"]["tiles"] == 1 for v in one["sweep"])
 
 
-def test_coarse_to_fine_reconstruction_is_as_accurate_and_reports_its_windows(scene, tmp_path):
-    """[sweep] search = "coarse_to_fine" (half-resolution pass, then plane windows per block):
-    the same accuracy bounds, and each reference's window size in the report, below its planes."""
+@pytest.mark.parametrize("search", ["coarse_to_fine", "full"])
+def test_either_search_is_as_accurate_and_reports_its_windows(scene, tmp_path, search):
+    """[sweep] search = "coarse_to_fine" (the default: a half-resolution pass, then plane windows
+    per block; blocks small enough here for the tiny scene to have several) and "full" (every
+    plane everywhere): the same accuracy bounds, and each reference's window size in the report,
+    below its planes (None for the full search)."""
     res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "sweep": {
-        "search": "coarse_to_fine", "window_block_px": 32, "window_max_fraction": 1.0}})
+        "search": search, "window_block_px": 32, "window_max_fraction": 1.0}})
     _check_accuracy(res)
     rep = json.loads((res.out_dir / "report.json").read_text())
-    assert all(v["window_planes"] is not None and v["window_planes"] <= v["planes"]
-               for v in rep["sweep"]), rep["sweep"]
+    if search == "full":
+        assert all(v["window_planes"] is None for v in rep["sweep"]), rep["sweep"]
+    else:
+        assert all(v["window_planes"] is not None and v["window_planes"] <= v["planes"]
+                   for v in rep["sweep"]), rep["sweep"]
 
 
 def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
@@ -208,12 +214,14 @@ def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
     _check_accuracy(res)  # the bounds of the run given the range
 
 
-@pytest.mark.parametrize("mrf", ["sgm", "none"])
+@pytest.mark.parametrize("mrf, search", [("sgm", "coarse_to_fine"), ("sgm", "full"),
+                                         ("none", "full")])
 def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, tmp_path,
-                                                                         monkeypatch, mrf):
+                                                                         monkeypatch, mrf,
+                                                                         search):
     """The kernels prebuilt while the cameras are adjusted are exactly the ones the sweep stage
     then asks for (none built in the foreground, none built for nothing), bundle adjustment and
-    skew correction included."""
+    skew correction included; with the coarse-to-fine search, its coarse pass's programs too."""
     from satsweep import device as sdev
 
     forecast, asked, foreground = set(), set(), []
@@ -235,8 +243,16 @@ def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, t
     monkeypatch.setattr(sdev.Device, "build", build)
     monkeypatch.setattr(sdev.Device, "prebuild", prebuild)
     res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "reconstruct": {"adjust": "on"},
-                                                 "mrf": {"method": mrf}})
+                                                 "mrf": {"method": mrf},
+                                                 "sweep": {"search": search}})
     assert "skipped" not in res.report["ba"]
+    # SGM over every plane (the windows of a coarse-to-fine search too), and for its coarse
+    # pass over every other plane
+    sgm_labels = {dict(k[1])["SGM_NL"] for k in asked if k[0] == "sgm"}
+    planes = {v["planes"] for v in res.report["sweep"]}
+    want = set() if mrf == "none" else planes | ({(n + 1) // 2 for n in planes}
+                                                 if search == "coarse_to_fine" else set())
+    assert sgm_labels == want, (sgm_labels, planes)
     assert foreground == [] and forecast == asked, (foreground, forecast ^ asked)
     assert {k[0] for k in forecast} == ({"census", "sweep", "guided_filter", "sgm", "wta"}
                                         if mrf == "sgm" else {"census", "sweep", "guided_filter", "wta"})
