@@ -414,7 +414,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
 def coarse_pass_planes(sweep: SweepOptions, mrf: MRFOptions, shape: tuple[int, int],
                        n_planes: int) -> int:
     """The planes of the coarse pass that ``sweep_refine_tiled`` runs before sweeping a
-    reference of ``shape`` over ``n_planes`` planes (every other plane), or 0 where it runs none:
+    reference of ``shape`` over ``n_planes`` planes (every ``sweep.coarse_plane_stride``-th
+    plane), or 0 where it runs none:
     only a coarse-to-fine search under SGM without the left-right check has one, and only where
     the reference gains from it (``coarse.worth_a_coarse_pass``)."""
     from .coarse import worth_a_coarse_pass  # noqa: PLC0415
@@ -422,13 +423,14 @@ def coarse_pass_planes(sweep: SweepOptions, mrf: MRFOptions, shape: tuple[int, i
     if sweep.search != "coarse_to_fine" or mrf.method != "sgm" or sweep.lr_check \
             or not worth_a_coarse_pass(shape, n_planes):
         return 0
-    return len(range(0, n_planes, 2))
+    return len(range(0, n_planes, sweep.coarse_plane_stride))
 
 
 def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, heights,
                        sweep: SweepOptions, mrf: MRFOptions) -> tuple[np.ndarray | None, float]:
     """The coarse pass of a coarse-to-fine sweep: the images at half resolution
-    (``coarse.downsample2``) swept over every other plane and refined by ``mrf`` (a full search,
+    (``coarse.downsample2``) swept over every ``sweep.coarse_plane_stride``-th plane and refined
+    by ``mrf`` (a full search,
     tiled as ``sweep_refine_tiled`` tiles), as a map of full-resolution plane indices (NaN where
     invalid) over the reference's pixels. Returns (None, 0) when the reference is too small or
     has too few planes to gain (``coarse.worth_a_coarse_pass``); else (map, MRF seconds).
@@ -440,12 +442,13 @@ def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, he
     shape = np.shape(ref_image)
     if not worth_a_coarse_pass(shape, hts.size):
         return None, 0.0
-    every_other = slice(0, hts.size, 2)  # coarse_pass_planes counts these
+    stride = sweep.coarse_plane_stride
+    planes = slice(0, hts.size, stride)  # coarse_pass_planes counts these
     half, seconds = sweep_refine_tiled(
         device, downsample2(ref_image), [downsample2(s) for s in src_images],
-        half_resolution_homographies(np.asarray(homographies)[every_other]), hts[every_other],
+        half_resolution_homographies(np.asarray(homographies)[planes]), hts[planes],
         sweep.replace(search="full"), mrf)
-    index = np.where(half.valid, 2.0 * half.plane_index, np.nan)
+    index = np.where(half.valid, float(stride) * half.plane_index, np.nan)
     return upsample_index(index, shape), seconds
 
 

@@ -116,6 +116,8 @@ class SweepOptions(Options):
     # as accurate, and faster where the altitude range spans many planes: README); "full"
     # sweeps every plane everywhere. The winner-take-all path (--mrf none), the graph cut and
     # the left-right check always sweep every plane.
+    coarse_plane_stride: int = 4  # coarse_to_fine: the half-resolution pass sweeps every this
+    # many planes (4 planes of step_px = 0.5 are one half-resolution pixel apart)
     window_block_px: int = 64  # coarse_to_fine: side of the blocks that share a plane window
     window_halo_px: int = 8  # coarse_to_fine: pixels around a block whose coarse heights its
     # window also spans (the coarse map's edges lie a pixel or two off)
@@ -160,6 +162,8 @@ class SweepOptions(Options):
                       "sizes must be in [1, 256] with a product <= 1024")
         self._require(8 <= self.window_block_px <= 4096, "window_block_px",
                       "must be in [8, 4096] pixels")
+        self._require(1 <= self.coarse_plane_stride <= 64, "coarse_plane_stride",
+                      "must be in [1, 64] planes")
         self._require(0 <= self.window_halo_px <= 256, "window_halo_px",
                       "must be in [0, 256] pixels")
         self._require(0 <= self.window_margin_planes <= 256, "window_margin_planes",

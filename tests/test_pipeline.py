@@ -247,10 +247,11 @@ def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, t
                                                  "sweep": {"search": search}})
     assert "skipped" not in res.report["ba"]
     # SGM over every plane (the windows of a coarse-to-fine search too), and for its coarse
-    # pass over every other plane
+    # pass over every coarse_plane_stride-th plane
     sgm_labels = {dict(k[1])["SGM_NL"] for k in asked if k[0] == "sgm"}
     planes = {v["planes"] for v in res.report["sweep"]}
-    want = set() if mrf == "none" else planes | ({(n + 1) // 2 for n in planes}
+    stride = PipelineConfig().sweep.coarse_plane_stride  # the default's
+    want = set() if mrf == "none" else planes | ({-(-n // stride) for n in planes}
                                                  if search == "coarse_to_fine" else set())
     assert sgm_labels == want, (sgm_labels, planes)
     assert foreground == [] and forecast == asked, (foreground, forecast ^ asked)
