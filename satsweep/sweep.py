@@ -57,8 +57,12 @@ SWEEP_VEC = 8
 # Pixels per work-item of wta.cl's wta_update and wta_pixel_major (its WTA_VEC; float8 there).
 WTA_VEC = 8
 # Planes warped per launch by the split census kernels (their warped-source buffer holds this
-# many planes of every source over the tile plus the census margin).
+# many planes of every source over the tile plus the census margin), at least; a small tile
+# (a coarse-to-fine block) warps more planes per launch, up to _WARP_CHUNK_POSITIONS positions
+# (5 bytes each: about 5 MiB, the buffer stays in cache between the two launches), so that it
+# needs fewer launches.
 SPLIT_WARP_PLANES = 8
+_WARP_CHUNK_POSITIONS = 1 << 20
 # Fixed allowance (bytes) for small buffers and driver bookkeeping per tile.
 _SMALL_BUFFERS_BYTES = 1 << 16
 # Heights probed (over the altitude range) when measuring the parallax rate for plane spacing.
@@ -404,12 +408,21 @@ def _split_census(options: SweepOptions) -> bool:
     return options.cost_mode == "warped_census" and options.census_kernel == "split"
 
 
+def _warp_chunk(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
+    """Planes per launch of the split kernels for a tile of ``tile_dims`` in batches of nb planes:
+    SPLIT_WARP_PLANES, or more on a tile small enough (_WARP_CHUNK_POSITIONS); at most nb."""
+    rx, ry = options.census_radii
+    per_plane = n_src * (tile_dims[0] + 2 * rx) * (tile_dims[1] + 2 * ry)
+    return max(1, min(nb, max(SPLIT_WARP_PLANES, _WARP_CHUNK_POSITIONS // per_plane)))
+
+
 def _warped_positions(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
     """Positions of the split kernels' warped sources for a tile (0 for the other kernels)."""
     if not _split_census(options):
         return 0
     rx, ry = options.census_radii
-    return min(nb, SPLIT_WARP_PLANES) * n_src * (tile_dims[0] + 2 * rx) * (tile_dims[1] + 2 * ry)
+    return _warp_chunk(options, tile_dims, nb, n_src) * n_src * (tile_dims[0] + 2 * rx) \
+        * (tile_dims[1] + 2 * ry)
 
 
 def _warped_bytes(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
@@ -933,6 +946,7 @@ class PlaneSweep:
             rx, ry = o.census_radii
             pw, ph = tw + 2 * rx, th + 2 * ry
             positions = _warped_positions(o, (tw, th), nb_max, n_src)
+            chunk = _warp_chunk(o, (tw, th), nb_max, n_src)
             warped = bufs.alloc(4 * positions)
             seen = bufs.alloc(positions)
 
@@ -950,8 +964,8 @@ class PlaneSweep:
             with self._stage("sweep"):
                 if warped is not None:
                     warp_k, cost_k = sweep_k
-                    for c0 in range(0, nb, SPLIT_WARP_PLANES):
-                        nc = min(SPLIT_WARP_PLANES, nb - c0)
+                    for c0 in range(0, nb, chunk):
+                        nc = min(chunk, nb - c0)
                         _launch(warp_k, queue, (_ceil_div(pw, SWEEP_VEC), ph, nc * n_src),
                                 src_buf, off_buf, size_buf,
                                 hom_buf, i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0),

@@ -169,6 +169,23 @@ def test_plane_batches_do_not_change_the_result(cl_device):
     np.testing.assert_array_equal(a.valid, b.valid)
 
 
+def test_warp_chunks_do_not_change_the_costs(cl_device, monkeypatch):
+    """The split kernels warp a small tile's whole batch in one launch, a large tile's in chunks
+    of SPLIT_WARP_PLANES: the same costs, bit for bit, either way (chunks of 8, 8 and 4 here)."""
+    from satsweep import sweep as sw
+
+    ref_img, srcs, truth, hom, heights = _scene((48, 56))
+    o = SweepOptions(max_planes_per_batch=20)
+    dims = (56 + 2 * o.tile_margin, 48 + 2 * o.tile_margin)
+    assert sw._warp_chunk(o, dims, 20, len(srcs)) == 20 and heights.size > 20
+    one = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights, keep_volume=True)
+    monkeypatch.setattr(sw, "_WARP_CHUNK_POSITIONS", 0)
+    assert sw._warp_chunk(o, dims, 20, len(srcs)) == sw.SPLIT_WARP_PLANES == 8
+    chunked = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights, keep_volume=True)
+    np.testing.assert_array_equal(one.volume, chunked.volume)
+    np.testing.assert_array_equal(one.plane_index, chunked.plane_index)
+
+
 def test_prefilter_is_a_gaussian_blur_with_replicated_edges():
     from scipy import ndimage
 
