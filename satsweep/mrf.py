@@ -463,12 +463,12 @@ def _volume_shape(cost_volume, shape) -> tuple[int, int, int]:
 
 
 def _ragged_dims(device: Device, cost_volume, label_count, label_offset,
-                 capacity: int | None = None) -> tuple[int, int, int]:
+                 capacity) -> tuple[int, int, int]:
     """(L, H, W) of a RAGGED pixel-major device volume: a 1-D float32 ``pyopencl.array.Array``
     whose pixel p holds its label_count[p] labels from label_offset[p] on; L, the labels SGM is
-    built for, is ``capacity`` (at least the largest count: the planes the windows are drawn
-    from, so that SGM's program is the full search's, which the pipeline builds ahead), else
-    the largest count rounded up to 8 (so that runs share programs)."""
+    built for, is ``capacity``, at least the largest count (``sgm_refine`` gives the planes the
+    windows are drawn from, so that SGM's program is the full search's, which the pipeline
+    builds ahead)."""
     import pyopencl.array as cla  # noqa: PLC0415
 
     if label_count is None:
@@ -487,9 +487,7 @@ def _ragged_dims(device: Device, cost_volume, label_count, label_offset,
     if n.size and (n.min() < 1 or int((o + n.astype(np.uint64)).max()) > cost_volume.size):
         raise InputError(None, f"label_offset: pixels' labels reach past the volume's "
                                f"{cost_volume.size} floats")
-    if capacity is None:
-        return min(SGM_MAX_LABELS, -(-int(n.max()) // 8) * 8), n.shape[0], n.shape[1]
-    if not int(n.max()) <= capacity <= SGM_MAX_LABELS:
+    if capacity is None or not int(n.max()) <= capacity <= SGM_MAX_LABELS:
         raise InputError(None, f"label_count: counts up to {int(n.max())} outside the "
                                f"{capacity} labels SGM is built for (at most {SGM_MAX_LABELS})")
     return int(capacity), n.shape[0], n.shape[1]

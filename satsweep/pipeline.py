@@ -415,9 +415,9 @@ def coarse_pass_planes(sweep: SweepOptions, mrf: MRFOptions, shape: tuple[int, i
                        n_planes: int) -> int:
     """The planes of the coarse pass that ``sweep_refine_tiled`` runs before sweeping a
     reference of ``shape`` over ``n_planes`` planes (every ``sweep.coarse_plane_stride``-th
-    plane), or 0 where it runs none:
-    only a coarse-to-fine search under SGM without the left-right check has one, and only where
-    the reference gains from it (``coarse.worth_a_coarse_pass``)."""
+    plane), or 0 where it runs none: only a coarse-to-fine search under SGM without the
+    left-right check has one, and only where the reference gains from it
+    (``coarse.worth_a_coarse_pass``)."""
     from .coarse import worth_a_coarse_pass  # noqa: PLC0415
 
     if sweep.search != "coarse_to_fine" or mrf.method != "sgm" or sweep.lr_check \
@@ -430,9 +430,8 @@ def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, he
                        sweep: SweepOptions, mrf: MRFOptions) -> tuple[np.ndarray | None, float]:
     """The coarse pass of a coarse-to-fine sweep: the images at half resolution
     (``coarse.downsample2``) swept over every ``sweep.coarse_plane_stride``-th plane and refined
-    by ``mrf`` (a full search,
-    tiled as ``sweep_refine_tiled`` tiles), as a map of full-resolution plane indices (NaN where
-    invalid) over the reference's pixels. Returns (None, 0) when the reference is too small or
+    by ``mrf`` (a full search, tiled as ``sweep_refine_tiled`` tiles), as a map of
+    full-resolution plane indices (NaN where invalid) over the reference's pixels. Returns (None, 0) when the reference is too small or
     has too few planes to gain (``coarse.worth_a_coarse_pass``); else (map, MRF seconds).
     """
     from .coarse import (downsample2, half_resolution_homographies,  # noqa: PLC0415
@@ -600,7 +599,7 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
                 heights = plane_heights(projections[r], [projections[s] for s in srcs], u_range,
                                         config.sweep.step_px, ref_shape=shape)
                 # A coarse-to-fine search's windows are refined by the full search's program
-                # (sgm_refine builds SGM for every plane); its coarse pass, every other plane.
+                # (sgm_refine builds SGM for every plane); its coarse pass has its own planes.
                 counts = [heights.size]
                 n_coarse = coarse_pass_planes(config.sweep, config.mrf, shape, heights.size)
                 if n_coarse:

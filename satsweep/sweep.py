@@ -115,8 +115,9 @@ class SweepOptions(Options):
     # with the warped patch in local memory (sweep_census_cost). Same costs, bit for bit.
     work_group: tuple[int, int] = (16, 16)  # work-group size of the staged census kernel (x, y)
     search: Literal["full", "coarse_to_fine"] = "coarse_to_fine"  # with SGM: "coarse_to_fine"
-    # sweeps and refines the reference at half resolution over every other plane first, then
-    # sweeps each block of the reference over a window of the planes only (satsweep/coarse.py;
+    # sweeps and refines the reference at half resolution over every coarse_plane_stride-th
+    # plane first, then sweeps each block of the reference over a window of the planes only
+    # (satsweep/coarse.py;
     # as accurate, and faster where the altitude range spans many planes: README); "full"
     # sweeps every plane everywhere. The winner-take-all path (--mrf none), the graph cut and
     # the left-right check always sweep every plane.
