@@ -339,11 +339,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     # SGM runs on the device: the tile's volume stays there. The graph cut runs on the host.
     on_device = mrf.method == "sgm"
     with_wta = mrf_sweep_wants_wta(sweep, mrf)
-    seconds = 0.0
-    coarse = None
-    if coarse_pass_planes(sweep, mrf, ref.shape, hts.size):
-        # From the images as given: the coarse pass prefilters its own half-resolution images.
-        coarse, seconds = coarse_plane_index(device, guide, raw_srcs, hom, hts, sweep, mrf)
+    # From the images as given: the coarse pass prefilters its own half-resolution images.
+    coarse, seconds = coarse_plane_index(device, guide, raw_srcs, hom, hts, sweep, mrf)
     side = mrf_tile_side(hts.size, mrf, engine.budget_bytes(), device.max_alloc_bytes)
     height = np.full((h_img, w_img), np.nan)
     plane_index = np.zeros((h_img, w_img), np.float32)
@@ -431,15 +428,16 @@ def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, he
     """The coarse pass of a coarse-to-fine sweep: the images at half resolution
     (``coarse.downsample2``) swept over every ``sweep.coarse_plane_stride``-th plane and refined
     by ``mrf`` (a full search, tiled as ``sweep_refine_tiled`` tiles), as a map of
-    full-resolution plane indices (NaN where invalid) over the reference's pixels. Returns (None, 0) when the reference is too small or
-    has too few planes to gain (``coarse.worth_a_coarse_pass``); else (map, MRF seconds).
+    full-resolution plane indices (NaN where invalid) over the reference's pixels. Returns
+    (None, 0) where ``coarse_pass_planes`` says there is no coarse pass (another search or MRF,
+    or a reference too small or with too few planes to gain); else (map, MRF seconds).
     """
     from .coarse import (downsample2, half_resolution_homographies,  # noqa: PLC0415
-                         upsample_index, worth_a_coarse_pass)
+                         upsample_index)
 
     hts = np.asarray(heights, dtype=np.float64)
     shape = np.shape(ref_image)
-    if not worth_a_coarse_pass(shape, hts.size):
+    if not coarse_pass_planes(sweep, mrf, shape, hts.size):
         return None, 0.0
     stride = sweep.coarse_plane_stride
     planes = slice(0, hts.size, stride)  # coarse_pass_planes counts these

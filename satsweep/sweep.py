@@ -117,9 +117,8 @@ class SweepOptions(Options):
     search: Literal["full", "coarse_to_fine"] = "coarse_to_fine"  # with SGM: "coarse_to_fine"
     # sweeps and refines the reference at half resolution over every coarse_plane_stride-th
     # plane first, then sweeps each block of the reference over a window of the planes only
-    # (satsweep/coarse.py;
-    # as accurate, and faster where the altitude range spans many planes: README); "full"
-    # sweeps every plane everywhere. The winner-take-all path (--mrf none), the graph cut and
+    # (satsweep/coarse.py; as accurate, and faster where the altitude range spans many planes:
+    # README); "full" sweeps every plane everywhere. The winner-take-all path (--mrf none), the graph cut and
     # the left-right check always sweep every plane.
     coarse_plane_stride: int = 4  # coarse_to_fine: the half-resolution pass sweeps every this
     # many planes (4 planes of step_px = 0.5 are one half-resolution pixel apart)
@@ -409,11 +408,17 @@ def _split_census(options: SweepOptions) -> bool:
     return options.cost_mode == "warped_census" and options.census_kernel == "split"
 
 
+def _warp_plane_positions(options: SweepOptions, tile_dims: tuple[int, int], n_src: int) -> int:
+    """Positions the split kernels warp per plane of a tile: every source over the tile plus the
+    census margin."""
+    rx, ry = options.census_radii
+    return n_src * (tile_dims[0] + 2 * rx) * (tile_dims[1] + 2 * ry)
+
+
 def _warp_chunk(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
     """Planes per launch of the split kernels for a tile of ``tile_dims`` in batches of nb planes:
     SPLIT_WARP_PLANES, or more on a tile small enough (_WARP_CHUNK_POSITIONS); at most nb."""
-    rx, ry = options.census_radii
-    per_plane = n_src * (tile_dims[0] + 2 * rx) * (tile_dims[1] + 2 * ry)
+    per_plane = _warp_plane_positions(options, tile_dims, n_src)
     return max(1, min(nb, max(SPLIT_WARP_PLANES, _WARP_CHUNK_POSITIONS // per_plane)))
 
 
@@ -421,9 +426,8 @@ def _warped_positions(options: SweepOptions, tile_dims: tuple[int, int], nb: int
     """Positions of the split kernels' warped sources for a tile (0 for the other kernels)."""
     if not _split_census(options):
         return 0
-    rx, ry = options.census_radii
-    return _warp_chunk(options, tile_dims, nb, n_src) * n_src * (tile_dims[0] + 2 * rx) \
-        * (tile_dims[1] + 2 * ry)
+    return _warp_chunk(options, tile_dims, nb, n_src) * _warp_plane_positions(options, tile_dims,
+                                                                              n_src)
 
 
 def _warped_bytes(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
@@ -892,7 +896,7 @@ class PlaneSweep:
         return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
                            cost_min=out_cost, n_tiles=n_tiles, n_batches=n_batches,
                            peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base,
-                               plane_count=plane_count, plane_offset=label_offset)
+                           plane_count=plane_count, plane_offset=label_offset)
 
     def _sweep_tile(self, tile, nb_max, hom, n_planes, bufs, ref_buf, src_buf, off_buf, size_buf,
                     census_k, sweep_k, filt_prg, wta_prg, ref_size, outs, interior_origin,
