@@ -102,7 +102,7 @@ class MRFOptions(Options):
     sgm_p2: float = 1.25  # SGM penalty of a larger jump (fraction of cost_scale), before adaptation
     sgm_sweep_gf_radius: int | None = 2  # guided-filter radius of the sweep whose costs SGM
     # refines, in place of [sweep] gf_radius (None: that one). SGM aggregates along its paths,
-    # so it wants less spatial filtering than the winner-take-all alone (whose best radius is 3)
+    # so it wants less spatial filtering than the winner-take-all alone (whose best radius is 5)
     sgm_paths: Literal[4, 8] = 8  # number of scanline directions aggregated
     sgm_p2_sigma: float = 0.05  # guide intensity difference (image in [0, 1]) at which P2 is
     # halved: P2' = max(P1, P2 / (1 + |dI| / sigma)); 0 disables the adaptation
@@ -115,6 +115,10 @@ class MRFOptions(Options):
     # aggregated costs of the best plane and its neighbours: SGM's sums are V-shaped near their
     # minimum (linear P1 penalties), which a symmetric V fits; tools/bench_e2e.py, 4 scenes:
     # median 0.210 -> 0.196 m, completeness unchanged, against the parabola
+    gc_sweep_gf_radius: int | None = 3  # guided-filter radius of the sweep whose costs the graph
+    # cut refines, in place of [sweep] gf_radius (None: that one). tools/bench_e2e.py, seeds 0-1:
+    # radius 5 lowers the median (0.240 -> 0.219 m) but loses completeness (85.8 -> 84.5%; with
+    # gc_smoothness 0.1 or 0.25 too), so the graph cut keeps the radius it was tuned with
     gc_smoothness: float = 0.15  # graph-cut weight of a one-plane change between 4-neighbours
     # (fraction of cost_scale), before the contrast weight
     gc_truncation_labels: int = 4  # smoothness is linear up to this many planes, then constant
@@ -139,6 +143,8 @@ class MRFOptions(Options):
                       "must be finite and >= sgm_p1")
         self._require(self.sgm_sweep_gf_radius is None or 0 <= self.sgm_sweep_gf_radius <= 64,
                       "sgm_sweep_gf_radius", "must be in [0, 64] (or None)")
+        self._require(self.gc_sweep_gf_radius is None or 0 <= self.gc_sweep_gf_radius <= 64,
+                      "gc_sweep_gf_radius", "must be in [0, 64] (or None)")
         self._require(math.isfinite(self.sgm_p2_sigma) and self.sgm_p2_sigma >= 0.0,
                       "sgm_p2_sigma", "must be >= 0 (0 disables the adaptation)")
         wg = self.sgm_work_group

@@ -289,11 +289,11 @@ def _source_windows(hom: np.ndarray, tile_shape: tuple[int, int],
 
 
 def mrf_sweep_options(sweep: SweepOptions, mrf: MRFOptions) -> SweepOptions:
-    """The sweep options of a sweep whose cost volume ``mrf`` refines: with SGM, the guided
-    filter radius is ``mrf.sgm_sweep_gf_radius`` when that is set; otherwise ``sweep`` as is."""
-    if mrf.method == "sgm" and mrf.sgm_sweep_gf_radius is not None:
-        return sweep.replace(gf_radius=mrf.sgm_sweep_gf_radius)
-    return sweep
+    """The sweep options of a sweep whose cost volume ``mrf`` refines: the guided filter radius
+    is the method's own (``mrf.sgm_sweep_gf_radius``, ``mrf.gc_sweep_gf_radius``) when that is
+    set; otherwise, and without an MRF, ``sweep`` as is."""
+    radius = {"sgm": mrf.sgm_sweep_gf_radius, "graphcut": mrf.gc_sweep_gf_radius}.get(mrf.method)
+    return sweep if radius is None else sweep.replace(gf_radius=radius)
 
 
 def mrf_sweep_wants_wta(sweep: SweepOptions, mrf: MRFOptions) -> bool:

@@ -352,7 +352,7 @@ def test_cli_config_shows_and_checks_a_file(tmp_path, capsys):
     cfg.write_text("[sweep]\nad_weight = 0.0\n")
     assert main(["config", "--config", str(cfg)]) == 0
     shown = tomllib.loads(capsys.readouterr().out)
-    assert shown["sweep"]["ad_weight"] == 0.0 and shown["sweep"]["gf_radius"] == 3
+    assert shown["sweep"]["ad_weight"] == 0.0 and shown["sweep"]["gf_radius"] == 5
     cfg.write_text("[sweep]\ngf_radius = 1000\n")
     assert main(["config", "--config", str(cfg)]) == 2
     err = capsys.readouterr().err

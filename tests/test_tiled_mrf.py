@@ -66,12 +66,15 @@ def test_one_tile_is_the_untiled_result(cl_device, method, sweep):
     np.testing.assert_array_equal(got.height[valid], want.height[valid])
 
 
-def test_sgm_sweeps_with_its_own_filter_radius():
-    sweep = SweepOptions(gf_radius=3)
+def test_each_mrf_sweeps_with_its_own_filter_radius():
+    sweep = SweepOptions(gf_radius=5)
     assert mrf_sweep_options(sweep, MRFOptions(method="sgm", sgm_sweep_gf_radius=2)) \
         == sweep.replace(gf_radius=2)
     assert mrf_sweep_options(sweep, MRFOptions(method="sgm", sgm_sweep_gf_radius=None)) == sweep
-    assert mrf_sweep_options(sweep, MRFOptions(method="graphcut", sgm_sweep_gf_radius=2)) == sweep
+    assert mrf_sweep_options(sweep, MRFOptions(method="graphcut", sgm_sweep_gf_radius=2,
+                                               gc_sweep_gf_radius=3)) == sweep.replace(gf_radius=3)
+    assert mrf_sweep_options(sweep, MRFOptions(method="graphcut", gc_sweep_gf_radius=None)) == sweep
+    assert mrf_sweep_options(sweep, MRFOptions(method="none", gc_sweep_gf_radius=3)) == sweep
 
 
 def test_sgm_filter_radius_reaches_the_sweep(cl_device):
