@@ -88,6 +88,20 @@ def test_ratio_test_and_mutual_check():
     assert list(zip(i1, i2)) == [(0, 0), (1, 0)]
 
 
+def test_nearest_neighbours_against_brute_force(monkeypatch):
+    """_nearest's blocked float32 search against a float64 brute force over several blocks."""
+    monkeypatch.setattr(sparse, "_KNN_BLOCK", 7)
+    rng = np.random.default_rng(3)
+    desc1 = rng.normal(0.0, 40.0, size=(30, 128)).astype(np.float32)
+    desc2 = rng.normal(0.0, 40.0, size=(23, 128)).astype(np.float32)
+    idx12, d12, idx21 = sparse._nearest(desc1, desc2)
+    D = np.linalg.norm(desc1[:, None, :].astype(np.float64) - desc2[None, :, :], axis=2)
+    order = np.argsort(D, axis=1)[:, :2]
+    np.testing.assert_array_equal(idx12, order)
+    np.testing.assert_allclose(d12, np.take_along_axis(D, order, axis=1), rtol=1e-5)
+    np.testing.assert_array_equal(idx21, D.argmin(axis=0))
+
+
 def _epipolar_truth(cam1, cam2, xy1, xy2, b1, b2) -> np.ndarray:
     """Distance (px) of xy2 to the true epipolar line of xy1: back-project xy1 - b1 onto two
     horizontal planes with camera 1 (satsweep.camera's ray-plane intersection), project both
