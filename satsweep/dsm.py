@@ -228,7 +228,8 @@ def project_points(P: np.ndarray, *, e, n, u) -> tuple[np.ndarray, np.ndarray]:
 
 
 def cross_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.ndarray], *,
-                        tolerance_m: float, min_agreeing: int = 1) -> list[np.ndarray]:
+                        tolerance_m: float, min_agreeing: int = 1,
+                        points: Sequence[tuple[np.ndarray, ...]] | None = None) -> list[np.ndarray]:
     """Consistency of the height maps of several reference views (a geometric cross-check).
 
     ``heights[k]``: (H_k, W_k) ENU up coordinate (m) of the surface seen at each pixel of
@@ -239,7 +240,9 @@ def cross_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.
     ``min_agreeing`` other views confirm it (all the others when there are fewer): a wrong match
     (occlusion, low texture, fattened edge) rarely lands on the same 3-D point from another
     viewpoint. Returns one boolean mask per view (True = known and confirmed). With a single view
-    nothing can be checked and its known pixels are returned as they are.
+    nothing can be checked and its known pixels are returned as they are. ``points``: each
+    view's ``height_map_to_enu(heights[k], isfinite(heights[k]), projections[k])``, when the
+    caller has them already (they are then not solved again; the same masks).
     """
     maps = [np.asarray(h, dtype=np.float64) for h in heights]
     if len(maps) != len(projections):
@@ -249,14 +252,21 @@ def cross_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.
     if not (isinstance(min_agreeing, int) and min_agreeing >= 1):
         raise OptionsError(f"min_agreeing = {min_agreeing!r}: must be an integer >= 1")
     known = [np.isfinite(h) for h in maps]
+    if points is not None and len(points) != len(maps):
+        raise ValueError(f"cross_check_heights: {len(maps)} height maps, {len(points)} point sets")
     if len(maps) < 2:
         return known
     need = min(min_agreeing, len(maps) - 1)
     out = []
     for k, (h, P) in enumerate(zip(maps, projections)):
-        rows, cols = np.nonzero(known[k])
-        u = h[rows, cols]
-        e, n = solve_ground_en(P, col=cols.astype(np.float64), row=rows.astype(np.float64), u=u)
+        if points is None:
+            rows, cols = np.nonzero(known[k])
+            u = h[rows, cols]
+            e, n = solve_ground_en(P, col=cols.astype(np.float64), row=rows.astype(np.float64),
+                                   u=u)
+        else:
+            e, n, u, pixel = points[k]
+            rows, cols = np.divmod(pixel, h.shape[1])
         agree = np.zeros(u.size, dtype=np.int64)
         for j, (hj, Pj) in enumerate(zip(maps, projections)):
             if j == k:

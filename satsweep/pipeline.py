@@ -667,16 +667,19 @@ def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunRe
     with rep.stage("dsm"):
         grid = dsm_grid_for_aoi(aoi, d.resolution, epsg=cameras.utm_epsg)
         heights = [np.where(pv["valid"], pv["height"], np.nan) for pv in per_view]
+        projections = [cameras.views[pv["index"]].camera.P for pv in per_view]
+        # Every view's pixel centres in ENU (solved once: the cross-check reads them too), one
+        # polynomial ENU -> UTM map fitted over all of them; then each view's centres (the
+        # cloud) and footprint sub-samples (the rasters).
+        centres = [height_map_to_enu(height, np.isfinite(height), P)
+                   for height, P in zip(heights, projections)]
         checked = [np.isfinite(h) for h in heights]
         cross_check = d.cross_check_m > 0 and len(per_view) >= 2
         if cross_check:
-            checked = cross_check_heights(
-                heights, [cameras.views[pv["index"]].camera.P for pv in per_view],
-                tolerance_m=d.cross_check_m, min_agreeing=d.cross_check_views)
-        # Every view's pixel centres in ENU, one polynomial ENU -> UTM map fitted over all of
-        # them; then each view's centres (the cloud) and footprint sub-samples (the rasters).
-        centres = [height_map_to_enu(height, keep, cameras.views[pv["index"]].camera.P)
-                   for pv, height, keep in zip(per_view, heights, checked)]
+            checked = cross_check_heights(heights, projections, tolerance_m=d.cross_check_m,
+                                          min_agreeing=d.cross_check_views, points=centres)
+            centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
+                       for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
         rasters, conf_rasters, clouds = [], [], []
         for pv, centre, height, keep in zip(per_view, centres, heights, checked):

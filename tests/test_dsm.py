@@ -138,6 +138,11 @@ def test_cross_check_keeps_consistent_maps_and_rejects_an_injected_error():
     bad[0][0, 0] = np.nan  # unknown pixels are never kept
     keep = dsm.cross_check_heights(bad, Ps, tolerance_m=CHECK_TOL_M)
     assert not keep[0][10:30, 20:40].any() and not keep[0][0, 0]
+    # The caller's ENU points of the known pixels, when given, give the same masks.
+    points = [dsm.height_map_to_enu(m, np.isfinite(m), P) for m, P in zip(bad, Ps)]
+    given = dsm.cross_check_heights(bad, Ps, tolerance_m=CHECK_TOL_M, points=points)
+    for k in range(2):
+        np.testing.assert_array_equal(given[k], keep[k])
     outside = seen[0].copy()
     outside[10:30, 20:40] = False
     outside[0, 0] = False
