@@ -415,3 +415,16 @@ def _fast_config(tmp_path: Path) -> Path:
     path = tmp_path / "fast.toml"
     path.write_text("[camera]\ngrid_size = [20, 20, 6]\n")
     return path
+
+
+def test_preloading_imports_the_listed_modules():
+    """The background import of the later stages' libraries ends, with every one imported (a
+    misspelt or missing module would stop the thread before the rest)."""
+    import sys
+
+    from satsweep.pipeline import PRELOADED_MODULES, _start_preloading
+
+    thread = _start_preloading()
+    thread.join(timeout=120)
+    assert not thread.is_alive() and thread.daemon
+    assert all(name in sys.modules for name in PRELOADED_MODULES)
