@@ -476,9 +476,9 @@ def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, he
 
 
 # Pixels of context kept around the AOI's footprint in a reference view (``reference_window``):
-# at least the guided filter's margin (2 r = 4-6 px at the default radii), so that every AOI
-# pixel is filtered over its whole window, plus a few pixels for SGM's paths to enter the AOI
-# with some history. The rest of the crop margin (``crop_margin_px``, which the sources need)
+# SGM's paths enter the AOI with some history. The sweep stage widens it to the cost filter's
+# margin where that is larger (``SweepOptions.tile_margin``: 2 r = 10 px for the
+# winner-take-all's radius 5), so that every AOI pixel is filtered over its whole window. The rest of the crop margin (``crop_margin_px``, which the sources need)
 # lies outside the AOI at every height and is not swept.
 REFERENCE_CONTEXT_PX = 8
 
@@ -544,12 +544,14 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
     per_view, sweeps = [], []
     progress = rep.progress("sweep", len(selection.references))
     with_mrf = config.mrf.method != "none"
+    swept = mrf_sweep_options(config.sweep, config.mrf)  # the sweep options as run
     for k, r in enumerate(selection.references):
         srcs = list(selection.sources[r])
         ref_proj = cameras.views[r].projection
         src_projs = [cameras.views[s].projection for s in srcs]
         shape = images[r].shape
-        window = reference_window(cameras.views[r].camera, cameras.frame, aoi, alt_range, shape)
+        window = reference_window(cameras.views[r].camera, cameras.frame, aoi, alt_range, shape,
+                                  context_px=max(REFERENCE_CONTEXT_PX, swept.tile_margin))
         x0, y0, x1, y1 = window
         mrf_info = None
         with rep.stage("sweep"):
