@@ -47,9 +47,11 @@ from .sparse import (
     SparseOptions,
     build_tracks,
     detect_features,
+    feature_scale_for,
     fundamental_from_cameras,
     match_pair,
     observations_from_tracks,
+    refine_observations,
     projection_jacobian,
     projection_stack,
     triangulate_observations,
@@ -125,6 +127,7 @@ class BundleReport:
     min_matches: int  # pairs with fewer verified matches were not used
     n_tracks: int  # tracks built from the matches (consistent components of the match graph)
     track_length_histogram: dict[int, int]  # views per track -> number of tracks
+    n_refine_dropped: int  # observations the sub-pixel refinement dropped (failed or moved too far)
     n_points: int  # tracks kept in the final adjustment
     n_observations: tuple[int, ...]  # observations per view kept in the final adjustment
     reproj_before_px: tuple[float, float]  # (median, mean)
@@ -143,6 +146,7 @@ class BundleReport:
                            "used": k >= self.min_matches} for i, j, k in self.n_matches],
             "n_tracks": self.n_tracks,
             "track_length_histogram": {str(k): v for k, v in sorted(self.track_length_histogram.items())},
+            "n_refine_dropped": self.n_refine_dropped,
             "n_points": self.n_points,
             "n_observations": {n: k for n, k in zip(self.names, self.n_observations)},
             "reprojection_error_px": {
@@ -419,7 +423,9 @@ def adjust_principal_points(
 
     t0 = time.perf_counter()
     feats = [detect_features(im, max_features=sparse_options.max_features,
-                             contrast_threshold=sparse_options.contrast_threshold) for im in images]
+                             contrast_threshold=sparse_options.contrast_threshold,
+                             scale=feature_scale_for(np.shape(im), sparse_options))
+             for im in images]
     n_features = [len(xy) for xy, _ in feats]
     poor = [f"{n} ({k})" for n, k in zip(names, n_features) if k < sparse_options.min_matches]
     if poor:
@@ -442,6 +448,14 @@ def adjust_principal_points(
     obs = observations_from_tracks(tracks, [xy for xy, _ in feats])
     seconds["tracks"] = time.perf_counter() - t0
 
+    n_refine_dropped = 0
+    if sparse_options.refine_window_px:
+        t0 = time.perf_counter()
+        obs, n_refine_dropped = refine_observations(
+            obs, images, cams, window_px=sparse_options.refine_window_px,
+            max_shift_px=sparse_options.refine_max_shift_px)
+        seconds["refinement"] = time.perf_counter() - t0
+
     t0 = time.perf_counter()
     solution = adjust_observations(cams, obs, options, names=names)
     seconds["adjustment"] = time.perf_counter() - t0
@@ -454,6 +468,7 @@ def adjust_principal_points(
         min_matches=sparse_options.min_matches,
         n_tracks=len(tracks),
         track_length_histogram=histogram,
+        n_refine_dropped=n_refine_dropped,
         n_points=solution.obs.n_points,
         n_observations=tuple(int(c) for c in np.bincount(solution.obs.view, minlength=V)),
         reproj_before_px=(float(np.median(solution.errors_before)), float(np.mean(solution.errors_before))),

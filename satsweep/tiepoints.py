@@ -91,11 +91,13 @@ def tie_points(views: Sequence, aoi: AOI, alt_range: AltitudeRange, sparse_optio
     """SIFT tie points of every pair of views (RANSAC-verified matches, no cameras needed),
     triangulated with the views' RPCs over ``alt_range``; only the points inside the AOI."""
     from .imageio import tonemap
-    from .sparse import detect_features, match_pair
+    from .sparse import detect_features, feature_scale_for, match_pair
 
     o = sparse_options
     feats = [detect_features(tonemap(v.image), max_features=o.max_features,
-                             contrast_threshold=o.contrast_threshold) for v in views]
+                             contrast_threshold=o.contrast_threshold,
+                             scale=feature_scale_for(np.shape(v.image), o))
+             for v in views]
     parts, pairs = [], []
     for i, j in itertools.combinations(range(len(views)), 2):
         (xy_i, d_i), (xy_j, d_j) = feats[i], feats[j]
