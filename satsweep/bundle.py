@@ -46,6 +46,7 @@ from .sparse import (
     Observations,
     SparseOptions,
     build_tracks,
+    connected_labels,
     detect_features,
     feature_scale_for,
     fundamental_from_cameras,
@@ -411,17 +412,10 @@ def _match_all(feats: list[tuple[np.ndarray, np.ndarray]], cams: list[Any],
 def _check_connected(matches: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]], V: int,
                      names: Sequence[str], min_matches: int) -> None:
     """Raise CameraError when the pairs with enough matches do not link all the views."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     good = [(i, j) for (i, j), (a, _b) in matches.items() if len(a) >= min_matches]
-    if good:
-        ij = np.array(good)
-        graph = coo_matrix((np.ones(len(ij)), (ij[:, 0], ij[:, 1])), shape=(V, V))
-    else:
-        graph = coo_matrix((V, V))
-    n_comp, labels = connected_components(graph, directed=False)
-    if n_comp == 1:
+    ij = np.array(good, dtype=np.int64).reshape(-1, 2)
+    labels = connected_labels(V, ij[:, 0], ij[:, 1])
+    if labels.max() == 0:
         return
     # Name the views cut off from view 0's group and the best pair across the cut.
     apart = [v for v in range(V) if labels[v] != labels[0]]

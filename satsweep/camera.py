@@ -396,6 +396,14 @@ def _check_correspondences(points, pixels) -> tuple[np.ndarray, np.ndarray]:
     return points, pixels
 
 
+def _rq3(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RQ decomposition ``A = R Q`` of a 3x3 matrix (R upper triangular, Q orthogonal), from
+    numpy's QR of the reversed transpose: with E the row reversal, E A^T = Q' R' gives
+    A = (E R'^T E) (E Q'^T), the first factor upper triangular."""
+    Qp, Rp = np.linalg.qr(A[::-1].T)
+    return Rp.T[::-1, ::-1], Qp.T[::-1]
+
+
 def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """RQ-factorise a 3x4 matrix (any scale and sign) into ``K [R | t]``.
 
@@ -405,12 +413,10 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     with positive focal lengths this puts the scene in front of the camera only for an image that
     is not mirrored (checked by the callers that know the scene).
     """
-    from scipy.linalg import rq
-
     P = np.asarray(P, dtype=np.float64)
     if P.shape != (3, 4) or not np.all(np.isfinite(P)):
         raise CameraError(f"a projection matrix must be a finite 3x4 array, got shape {P.shape}")
-    K, R = rq(P[:, :3])
+    K, R = _rq3(P[:, :3])
     if np.any(np.abs(np.diag(K)) == 0.0):
         raise CameraError("the projection matrix is singular (its left 3x3 block has rank < 3)")
     signs = np.sign(np.diag(K))

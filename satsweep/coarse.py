@@ -58,6 +58,18 @@ def worth_a_coarse_pass(shape: tuple[int, int], n_planes: int) -> bool:
     return n_planes >= MIN_PLANES and min(shape) >= MIN_SIDE_PX
 
 
+def fill_from_nearest(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``values`` (H, W) with every pixel not ``known`` given the value of its nearest known
+    pixel: OpenCV's labelled distance transform (5x5 mask), which labels the known pixels (the
+    zeros of its input) in raster order; its pick is within 0.14 px of the exact Euclidean
+    nearest distance (measured)."""
+    import cv2  # noqa: PLC0415
+
+    _d, label = cv2.distanceTransformWithLabels((~known).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    return np.asarray(values)[known][label - 1]
+
+
 def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: int,
                   margin: int, max_fraction: float) -> PlaneWindows | None:
     """Per-block plane windows from a full-resolution map of (fractional) plane indices.
@@ -70,19 +82,19 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
     every plane) when nothing is known or when the blocks would sweep more than
     ``max_fraction`` of the planes on average.
     """
-    from scipy import ndimage  # noqa: PLC0415
+    import cv2  # noqa: PLC0415
 
     idx = np.asarray(plane_index, dtype=np.float64)
     known = np.isfinite(idx)
     if not known.any():
         return None
     if not known.all():
-        nearest = ndimage.distance_transform_edt(~known, return_distances=False,
-                                                 return_indices=True)
-        idx = idx[tuple(nearest)]
+        idx = fill_from_nearest(idx, known)
     size = 2 * halo + 1
-    lo = ndimage.minimum_filter(idx, size=size, mode="nearest")
-    hi = ndimage.maximum_filter(idx, size=size, mode="nearest")
+    kernel = np.ones((size, size), np.uint8)
+    # Min / max over the window, pixels outside the image ignored (= scipy's mode "nearest").
+    lo = cv2.erode(idx, kernel, borderType=cv2.BORDER_REPLICATE)
+    hi = cv2.dilate(idx, kernel, borderType=cv2.BORDER_REPLICATE)
     h, w = idx.shape
     nby, nbx = -(-h // block), -(-w // block)
     pad = ((0, nby * block - h), (0, nbx * block - w))

@@ -679,7 +679,7 @@ def fill_small_holes(
     ground occluded by a wall, i.e. the lower side; or the median. Returns (filled float32 copy,
     number of cells filled), which the caller must report.
     """
-    from scipy import ndimage
+    import cv2
 
     a = np.array(dsm, dtype=np.float64)
     if a.ndim != 2:
@@ -691,7 +691,8 @@ def fill_small_holes(
     hole = ~np.isfinite(a)
     if max_hole_cells == 0 or not hole.any() or hole.all():
         return a.astype(np.float32), 0
-    labels, n = ndimage.label(hole)  # 4-connectivity
+    n, labels = cv2.connectedComponents(hole.astype(np.uint8), connectivity=4, ltype=cv2.CV_32S)
+    n -= 1  # label 0 is the background (the valid cells)
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     eligible = (sizes <= max_hole_cells)

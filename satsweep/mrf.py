@@ -946,10 +946,12 @@ def _coarse_windows(coarse: np.ndarray, shape: tuple[int, int], window: int,
     height discontinuity can take either side's height even where the coarse grid put the edge
     one coarse pixel off.
     """
-    from scipy import ndimage  # noqa: PLC0415
+    import cv2  # noqa: PLC0415
 
-    lo = ndimage.minimum_filter(coarse, size=3, mode="nearest")
-    hi = ndimage.maximum_filter(coarse, size=3, mode="nearest")
+    kernel = np.ones((3, 3), np.uint8)  # 3x3 min / max, outside the image ignored
+    c = np.asarray(coarse, np.float64)  # exact for labels; OpenCV morphology has no int64
+    lo = cv2.erode(c, kernel, borderType=cv2.BORDER_REPLICATE).astype(coarse.dtype)
+    hi = cv2.dilate(c, kernel, borderType=cv2.BORDER_REPLICATE).astype(coarse.dtype)
     return (_upsample2(coarse, shape), np.maximum(_upsample2(lo, shape) - window, 0),
             np.minimum(_upsample2(hi, shape) + window, n_labels - 1))
 

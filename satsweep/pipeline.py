@@ -110,12 +110,11 @@ def _fill_nan(image: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(out), out, np.float32(0.0)).astype(np.float32)
 
 
-# Libraries the later stages import (the camera fit's RQ, the adjustment's solver and match
-# graph, the coarse pass's and the DSM's filters, SIFT), in the order they are needed. A fresh
-# process spends about 0.7 s importing SciPy's modules alone (1.17 builds docstrings at import);
-# a background thread imports them while the main thread opens the device and reads the images.
-PRELOADED_MODULES = ("scipy.linalg", "cv2", "scipy.sparse.csgraph", "scipy.optimize",
-                     "scipy.ndimage")
+# Libraries the later stages import (OpenCV: SIFT, the tie points' registration, the coarse
+# pass's and the DSM's filters): a background thread imports them while the main thread opens
+# the device and reads the images. (reconstruct no longer imports SciPy, whose modules took a
+# fresh process about 0.7 s to import.)
+PRELOADED_MODULES = ("cv2",)
 
 
 def _start_preloading() -> threading.Thread:

@@ -57,6 +57,7 @@ __all__ = [
     "match_pair",
     "fundamental_from_cameras",
     "build_tracks",
+    "connected_labels",
     "Observations",
     "observations_from_tracks",
     "refine_observations",
@@ -381,6 +382,31 @@ def match_pair(
 
 
 # -- tracks --------------------------------------------------------------------------------------
+def connected_labels(n_nodes: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Connected components of the undirected graph with edges ``src[k] - dst[k]`` over nodes
+    0 .. n_nodes - 1: a label per node, 0 .. n_components - 1, numbered in the order of each
+    component's smallest node (as scipy.sparse.csgraph.connected_components numbers them).
+
+    Each round hooks every edge's larger root under the smaller one and then jumps pointers to
+    the roots, until no edge joins two roots.
+    """
+    parent = np.arange(n_nodes)
+    src, dst = np.asarray(src, np.int64), np.asarray(dst, np.int64)
+    while True:
+        a, b = parent[src], parent[dst]
+        low, high = np.minimum(a, b), np.maximum(a, b)
+        joined = low != high
+        if not joined.any():
+            break
+        np.minimum.at(parent, high[joined], low[joined])
+        while True:  # pointer jumping: every node to its root
+            up = parent[parent]
+            if np.array_equal(up, parent):
+                break
+            parent = up
+    return np.unique(parent, return_inverse=True)[1].reshape(-1)
+
+
 def build_tracks(
     n_views: int, pair_matches: Mapping[tuple[int, int], tuple[np.ndarray, np.ndarray]]
 ) -> list[np.ndarray]:
@@ -392,9 +418,6 @@ def build_tracks(
     one view is inconsistent (some match in it is wrong) and is dropped whole. Tracks are
     ``(k, 2)`` int64 arrays of ``(view, feature)`` sorted by view, in a deterministic order.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     counts = np.zeros(n_views, dtype=np.int64)
     for (i, j), (a, b) in pair_matches.items():
         if not (0 <= i < n_views and 0 <= j < n_views) or i == j:
@@ -414,8 +437,7 @@ def build_tracks(
     src, dst = np.concatenate(src), np.concatenate(dst)
     if len(src) == 0:
         return []
-    graph = coo_matrix((np.ones(len(src)), (src, dst)), shape=(n_nodes, n_nodes))
-    _, labels = connected_components(graph, directed=False)
+    labels = connected_labels(n_nodes, src, dst)
     node_view = np.repeat(np.arange(n_views), counts)
     node_feature = np.arange(n_nodes) - offsets[node_view]
     # Group nodes by label (stable: nodes in view order within a component).

@@ -143,6 +143,22 @@ def test_rq_conventions(seed, sign):
     assert np.allclose(ratio, ratio[0, 0], rtol=ROUND_REL_TOL, atol=0)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_rq3_against_scipy(seed):
+    """camera._rq3 (numpy QR of the reversed transpose) against scipy.linalg.rq: the same
+    factors up to the signs of R's columns / Q's rows, and R Q the input."""
+    from scipy.linalg import rq
+
+    A = np.random.default_rng(seed).standard_normal((3, 3)) * 100.0
+    R, Q = cam._rq3(A)
+    R_ref, Q_ref = rq(A)
+    d = np.sign(np.diag(R)) * np.sign(np.diag(R_ref))
+    assert np.allclose(np.tril(R, -1), 0.0, atol=0.0)
+    assert _rel(R @ Q, A) < ROUND_REL_TOL
+    assert _rel(R * d[None, :], R_ref) < ROUND_REL_TOL
+    assert _rel(d[:, None] * Q, Q_ref) < ROUND_REL_TOL
+
+
 def test_camera_accessors_match_the_synthetic_geometry():
     K, R, t = _satellite_camera()
     c = cam.PerspectiveCamera.from_projection(K @ np.hstack([R, t[:, None]]), width=1024, height=1024)

@@ -252,6 +252,25 @@ def test_tracks_chain_pairs_and_drop_inconsistent_components():
     assert all(np.all(np.diff(t[:, 0]) > 0) for t in tracks)
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_connected_labels_against_scipy(seed):
+    """sparse.connected_labels against scipy.sparse.csgraph.connected_components on random
+    sparse graphs (chains, isolated nodes, repeated and self edges): the same labels."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(seed)
+    n = 300
+    src, dst = rng.integers(0, n, 200), rng.integers(0, n, 200)
+    chain = np.arange(100, 160)  # a long chain: many hooking rounds
+    src, dst = np.concatenate([src, chain[:-1], [5, 5]]), np.concatenate([dst, chain[1:], [5, 5]])
+    _, ref = connected_components(coo_matrix((np.ones(len(src)), (src, dst)), shape=(n, n)),
+                                  directed=False)
+    np.testing.assert_array_equal(sparse.connected_labels(n, src, dst), ref)
+    np.testing.assert_array_equal(sparse.connected_labels(4, np.zeros(0, int), np.zeros(0, int)),
+                                  [0, 1, 2, 3])
+
+
 def test_tracks_match_a_reference_union_find():
     rng = np.random.default_rng(4)
     V, nf = 4, 60
