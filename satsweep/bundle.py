@@ -269,10 +269,8 @@ def _solve(P: np.ndarray, obs: Observations, anchors: np.ndarray, shifts0: np.nd
                               damping, groups)
         new = evaluate(s + ds, X + dX)
         evaluations += 1
-        if not np.isfinite(new[0]):
-            raise CameraError("the bundle adjustment diverged (non-finite parameters)")
         step = max(float(np.abs(ds).max(initial=0.0)), float(np.abs(dX).max(initial=0.0)))
-        if new[0] <= cost:
+        if np.isfinite(new[0]) and new[0] <= cost:  # else (too long a step): more damping
             decrease = cost - new[0]
             s, X = s + ds, X + dX
             cost, r, a, J = new
