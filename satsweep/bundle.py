@@ -208,12 +208,12 @@ def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     return out.reshape((n,) + values.shape[1:])
 
 
-def _normal_step(P: np.ndarray, obs: Observations, J: np.ndarray, r: np.ndarray, a: np.ndarray,
+def _normal_step(V: int, obs: Observations, J: np.ndarray, r: np.ndarray, a: np.ndarray,
                  wr: np.ndarray, wa: np.ndarray, sqrt_lambda: float, damping: float,
                  groups: tuple) -> tuple[np.ndarray, np.ndarray]:
     """The damped Gauss-Newton step (shifts (V, 2), points (N, 3)) of the weighted problem, the
-    points eliminated per point (Schur complement): a 2V x 2V system for the shifts."""
-    V, N = P.shape[0], obs.n_points
+    points eliminated per point (Schur complement): a 2V x 2V system for the V views' shifts."""
+    N = obs.n_points
     lam = sqrt_lambda ** 2
     CA = wr[:, :, None] * J  # W_k A_k (M, 2, 3): the shift-point blocks of J^T W J
     U = _sum_by(obs.point, np.einsum("mai,maj->mij", J, CA), N)
@@ -265,7 +265,7 @@ def _solve(P: np.ndarray, obs: Observations, anchors: np.ndarray, shifts0: np.nd
     cost, r, a, J = evaluate(s, X)
     evaluations, damping = 1, _LM_DAMPING0
     while evaluations < options.max_evaluations:
-        ds, dX = _normal_step(P, obs, J, r, a, drho(r * r / c2), drho(a * a / c2), sqrt_lambda,
+        ds, dX = _normal_step(P.shape[0], obs, J, r, a, drho(r * r / c2), drho(a * a / c2), sqrt_lambda,
                               damping, groups)
         new = evaluate(s + ds, X + dX)
         evaluations += 1

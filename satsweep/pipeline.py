@@ -477,8 +477,9 @@ def coarse_plane_index(device, ref_image, src_images: Sequence, homographies, he
 # Pixels of context kept around the AOI's footprint in a reference view (``reference_window``):
 # SGM's paths enter the AOI with some history. The sweep stage widens it to the cost filter's
 # margin where that is larger (``SweepOptions.tile_margin``: 2 r = 10 px for the
-# winner-take-all's radius 5), so that every AOI pixel is filtered over its whole window. The rest of the crop margin (``crop_margin_px``, which the sources need)
-# lies outside the AOI at every height and is not swept.
+# winner-take-all's radius 5), so that every AOI pixel is filtered over its whole window. The
+# rest of the crop margin (``crop_margin_px``, which the sources need) lies outside the AOI at
+# every height and is not swept.
 REFERENCE_CONTEXT_PX = 8
 
 

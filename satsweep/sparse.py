@@ -161,8 +161,12 @@ def feature_scale_for(shape: tuple[int, ...], options: SparseOptions) -> float:
 def _to_u8(image: np.ndarray) -> np.ndarray:
     """A tonemapped image in [0, 1] (NaN: 0) quantised to 8 bits, as OpenCV's SIFT and
     Lucas-Kanade require."""
-    a = np.asarray(image, dtype=np.float64)
-    return np.round(np.clip(np.nan_to_num(a, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
+    return np.round(_unit(image) * 255.0).astype(np.uint8)
+
+
+def _unit(image: np.ndarray) -> np.ndarray:
+    """A tonemapped image as float64 in [0, 1], NaN as 0."""
+    return np.clip(np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0), 0.0, 1.0)
 
 
 def detect_features(
@@ -190,8 +194,7 @@ def detect_features(
     if scale < 1.0:
         h, w = a.shape
         ws, hs = max(1, round(w * scale)), max(1, round(h * scale))
-        small = cv2.resize(np.clip(np.nan_to_num(a, nan=0.0), 0.0, 1.0).astype(np.float32),
-                           (ws, hs), interpolation=cv2.INTER_AREA)
+        small = cv2.resize(_unit(a).astype(np.float32), (ws, hs), interpolation=cv2.INTER_AREA)
         u8 = _to_u8(small)
         fx, fy = ws / w, hs / h  # the scales cv2.resize applied per axis
     else:
