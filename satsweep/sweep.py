@@ -83,14 +83,14 @@ class SweepOptions(Options):
     ad_weight: float = 8.0  # AD-census: each source's cost adds ad_weight * min(|I_src - I_ref|,
     # ad_truncation) / ad_truncation census bits (warped source against reference intensity, images
     # in [0, 1]); 0: census alone. tools/bench_e2e.py, seeds 0-1 with SGM: completeness 86.1 ->
-    # 87.9%, median 0.194 -> 0.192 m; against S2P 0.262 -> 0.250 m (README). Needs intensities
-    # that agree between views (census alone is the choice for other dates or sensors)
+    # 87.9%, median 0.194 -> 0.192 m; against S2P 0.262 -> 0.250 m (docs/measurements.md). Needs
+    # intensities that agree between views (census alone is the choice for other dates or sensors)
     ad_truncation: float = 0.15  # intensity difference at which the AD term saturates
     grad_weight: float = 0.0  # each source's cost adds grad_weight * (min(|dx_src - dx_ref|, t) +
     # min(|dy_src - dy_ref|, t)) / (2 t) census bits, t = grad_truncation: central differences of
-    # the warped source and of the reference; 0: none. Measured at 4 (README): completeness +0.3
-    # to +0.5 points end to end (means), medians mixed (-0.002 to +0.009 m per scene), closer to
-    # S2P; so off
+    # the warped source and of the reference; 0: none. Measured at 4 (docs/measurements.md):
+    # completeness +0.3 to +0.5 points end to end (means), medians mixed (-0.002 to +0.009 m per
+    # scene), closer to S2P; so off
     grad_truncation: float = 0.1  # gradient difference at which the gradient term saturates
     prefilter_sigma_px: float = 0.0  # Gaussian blur (pixels) of the reference and source images
     # before the census (0: none); lowers the pull of the bilinear warp towards whole source pixels
@@ -103,7 +103,7 @@ class SweepOptions(Options):
     # path's (--mrf none); SGM and the graph cut sweep with their own radius ([mrf]
     # sgm_sweep_gf_radius, gc_sweep_gf_radius). tools/bench_e2e.py --mrf none, 8 scenes of seeds
     # 0-3: 0.240 m / 82.1% against 0.282 m / 80.6% with radius 3, better on 15 of the 16 figures
-    # (radius 6-7: lower medians, lower completeness); tools/diag_wta.py: README
+    # (radius 6-7: lower medians, lower completeness); tools/diag_wta.py: docs/measurements.md
     gf_eps: float = 1e-4  # guided filter regularisation (guide units squared, guide in [0, 1])
     box_radius: int = 2  # box filter radius for cost_filter = "box" (2: a 5x5 box)
     subplane: bool = True  # parabola refinement between planes
@@ -122,8 +122,8 @@ class SweepOptions(Options):
     # sweeps and refines the reference at half resolution over every coarse_plane_stride-th
     # plane first, then sweeps each block of the reference over a window of the planes only
     # (satsweep/coarse.py; as accurate, and faster where the altitude range spans many planes:
-    # README); "full" sweeps every plane everywhere. The winner-take-all path (--mrf none), the graph cut and
-    # the left-right check always sweep every plane.
+    # docs/measurements.md); "full" sweeps every plane everywhere. The winner-take-all path
+    # (--mrf none), the graph cut and the left-right check always sweep every plane.
     coarse_plane_stride: int = 4  # coarse_to_fine: the half-resolution pass sweeps every this
     # many planes (4 planes of step_px = 0.5 are one half-resolution pixel apart)
     window_block_px: int = 64  # coarse_to_fine: side of the blocks that share a plane window

@@ -81,7 +81,7 @@ def _errors(scene, cams, images, result, ref: int):
                    "with the guided filter's radius 5; 0.47 and 0.40 m with radius 3), not < 0.15 m; "
                    "the cameras reproject like the true ones to 0.0006 px and tools/diag_wta.py "
                    "measures a sub-pixel precision of about 0.1 px, so matching is the limit "
-                   "(see README)")
+                   "(see docs/measurements.md)")
 def test_wta_guided_filter_heights_on_textured_areas(cl_device, scene, prepared):
     cams, images, u_range = prepared
     options = SweepOptions(cost_filter="guided")
