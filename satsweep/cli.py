@@ -301,13 +301,18 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+def _peak_memory_text(rep) -> str:
+    peak = rep.get("peak_memory_mb", {}).get("total")
+    return "" if peak is None else f", peak memory {peak / 1024:.1f} GiB"
+
+
 def _print_summary(result) -> None:
     rep = result.report
     t = rep["timings_s"]
     print(f"DSM: {result.dsm_path} ({rep['dsm']['width']}x{rep['dsm']['height']} cells of "
           f"{rep['dsm']['resolution_m']:g} m, EPSG:{rep['dsm']['epsg']}, "
           f"{100 * rep['dsm']['filled_fraction']:.1f}% filled) in {t['total']:.1f} s on "
-          f"{rep['device']['device_name']}")
+          f"{rep['device']['device_name']}" + _peak_memory_text(rep))
     if result.evaluation is not None:
         a = result.evaluation["aligned"]
         u = result.evaluation["unaligned"]

@@ -74,8 +74,38 @@ class Progress:
         return cb
 
 
+def peak_memory_bytes() -> int | None:
+    """This process's peak resident memory so far (bytes): its high-water mark, which only grows;
+    None where the platform does not report it.
+
+    On Linux it is the VmHWM of /proc/self/status: getrusage's ru_maxrss would carry over the
+    high-water mark of the process that started this one (Linux keeps it across fork and exec),
+    so a satsweep run from a large Python process would report that process's peak. Elsewhere
+    it is getrusage's ru_maxrss; None without a ``resource`` module (Windows).
+    """
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import resource  # noqa: PLC0415
+    except ImportError:
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    # The BSDs report kibibytes, macOS bytes.
+    return int(peak) if sys.platform == "darwin" else int(peak) * 1024
+
+
 class RunReport:
-    """What a run did: settings, device, timings per stage, and each stage's figures."""
+    """What a run did: settings, device, timings per stage, and each stage's figures.
+
+    ``peak_memory_mb`` holds the process's peak resident memory (MiB) at the end of each stage
+    (of its last entry, for a stage entered several times) and of the run ("total"): a high-water
+    mark, so the stage where it rises is the one that set the peak.
+    """
 
     def __init__(self, command: str, *, verbose: bool = True, stream: TextIO | None = None):
         self.data: dict[str, Any] = {
@@ -87,6 +117,7 @@ class RunReport:
             "settings": {},
             "device": None,
             "timings_s": {},
+            "peak_memory_mb": {},
         }
         self.verbose = verbose
         self.stream = stream if stream is not None else sys.stderr
@@ -106,6 +137,7 @@ class RunReport:
         finally:
             dt = time.perf_counter() - t
             self.data["timings_s"][name] = self.data["timings_s"].get(name, 0.0) + dt
+            self._record_peak(name)
             self.log(f"[{name}] done in {dt:.2f} s")
 
     def move_time(self, source: str, target: str, seconds: float) -> None:
@@ -125,8 +157,14 @@ class RunReport:
     def __getitem__(self, key: str) -> Any:
         return self.data[key]
 
+    def _record_peak(self, name: str) -> None:
+        peak = peak_memory_bytes()
+        if peak is not None:
+            self.data["peak_memory_mb"][name] = round(peak / 2**20, 1)
+
     def finish(self) -> dict[str, Any]:
         self.data["timings_s"]["total"] = time.perf_counter() - self._t0
+        self._record_peak("total")
         self.data["finished_utc"] = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
         return self.data
 
