@@ -96,9 +96,10 @@ class MRFOptions(Options):
     sgm_p1: float = 0.5  # SGM penalty of a one-plane height change (fraction of cost_scale);
     # tuned with tools/bench_e2e.py together with sgm_p2 and sgm_sweep_gf_radius
     # (docs/measurements.md: better on all 8 scenes of seeds 0-3 and against S2P than 0.4 / 1.0 /
-    # radius 3, and 0.4 beat 0.15 before). Much more over-smooths: a path pays max(P1, P2') to jump onto a weakly textured
-    # roof, whose census evidence is only ~0.02-0.03 cost_scale per pixel, so roofs keep the
-    # ground's height (tests/test_mrf.py weak-texture roof: p1 0.6 / p2 2.0 fails)
+    # radius 3, and 0.4 beat 0.15 before). Much more over-smooths: a path pays max(P1, P2') to
+    # jump onto a weakly textured roof, whose census evidence is only ~0.02-0.03 cost_scale per
+    # pixel, so roofs keep the ground's height (tests/test_mrf.py weak-texture roof: p1 0.6 /
+    # p2 2.0 fails)
     sgm_p2: float = 1.25  # SGM penalty of a larger jump (fraction of cost_scale), before adaptation
     sgm_sweep_gf_radius: int | None = 2  # guided-filter radius of the sweep whose costs SGM
     # refines, in place of [sweep] gf_radius (None: that one). SGM aggregates along its paths,
