@@ -216,6 +216,55 @@ def _first_band(data: np.ndarray, axes: str) -> np.ndarray:
     return data
 
 
+def _segment_shape(page) -> tuple[int, int]:
+    """(rows, columns) of a page's tiles, or of its strips (whole rows)."""
+    height = int(page.imagelength)
+    if page.is_tiled:
+        return int(page.tilelength), int(page.tilewidth)
+    rows = int(page.rowsperstrip or height)
+    return min(rows, height), int(page.imagewidth)
+
+
+def _segmented(page) -> bool:
+    """Whether a window of the page can be read segment by segment: tiles, or several strips,
+    in a layout that ``_read_segments`` places (2-D, bits in the usual order)."""
+    if int(page.imagedepth) != 1 or int(page.fillorder) != 1:
+        return False
+    seg_rows, _ = _segment_shape(page)
+    return bool(page.is_tiled) or seg_rows < int(page.imagelength)
+
+
+def _read_segments(tif, page, rows: slice, cols: slice) -> np.ndarray:
+    """The first band's window (native byte order), decoding only the tiles or strips that it
+    overlaps: a small AOI of a large compressed or tiled scene reads a small part of the file.
+
+    Segments are numbered row by row over the page's grid of tiles (or strips), the first band's
+    segments first when the bands are stored separately (planar configuration 2); a segment with
+    no bytes (a sparse file's empty block) reads as zeros, as GDAL and tifffile read it.
+    """
+    seg_rows, seg_cols = _segment_shape(page)
+    across = -(-int(page.imagewidth) // seg_cols)
+    out = np.zeros((rows.stop - rows.start, cols.stop - cols.start),
+                   page.dtype.newbyteorder("="))
+    fh = tif.filehandle
+    decode = page.decode
+    for ty in range(rows.start // seg_rows, (rows.stop - 1) // seg_rows + 1):
+        for tx in range(cols.start // seg_cols, (cols.stop - 1) // seg_cols + 1):
+            index = ty * across + tx
+            if not page.databytecounts[index]:
+                continue
+            fh.seek(page.dataoffsets[index])
+            data = fh.read(page.databytecounts[index])
+            segment, _, _ = decode(data, index, jpegtables=page.jpegtables)
+            y0, x0 = ty * seg_rows, tx * seg_cols
+            # The overlap of the segment and the window, in image coordinates.
+            r0, r1 = max(y0, rows.start), min(y0 + segment.shape[1], rows.stop)
+            c0, c1 = max(x0, cols.start), min(x0 + segment.shape[2], cols.stop)
+            out[r0 - rows.start:r1 - rows.start, c0 - cols.start:c1 - cols.start] = \
+                segment[0, r0 - y0:r1 - y0, c0 - x0:c1 - x0, 0]
+    return out
+
+
 def _window_slices(window, width: int, height: int) -> tuple[slice, slice]:
     if window is None:
         return slice(0, height), slice(0, width)
@@ -270,6 +319,8 @@ def read_image(path: str | os.PathLike, *, window: Sequence[int] | None = None) 
                 data = np.memmap(path, dtype=dtype, mode="r", offset=page.dataoffsets[0], shape=page.shape)
                 out = np.array(_first_band(data, page.axes)[rows, cols])
                 del data
+            elif window is not None and _segmented(page):
+                out = _read_segments(tif, page, rows, cols)
             else:
                 out = np.array(_first_band(page.asarray(), page.axes)[rows, cols])
         except Exception as exc:  # noqa: BLE001 - any decoder failure on this file is a format error

@@ -50,6 +50,77 @@ def test_read_image_first_band_and_windows(tmp_path, kwargs, data, band0):
     assert sio.image_shape(path) == expected.shape
 
 
+# Windows of tiled and stripped files, read segment by segment, against tifffile's decoding of the
+# whole image: windows inside one segment, across several, over the partial segments at the right
+# and bottom edges, and the whole image.
+_SEGMENT_WINDOWS = [(3, 2, 9, 7), (10, 14, 75, 50), (60, 40, 90, 70), (0, 0, 90, 70), (0, 69, 1, 70)]
+
+
+@pytest.mark.parametrize(
+    "kwargs, data, band0",
+    [
+        ({"tile": (16, 32)}, _ramp((70, 90), np.uint16), lambda a: a),
+        ({"tile": (16, 16), "compression": "zlib"}, _ramp((70, 90), np.float32), lambda a: a),
+        ({"tile": (32, 16), "compression": "zlib", "predictor": True, "byteorder": ">"},
+         _ramp((70, 90), np.int16), lambda a: a),
+        ({"rowsperstrip": 8, "compression": "zlib"}, _ramp((70, 90), np.uint16), lambda a: a),
+        ({"rowsperstrip": 5, "compression": "zlib", "predictor": True}, _ramp((70, 90), np.uint16),
+         lambda a: a),
+        ({"photometric": "rgb", "tile": (16, 16), "compression": "zlib"},
+         _ramp((70, 90, 3), np.uint8), lambda a: a[..., 0]),
+        ({"photometric": "minisblack", "planarconfig": "separate", "rowsperstrip": 8,
+          "compression": "zlib"}, _ramp((3, 70, 90), np.uint16), lambda a: a[0]),
+        ({"photometric": "minisblack", "planarconfig": "separate", "tile": (16, 16)},
+         _ramp((2, 70, 90), np.float64), lambda a: a[0]),
+    ],
+    ids=["tiled", "tiled-zlib-float32", "tiled-predictor-bigendian", "strips-zlib",
+         "strips-predictor", "rgb-tiled", "planar-strips", "planar-tiled"],
+)
+def test_read_image_windows_by_segment(tmp_path, kwargs, data, band0):
+    path = tmp_path / "img.tif"
+    tifffile.imwrite(path, data, **kwargs)
+    whole = band0(tifffile.imread(path))
+    for x0, y0, x1, y1 in _SEGMENT_WINDOWS:
+        got = sio.read_image(path, window=(x0, y0, x1, y1))
+        assert got.dtype == whole.dtype.newbyteorder("=") and got.dtype.isnative
+        np.testing.assert_array_equal(got, whole[y0:y1, x0:x1])
+
+
+def test_read_image_window_decodes_only_its_segments(tmp_path):
+    # A tile that the window does not overlap is made undecodable: the whole image can no longer
+    # be read, the window still can, so the reader did not decode that tile.
+    path = tmp_path / "img.tif"
+    data = _ramp((64, 64), np.uint16)
+    tifffile.imwrite(path, data, tile=(16, 16), compression="zlib")
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages.first
+        offset, count = page.dataoffsets[15], page.databytecounts[15]  # the last tile
+    raw = bytearray(path.read_bytes())
+    raw[offset:offset + count] = b"\xff" * count
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ImageFormatError, match="cannot decode"):
+        sio.read_image(path)
+    np.testing.assert_array_equal(sio.read_image(path, window=(2, 3, 40, 45)), data[3:45, 2:40])
+
+
+@pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
+def test_read_image_window_of_sparse_file(tmp_path):
+    # GDAL omits empty blocks with SPARSE_OK (byte count 0); they read as zeros, as GDAL reads them.
+    from rasterio.windows import Window
+
+    path = tmp_path / "sparse.tif"
+    data = _ramp((70, 90), np.uint16) + 1
+    with rasterio.open(path, "w", driver="GTiff", width=90, height=70, count=1, dtype="uint16",
+                       tiled=True, blockxsize=32, blockysize=32, sparse_ok=True,
+                       compress="deflate") as ds:
+        ds.write(data[:32, :32], 1, window=Window(0, 0, 32, 32))
+    with rasterio.open(path) as ds:
+        expected = ds.read(1)
+    assert expected[40:, 40:].max() == 0  # the file is sparse there
+    np.testing.assert_array_equal(sio.read_image(path, window=(20, 25, 80, 60)),
+                                  expected[25:60, 20:80])
+
+
 def test_read_image_window_of_real_image(pleiades_pair):
     path = pleiades_pair / "img_01.tif"
     full = tifffile.imread(path)
