@@ -58,6 +58,57 @@ def test_recovers_injected_shift_and_offset_exactly():
     assert un["median_abs_error_m"] > 1.0
 
 
+@pytest.mark.parametrize("n", [1, 2, 7, 10, 1001, 1000])
+def test_median_in_place_is_numpys_median(n):
+    rng = np.random.default_rng(n)
+    values = np.round(rng.normal(0, 3, n), 1)  # rounded: repeated values too
+    expected = float(np.median(values))
+    assert ev._median_in_place(values.copy()) == expected  # the same float, bit for bit
+
+
+def _sequential_search(pred, truth, radius):
+    """The alignment search written out plainly: shifts by distance, np.median, first best."""
+    h, w = truth.shape
+    shifts = sorted(((sx, sy) for sy in range(-radius, radius + 1)
+                     for sx in range(-radius, radius + 1)), key=lambda s: s[0] ** 2 + s[1] ** 2)
+    best = None
+    for sx, sy in shifts:
+        a = np.full_like(truth, np.nan)  # prediction sampled at cell (i + sy, j - sx)
+        rows = slice(max(0, -sy), min(h, h - sy))
+        cols = slice(max(0, sx), min(w, w + sx))
+        a[rows, cols] = pred[rows.start + sy:rows.stop + sy, cols.start - sx:cols.stop - sx]
+        both = np.isfinite(truth) & np.isfinite(a)
+        d = truth[both] - a[both]
+        dz = float(np.median(d))
+        score = float(np.median(np.abs(d - dz)))
+        if best is None or score < best[0]:
+            best = (score, sx, sy, dz)
+    return best
+
+
+@pytest.mark.parametrize("seed, ties", [(1, False), (2, False), (3, True)])
+def test_threaded_search_is_the_sequential_search(seed, ties):
+    # A noisy prediction with holes: the scores of neighbouring shifts are close, so any change
+    # in the order of comparison or in the medians would show. With ties, a flat scene makes
+    # every shift score the same and the smallest must win.
+    rng = np.random.default_rng(seed)
+    if ties:
+        truth = np.full((30, 40), 2340.0)
+        pred = truth + 0.7
+    else:
+        truth = _scene(30, 40, seed)
+        pred = np.roll(truth, (1, -1), axis=(0, 1)) + rng.normal(0, 0.3, truth.shape) + 0.7
+    pred[rng.random(pred.shape) < 0.1] = np.nan
+    res = 0.5
+    got = ev.evaluate_arrays(pred, truth, res, ev.EvaluateOptions())["aligned"]
+    score, sx, sy, dz = _sequential_search(pred, truth, radius=4)
+    assert got["shift"] == {"dx_m": sx * res, "dy_m": sy * res, "dz_m": dz}
+    # The reported median is recomputed on the aligned prediction (pred + dz - truth).
+    assert math.isclose(got["median_abs_error_m"], score, abs_tol=EXACT_TOL_M)
+    if ties:
+        assert (sx, sy) == (0, 0) and score == 0.0
+
+
 def test_shift_outside_the_radius_is_not_found():
     truth = _scene()
     pred = np.full_like(truth, np.nan)
