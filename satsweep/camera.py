@@ -880,7 +880,8 @@ def build_cameras(views: Sequence[Any], aoi: "AOI", alt_range: "AltitudeRange",
         if cam.error.max_px > options.warn_error_px:
             warnings.append(
                 f"{path}: perspective approximation error up to {cam.error.max_px:.3f} px "
-                f"(> {options.warn_error_px:g} px) over the AOI; use a smaller AOI or tile it"
+                f"(> {options.warn_error_px:g} px) over the AOI; use a smaller AOI (satsweep "
+                f"reconstruct tiles it: a smaller [reconstruct] tile_m)"
             )
     return CameraSet(frame=frame, utm_epsg=epsg, aoi=aoi, alt_range=alt_range, d=d,
                      views=tuple(out), warnings=tuple(warnings))

@@ -25,6 +25,10 @@ from .sweep import SweepOptions
 from .viewselect import ViewSelectionOptions
 
 
+# Smallest tile side: a tile needs room for its own tie points and for the sweep's context.
+MIN_TILE_M = 50.0
+
+
 @dataclasses.dataclass(frozen=True)
 class ReconstructOptions(Options):
     """Options of the orchestration itself (the stages have their own tables)."""
@@ -41,6 +45,10 @@ class ReconstructOptions(Options):
     # are swept (satsweep.tiepoints; Pleiades pair: 2271.9..2373.0 m, S2P's DSM 2273.8..2373.2 m)
     tie_altitude_margin_m: float = 20.0  # ... widened by this much (m) on each side: tie points
     # are scarce on the lowest ground and the highest roofs
+    tile_m: float = 1000.0  # an AOI wider or taller than this (m) is reconstructed in tiles of
+    # at most this side, each with its own cameras (satsweep.tiling): the perspective
+    # approximation of a Pleiades RPC is within 0.095 px over 1 km, 0.43 px over 4 km; 0: never
+    tile_overlap_m: float = 50.0  # context (m) each tile is reconstructed with beyond its cells
 
     def check(self) -> None:
         self._require(self.device is None or bool(self.device.strip()), "device",
@@ -50,6 +58,12 @@ class ReconstructOptions(Options):
                       "must be in [0, 0.5)")
         self._require(math.isfinite(self.tie_altitude_margin_m) and self.tie_altitude_margin_m >= 0.0,
                       "tie_altitude_margin_m", "must be a finite number of metres >= 0")
+        self._require(self.tile_m == 0.0 or (math.isfinite(self.tile_m)
+                                             and self.tile_m >= MIN_TILE_M),
+                      "tile_m", f"must be 0 (no tiling) or at least {MIN_TILE_M:g} metres")
+        self._require(math.isfinite(self.tile_overlap_m) and self.tile_overlap_m >= 0.0
+                      and (self.tile_m == 0.0 or self.tile_overlap_m <= self.tile_m),
+                      "tile_overlap_m", "must be a number of metres in [0, tile_m]")
 
 
 SECTIONS: dict[str, type[Options]] = {

@@ -11,6 +11,10 @@ Stages (each timed in the report):
             over each pixel's footprint (ENU -> UTM) -> per-view rasters -> fusion -> filling
   outputs   dsm.tif, confidence.tif, cloud.ply, dsm.png, cameras.json, config.toml, report.json
 
+An AOI wider or taller than ``[reconstruct] tile_m`` runs every stage from views to the DSM's
+fusion tile by tile (``satsweep.tiling``: each tile with its own cameras); the tiles' cores fill
+one DSM grid, whose holes are then filled, and the outputs are written once.
+
 Outputs are first written into a hidden staging folder inside DIR and renamed into DIR only
 when every stage has succeeded: a failed run leaves what DIR held before untouched.
 """
@@ -35,6 +39,7 @@ from .errors import CameraError, DeviceError, InputError, OptionsError, Satsweep
 from .report import RunReport, to_json
 
 if TYPE_CHECKING:
+    from .camera import CameraSet
     from .mrf import MRFOptions
     from .sweep import SweepOptions
 
@@ -159,13 +164,10 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
 
 def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: PipelineConfig,
                  truth, verbose: bool, command: str) -> ReconstructResult:
-    from . import camera as scam
-    from .bundle import adjust_principal_points
     from .device import open_device
-    from .imageio import tonemap
-    from .tiepoints import altitude_range_for_images
-    from .views import load_views
-    from .viewselect import select_views
+    from .dsm import dsm_grid_for_aoi, fill_small_holes
+    from .geo import utm_epsg
+    from .tiling import plan_tiles, sub_grid
 
     _start_preloading()
     rep = RunReport(command, verbose=verbose)
@@ -177,7 +179,103 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     rep["device"] = device.info.as_dict()
     rep.log(f"device: {device.info.label}")
 
+    # The DSM grid: the UTM zone of the AOI centre (every tile's, too), cells of --resolution.
+    lon_c, lat_c = aoi.center
+    grid = dsm_grid_for_aoi(aoi, config.dsm.resolution, epsg=utm_epsg(lon=lon_c, lat=lat_c))
+    r = config.reconstruct
+    tiles = plan_tiles(aoi, grid, tile_m=r.tile_m, overlap_m=r.tile_overlap_m)
+    rep["tiling"] = {"tile_m": r.tile_m, "overlap_m": r.tile_overlap_m, "tiles": len(tiles)}
     names = [Path(p).name for p in paths]
+    camera_sets = []  # one per tile; the tiles' rasters are dropped once pasted
+    if len(tiles) == 1:
+        area = _reconstruct_area(paths, aoi, grid, rep, device, alt_range=alt_range, dem=dem,
+                                 config=config, names=names)
+        fused, conf, clouds = area.dsm, area.confidence, area.clouds
+        camera_sets.append(area.cameras)
+        area_dsm_info = area.dsm_info
+    else:
+        rep.log(f"AOI of {grid.width * grid.resolution:.0f} m x {grid.height * grid.resolution:.0f}"
+                f" m: {len(tiles)} tiles of at most {r.tile_m:g} m, each with its own cameras")
+        rep["aoi_tiles"] = []
+        fused = np.full(grid.shape, np.nan, np.float32)
+        conf = np.full(grid.shape, np.nan, np.float32)
+        clouds = []
+        for tile in tiles:
+            rep.log(f"tile {tile.index + 1}/{len(tiles)}: cells {tile.core}")
+            entry = tile.to_dict()
+            rep["aoi_tiles"].append(entry)
+            area = _reconstruct_area(paths, tile.aoi, tile.grid, rep.section(entry), device,
+                                     alt_range=alt_range, dem=dem, config=config, names=names)
+            camera_sets.append(area.cameras)
+            rows, cols = tile.core_in_window
+            r0, r1, c0, c1 = tile.core
+            fused[r0:r1, c0:c1] = area.dsm[rows, cols]
+            conf[r0:r1, c0:c1] = area.confidence[rows, cols]
+            core = sub_grid(grid, *tile.core)
+            clouds += [_cloud_in(c, core) for c in area.clouds]
+        area_dsm_info = {}  # each tile's figures are in its entry
+
+    d = config.dsm
+    with rep.stage("dsm"):
+        filled = 0
+        if d.fill_max_hole_cells > 0:
+            fused, filled = fill_small_holes(fused, max_hole_cells=d.fill_max_hole_cells,
+                                             method=d.fill_method)
+        rep["dsm"] = {
+            "epsg": grid.epsg, "resolution_m": grid.resolution, "width": grid.width,
+            "height": grid.height, "x_min": grid.x_min, "y_max": grid.y_max,
+            "filled_fraction": float(np.isfinite(fused).mean()),
+            "holes_filled_cells": int(filled),
+            **area_dsm_info,
+        }
+    dsm_path, evaluation = _write_outputs(fused, conf, clouds, grid, config, rep, out, truth)
+
+    with rep.stage("outputs"):
+        from .camera import write_cameras
+
+        if len(tiles) == 1:
+            write_cameras(out.staging, camera_sets[0])
+        else:
+            for tile, cameras in zip(tiles, camera_sets):
+                write_cameras(out.staging / "tiles" / f"tile_{tile.index:02d}", cameras)
+        out.path("config.toml").write_text(config.to_toml(), encoding="utf-8")
+    report = rep.finish()
+    out.path("report.json").write_text(rep.to_json() + "\n", encoding="utf-8")
+    return ReconstructResult(out_dir=out.out_dir, dsm_path=out.out_dir / dsm_path.name,
+                             report=report, evaluation=evaluation)
+
+
+@dataclasses.dataclass
+class _Area:
+    """What one area (the AOI, or one of its tiles) gives: its DSM on its grid before hole
+    filling, the confidence raster, each reference view's cloud, its cameras and DSM figures."""
+
+    dsm: np.ndarray
+    confidence: np.ndarray
+    clouds: list
+    cameras: "CameraSet"
+    dsm_info: dict
+
+
+def _cloud_in(cloud, grid) -> tuple:
+    """The points of a cloud (x, y, z, colours) whose DSM cell lies in ``grid``."""
+    x, y, z, colours = cloud
+    i, j = grid.cell_of(x=x, y=y)
+    keep = (i >= 0) & (i < grid.height) & (j >= 0) & (j < grid.width)
+    return x[keep], y[keep], z[keep], None if colours is None else colours[keep]
+
+
+def _reconstruct_area(paths, aoi, grid, rep, device, *, alt_range, dem, config: PipelineConfig,
+                      names) -> _Area:
+    """Every stage from the views to the DSM rasters, for one area: the AOI, or one tile of it
+    (``rep`` is then the tile's section of the report)."""
+    from . import camera as scam
+    from .bundle import adjust_principal_points
+    from .imageio import tonemap
+    from .tiepoints import altitude_range_for_images
+    from .views import load_views
+    from .viewselect import select_views
+
     if alt_range is None and dem is None:
         # Neither a range nor a DEM: the RPCs' range (kilometres), narrowed by tie points.
         with rep.stage("altitude"):
@@ -243,17 +341,8 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
 
     per_view = _sweep_references(device, cameras, images, selection, u_range, config, rep, names,
                                  aoi=aoi, alt_range=alt)
-
-    dsm_path, evaluation = _make_dsm(per_view, cameras, images, aoi, config, rep, out, truth, names)
-
-    with rep.stage("outputs"):
-        scam.write_cameras(out.staging, cameras)
-        out.path("config.toml").write_text(config.to_toml(), encoding="utf-8")
-    report = rep.finish()
-    out.path("report.json").write_text(rep.to_json() + "\n", encoding="utf-8")
-    return ReconstructResult(out_dir=out.out_dir, dsm_path=out.out_dir / dsm_path.name,
-                             report=report, evaluation=evaluation)
-
+    dsm, confidence, clouds, info = _area_rasters(per_view, cameras, images, grid, config, rep)
+    return _Area(dsm=dsm, confidence=confidence, clouds=clouds, cameras=cameras, dsm_info=info)
 
 # Smallest interior side (pixels) of an MRF tile (below it, overlaps dominate the work).
 MIN_MRF_TILE_PX = 64
@@ -682,18 +771,16 @@ def _enu_to_map(frame, epsg: int, points: list[tuple[np.ndarray, ...]]):
                         u_range=(lo[2], hi[2]))
 
 
-def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunReport,
-              out: OutputFolder, truth, names):
-    from .dsm import (cross_check_heights, dsm_grid_for_aoi, fill_small_holes, flat_cells,
-                      fuse_dsms, height_map_to_enu, map_view_points, rasterise_max_cells,
-                      write_dsm_geotiff)
-    from .imageio import write_geotiff
-    from .ply import write_ply
-    from .render import height_png
+def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep):
+    """The "dsm" stage of one area on its ``grid``: each reference view's height map ->
+    cross-check -> points over each pixel's footprint (ENU -> UTM) -> per-view rasters ->
+    fusion. Returns (DSM before hole filling, confidence raster, one cloud (x, y, z, grey
+    colours) per reference view, the stage's figures, also set as ``rep["dsm"]``)."""
+    from .dsm import (cross_check_heights, flat_cells, fuse_dsms, height_map_to_enu,
+                      map_view_points, rasterise_max_cells)
 
     d = config.dsm
     with rep.stage("dsm"):
-        grid = dsm_grid_for_aoi(aoi, d.resolution, epsg=cameras.utm_epsg)
         heights = [np.where(pv["valid"], pv["height"], np.nan) for pv in per_view]
         projections = [cameras.views[pv["index"]].camera.P for pv in per_view]
         # Every view's pixel centres in ENU (solved once: the cross-check reads them too), one
@@ -722,23 +809,14 @@ def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunRe
             if not config.reconstruct.write_cloud:
                 continue
             gray = np.clip(np.nan_to_num(images[pv["index"]]) * 255.0, 0, 255).astype(np.uint8)
-            # The cloud covers the AOI's DSM grid, like the DSM (the crops extend beyond it).
+            # The cloud covers the area's DSM grid, like the DSM (the crops extend beyond it).
             keep = ((x >= grid.x_min) & (x <= grid.x_min + grid.width * grid.resolution)
                     & (y <= grid.y_max) & (y >= grid.y_max - grid.height * grid.resolution))
             clouds.append((x[keep], y[keep], z[keep],
                            np.repeat(gray.ravel()[pixel[keep]][:, None], 3, axis=1)))
-        fused, count = fuse_dsms(rasters, outlier_m=d.outlier_m, min_views=d.min_views)
-        filled = 0
-        if d.fill_max_hole_cells > 0:
-            fused, filled = fill_small_holes(fused, max_hole_cells=d.fill_max_hole_cells,
-                                             method=d.fill_method)
+        fused, _count = fuse_dsms(rasters, outlier_m=d.outlier_m, min_views=d.min_views)
         conf = _nanmean_stack(conf_rasters, grid.shape)
-        valid_cells = np.isfinite(fused)
-        rep["dsm"] = {
-            "epsg": grid.epsg, "resolution_m": grid.resolution, "width": grid.width,
-            "height": grid.height, "x_min": grid.x_min, "y_max": grid.y_max,
-            "filled_fraction": float(valid_cells.mean()),
-            "holes_filled_cells": int(filled),
+        info = {
             "cross_check": ({"tolerance_m": d.cross_check_m, "views": d.cross_check_views,
                              "kept_fraction": [float(k.sum() / max(1, np.isfinite(h).sum()))
                                                for k, h in zip(checked, heights)]}
@@ -746,6 +824,19 @@ def _make_dsm(per_view, cameras, images, aoi, config: PipelineConfig, rep: RunRe
             "per_view_filled_fraction": [float(np.isfinite(a).mean()) for a in rasters],
             "enu_to_map": {"polynomial": to_map.accurate, "max_error_m": to_map.max_error_m},
         }
+        rep["dsm"] = info
+    return fused, conf, clouds, info
+
+
+def _write_outputs(fused, conf, clouds, grid, config: PipelineConfig, rep: RunReport,
+                   out: OutputFolder, truth):
+    """The "outputs" stage's rasters and cloud, then the evaluation against ``truth`` if given.
+    Returns (the DSM's path in the staging folder, the evaluation or None)."""
+    from .dsm import write_dsm_geotiff
+    from .imageio import write_geotiff
+    from .ply import write_ply
+    from .render import height_png
+
     with rep.stage("outputs"):
         dsm_path = out.path("dsm.tif")
         write_dsm_geotiff(dsm_path, fused.astype(np.float32), grid)

@@ -1,0 +1,107 @@
+"""AOI tiling: a large AOI is reconstructed tile by tile, each tile with its own cameras.
+
+The perspective approximation of an RPC holds over a limited area only. Measured on the Pleiades
+pair's RPC (``satsweep.camera.approximate_camera``, altitudes 2260..2390 m), the largest error
+against the RPC over a square AOI of side 300 m / 1 km / 2 km / 4 km / 10 km is 0.03 / 0.095 /
+0.19 / 0.43 / 1.9 px (at 0.5 px per metre of height, 1.9 px is almost 4 m). So, as S2P does, an
+AOI wider or taller than ``[reconstruct] tile_m`` is cut into tiles of at most that side: each
+tile is reconstructed on its own (crops, cameras, bundle adjustment, sweep, DSM) over its core
+grown by ``tile_overlap_m`` of context on every side, and only its core's cells go into the DSM.
+The cores partition the AOI's DSM grid, so every cell comes from exactly one tile.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .aoi import AOI
+from .dsm import DSMGrid
+from .errors import OptionsError
+
+# Points per edge of a tile's outline when it is mapped from UTM to lon/lat (the box of the
+# mapped outline holds the tile; UTM grid lines are not meridians and parallels).
+OUTLINE_SAMPLES = 16
+
+
+@dataclasses.dataclass(frozen=True)
+class Tile:
+    """One tile of an AOI's DSM grid; cell ranges are (r0, r1, c0, c1), ends excluded."""
+
+    index: int  # position in the list: row by row from the north-west
+    row: int  # row of the tile in the tile grid (north first)
+    col: int  # column of the tile in the tile grid (west first)
+    core: tuple[int, int, int, int]  # the AOI grid's cells this tile fills
+    window: tuple[int, int, int, int]  # the AOI grid's cells it is reconstructed on: the core
+    # grown by the overlap, within the grid
+    grid: DSMGrid  # ``window`` as a grid of its own (same CRS, cells and resolution)
+    aoi: AOI  # lon/lat box of ``grid``, within the AOI: what the tile's views must see
+
+    @property
+    def core_in_window(self) -> tuple[slice, slice]:
+        """(rows, columns) of the core within the tile's own grid."""
+        r0, r1, c0, c1 = self.core
+        return slice(r0 - self.window[0], r1 - self.window[0]), \
+            slice(c0 - self.window[2], c1 - self.window[2])
+
+    def to_dict(self) -> dict:
+        return {"index": self.index, "row": self.row, "col": self.col,
+                "core_cells": list(self.core), "window_cells": list(self.window),
+                "aoi": dataclasses.asdict(self.aoi)}
+
+
+def _edges(n: int, parts: int) -> list[int]:
+    """parts + 1 increasing integer edges from 0 to n, as even as possible."""
+    return [int(round(k * n / parts)) for k in range(parts + 1)]
+
+
+def sub_grid(grid: DSMGrid, r0: int, r1: int, c0: int, c1: int) -> DSMGrid:
+    """The cells r0:r1, c0:c1 of ``grid`` as a grid of their own."""
+    return DSMGrid(epsg=grid.epsg, x_min=grid.x_min + c0 * grid.resolution,
+                   y_max=grid.y_max - r0 * grid.resolution, resolution=grid.resolution,
+                   width=c1 - c0, height=r1 - r0)
+
+
+def grid_lonlat_box(grid: DSMGrid) -> tuple[float, float, float, float]:
+    """(lon_min, lat_min, lon_max, lat_max) of a grid's outline, densified before mapping."""
+    from .geo import utm_to_lonlat  # noqa: PLC0415
+
+    t = np.linspace(0.0, 1.0, OUTLINE_SAMPLES)
+    x0, x1, y0, y1 = grid.x_min, grid.x_max, grid.y_min, grid.y_max
+    xs = np.concatenate([x0 + t * (x1 - x0), np.full_like(t, x1), x1 - t * (x1 - x0), np.full_like(t, x0)])
+    ys = np.concatenate([np.full_like(t, y0), y0 + t * (y1 - y0), np.full_like(t, y1), y1 - t * (y1 - y0)])
+    lon, lat = utm_to_lonlat(x=xs, y=ys, epsg=grid.epsg)
+    return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
+
+
+def plan_tiles(aoi: AOI, grid: DSMGrid, *, tile_m: float, overlap_m: float) -> list[Tile]:
+    """The tiles of ``aoi``'s DSM ``grid``: one (the whole AOI) when both sides are at most
+    ``tile_m`` metres or ``tile_m`` is 0, else the fewest tiles of at most ``tile_m`` per side,
+    of equal size to a cell, each reconstructed with ``overlap_m`` of context around it."""
+    if not (math.isfinite(tile_m) and tile_m >= 0.0):
+        raise OptionsError(f"tile_m = {tile_m!r}: must be a finite number of metres >= 0")
+    if not (math.isfinite(overlap_m) and overlap_m >= 0.0):
+        raise OptionsError(f"tile_overlap_m = {overlap_m!r}: must be a finite number of metres >= 0")
+    res = grid.resolution
+    full = (0, grid.height, 0, grid.width)
+    if tile_m == 0.0 or (grid.width * res <= tile_m and grid.height * res <= tile_m):
+        return [Tile(index=0, row=0, col=0, core=full, window=full, grid=grid, aoi=aoi)]
+    cells_max = max(1, int(math.floor(tile_m / res + 1e-9)))
+    rows = _edges(grid.height, -(-grid.height // cells_max))
+    cols = _edges(grid.width, -(-grid.width // cells_max))
+    grow = int(math.ceil(overlap_m / res - 1e-9))
+    tiles = []
+    for i in range(len(rows) - 1):
+        for j in range(len(cols) - 1):
+            core = (rows[i], rows[i + 1], cols[j], cols[j + 1])
+            window = (max(0, core[0] - grow), min(grid.height, core[1] + grow),
+                      max(0, core[2] - grow), min(grid.width, core[3] + grow))
+            tile_grid = sub_grid(grid, *window)
+            lon0, lat0, lon1, lat1 = grid_lonlat_box(tile_grid)
+            tile_aoi = AOI(max(lon0, aoi.lon_min), max(lat0, aoi.lat_min),
+                           min(lon1, aoi.lon_max), min(lat1, aoi.lat_max))
+            tiles.append(Tile(index=len(tiles), row=i, col=j, core=core, window=window,
+                              grid=tile_grid, aoi=tile_aoi))
+    return tiles
