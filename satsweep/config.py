@@ -22,11 +22,8 @@ from .mrf import MRFOptions
 from .options import Options, dumps_toml, load_toml
 from .sparse import SparseOptions
 from .sweep import SweepOptions
+from .tiling import MIN_TILE_M
 from .viewselect import ViewSelectionOptions
-
-
-# Smallest tile side: a tile needs room for its own tie points and for the sweep's context.
-MIN_TILE_M = 50.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +46,10 @@ class ReconstructOptions(Options):
     # at most this side, each with its own cameras (satsweep.tiling): the perspective
     # approximation of a Pleiades RPC is within 0.095 px over 1 km, 0.43 px over 4 km; 0: never
     tile_overlap_m: float = 50.0  # context (m) each tile is reconstructed with beyond its cells
+    tile_max_error_px: float = 0.1  # an area (the AOI or a tile) whose perspective
+    # approximations are further than this from their RPCs (px) is cut again in 2 x 2, down to
+    # tiles of 50 m: the error depends on the sensor (at 1 km, 0.05-0.11 px for WorldView,
+    # Pleiades and SPOT RPCs, 0.5-0.6 px for PlanetScope's); 0: never cut for it
 
     def check(self) -> None:
         self._require(self.device is None or bool(self.device.strip()), "device",
@@ -64,6 +65,8 @@ class ReconstructOptions(Options):
         self._require(math.isfinite(self.tile_overlap_m) and self.tile_overlap_m >= 0.0
                       and (self.tile_m == 0.0 or self.tile_overlap_m <= self.tile_m),
                       "tile_overlap_m", "must be a number of metres in [0, tile_m]")
+        self._require(math.isfinite(self.tile_max_error_px) and self.tile_max_error_px >= 0.0,
+                      "tile_max_error_px", "must be a number of pixels >= 0 (0: off)")
 
 
 SECTIONS: dict[str, type[Options]] = {

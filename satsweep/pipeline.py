@@ -167,7 +167,7 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     from .device import open_device
     from .dsm import dsm_grid_for_aoi, fill_small_holes
     from .geo import utm_epsg
-    from .tiling import plan_tiles, sub_grid
+    from .tiling import MIN_TILE_M, can_split, plan_tiles, split_tile, sub_grid
 
     _start_preloading()
     rep = RunReport(command, verbose=verbose)
@@ -183,37 +183,51 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     lon_c, lat_c = aoi.center
     grid = dsm_grid_for_aoi(aoi, config.dsm.resolution, epsg=utm_epsg(lon=lon_c, lat=lat_c))
     r = config.reconstruct
-    tiles = plan_tiles(aoi, grid, tile_m=r.tile_m, overlap_m=r.tile_overlap_m)
-    rep["tiling"] = {"tile_m": r.tile_m, "overlap_m": r.tile_overlap_m, "tiles": len(tiles)}
-    names = [Path(p).name for p in paths]
-    camera_sets = []  # one per tile; the tiles' rasters are dropped once pasted
-    if len(tiles) == 1:
-        area = _reconstruct_area(paths, aoi, grid, rep, device, alt_range=alt_range, dem=dem,
-                                 config=config, names=names)
-        fused, conf, clouds = area.dsm, area.confidence, area.clouds
-        camera_sets.append(area.cameras)
-        area_dsm_info = area.dsm_info
-    else:
+    pending = plan_tiles(aoi, grid, tile_m=r.tile_m, overlap_m=r.tile_overlap_m)
+    if len(pending) > 1:
         rep.log(f"AOI of {grid.width * grid.resolution:.0f} m x {grid.height * grid.resolution:.0f}"
-                f" m: {len(tiles)} tiles of at most {r.tile_m:g} m, each with its own cameras")
-        rep["aoi_tiles"] = []
-        fused = np.full(grid.shape, np.nan, np.float32)
-        conf = np.full(grid.shape, np.nan, np.float32)
-        clouds = []
-        for tile in tiles:
-            rep.log(f"tile {tile.index + 1}/{len(tiles)}: cells {tile.core}")
-            entry = tile.to_dict()
-            rep["aoi_tiles"].append(entry)
-            area = _reconstruct_area(paths, tile.aoi, tile.grid, rep.section(entry), device,
-                                     alt_range=alt_range, dem=dem, config=config, names=names)
-            camera_sets.append(area.cameras)
-            rows, cols = tile.core_in_window
-            r0, r1, c0, c1 = tile.core
-            fused[r0:r1, c0:c1] = area.dsm[rows, cols]
-            conf[r0:r1, c0:c1] = area.confidence[rows, cols]
+                f" m: {len(pending)} tiles of at most {r.tile_m:g} m, each with its own cameras")
+    names = [Path(p).name for p in paths]
+    fused = np.full(grid.shape, np.nan, np.float32)
+    conf = np.full(grid.shape, np.nan, np.float32)
+    clouds, done, splits = [], [], []  # done: (tile, its report entry, its cameras)
+    while pending:
+        tile = pending.pop(0)
+        entry = tile.to_dict()
+        if len(pending) + len(done) > 0 or tile.level > 0:
+            rep.log(f"tile {len(done) + 1}/{len(done) + len(pending) + 1}: cells {tile.core}")
+        split_above = r.tile_max_error_px if can_split(tile, grid, MIN_TILE_M) else 0.0
+        area = _reconstruct_area(paths, tile.aoi, tile.grid, rep.section(entry), device,
+                                 alt_range=alt_range, dem=dem, config=config, names=names,
+                                 split_above_px=split_above)
+        if area is None:  # the cameras are too far from the RPCs over this tile: cut it again
+            error = max(e["max"] for e in entry["cameras"]["approx_error_px"].values())
+            parts = split_tile(tile, aoi, grid, overlap_m=r.tile_overlap_m, min_m=MIN_TILE_M)
+            rep.log(f"cameras up to {error:.3f} px from the RPCs over cells {tile.core} (more "
+                    f"than tile_max_error_px = {r.tile_max_error_px:g}): {len(parts)} tiles")
+            splits.append({"core_cells": list(tile.core), "max_error_px": error,
+                           "into": len(parts)})
+            pending[:0] = parts
+            continue
+        rows, cols = tile.core_in_window
+        r0, r1, c0, c1 = tile.core
+        fused[r0:r1, c0:c1] = area.dsm[rows, cols]
+        conf[r0:r1, c0:c1] = area.confidence[rows, cols]
+        if tile.core == (0, grid.height, 0, grid.width):
+            clouds += area.clouds  # the whole AOI: its points over the grid, as kept by its area
+        else:
             core = sub_grid(grid, *tile.core)
             clouds += [_cloud_in(c, core) for c in area.clouds]
-        area_dsm_info = {}  # each tile's figures are in its entry
+        done.append((tile, entry, area.cameras))
+    tiled = len(done) > 1
+    rep["tiling"] = {"tile_m": r.tile_m, "overlap_m": r.tile_overlap_m,
+                     "max_error_px": r.tile_max_error_px, "tiles": len(done), "splits": splits}
+    if tiled:
+        rep["aoi_tiles"] = [entry for _, entry, _ in done]
+    else:  # one piece: its figures at the top of the report, as they always were
+        for key, value in done[0][1].items():
+            if key not in ("core_cells", "window_cells", "level", "aoi"):
+                rep[key] = value
 
     d = config.dsm
     with rep.stage("dsm"):
@@ -226,18 +240,17 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
             "height": grid.height, "x_min": grid.x_min, "y_max": grid.y_max,
             "filled_fraction": float(np.isfinite(fused).mean()),
             "holes_filled_cells": int(filled),
-            **area_dsm_info,
+            **({} if tiled else done[0][1]["dsm"]),  # a tile's own figures are in its entry
         }
     dsm_path, evaluation = _write_outputs(fused, conf, clouds, grid, config, rep, out, truth)
 
     with rep.stage("outputs"):
         from .camera import write_cameras
 
-        if len(tiles) == 1:
-            write_cameras(out.staging, camera_sets[0])
-        else:
-            for tile, cameras in zip(tiles, camera_sets):
-                write_cameras(out.staging / "tiles" / f"tile_{tile.index:02d}", cameras)
+        if not tiled:
+            write_cameras(out.staging, done[0][2])
+        for k, (_, _, cameras) in enumerate(done if tiled else []):
+            write_cameras(out.staging / "tiles" / f"tile_{k:02d}", cameras)
         out.path("config.toml").write_text(config.to_toml(), encoding="utf-8")
     report = rep.finish()
     out.path("report.json").write_text(rep.to_json() + "\n", encoding="utf-8")
@@ -266,9 +279,11 @@ def _cloud_in(cloud, grid) -> tuple:
 
 
 def _reconstruct_area(paths, aoi, grid, rep, device, *, alt_range, dem, config: PipelineConfig,
-                      names) -> _Area:
-    """Every stage from the views to the DSM rasters, for one area: the AOI, or one tile of it
-    (``rep`` is then the tile's section of the report)."""
+                      names, split_above_px: float = 0.0) -> _Area | None:
+    """Every stage from the views to the DSM rasters, for one area (the AOI or one tile of it)
+    on its ``grid``, its figures set in ``rep`` (a section of the run's report). None, after the
+    cameras stage, when a view's perspective approximation is further than ``split_above_px``
+    (> 0) from its RPC: the caller cuts the area."""
     from . import camera as scam
     from .bundle import adjust_principal_points
     from .imageio import tonemap
@@ -304,6 +319,8 @@ def _reconstruct_area(paths, aoi, grid, rep, device, *, alt_range, dem, config: 
         }
         for w in cameras.warnings:
             rep.log(f"warning: {w}")
+    if split_above_px > 0.0 and max(v.camera.error.max_px for v in cameras.views) > split_above_px:
+        return None
 
     # The kernels the sweep stage will need, built in the background meanwhile.
     device.prebuild(program_forecast(device, cameras, enu_height_range(cameras.frame, aoi, alt),

@@ -8,6 +8,11 @@ AOI wider or taller than ``[reconstruct] tile_m`` is cut into tiles of at most t
 tile is reconstructed on its own (crops, cameras, bundle adjustment, sweep, DSM) over its core
 grown by ``tile_overlap_m`` of context on every side, and only its core's cells go into the DSM.
 The cores partition the AOI's DSM grid, so every cell comes from exactly one tile.
+
+The error also depends on the sensor (at 1 km: 0.01 px for a SkySat RPC, 0.05-0.11 px for
+WorldView, Pleiades and SPOT ones, 0.5-0.6 px for PlanetScope's), so an area (the AOI, or a
+tile) whose cameras are further than ``[reconstruct] tile_max_error_px`` from their RPCs is cut
+again, in 2 x 2 (``split_tile``), down to ``MIN_TILE_M``.
 """
 
 from __future__ import annotations
@@ -21,6 +26,9 @@ from .aoi import AOI
 from .dsm import DSMGrid
 from .errors import OptionsError
 
+# Smallest tile side (m): a tile needs room for its own tie points and for the sweep's context.
+MIN_TILE_M = 50.0
+
 # Points per edge of a tile's outline when it is mapped from UTM to lon/lat (the box of the
 # mapped outline holds the tile; UTM grid lines are not meridians and parallels).
 OUTLINE_SAMPLES = 16
@@ -30,14 +38,12 @@ OUTLINE_SAMPLES = 16
 class Tile:
     """One tile of an AOI's DSM grid; cell ranges are (r0, r1, c0, c1), ends excluded."""
 
-    index: int  # position in the list: row by row from the north-west
-    row: int  # row of the tile in the tile grid (north first)
-    col: int  # column of the tile in the tile grid (west first)
     core: tuple[int, int, int, int]  # the AOI grid's cells this tile fills
     window: tuple[int, int, int, int]  # the AOI grid's cells it is reconstructed on: the core
     # grown by the overlap, within the grid
     grid: DSMGrid  # ``window`` as a grid of its own (same CRS, cells and resolution)
     aoi: AOI  # lon/lat box of ``grid``, within the AOI: what the tile's views must see
+    level: int = 0  # how many times a tile was split to make this one
 
     @property
     def core_in_window(self) -> tuple[slice, slice]:
@@ -47,9 +53,8 @@ class Tile:
             slice(c0 - self.window[2], c1 - self.window[2])
 
     def to_dict(self) -> dict:
-        return {"index": self.index, "row": self.row, "col": self.col,
-                "core_cells": list(self.core), "window_cells": list(self.window),
-                "aoi": dataclasses.asdict(self.aoi)}
+        return {"core_cells": list(self.core), "window_cells": list(self.window),
+                "level": self.level, "aoi": dataclasses.asdict(self.aoi)}
 
 
 def _edges(n: int, parts: int) -> list[int]:
@@ -76,25 +81,23 @@ def grid_lonlat_box(grid: DSMGrid) -> tuple[float, float, float, float]:
     return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
 
 
-def plan_tiles(aoi: AOI, grid: DSMGrid, *, tile_m: float, overlap_m: float) -> list[Tile]:
-    """The tiles of ``aoi``'s DSM ``grid``: one (the whole AOI) when both sides are at most
-    ``tile_m`` metres or ``tile_m`` is 0, else the fewest tiles of at most ``tile_m`` per side,
-    of equal size to a cell, each reconstructed with ``overlap_m`` of context around it."""
+def _check(tile_m: float, overlap_m: float) -> None:
     if not (math.isfinite(tile_m) and tile_m >= 0.0):
         raise OptionsError(f"tile_m = {tile_m!r}: must be a finite number of metres >= 0")
     if not (math.isfinite(overlap_m) and overlap_m >= 0.0):
         raise OptionsError(f"tile_overlap_m = {overlap_m!r}: must be a finite number of metres >= 0")
-    res = grid.resolution
-    full = (0, grid.height, 0, grid.width)
-    if tile_m == 0.0 or (grid.width * res <= tile_m and grid.height * res <= tile_m):
-        return [Tile(index=0, row=0, col=0, core=full, window=full, grid=grid, aoi=aoi)]
-    cells_max = max(1, int(math.floor(tile_m / res + 1e-9)))
-    rows = _edges(grid.height, -(-grid.height // cells_max))
-    cols = _edges(grid.width, -(-grid.width // cells_max))
-    grow = int(math.ceil(overlap_m / res - 1e-9))
+
+
+def _tiles_of(aoi: AOI, grid: DSMGrid, region: tuple[int, int, int, int], n_rows: int,
+              n_cols: int, overlap_m: float, level: int) -> list[Tile]:
+    """``region`` of the AOI's ``grid`` cut into n_rows x n_cols tiles, row by row."""
+    r0, r1, c0, c1 = region
+    rows = [r0 + e for e in _edges(r1 - r0, n_rows)]
+    cols = [c0 + e for e in _edges(c1 - c0, n_cols)]
+    grow = int(math.ceil(overlap_m / grid.resolution - 1e-9))
     tiles = []
-    for i in range(len(rows) - 1):
-        for j in range(len(cols) - 1):
+    for i in range(n_rows):
+        for j in range(n_cols):
             core = (rows[i], rows[i + 1], cols[j], cols[j + 1])
             window = (max(0, core[0] - grow), min(grid.height, core[1] + grow),
                       max(0, core[2] - grow), min(grid.width, core[3] + grow))
@@ -102,6 +105,37 @@ def plan_tiles(aoi: AOI, grid: DSMGrid, *, tile_m: float, overlap_m: float) -> l
             lon0, lat0, lon1, lat1 = grid_lonlat_box(tile_grid)
             tile_aoi = AOI(max(lon0, aoi.lon_min), max(lat0, aoi.lat_min),
                            min(lon1, aoi.lon_max), min(lat1, aoi.lat_max))
-            tiles.append(Tile(index=len(tiles), row=i, col=j, core=core, window=window,
-                              grid=tile_grid, aoi=tile_aoi))
+            tiles.append(Tile(core=core, window=window, grid=tile_grid, aoi=tile_aoi, level=level))
     return tiles
+
+
+def plan_tiles(aoi: AOI, grid: DSMGrid, *, tile_m: float, overlap_m: float) -> list[Tile]:
+    """The tiles of ``aoi``'s DSM ``grid``: one (the whole AOI) when both sides are at most
+    ``tile_m`` metres or ``tile_m`` is 0, else the fewest tiles of at most ``tile_m`` per side,
+    of equal size to a cell, each reconstructed with ``overlap_m`` of context around it."""
+    _check(tile_m, overlap_m)
+    res = grid.resolution
+    full = (0, grid.height, 0, grid.width)
+    if tile_m == 0.0 or (grid.width * res <= tile_m and grid.height * res <= tile_m):
+        return [Tile(core=full, window=full, grid=grid, aoi=aoi)]
+    cells_max = max(1, int(math.floor(tile_m / res + 1e-9)))
+    return _tiles_of(aoi, grid, full, -(-grid.height // cells_max), -(-grid.width // cells_max),
+                     overlap_m, level=0)
+
+
+def can_split(tile: Tile, grid: DSMGrid, min_m: float) -> bool:
+    """Whether ``split_tile`` would cut ``tile``: a side of at least twice ``min_m``."""
+    r0, r1, c0, c1 = tile.core
+    return max(r1 - r0, c1 - c0) * grid.resolution >= 2.0 * min_m
+
+
+def split_tile(tile: Tile, aoi: AOI, grid: DSMGrid, *, overlap_m: float, min_m: float) -> list[Tile]:
+    """``tile`` cut in two along each side of at least twice ``min_m`` (so 2 or 4 tiles, row by
+    row), each with ``overlap_m`` of context; [tile] itself when neither side is that long."""
+    _check(1.0, overlap_m)
+    r0, r1, c0, c1 = tile.core
+    n_rows = 2 if (r1 - r0) * grid.resolution >= 2.0 * min_m else 1
+    n_cols = 2 if (c1 - c0) * grid.resolution >= 2.0 * min_m else 1
+    if n_rows == n_cols == 1:
+        return [tile]
+    return _tiles_of(aoi, grid, tile.core, n_rows, n_cols, overlap_m, level=tile.level + 1)

@@ -182,7 +182,7 @@ def test_tiled_mrf_reconstruction_is_as_accurate_and_reports_its_tiles(scene, re
     assert all(v["mrf"]["tiles"] == 1 for v in one["sweep"])
 
 
-# AOI tiles for the 96 m scene: the smallest tile side gives 2 x 2 tiles.
+# AOI tiles for the test town (its AOI is 59 m square): the smallest tile side gives 2 x 2 tiles.
 AOI_TILE_M = 50.0
 AOI_TILE_OVERLAP_M = 16.0
 # The tiled DSM against the untiled one (the same views, other cameras per tile and less context
@@ -190,21 +190,44 @@ AOI_TILE_OVERLAP_M = 16.0
 TILED_MAX_MEDIAN_DIFF_M = 0.15
 TILED_MIN_AGREEMENT_1M = 0.9
 # The tiled cloud holds each tile's core points only: without that, the 16 m overlaps around
-# 48 m cores would repeat about (80 / 48)^2 = 2.8 times as many points.
+# 30 m cores would bring up to (62 / 30)^2 = 4 times as many points (fewer at the AOI's edges).
 TILED_MAX_CLOUD_RATIO = 1.2
 
 
-def test_aoi_tiles_each_with_their_cameras_make_one_dsm(scene, reconstruction, tmp_path):
-    """[reconstruct] tile_m below the AOI's side: the AOI is reconstructed in 2 x 2 tiles, each
-    with its own cameras; their cores fill one DSM on the untiled run's grid, as accurate and in
-    agreement with it; the report and the output folder hold each tile's cameras."""
-    tiled = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "reconstruct": {
-        "tile_m": AOI_TILE_M, "tile_overlap_m": AOI_TILE_OVERLAP_M}})
+# Below the camera errors of the test town (about 0.003 px), so that any area is cut again.
+TINY_MAX_ERROR_PX = 1e-4
+# A smaller minimum tile side for that case, so that the 59 m AOI can be cut once (into 30 m).
+TEST_MIN_TILE_M = 20.0
+
+
+@pytest.mark.parametrize("how", ["tile_m", "max_error"])
+def test_aoi_tiles_each_with_their_cameras_make_one_dsm(scene, reconstruction, tmp_path,
+                                                        monkeypatch, how):
+    """The AOI reconstructed in 2 x 2 tiles, each with its own cameras: planned from [reconstruct]
+    tile_m below the AOI's side, or cut after the AOI's cameras came out further from the RPCs
+    than tile_max_error_px. Their cores fill one DSM on the untiled run's grid, as accurate and
+    in agreement with it; the report and the output folder hold each tile's cameras."""
+    table = {"tile_overlap_m": AOI_TILE_OVERLAP_M}
+    if how == "tile_m":
+        table["tile_m"] = AOI_TILE_M
+    else:
+        import satsweep.tiling
+
+        monkeypatch.setattr(satsweep.tiling, "MIN_TILE_M", TEST_MIN_TILE_M)
+        table["tile_max_error_px"] = TINY_MAX_ERROR_PX
+    tiled = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "reconstruct": table})
     _check_accuracy(tiled)
     rep = json.loads((tiled.out_dir / "report.json").read_text())
     assert rep["tiling"]["tiles"] == 4 and len(rep["aoi_tiles"]) == 4
+    if how == "tile_m":
+        assert rep["tiling"]["splits"] == [] and all(t["level"] == 0 for t in rep["aoi_tiles"])
+    else:
+        (split,) = rep["tiling"]["splits"]
+        assert split["into"] == 4 and split["max_error_px"] > TINY_MAX_ERROR_PX
+        assert all(t["level"] == 1 for t in rep["aoi_tiles"])
     whole = json.loads((reconstruction.out_dir / "report.json").read_text())
-    assert whole["tiling"]["tiles"] == 1 and "aoi_tiles" not in whole
+    assert whole["tiling"]["tiles"] == 1 and whole["tiling"]["splits"] == []
+    assert "aoi_tiles" not in whole and {"views", "cameras", "ba", "sweep"} <= set(whole)
     for key in ("epsg", "resolution_m", "width", "height", "x_min", "y_max"):
         assert rep["dsm"][key] == whole["dsm"][key]
     for k, tile in enumerate(rep["aoi_tiles"]):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -12,7 +13,7 @@ from satsweep.config import PipelineConfig
 from satsweep.dsm import dsm_grid_for_aoi
 from satsweep.errors import OptionsError
 from satsweep.geo import utm_to_lonlat
-from satsweep.tiling import plan_tiles
+from satsweep.tiling import can_split, plan_tiles, split_tile
 
 # About 2.2 km x 1.7 km near La Reunion (UTM zone 40 south), a 0.5 m grid.
 BIG_AOI = AOI(55.63, -21.245, 55.651, -21.23)
@@ -43,8 +44,9 @@ def test_cores_partition_the_grid_and_windows_grow_them(grid, tile_m, overlap_m)
     cover = np.zeros(grid.shape, np.int32)
     grow = math.ceil(overlap_m / RESOLUTION_M)
     for k, t in enumerate(tiles):
-        assert t.index == k and (t.row, t.col) == divmod(k, n_cols)
+        assert t.level == 0
         r0, r1, c0, c1 = t.core
+        assert (r0, c0) == (tiles[k - k % n_cols].core[0], tiles[k % n_cols].core[2])  # row by row
         assert 0 < r1 - r0 <= side and 0 < c1 - c0 <= side
         cover[r0:r1, c0:c1] += 1
         assert t.window == (max(0, r0 - grow), min(grid.height, r1 + grow),
@@ -76,8 +78,27 @@ def test_bad_tile_sizes_are_refused(grid):
         plan_tiles(BIG_AOI, grid, tile_m=-1.0, overlap_m=0.0)
     with pytest.raises(OptionsError, match="tile_overlap_m"):
         plan_tiles(BIG_AOI, grid, tile_m=500.0, overlap_m=math.nan)
-    for table, needle in ([{"tile_m": 10.0}, "tile_m"], [{"tile_m": 100.0, "tile_overlap_m": 150.0},
-                                                         "tile_overlap_m"]):
+    for table, needle in ([{"tile_m": 10.0}, "tile_m"],
+                          [{"tile_m": 100.0, "tile_overlap_m": 150.0}, "tile_overlap_m"],
+                          [{"tile_max_error_px": -0.1}, "tile_max_error_px"]):
         with pytest.raises(OptionsError, match=needle):
             PipelineConfig.from_mapping({"reconstruct": table})
     assert PipelineConfig.from_mapping({"reconstruct": {"tile_m": 0.0}}).reconstruct.tile_m == 0.0
+
+
+@pytest.mark.parametrize("core, parts", [((0, 1000, 0, 1000), 4), ((0, 1000, 0, 150), 2),
+                                         ((0, 150, 0, 1000), 2), ((0, 150, 0, 150), 1)])
+def test_split_tile_cuts_the_long_sides_in_two(grid, core, parts):
+    min_m = 50.0  # a side of at least 100 m (200 cells) is cut
+    (tile,) = [t for t in plan_tiles(BIG_AOI, grid, tile_m=0.0, overlap_m=0.0)]
+    tile = dataclasses.replace(tile, core=core)
+    pieces = split_tile(tile, BIG_AOI, grid, overlap_m=20.0, min_m=min_m)
+    assert len(pieces) == parts and can_split(tile, grid, min_m) == (parts > 1)
+    cover = np.zeros(grid.shape, np.int32)
+    for p in pieces:
+        r0, r1, c0, c1 = p.core
+        cover[r0:r1, c0:c1] += 1
+        assert p.level == (1 if parts > 1 else 0)
+        assert p.window[0] == max(0, r0 - 40) and p.window[2] == max(0, c0 - 40)
+    r0, r1, c0, c1 = core
+    assert np.all(cover[r0:r1, c0:c1] == 1) and cover.sum() == (r1 - r0) * (c1 - c0)
