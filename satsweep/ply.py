@@ -43,6 +43,115 @@ def _vertex_dtype(
     return np.dtype(fields)
 
 
+class PLYWriter:
+    """A binary little-endian PLY file written in pieces: ``append`` points as they come (a
+    tile's, a view's), ``commit`` writes the file (atomically: temporary name, then rename).
+
+    The vertex records go to a temporary body file beside ``path`` as they are appended, so only
+    one piece is in memory at a time; ``commit`` writes the header (which holds the count) and
+    copies the body after it. ``abort`` (or leaving a ``with`` block by an exception) removes
+    the body and writes nothing. ``with_colors``, ``comments`` and ``scalar_names``: as
+    ``write_ply``'s colours, comments and scalars, fixed for every piece.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, with_colors: bool, comments: Sequence[str] = (),
+                 scalar_names: Sequence[str] = ()):
+        import tempfile  # noqa: PLC0415
+
+        reserved = {"x", "y", "z", "red", "green", "blue"}
+        for name in scalar_names:
+            if not name.isidentifier() or name in reserved:
+                raise ValueError(f"write_ply: invalid scalar property name {name!r}")
+        for line in comments:
+            if "\n" in line or "\r" in line:
+                raise ValueError(f"write_ply: comment {line!r} spans several lines")
+        self.path = os.fspath(path)
+        self.comments = list(comments)
+        self.scalar_names = list(scalar_names)
+        self.dtype = _vertex_dtype(with_colors=with_colors, scalar_names=self.scalar_names)
+        self.count = 0
+        folder, name = os.path.split(os.path.abspath(self.path))
+        fd, self._body_path = tempfile.mkstemp(prefix=f".{name}.", suffix=".body", dir=folder)
+        self._body = os.fdopen(fd, "wb")
+
+    def append(self, x, y, z, *, colors: np.ndarray | None = None,
+               scalars: Mapping[str, np.ndarray] | None = None) -> None:
+        """Add points (the arguments as ``write_ply``'s); ValueError for inconsistent ones."""
+        x, y, z = (np.asarray(a, dtype=np.float64).ravel() for a in (x, y, z))
+        n = x.size
+        if y.size != n or z.size != n:
+            raise ValueError(f"write_ply: x, y, z lengths differ ({x.size}, {y.size}, {z.size})")
+        with_colors = "red" in self.dtype.names
+        if (colors is not None) != with_colors:
+            raise ValueError("write_ply: colours given for a file without them, or missing"
+                             if colors is not None else "write_ply: this file needs colours")
+        scalars = dict(scalars or {})
+        if sorted(scalars) != sorted(self.scalar_names):
+            raise ValueError(f"write_ply: scalars {sorted(scalars)}, the file has "
+                             f"{sorted(self.scalar_names)}")
+        records = np.empty(n, dtype=self.dtype)
+        records["x"], records["y"], records["z"] = x, y, z
+        if colors is not None:
+            c = np.asarray(colors)
+            if c.dtype != np.uint8:
+                raise ValueError(f"write_ply: colors must be uint8, got {c.dtype}")
+            if c.shape == (n,):
+                c = np.repeat(c[:, None], 3, axis=1)
+            if c.shape != (n, 3):
+                raise ValueError(f"write_ply: colors must have shape ({n}, 3) or ({n},), got {c.shape}")
+            records["red"], records["green"], records["blue"] = c[:, 0], c[:, 1], c[:, 2]
+        for name, values in scalars.items():
+            if np.asarray(values).size != n:
+                raise ValueError(f"write_ply: scalar {name!r} has {np.asarray(values).size} "
+                                 f"values, need {n}")
+            records[name] = np.asarray(values, dtype=np.float32).ravel()
+        self._body.write(records.tobytes())
+        self.count += n
+
+    def commit(self) -> None:
+        """Write the file: the header for the points appended, then their records."""
+        import shutil  # noqa: PLC0415
+
+        header = ["ply", "format binary_little_endian 1.0"]
+        header += [f"comment {line}" for line in self.comments]
+        header.append(f"element vertex {self.count}")
+        for name in self.dtype.names:
+            header.append(f"property {_WRITE_NAMES[self.dtype.fields[name][0]]} {name}")
+        header.append("end_header")
+        try:
+            self._body.close()
+            with atomic_output(self.path) as tmp:
+                with open(tmp, "wb") as fh, open(self._body_path, "rb") as body:
+                    fh.write(("\n".join(header) + "\n").encode("ascii"))
+                    shutil.copyfileobj(body, fh, BODY_COPY_BYTES)
+        finally:
+            self._remove_body()
+
+    def abort(self) -> None:
+        """Drop what was appended; nothing is written."""
+        self._body.close()
+        self._remove_body()
+
+    def _remove_body(self) -> None:
+        try:
+            os.remove(self._body_path)
+        except FileNotFoundError:
+            pass
+
+    def __enter__(self) -> "PLYWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.abort()
+
+
+# Bytes copied at a time from a PLYWriter's body into the file.
+BODY_COPY_BYTES = 16 * 2**20
+
+
 def write_ply(
     path: str | os.PathLike,
     x: np.ndarray,
@@ -60,50 +169,12 @@ def write_ply(
     uint8 RGB, or (N,) uint8 grey (written as equal red/green/blue). ``comments``: header comment
     lines, e.g. ``"crs EPSG:32740"``. ``scalars``: extra per-point values stored as float32
     properties, e.g. ``{"confidence": c}``. Raises ValueError for inconsistent lengths or names.
+    A cloud that comes in pieces: ``PLYWriter``.
     """
-    x, y, z = (np.asarray(a, dtype=np.float64).ravel() for a in (x, y, z))
-    n = x.size
-    if y.size != n or z.size != n:
-        raise ValueError(f"write_ply: x, y, z lengths differ ({x.size}, {y.size}, {z.size})")
-    rgb = None
-    if colors is not None:
-        c = np.asarray(colors)
-        if c.dtype != np.uint8:
-            raise ValueError(f"write_ply: colors must be uint8, got {c.dtype}")
-        if c.shape == (n,):
-            c = np.repeat(c[:, None], 3, axis=1)
-        if c.shape != (n, 3):
-            raise ValueError(f"write_ply: colors must have shape ({n}, 3) or ({n},), got {c.shape}")
-        rgb = c
     scalars = dict(scalars or {})
-    reserved = {"x", "y", "z", "red", "green", "blue"}
-    for name, values in scalars.items():
-        if not name.isidentifier() or name in reserved:
-            raise ValueError(f"write_ply: invalid scalar property name {name!r}")
-        if np.asarray(values).size != n:
-            raise ValueError(f"write_ply: scalar {name!r} has {np.asarray(values).size} values, need {n}")
-    for line in comments:
-        if "\n" in line or "\r" in line:
-            raise ValueError(f"write_ply: comment {line!r} spans several lines")
-
-    dtype = _vertex_dtype(with_colors=rgb is not None, scalar_names=list(scalars))
-    records = np.empty(n, dtype=dtype)
-    records["x"], records["y"], records["z"] = x, y, z
-    if rgb is not None:
-        records["red"], records["green"], records["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    for name, values in scalars.items():
-        records[name] = np.asarray(values, dtype=np.float32).ravel()
-
-    header = ["ply", "format binary_little_endian 1.0"]
-    header += [f"comment {line}" for line in comments]
-    header.append(f"element vertex {n}")
-    for name in dtype.names:
-        header.append(f"property {_WRITE_NAMES[dtype.fields[name][0]]} {name}")
-    header.append("end_header")
-    with atomic_output(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(records.tobytes())
+    with PLYWriter(path, with_colors=colors is not None, comments=comments,
+                   scalar_names=list(scalars)) as writer:
+        writer.append(x, y, z, colors=colors, scalars=scalars)
 
 
 def read_ply(path: str | os.PathLike) -> dict:

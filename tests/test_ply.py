@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from satsweep.errors import InputError
-from satsweep.ply import read_ply, write_ply
+from satsweep.ply import PLYWriter, read_ply, write_ply
 
 # Bytes per vertex: 3 float64 coordinates + 3 uchar colours.
 XYZ_RGB_BYTES = 3 * 8 + 3
@@ -123,3 +123,37 @@ def test_reader_rejects_unsupported_files_naming_them(tmp_path):
         read_ply(truncated)
     with pytest.raises(InputError, match="missing.ply"):
         read_ply(tmp_path / "missing.ply")
+
+
+def test_writer_in_pieces_writes_the_same_bytes_as_one_call(tmp_path):
+    rng = np.random.default_rng(3)
+    n = 1000
+    x, y, z = (rng.normal(5e5, 100, n), rng.normal(7.6e6, 100, n), rng.normal(2340, 10, n))
+    colours = rng.integers(0, 256, (n, 3), dtype=np.uint8)
+    conf = rng.random(n).astype(np.float32)
+    comments = ["crs EPSG:32740", "pieces"]
+    write_ply(tmp_path / "one.ply", x, y, z, colors=colours, comments=comments,
+              scalars={"confidence": conf})
+    cuts = [0, 1, 1, 400, 999, n]  # pieces of 1, 0, 399, 599 and 1 points
+    with PLYWriter(tmp_path / "pieces.ply", with_colors=True, comments=comments,
+                   scalar_names=["confidence"]) as w:
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            w.append(x[a:b], y[a:b], z[a:b], colors=colours[a:b], scalars={"confidence": conf[a:b]})
+    assert (tmp_path / "pieces.ply").read_bytes() == (tmp_path / "one.ply").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one.ply", "pieces.ply"]  # no body left
+    back = read_ply(tmp_path / "pieces.ply")  # the reader parses the header on its own
+    for name, values in (("x", x), ("y", y), ("z", z), ("confidence", conf)):
+        np.testing.assert_array_equal(back[name], values)
+    np.testing.assert_array_equal(np.stack([back[c] for c in ("red", "green", "blue")], 1), colours)
+
+
+def test_writer_with_no_points_and_on_error(tmp_path):
+    with PLYWriter(tmp_path / "empty.ply", with_colors=False, comments=["crs EPSG:32631"]):
+        pass
+    ply = read_ply(tmp_path / "empty.ply")
+    assert len(ply["x"]) == 0 and "crs EPSG:32631" in ply["comments"]
+    with pytest.raises(ValueError, match="needs colours"):
+        with PLYWriter(tmp_path / "bad.ply", with_colors=True) as w:
+            w.append([1.0], [2.0], [3.0], colors=np.zeros((1, 3), np.uint8))
+            w.append([1.0], [2.0], [3.0])  # a piece without colours: the whole file is dropped
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.ply"]
