@@ -503,7 +503,6 @@ def adjust_principal_points(
     solution = adjust_observations(cams, obs, options, names=names)
     seconds["adjustment"] = time.perf_counter() - t0
 
-    adjusted = [shift_principal_point(c, s) for c, s in zip(cams, solution.shifts)]
     report = BundleReport(
         names=tuple(names),
         n_features=tuple(n_features),
@@ -521,13 +520,24 @@ def adjust_principal_points(
         solver_evaluations=solution.evaluations,
         seconds=seconds,
     )
+    return shift_principal_points(cameras, solution.shifts), report
+
+
+def shift_principal_points(cameras: Any, shifts: Sequence[Sequence[float]]) -> Any:
+    """``cameras`` (a CameraSet or a sequence of PerspectiveCamera) with each view's principal
+    point moved by its (dcx, dcy) of ``shifts`` (``shift_principal_point``); a CameraSet gets
+    its views' cameras and plane-plus-parallax projections replaced."""
+    cams, _ = _view_cameras(cameras)
+    if len(shifts) != len(cams):
+        raise CameraError(f"shift_principal_points: {len(shifts)} shifts for {len(cams)} views")
+    adjusted = [shift_principal_point(c, s) for c, s in zip(cams, shifts)]
     views = getattr(cameras, "views", None)
     if views is None:
-        return adjusted, report
+        return adjusted
     from .camera import reparametrise
 
     new_views = tuple(
         dataclasses.replace(v, camera=c, projection=reparametrise(c, d=v.projection.d, zbar=v.projection.zbar))
         for v, c in zip(views, adjusted)
     )
-    return dataclasses.replace(cameras, views=new_views), report
+    return dataclasses.replace(cameras, views=new_views)

@@ -215,16 +215,27 @@ def _reconstruct_tiles(paths, aoi, out: OutputFolder, grid, pending, cloud, rep:
 
     r = config.reconstruct
     done, splits = [], []  # done: (tile, its report entry, its cameras)
+    shifts = []  # the principal-point shifts of each tile whose own adjustment ran
+    deferred = set()  # tiles put back once, for want of matches
     while pending:
         tile = pending.pop(0)
         entry = tile.to_dict()
         if len(pending) + len(done) > 0 or tile.level > 0:
             rep.log(f"tile {len(done) + 1}/{len(done) + len(pending) + 1}: cells {tile.core}")
         split_above = r.tile_max_error_px if can_split(tile, grid, MIN_TILE_M) else 0.0
+        # A pointing error is a translation of the whole image: a tile too poor in matches for
+        # its own adjustment takes the median of the other tiles' corrections, or waits for them.
+        borrowed = np.median(np.array(shifts), axis=0).tolist() if shifts else None
         area = _reconstruct_area(paths, tile.aoi, tile.grid, rep.section(entry), device,
                                  alt_range=alt_range, dem=dem, config=config, names=names,
-                                 split_above_px=split_above)
-        if area is None:  # the cameras are too far from the RPCs over this tile: cut it again
+                                 split_above_px=split_above, borrowed_shifts=borrowed,
+                                 may_wait=borrowed is None and bool(pending)
+                                 and id(tile) not in deferred)
+        if area is _LATER:
+            deferred.add(id(tile))
+            pending.append(tile)
+            continue
+        if area is _CUT:  # the cameras are too far from the RPCs over this tile: cut it again
             error = max(e["max"] for e in entry["cameras"]["approx_error_px"].values())
             parts = split_tile(tile, aoi, grid, overlap_m=r.tile_overlap_m, min_m=MIN_TILE_M)
             rep.log(f"cameras up to {error:.3f} px from the RPCs over cells {tile.core} (more "
@@ -242,6 +253,8 @@ def _reconstruct_tiles(paths, aoi, out: OutputFolder, grid, pending, cloud, rep:
             x, y, z, colours = piece if whole else _cloud_in(piece, sub_grid(grid, *tile.core))
             cloud.append(x, y, z, colors=colours)
         done.append((tile, entry, area.cameras))
+        if area.shifts is not None:
+            shifts.append(area.shifts)
     tiled = len(done) > 1
     rep["tiling"] = {"tile_m": r.tile_m, "overlap_m": r.tile_overlap_m,
                      "max_error_px": r.tile_max_error_px, "tiles": len(done), "splits": splits}
@@ -291,6 +304,14 @@ class _Area:
     clouds: list
     cameras: "CameraSet"
     dsm_info: dict
+    shifts: list | None  # per view (dcx, dcy) px of its own bundle adjustment; None without one
+
+
+# _reconstruct_area's answers for an area to be done otherwise: cut in pieces, its cameras being
+# too far from the RPCs; or later, its views matching too poorly to be adjusted, once other
+# tiles have given their corrections.
+_CUT = "cut"
+_LATER = "later"
 
 
 def _cloud_in(cloud, grid) -> tuple:
@@ -302,13 +323,19 @@ def _cloud_in(cloud, grid) -> tuple:
 
 
 def _reconstruct_area(paths, aoi, grid, rep, device, *, alt_range, dem, config: PipelineConfig,
-                      names, split_above_px: float = 0.0) -> _Area | None:
+                      names, split_above_px: float = 0.0, borrowed_shifts=None,
+                      may_wait: bool = False) -> _Area | str:
     """Every stage from the views to the DSM rasters, for one area (the AOI or one tile of it)
-    on its ``grid``, its figures set in ``rep`` (a section of the run's report). None, after the
-    cameras stage, when a view's perspective approximation is further than ``split_above_px``
-    (> 0) from its RPC: the caller cuts the area."""
+    on its ``grid``, its figures set in ``rep`` (a section of the run's report).
+
+    ``_CUT``, after the cameras stage, when a view's perspective approximation is further than
+    ``split_above_px`` (> 0) from its RPC. When the views match too poorly for the bundle
+    adjustment: the views' principal points are moved by ``borrowed_shifts`` (per view (dcx,
+    dcy), other tiles' corrections) if given, else ``_LATER`` if ``may_wait``, else the
+    adjustment is skipped with 2 views under ``adjust = auto`` and the error raised otherwise.
+    """
     from . import camera as scam
-    from .bundle import adjust_principal_points
+    from .bundle import adjust_principal_points, shift_principal_points
     from .imageio import tonemap
     from .tiepoints import altitude_range_for_images
     from .views import load_views
@@ -343,13 +370,14 @@ def _reconstruct_area(paths, aoi, grid, rep, device, *, alt_range, dem, config: 
         for w in cameras.warnings:
             rep.log(f"warning: {w}")
     if split_above_px > 0.0 and max(v.camera.error.max_px for v in cameras.views) > split_above_px:
-        return None
+        return _CUT
 
     # The kernels the sweep stage will need, built in the background meanwhile.
     device.prebuild(program_forecast(device, cameras, enu_height_range(cameras.frame, aoi, alt),
                                      config))
 
     mode = config.reconstruct.adjust
+    own_shifts = None
     if mode == "off":
         rep["ba"] = {"skipped": "reconstruct.adjust = off"}
     else:
@@ -358,11 +386,24 @@ def _reconstruct_area(paths, aoi, grid, rep, device, *, alt_range, dem, config: 
                 cameras, ba = adjust_principal_points(cameras, images, config.bundle, config.sparse,
                                                      names=names)
                 rep["ba"] = ba.to_dict()
+                own_shifts = [list(s) for s in ba.principal_point_shift_px]
             except CameraError as exc:
-                if mode == "on" or len(views) >= 3:
+                if borrowed_shifts is not None:
+                    cameras = shift_principal_points(cameras, borrowed_shifts)
+                    rep["ba"] = {"skipped": f"not enough matches for the adjustment: {exc}",
+                                 "borrowed_principal_point_shift_px": borrowed_shifts}
+                    rep.log(f"warning: bundle adjustment of this tile impossible ({exc}); the "
+                            "other tiles' pointing corrections are used")
+                elif may_wait:
+                    rep["ba"] = {"postponed": f"not enough matches for the adjustment: {exc}"}
+                    rep.log(f"bundle adjustment of this tile impossible ({exc}): it waits for "
+                            "the other tiles' pointing corrections")
+                    return _LATER
+                elif mode == "on" or len(views) >= 3:
                     raise
-                rep["ba"] = {"skipped": f"not enough matches for the adjustment: {exc}"}
-                rep.log(f"warning: bundle adjustment skipped: {exc}")
+                else:
+                    rep["ba"] = {"skipped": f"not enough matches for the adjustment: {exc}"}
+                    rep.log(f"warning: bundle adjustment skipped: {exc}")
 
     if config.reconstruct.skew_correct:
         with rep.stage("skew"):
@@ -382,7 +423,8 @@ def _reconstruct_area(paths, aoi, grid, rep, device, *, alt_range, dem, config: 
     per_view = _sweep_references(device, cameras, images, selection, u_range, config, rep, names,
                                  aoi=aoi, alt_range=alt)
     dsm, confidence, clouds, info = _area_rasters(per_view, cameras, images, grid, config, rep)
-    return _Area(dsm=dsm, confidence=confidence, clouds=clouds, cameras=cameras, dsm_info=info)
+    return _Area(dsm=dsm, confidence=confidence, clouds=clouds, cameras=cameras, dsm_info=info,
+                 shifts=own_shifts)
 
 # Smallest interior side (pixels) of an MRF tile (below it, overlaps dominate the work).
 MIN_MRF_TILE_PX = 64

@@ -246,6 +246,35 @@ def test_aoi_tiles_each_with_their_cameras_make_one_dsm(scene, reconstruction, t
     assert n_tiled <= TILED_MAX_CLOUD_RATIO * n_whole
 
 
+def test_a_tile_without_matches_takes_the_other_tiles_pointing_corrections(scene, tmp_path,
+                                                                         monkeypatch):
+    """A tile whose views cannot be adjusted (its first adjustment and its second fail here)
+    waits for the others, then takes the median of their principal-point shifts."""
+    import satsweep.bundle
+    from satsweep.errors import CameraError
+
+    real = satsweep.bundle.adjust_principal_points
+    calls = []
+
+    def flaky(*args, **kwargs):
+        calls.append(len(calls))
+        if len(calls) in (1, 5):  # the first tile, at its first and at its second turn
+            raise CameraError("too few matches (planted by the test)")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(satsweep.bundle, "adjust_principal_points", flaky)
+    res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "reconstruct": {
+        "tile_m": AOI_TILE_M, "tile_overlap_m": AOI_TILE_OVERLAP_M}})
+    _check_accuracy(res)
+    tiles = json.loads((res.out_dir / "report.json").read_text())["aoi_tiles"]
+    assert len(calls) == 5 and len(tiles) == 4
+    assert tiles[-1]["core_cells"][:3:2] == [0, 0]  # the north-west tile, done last
+    own = [[t["ba"]["principal_point_shift_px"][n] for n in ("view_00.tif", "view_01.tif")]
+           for t in tiles[:3]]
+    borrowed = tiles[-1]["ba"]["borrowed_principal_point_shift_px"]
+    np.testing.assert_array_equal(borrowed, np.median(np.array(own), axis=0))
+
+
 @pytest.mark.parametrize("search", ["coarse_to_fine", "full"])
 def test_either_search_is_as_accurate_and_reports_its_windows(scene, tmp_path, search):
     """[sweep] search = "coarse_to_fine" (the default: a half-resolution pass, then plane windows
