@@ -260,6 +260,8 @@ def _reconstruct_tiles(paths, aoi, out: OutputFolder, grid, pending, cloud, rep:
                      "max_error_px": r.tile_max_error_px, "tiles": len(done), "splits": splits}
     if tiled:
         rep["aoi_tiles"] = [entry for _, entry, _ in done]
+        for k, entry in enumerate(rep["aoi_tiles"]):
+            entry["cameras_file"] = f"tiles/tile_{k:02d}/cameras.json"
     else:  # one piece: its figures at the top of the report, as they always were
         for key, value in done[0][1].items():
             if key not in ("core_cells", "window_cells", "level", "aoi"):
@@ -285,8 +287,8 @@ def _reconstruct_tiles(paths, aoi, out: OutputFolder, grid, pending, cloud, rep:
 
         if not tiled:
             write_cameras(out.staging, done[0][2])
-        for k, (_, _, cameras) in enumerate(done if tiled else []):
-            write_cameras(out.staging / "tiles" / f"tile_{k:02d}", cameras)
+        for (_, entry, cameras) in (done if tiled else []):
+            write_cameras(out.staging / Path(entry["cameras_file"]).parent, cameras)
         out.path("config.toml").write_text(config.to_toml(), encoding="utf-8")
     report = rep.finish()
     out.path("report.json").write_text(rep.to_json() + "\n", encoding="utf-8")

@@ -232,7 +232,8 @@ def test_aoi_tiles_each_with_their_cameras_make_one_dsm(scene, reconstruction, t
         assert rep["dsm"][key] == whole["dsm"][key]
     for k, tile in enumerate(rep["aoi_tiles"]):
         assert {"views", "cameras", "ba", "view_selection", "sweep", "dsm"} <= set(tile)
-        assert (tiled.out_dir / "tiles" / f"tile_{k:02d}" / "cameras.json").is_file()
+        assert tile["cameras_file"] == f"tiles/tile_{k:02d}/cameras.json"
+        assert (tiled.out_dir / tile["cameras_file"]).is_file()
     assert not (tiled.out_dir / "cameras.json").exists()
 
     with rasterio.open(tiled.dsm_path) as a, rasterio.open(reconstruction.dsm_path) as b:
