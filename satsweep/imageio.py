@@ -163,6 +163,32 @@ def _quiet_tifffile() -> Iterator[None]:
         logger.disabled = previous
 
 
+# Leading bytes of the other formats satellite images are delivered in, which GDAL converts to
+# GeoTIFF with their RPCs (a conversion keeps the pixel grid the RPCs refer to).
+_OTHER_FORMATS = (
+    (b"\x00\x00\x00\x0cjP  \r\n\x87\n", "a JPEG 2000 (JP2) image"),
+    (b"\xff\x4f\xff\x51", "a JPEG 2000 codestream (J2K)"),
+    (b"NITF", "an NITF image"),
+    (b"NSIF", "an NSIF (NITF) image"),
+)
+
+
+def _not_a_tiff(path: str, exc: Exception) -> str:
+    """Why ``path`` cannot be opened as a TIFF, naming the format it is if a known one."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(12)
+    except OSError:
+        head = b""
+    for magic, what in _OTHER_FORMATS:
+        if head.startswith(magic):
+            return (f"{what}, not a TIFF: satsweep reads TIFF images; convert it with "
+                    f"gdal_translate -of GTiff {os.path.basename(path)} OUT.tif (GDAL carries "
+                    "its RPCs into the GeoTIFF's RPC tag or an .RPB file beside it, which "
+                    "satsweep reads)")
+    return f"not a readable TIFF file ({exc})"
+
+
 @contextlib.contextmanager
 def _open_tiff(path: str | os.PathLike):
     """Open a TIFF and yield (TiffFile, first page); every failure is an ImageFormatError."""
@@ -177,7 +203,7 @@ def _open_tiff(path: str | os.PathLike):
         with _quiet_tifffile():
             tif = tifffile.TiffFile(path)
     except _TIFF_READ_ERRORS as exc:
-        raise ImageFormatError(path, f"not a readable TIFF file ({exc})") from None
+        raise ImageFormatError(path, _not_a_tiff(path, exc)) from None
     with tif:
         try:
             with _quiet_tifffile():

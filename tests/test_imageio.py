@@ -157,6 +157,19 @@ def test_read_image_not_a_tiff(tmp_path):
         sio.read_image(empty)
 
 
+@pytest.mark.parametrize("name, head, what", [
+    ("img.jp2", b"\x00\x00\x00\x0cjP  \r\n\x87\n" + b"\x00" * 20, "JPEG 2000 \\(JP2\\)"),
+    ("img.j2k", b"\xff\x4f\xff\x51" + b"\x00" * 20, "JPEG 2000 codestream"),
+    ("img.ntf", b"NITF02.10" + b"\x00" * 20, "NITF"),
+])
+def test_read_image_names_other_satellite_formats(tmp_path, name, head, what):
+    path = tmp_path / name
+    path.write_bytes(head)
+    with pytest.raises(ImageFormatError, match=what + ".*gdal_translate -of GTiff " + name) as exc:
+        sio.read_image(path)
+    assert exc.value.path == str(path)
+
+
 def test_read_image_truncated_pixel_data(tmp_path):
     whole = tmp_path / "whole.tif"
     tifffile.imwrite(whole, _ramp((64, 64), np.uint16))
