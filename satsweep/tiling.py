@@ -81,9 +81,7 @@ def grid_lonlat_box(grid: DSMGrid) -> tuple[float, float, float, float]:
     return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
 
 
-def _check(tile_m: float, overlap_m: float) -> None:
-    if not (math.isfinite(tile_m) and tile_m >= 0.0):
-        raise OptionsError(f"tile_m = {tile_m!r}: must be a finite number of metres >= 0")
+def _check_overlap(overlap_m: float) -> None:
     if not (math.isfinite(overlap_m) and overlap_m >= 0.0):
         raise OptionsError(f"tile_overlap_m = {overlap_m!r}: must be a finite number of metres >= 0")
 
@@ -113,7 +111,9 @@ def plan_tiles(aoi: AOI, grid: DSMGrid, *, tile_m: float, overlap_m: float) -> l
     """The tiles of ``aoi``'s DSM ``grid``: one (the whole AOI) when both sides are at most
     ``tile_m`` metres or ``tile_m`` is 0, else the fewest tiles of at most ``tile_m`` per side,
     of equal size to a cell, each reconstructed with ``overlap_m`` of context around it."""
-    _check(tile_m, overlap_m)
+    if not (math.isfinite(tile_m) and tile_m >= 0.0):
+        raise OptionsError(f"tile_m = {tile_m!r}: must be a finite number of metres >= 0")
+    _check_overlap(overlap_m)
     res = grid.resolution
     full = (0, grid.height, 0, grid.width)
     if tile_m == 0.0 or (grid.width * res <= tile_m and grid.height * res <= tile_m):
@@ -132,7 +132,7 @@ def can_split(tile: Tile, grid: DSMGrid, min_m: float) -> bool:
 def split_tile(tile: Tile, aoi: AOI, grid: DSMGrid, *, overlap_m: float, min_m: float) -> list[Tile]:
     """``tile`` cut in two along each side of at least twice ``min_m`` (so 2 or 4 tiles, row by
     row), each with ``overlap_m`` of context; [tile] itself when neither side is that long."""
-    _check(1.0, overlap_m)
+    _check_overlap(overlap_m)
     r0, r1, c0, c1 = tile.core
     n_rows = 2 if (r1 - r0) * grid.resolution >= 2.0 * min_m else 1
     n_cols = 2 if (c1 - c0) * grid.resolution >= 2.0 * min_m else 1
