@@ -604,6 +604,28 @@ def rasterise_max_cells(cells: np.ndarray, values, grid: DSMGrid) -> np.ndarray:
     return out.reshape(grid.shape).astype(np.float32)
 
 
+def value_at_highest(cells: np.ndarray, heights, values, grid: DSMGrid) -> np.ndarray:
+    """Per grid cell, the ``values`` of its highest point (``rasterise_max_cells``' rule: the
+    point that sets the cell's height): what a true orthophoto shows, the surface seen from
+    above. (grid.height, grid.width) float32, NaN where no point fell; points without a finite
+    height or value are ignored; of points tied for the highest, the largest value."""
+    c = np.asarray(cells, np.int64).ravel()
+    z = np.asarray(heights, np.float64).ravel()
+    v = np.asarray(values, np.float64).ravel()
+    if not (c.size == z.size == v.size):
+        raise ValueError(f"value_at_highest: lengths differ ({c.size} cells, {z.size} heights, "
+                         f"{v.size} values)")
+    ok = np.isfinite(z) & np.isfinite(v) & (c >= 0)
+    c, z, v = c[ok], z[ok], v[ok]
+    top = np.full(grid.width * grid.height, -np.inf)
+    np.maximum.at(top, c, z)
+    highest = z == top[c]
+    out = np.full(grid.width * grid.height, -np.inf)
+    np.maximum.at(out, c[highest], v[highest])
+    out[np.isneginf(out)] = np.nan
+    return out.reshape(grid.shape).astype(np.float32)
+
+
 def rasterise_points(points: Points, grid: DSMGrid) -> np.ndarray:
     """DSM of one point set on ``grid``: ``points_to_utm`` then ``rasterise_max`` of the heights."""
     x, y, z = points_to_utm(points, grid.epsg)

@@ -484,3 +484,19 @@ def test_write_dsm_geotiff_is_read_by_rasterio_with_the_right_crs(tmp_path):
         assert src.transform.to_gdal() == grid.geotransform
         assert np.isnan(src.nodata) and src.dtypes[0] == "float32"
         np.testing.assert_array_equal(src.read(1), a)
+
+
+def test_value_at_highest_takes_each_cells_top_point():
+    grid = dsm.DSMGrid(epsg=32631, x_min=0.0, y_max=2.0, resolution=1.0, width=3, height=2)
+    #                cell: 0    0    0    1    1     4      5    -1 (outside)  2
+    cells = np.array([0, 0, 0, 1, 1, 4, 5, -1, 2])
+    heights = np.array([10., 12., 11., 5., 5., np.nan, 7., 99., 3.])
+    values = np.array([0.1, 0.2, 0.3, 0.4, 0.6, 0.9, np.nan, 0.8, 0.5])
+    got = dsm.value_at_highest(cells, heights, values, grid)
+    # cell 0: the point at 12 m; cell 1: two tops at 5 m, the larger value; cell 2: its one point;
+    # cell 4: no height, cell 5: no value, cell 3: no point -> NaN
+    expected = np.array([[0.2, 0.6, 0.5], [np.nan, np.nan, np.nan]], np.float32)
+    np.testing.assert_array_equal(got, expected)
+    assert got.dtype == np.float32
+    with pytest.raises(ValueError, match="lengths differ"):
+        dsm.value_at_highest(cells, heights[:-1], values, grid)
