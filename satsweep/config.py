@@ -37,8 +37,8 @@ class ReconstructOptions(Options):
     skew_correct: bool = True  # shear images so that K has no skew before the sweep
     crop_margin_px: int = 32  # margin around the AOI footprint when cropping the images
     write_cloud: bool = True  # write cloud.ply (all reference views' points, UTM, with colour)
-    write_ortho: bool = True  # write ortho.tif: on the DSM's grid, the reference views' grey
-    # level (tonemapped, 0..1) of each cell's highest point, i.e. a true orthophoto
+    write_ortho: bool = True  # write ortho.tif: on the DSM's grid, the reference views' value
+    # (the images' own units) at each cell's highest point, i.e. a true orthophoto
     tie_altitude_quantile: float = 0.01  # without --alt-range or --dem, the altitudes between
     # this quantile and 1 - it of the SIFT tie points inside the AOI (triangulated with the RPCs)
     # are swept (satsweep.tiepoints; Pleiades pair: 2271.9..2373.0 m, S2P's DSM 2273.8..2373.2 m)

@@ -412,10 +412,17 @@ def _reconstruct_area(paths, aoi, grid, rep, device, *, alt_range, dem, config: 
                     rep["ba"] = {"skipped": f"not enough matches for the adjustment: {exc}"}
                     rep.log(f"warning: bundle adjustment skipped: {exc}")
 
+    # The orthophoto's grey levels: the crops' own values (sensor units), the same for every tile
+    # (each tile's tonemap stretches its own crop).
+    ortho_images = ([np.asarray(v.image, np.float32) for v in views]
+                    if config.reconstruct.write_ortho else None)
     if config.reconstruct.skew_correct:
         with rep.stage("skew"):
+            unsheared = cameras
             cameras, images = scam.skew_correct_set(cameras, images)
             images = [_fill_nan(im) for im in images]
+            if ortho_images is not None:
+                _, ortho_images = scam.skew_correct_set(unsheared, ortho_images)
 
     frame = cameras.frame
     u_range = enu_height_range(frame, aoi, alt)
@@ -430,7 +437,7 @@ def _reconstruct_area(paths, aoi, grid, rep, device, *, alt_range, dem, config: 
     per_view = _sweep_references(device, cameras, images, selection, u_range, config, rep, names,
                                  aoi=aoi, alt_range=alt)
     dsm, confidence, ortho, clouds, info = _area_rasters(per_view, cameras, images, grid, config,
-                                                         rep)
+                                                         rep, ortho_images=ortho_images)
     return _Area(dsm=dsm, confidence=confidence, ortho=ortho, clouds=clouds, cameras=cameras,
                  dsm_info=info, shifts=own_shifts)
 
@@ -861,10 +868,12 @@ def _enu_to_map(frame, epsg: int, points: list[tuple[np.ndarray, ...]]):
                         u_range=(lo[2], hi[2]))
 
 
-def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep):
+def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *,
+                  ortho_images=None):
     """The "dsm" stage of one area on its ``grid``: each reference view's height map ->
     cross-check -> points over each pixel's footprint (ENU -> UTM) -> per-view rasters ->
-    fusion. Returns (DSM before hole filling, confidence raster, orthophoto or None, one cloud
+    fusion. Returns (DSM before hole filling, confidence raster, orthophoto of
+    ``ortho_images``' values (the views' in the cameras' pixels; None: no orthophoto), one cloud
     (x, y, z, grey colours) per reference view, the stage's figures, also set as
     ``rep["dsm"]``)."""
     from .dsm import (cross_check_heights, flat_cells, fuse_dsms, height_map_to_enu,
@@ -897,8 +906,8 @@ def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep):
             if pv["confidence"] is not None:
                 conf_rasters.append(rasterise_max_cells(cells, np.ravel(pv["confidence"])[spix],
                                                         grid))
-            if config.reconstruct.write_ortho:  # grey levels in 0..1 (the shear's cubic overshoots)
-                grey = np.clip(np.ravel(images[pv["index"]])[spix], 0.0, 1.0)
+            if ortho_images is not None:
+                grey = np.ravel(ortho_images[pv["index"]])[spix]
                 orthos.append(value_at_highest(cells, sz, grey, grid))
             if not config.reconstruct.write_cloud:
                 continue
@@ -913,7 +922,7 @@ def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep):
         # Each cell's grey level: the mean over the views whose height there is the fused one's
         # (within outlier_m, the fusion's own rule), so that no view shows a wall or a lower roof.
         ortho = None
-        if config.reconstruct.write_ortho:
+        if ortho_images is not None:
             with np.errstate(invalid="ignore"):
                 ortho = _nanmean_stack([np.where(np.abs(h - fused) <= d.outlier_m, o, np.nan)
                                         for h, o in zip(rasters, orthos)], grid.shape)
