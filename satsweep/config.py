@@ -41,7 +41,7 @@ class ReconstructOptions(Options):
     # (the images' own units) at each cell's highest point, i.e. a true orthophoto
     tie_altitude_quantile: float = 0.01  # without --alt-range or --dem, the altitudes between
     # this quantile and 1 - it of the SIFT tie points inside the AOI (triangulated with the RPCs)
-    # are swept (satsweep.tiepoints; Pleiades pair: 2271.9..2373.0 m, S2P's DSM 2273.8..2373.2 m)
+    # are swept (satsweep.tiepoints; Pleiades pair: 2273.1..2374.3 m, S2P's DSM 2273.8..2373.2 m)
     tie_altitude_margin_m: float = 20.0  # ... widened by this much (m) on each side: tie points
     # are scarce on the lowest ground and the highest roofs
     tile_m: float = 1000.0  # an AOI wider or taller than this (m) is reconstructed in tiles of
