@@ -6,7 +6,8 @@ between about 2270 and 2376 m): thousands of planes. As S2P estimates its dispar
 SIFT matches, satsweep matches SIFT features between the views (cropped to the AOI over that
 coarse range), triangulates each verified match with the two RPCs, keeps the points inside the
 AOI, and sweeps between quantiles of their altitudes widened by a margin. On the Pleiades pair the
-tie points span 2271.9..2373.0 m (1% and 99% quantiles), S2P's DSM 2273.8..2373.2 m.
+480 tie points span 2273.1..2374.3 m (1% and 99% quantiles; 2271.9..2375.9 m in all), S2P's DSM
+2273.8..2373.2 m.
 
 Triangulation: the pixel of the first view is localised (``RPCModel.localization``) at a few
 altitudes and each ground point projected into the second view; a straight line fitted through
