@@ -216,20 +216,32 @@ def _reconstruct_tiles(paths, aoi, out: OutputFolder, grid, pending, cloud, rep:
     from .tiling import MIN_TILE_M, can_split, split_tile, sub_grid
 
     r = config.reconstruct
-    done, splits = [], []  # done: (tile, its report entry, its cameras)
-    shifts = []  # the principal-point shifts of each tile whose own adjustment ran
+    done, splits, unseen = [], [], []  # done: (tile, its report entry, its cameras)
+    shifts: dict[str, list] = {p: [] for p in paths}  # per image, its tiles' own corrections
     deferred = set()  # tiles put back once, for want of matches
+    whole = (0, grid.height, 0, grid.width)
     while pending:
         tile = pending.pop(0)
         entry = tile.to_dict()
-        if len(pending) + len(done) > 0 or tile.level > 0:
+        tile_paths = paths
+        if tile.core != whole:
             rep.log(f"tile {len(done) + 1}/{len(done) + len(pending) + 1}: cells {tile.core}")
+            # Each tile takes the images that see it (a large AOI need not lie in every image).
+            tile_paths = _paths_seeing(paths, tile.aoi, alt_range=alt_range, dem=dem)
+            if len(tile_paths) < 2:
+                rep.log(f"warning: cells {tile.core} are seen by {len(tile_paths)} image(s): "
+                        "left without heights")
+                unseen.append({"core_cells": list(tile.core),
+                               "images": [Path(p).name for p in tile_paths]})
+                continue
+        tile_names = [Path(p).name for p in tile_paths]
         split_above = r.tile_max_error_px if can_split(tile, grid, MIN_TILE_M) else 0.0
         # A pointing error is a translation of the whole image: a tile too poor in matches for
         # its own adjustment takes the median of the other tiles' corrections, or waits for them.
-        borrowed = np.median(np.array(shifts), axis=0).tolist() if shifts else None
-        area = _reconstruct_area(paths, tile.aoi, tile.grid, rep.section(entry), device,
-                                 alt_range=alt_range, dem=dem, config=config, names=names,
+        borrowed = ([np.median(np.array(shifts[p]), axis=0).tolist() for p in tile_paths]
+                    if all(shifts[p] for p in tile_paths) else None)
+        area = _reconstruct_area(tile_paths, tile.aoi, tile.grid, rep.section(entry), device,
+                                 alt_range=alt_range, dem=dem, config=config, names=tile_names,
                                  split_above_px=split_above, borrowed_shifts=borrowed,
                                  may_wait=borrowed is None and bool(pending)
                                  and id(tile) not in deferred)
@@ -252,16 +264,20 @@ def _reconstruct_tiles(paths, aoi, out: OutputFolder, grid, pending, cloud, rep:
         conf[r0:r1, c0:c1] = area.confidence[rows, cols]
         if ortho is not None:
             ortho[r0:r1, c0:c1] = area.ortho[rows, cols]
-        whole = tile.core == (0, grid.height, 0, grid.width)  # its area kept the grid's points
-        for piece in area.clouds:
-            x, y, z, colours = piece if whole else _cloud_in(piece, sub_grid(grid, *tile.core))
+        for piece in area.clouds:  # the whole AOI's area kept the grid's points already
+            x, y, z, colours = (piece if tile.core == whole
+                                else _cloud_in(piece, sub_grid(grid, *tile.core)))
             cloud.append(x, y, z, colors=colours)
         done.append((tile, entry, area.cameras))
-        if area.shifts is not None:
-            shifts.append(area.shifts)
-    tiled = len(done) > 1
+        for p, shift in zip(tile_paths, area.shifts or []):
+            shifts[p].append(shift)
+    if not done:
+        raise InputError(None, f"no tile of the AOI is seen by two of the images "
+                               f"({', '.join(names)})")
+    tiled = len(done) > 1 or bool(unseen)
     rep["tiling"] = {"tile_m": r.tile_m, "overlap_m": r.tile_overlap_m,
-                     "max_error_px": r.tile_max_error_px, "tiles": len(done), "splits": splits}
+                     "max_error_px": r.tile_max_error_px, "tiles": len(done), "splits": splits,
+                     "unseen": unseen}
     if tiled:
         rep["aoi_tiles"] = [entry for _, entry, _ in done]
         for k, entry in enumerate(rep["aoi_tiles"]):
@@ -298,6 +314,30 @@ def _reconstruct_tiles(paths, aoi, out: OutputFolder, grid, pending, cloud, rep:
     out.path("report.json").write_text(rep.to_json() + "\n", encoding="utf-8")
     return ReconstructResult(out_dir=out.out_dir, dsm_path=out.out_dir / dsm_path.name,
                              report=report, evaluation=evaluation)
+
+
+def _paths_seeing(paths, aoi: AOI, *, alt_range, dem) -> list:
+    """The images whose footprint of the AOI cube meets the image: at ``alt_range``, else at
+    the DEM's range over the AOI, else at their RPCs' common range (the widest prior)."""
+    from .aoi import altitude_range_from_rpcs
+    from .errors import AOIError
+    from .imageio import image_shape
+    from .rpc import RPCModel
+    from .views import aoi_footprint
+
+    rpcs = [RPCModel.from_image(p) for p in paths]
+    if alt_range is None and dem is None:
+        alt = altitude_range_from_rpcs(rpcs, warn=False)
+    else:
+        alt = resolve_altitude_range(alt_range=alt_range, dem=dem, aoi=aoi)
+    seeing = []
+    for p, rpc in zip(paths, rpcs):
+        try:
+            aoi_footprint(rpc, aoi, alt, image_shape(p), path=p)
+        except AOIError:
+            continue
+        seeing.append(p)
+    return seeing
 
 
 @dataclasses.dataclass

@@ -13,7 +13,7 @@ import rasterio
 from satsweep.aoi import AltitudeRange
 from satsweep.cli import main
 from satsweep.config import PipelineConfig
-from satsweep.errors import OptionsError, OutputExistsError
+from satsweep.errors import InputError, OptionsError, OutputExistsError
 from satsweep.pipeline import reconstruct
 from satsweep.ply import read_ply
 from satsweep.synth import SynthOptions, generate_scene
@@ -318,6 +318,57 @@ def test_a_tile_without_matches_takes_the_other_tiles_pointing_corrections(scene
            for t in tiles[:3]]
     borrowed = tiles[-1]["ba"]["borrowed_principal_point_shift_px"]
     np.testing.assert_array_equal(borrowed, np.median(np.array(own), axis=0))
+
+
+def _cropped_view(scene, tmp_path, columns: int) -> Path:
+    """The scene's view 1 cut to its first ``columns`` columns (same RPC: the crop starts at 0)."""
+    from satsweep.imageio import read_image, write_tiff
+    from satsweep.rpc import RPCModel, rpc_tiff_extratag
+
+    src = scene.views[1].image
+    out = tmp_path / "narrow" / src.name
+    out.parent.mkdir(parents=True)
+    write_tiff(out, read_image(src)[:, :columns],
+               extratags=[rpc_tiff_extratag(RPCModel.from_image(src))])
+    return out
+
+
+# The cut view sees the tiles it keeps only in part: of their cells, those it sees get heights
+# (measured 67% and 43% of the two tiles' cells, 0.06 and 0.11 m from the untiled DSM).
+SEEN_TILE_MIN_COVERAGE = 0.25
+
+
+def test_tiles_take_the_images_that_see_them(scene, reconstruction, tmp_path):
+    """A large AOI need not lie in every image: with view 1 cut to a third of its width, the
+    tiles it no longer sees are left without heights (reported), the others are reconstructed;
+    when no tile is seen by two images the run fails with one line naming the images."""
+    # The AOI spans about columns 37..155 of view 1: its first 70 columns see the tiles of one
+    # side only, once the tiles' context is small.
+    narrow = _cropped_view(scene, tmp_path, columns=70)
+    config = PipelineConfig.from_mapping({**FAST_CAMERA, "reconstruct": {
+        "tile_m": AOI_TILE_M, "tile_overlap_m": 2.0}})
+    res = reconstruct([scene.views[0].image, narrow], scene.aoi, tmp_path / "out",
+                      alt_range=_alt(scene), config=config, verbose=False)
+    rep = json.loads((res.out_dir / "report.json").read_text())
+    unseen, tiles = rep["tiling"]["unseen"], rep["aoi_tiles"]
+    assert unseen and tiles and len(unseen) + len(tiles) == 4, rep["tiling"]
+    assert all(u["images"] == [scene.views[0].image.name] for u in unseen)
+    with rasterio.open(res.dsm_path) as a, rasterio.open(reconstruction.dsm_path) as b:
+        dsm, whole = a.read(1), b.read(1)
+    for u in unseen:
+        r0, r1, c0, c1 = u["core_cells"]
+        assert np.isnan(dsm[r0:r1, c0:c1]).all()
+    for t in tiles:
+        r0, r1, c0, c1 = t["core_cells"]
+        part, ref = dsm[r0:r1, c0:c1], whole[r0:r1, c0:c1]
+        both = np.isfinite(part) & np.isfinite(ref)
+        assert both.mean() >= SEEN_TILE_MIN_COVERAGE
+        assert np.median(np.abs(part - ref)[both]) <= TILED_MAX_MEDIAN_DIFF_M
+
+    blind = _cropped_view(scene, tmp_path / "blind", columns=8)
+    with pytest.raises(InputError, match="no tile of the AOI is seen by two"):
+        reconstruct([scene.views[0].image, blind], scene.aoi, tmp_path / "none",
+                    alt_range=_alt(scene), config=config, verbose=False)
 
 
 @pytest.mark.parametrize("search", ["coarse_to_fine", "full"])
