@@ -28,6 +28,7 @@ import os
 import shutil
 import tempfile
 import threading
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
 
@@ -220,12 +221,16 @@ def _reconstruct_tiles(paths, aoi, out: OutputFolder, grid, pending, cloud, rep:
     shifts: dict[str, list] = {p: [] for p in paths}  # per image, its tiles' own corrections
     deferred = set()  # tiles put back once, for want of matches
     whole = (0, grid.height, 0, grid.width)
+    t_start = time.perf_counter()
     while pending:
         tile = pending.pop(0)
         entry = tile.to_dict()
         tile_paths = paths
         if tile.core != whole:
-            rep.log(f"tile {len(done) + 1}/{len(done) + len(pending) + 1}: cells {tile.core}")
+            spent = time.perf_counter() - t_start
+            left = (f"; {spent:.0f} s so far, about {spent / len(done) * (len(pending) + 1):.0f} s "
+                    "left" if done else "")
+            rep.log(f"tile {len(done) + 1}/{len(done) + len(pending) + 1}: cells {tile.core}{left}")
             # Each tile takes the images that see it (a large AOI need not lie in every image).
             tile_paths = _paths_seeing(paths, tile.aoi, alt_range=alt_range, dem=dem)
             if len(tile_paths) < 2:
