@@ -969,8 +969,15 @@ def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, 
         ortho = None
         if ortho_images is not None:
             with np.errstate(invalid="ignore"):
-                ortho = _nanmean_stack([np.where(np.abs(h - fused) <= d.outlier_m, o, np.nan)
-                                        for h, o in zip(rasters, orthos)], grid.shape)
+                kept = [np.where(np.abs(h - fused) <= d.outlier_m, o, np.nan)
+                        for h, o in zip(rasters, orthos)]
+            # Views of other dates or sensors differ in gain and offset: each is brought to the
+            # radiometry of the first image given (of those swept as references) before the
+            # mean, so that cells seen by one view and cells seen by two look alike.
+            first = int(np.argmin([pv["index"] for pv in per_view]))
+            kept = [o if k == first else match_radiometry(kept[first], o)
+                    for k, o in enumerate(kept)]
+            ortho = _nanmean_stack(kept, grid.shape)
         info = {
             "cross_check": ({"tolerance_m": d.cross_check_m, "views": d.cross_check_views,
                              "kept_fraction": [float(k.sum() / max(1, np.isfinite(h).sum()))
@@ -981,6 +988,28 @@ def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, 
         }
         rep["dsm"] = info
     return fused, conf, ortho, clouds, info
+
+
+# Cells two views must share for match_radiometry to fit one to the other.
+RADIOMETRY_MIN_CELLS = 100
+
+
+def match_radiometry(reference: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """``other`` with the gain and offset that bring it to ``reference``'s radiometry, fitted on
+    the cells both have (finite): the gain matches their interquartile ranges, the offset their
+    medians (robust to the cells where they see different things). ``other`` unchanged when
+    they share fewer than ``RADIOMETRY_MIN_CELLS`` cells or ``other`` is flat there."""
+    both = np.isfinite(reference) & np.isfinite(other)
+    if np.count_nonzero(both) < RADIOMETRY_MIN_CELLS:
+        return other
+    r = np.asarray(reference, np.float64)[both]
+    o = np.asarray(other, np.float64)[both]
+    r25, r50, r75 = np.percentile(r, [25, 50, 75])
+    o25, o50, o75 = np.percentile(o, [25, 50, 75])
+    if not o75 > o25:
+        return other
+    gain = (r75 - r25) / (o75 - o25)
+    return (gain * (np.asarray(other, np.float64) - o50) + r50).astype(np.float32)
 
 
 def _write_outputs(fused, conf, ortho, cloud, grid, rep: RunReport, out: OutputFolder, truth):
