@@ -703,7 +703,10 @@ def fill_small_holes(
     """
     import cv2
 
-    a = np.array(dsm, dtype=np.float64)
+    # float32 throughout (a copy): the fill values are the rim's own float32 values (min) or
+    # their mean rounded to float32 on assignment (median), as the float32 result needs anyway;
+    # a float64 copy would double the memory of a large AOI's grid.
+    a = np.array(dsm, dtype=np.float32)
     if a.ndim != 2:
         raise ValueError(f"fill_small_holes needs a 2D array, got shape {a.shape}")
     if not (isinstance(max_hole_cells, int) and max_hole_cells >= 0):
@@ -712,7 +715,7 @@ def fill_small_holes(
         raise OptionsError(f"fill method = {method!r}: must be 'min' or 'median'")
     hole = ~np.isfinite(a)
     if max_hole_cells == 0 or not hole.any() or hole.all():
-        return a.astype(np.float32), 0
+        return a, 0
     n, labels = cv2.connectedComponents(hole.astype(np.uint8), connectivity=4, ltype=cv2.CV_32S)
     n -= 1  # label 0 is the background (the valid cells)
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
@@ -721,7 +724,7 @@ def fill_small_holes(
     eligible[0] = False
     eligible[border] = False
     if not eligible[1:].any():
-        return a.astype(np.float32), 0
+        return a, 0
     # Rim pairs (hole label, rim value) from the four neighbour directions.
     pair_labels, pair_values = [], []
     for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
@@ -731,7 +734,7 @@ def fill_small_holes(
         pair_labels.append(lab[sel])
         pair_values.append(nb[sel])
     pl = np.concatenate(pair_labels)
-    pv = np.concatenate(pair_values)
+    pv = np.concatenate(pair_values).astype(np.float64)
     keep = eligible[pl]
     pl, pv = pl[keep], pv[keep]
     fill = np.full(n + 1, np.nan)
@@ -754,7 +757,7 @@ def fill_small_holes(
             fill[has] = 0.5 * (pv[lo_idx[has]] + pv[hi_idx[has]])
     target = eligible[labels] & np.isfinite(fill[labels])
     a[target] = fill[labels[target]]
-    return a.astype(np.float32), int(np.count_nonzero(target))
+    return a, int(np.count_nonzero(target))
 
 
 def write_dsm_geotiff(path: str | os.PathLike, array: np.ndarray, grid: DSMGrid) -> None:
