@@ -284,6 +284,9 @@ def _reconstruct_tiles(paths, aoi, out: OutputFolder, grid, pending, cloud, rep:
                      "max_error_px": r.tile_max_error_px, "tiles": len(done), "splits": splits,
                      "unseen": unseen}
     if tiled:
+        if alt_range is not None:  # else each tile's range is in its entry (DEM, tie points)
+            rep["altitude_range"] = {"min": alt_range.min, "max": alt_range.max,
+                                     "source": "user"}
         rep["aoi_tiles"] = [entry for _, entry, _ in done]
         for k, entry in enumerate(rep["aoi_tiles"]):
             entry["cameras_file"] = f"tiles/tile_{k:02d}/cameras.json"

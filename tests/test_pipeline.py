@@ -293,6 +293,8 @@ def test_aoi_tiles_each_with_their_cameras_make_one_dsm(scene, reconstruction, t
     _check_accuracy(tiled)
     rep = json.loads((tiled.out_dir / "report.json").read_text())
     assert rep["tiling"]["tiles"] == 4 and len(rep["aoi_tiles"]) == 4
+    alt = _alt(scene)
+    assert rep["altitude_range"] == {"min": alt.min, "max": alt.max, "source": "user"}
     if how == "tile_m":
         assert rep["tiling"]["splits"] == [] and all(t["level"] == 0 for t in rep["aoi_tiles"])
     else:
