@@ -626,6 +626,28 @@ def value_at_highest(cells: np.ndarray, heights, values, grid: DSMGrid) -> np.nd
     return out.reshape(grid.shape).astype(np.float32)
 
 
+# Cells two views must share for match_radiometry to fit one to the other.
+RADIOMETRY_MIN_CELLS = 100
+
+
+def match_radiometry(reference: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """``other`` with the gain and offset that bring it to ``reference``'s radiometry, fitted on
+    the cells both have (finite): the gain matches their interquartile ranges, the offset their
+    medians (robust to the cells where they see different things). ``other`` unchanged when
+    they share fewer than ``RADIOMETRY_MIN_CELLS`` cells or ``other`` is flat there."""
+    both = np.isfinite(reference) & np.isfinite(other)
+    if np.count_nonzero(both) < RADIOMETRY_MIN_CELLS:
+        return other
+    r = np.asarray(reference, np.float64)[both]
+    o = np.asarray(other, np.float64)[both]
+    r25, r50, r75 = np.percentile(r, [25, 50, 75])
+    o25, o50, o75 = np.percentile(o, [25, 50, 75])
+    if not o75 > o25:
+        return other
+    gain = (r75 - r25) / (o75 - o25)
+    return (gain * (np.asarray(other, np.float64) - o50) + r50).astype(np.float32)
+
+
 def rasterise_points(points: Points, grid: DSMGrid) -> np.ndarray:
     """DSM of one point set on ``grid``: ``points_to_utm`` then ``rasterise_max`` of the heights."""
     x, y, z = points_to_utm(points, grid.epsg)

@@ -503,7 +503,7 @@ def test_value_at_highest_takes_each_cells_top_point():
 
 
 def test_match_radiometry_fits_gain_and_offset_robustly():
-    from satsweep.pipeline import RADIOMETRY_MIN_CELLS, match_radiometry
+    from satsweep.dsm import RADIOMETRY_MIN_CELLS, match_radiometry
 
     rng = np.random.default_rng(4)
     ref = rng.gamma(4.0, 100.0, (60, 60))
