@@ -19,30 +19,30 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-from .errors import SatsweepError  # noqa: E402
+from satsweep.errors import SatsweepError  # noqa: E402
 
 # name -> module that defines it
 _API = {
-    "reconstruct": "pipeline",
-    "ReconstructResult": "pipeline",
+    "reconstruct": "pipeline.run",
+    "ReconstructResult": "pipeline.outputs",
     "PipelineConfig": "config",
     "ReconstructOptions": "config",
     "run_demo": "demo",
-    "AOI": "aoi",
-    "AltitudeRange": "aoi",
-    "parse_aoi": "aoi",
-    "RPCModel": "rpc",
-    "ENUFrame": "geo",
-    "build_cameras": "camera",
-    "CameraSet": "camera",
-    "adjust_principal_points": "bundle",
-    "sweep_views": "sweep",
-    "PlaneSweep": "sweep",
-    "generate_scene": "synth",
-    "SynthOptions": "synth",
-    "evaluate_dsm": "evaluate",
-    "open_device": "device",
-    "list_devices": "device",
+    "AOI": "geometry.aoi",
+    "AltitudeRange": "geometry.altitude",
+    "parse_aoi": "geometry.aoi",
+    "RPCModel": "geometry.rpc",
+    "ENUFrame": "geometry.geodesy",
+    "build_cameras": "geometry.camera",
+    "CameraSet": "geometry.camera",
+    "adjust_principal_points": "sparse.bundle",
+    "sweep_views": "dense.sweep",
+    "PlaneSweep": "dense.sweep",
+    "generate_scene": "synth.scene",
+    "SynthOptions": "synth.scene",
+    "evaluate_dsm": "products.evaluate",
+    "open_device": "opencl.device",
+    "list_devices": "opencl.device",
 }
 
 __all__ = ["__version__", "SatsweepError", *_API]
@@ -56,15 +56,17 @@ def __getattr__(name: str) -> Any:
 
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
-    from .aoi import AOI, AltitudeRange, parse_aoi
-    from .bundle import adjust_principal_points
-    from .camera import CameraSet, build_cameras
-    from .config import PipelineConfig, ReconstructOptions
-    from .demo import run_demo
-    from .device import list_devices, open_device
-    from .evaluate import evaluate_dsm
-    from .geo import ENUFrame
-    from .pipeline import ReconstructResult, reconstruct
-    from .rpc import RPCModel
-    from .sweep import PlaneSweep, sweep_views
-    from .synth import SynthOptions, generate_scene
+    from satsweep.config import PipelineConfig, ReconstructOptions  # noqa: F401
+    from satsweep.demo import run_demo  # noqa: F401
+    from satsweep.dense.sweep import PlaneSweep, sweep_views  # noqa: F401
+    from satsweep.geometry.altitude import AltitudeRange  # noqa: F401
+    from satsweep.geometry.aoi import AOI, parse_aoi  # noqa: F401
+    from satsweep.geometry.camera import CameraSet, build_cameras  # noqa: F401
+    from satsweep.geometry.geodesy import ENUFrame  # noqa: F401
+    from satsweep.geometry.rpc import RPCModel  # noqa: F401
+    from satsweep.opencl.device import list_devices, open_device  # noqa: F401
+    from satsweep.pipeline.outputs import ReconstructResult  # noqa: F401
+    from satsweep.pipeline.run import reconstruct  # noqa: F401
+    from satsweep.products.evaluate import evaluate_dsm  # noqa: F401
+    from satsweep.sparse.bundle import adjust_principal_points  # noqa: F401
+    from satsweep.synth.scene import SynthOptions, generate_scene  # noqa: F401

@@ -11,8 +11,8 @@ import json
 import sys
 from typing import Callable, Sequence
 
-from . import __version__
-from .errors import SatsweepError
+from satsweep import __version__
+from satsweep.errors import SatsweepError
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -31,7 +31,7 @@ def _add_devices(sub) -> None:
 
 
 def _cmd_devices(args: argparse.Namespace) -> int:
-    from . import device as sdev
+    from satsweep.opencl import device as sdev
 
     devices = sdev.list_devices(check_build=True)
     selected = None
@@ -78,8 +78,8 @@ def _add_image_inputs(p) -> None:
 
 def _cli_altitude_range(args: argparse.Namespace):
     """The --alt-range given on the command line (None if absent); errors name the option."""
-    from .aoi import AltitudeRange
-    from .errors import AOIError
+    from satsweep.errors import AOIError
+    from satsweep.geometry.altitude import AltitudeRange
 
     if args.alt_range is None:
         return None
@@ -113,19 +113,21 @@ def _add_cameras(sub) -> None:
 
 
 def _cmd_cameras(args: argparse.Namespace) -> int:
-    from . import camera as scam
-    from .aoi import parse_aoi, resolve_altitude_range
-    from .imageio import check_output_dir
-    from .views import load_views
+    from satsweep.geometry import camera as scam
+    from satsweep.geometry import skew
+    from satsweep.geometry.altitude import resolve_altitude_range
+    from satsweep.geometry.aoi import parse_aoi
+    from satsweep.io.atomic import check_output_dir
+    from satsweep.io.views import load_views
 
     check_output_dir(args.out, overwrite=args.overwrite)
     options = scam.CameraOptions() if args.grid is None else scam.CameraOptions(grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
     alt = _cli_altitude_range(args)
     if alt is None and args.dem is None:
-        from .config import ReconstructOptions
-        from .sparse import SparseOptions
-        from .tiepoints import altitude_range_for_images
+        from satsweep.config import ReconstructOptions
+        from satsweep.sparse.options import SparseOptions
+        from satsweep.sparse.tiepoints import altitude_range_for_images
 
         defaults = ReconstructOptions()
         alt, _ = altitude_range_for_images(
@@ -139,8 +141,8 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     if args.adjust:
         import dataclasses
 
-        from .bundle import adjust_principal_points
-        from .imageio import tonemap
+        from satsweep.io.images import tonemap
+        from satsweep.sparse.bundle import adjust_principal_points
 
         cameras, ba = adjust_principal_points(cameras, [tonemap(v.image) for v in views])
         cameras = dataclasses.replace(cameras, ba=ba.to_dict())
@@ -150,7 +152,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
         for name, shift in zip(ba.names, ba.principal_point_shift_px):
             print(f"  {name}: principal point shift ({shift[0]:+.3f}, {shift[1]:+.3f}) px")
     if args.skew_correct:
-        cameras, images = scam.skew_correct_set(cameras, [v.image for v in views])
+        cameras, images = skew.skew_correct_set(cameras, [v.image for v in views])
     cameras = scam.write_cameras(args.out, cameras, images)
     f = cameras.frame
     print(f"ENU origin: lon {f.lon0:.7f}, lat {f.lat0:.7f}, alt {f.alt0:.2f} m; UTM EPSG:{cameras.utm_epsg}; "
@@ -186,8 +188,8 @@ def _add_evaluate(sub) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluate import EvaluateOptions, evaluate_dsm
-    from .report import to_json
+    from satsweep.pipeline.report import to_json
+    from satsweep.products.evaluate import EvaluateOptions, evaluate_dsm
 
     given = {"max_shift_m": args.max_shift, "threshold_m": args.threshold, "resampling": args.resampling}
     options = EvaluateOptions(**{k: v for k, v in given.items() if v is not None})
@@ -220,8 +222,8 @@ def _add_synth(sub) -> None:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    from .errors import OptionsError
-    from .synth import SynthOptions, generate_scene
+    from satsweep.errors import OptionsError
+    from satsweep.synth.scene import SynthOptions, generate_scene
 
     given = {"seed": args.seed, "n_views": args.views, "size_px": args.size, "gsd_m": args.gsd,
              "bias_px": args.bias}
@@ -262,7 +264,7 @@ def _add_pipeline_options(p) -> None:
 
 
 def _pipeline_config(args: argparse.Namespace):
-    from .config import PipelineConfig
+    from satsweep.config import PipelineConfig
 
     config = PipelineConfig.from_toml(args.config) if args.config else PipelineConfig()
     config = config.override("reconstruct", device=args.device, adjust=args.adjust)
@@ -289,8 +291,8 @@ def _add_reconstruct(sub) -> None:
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
-    from .aoi import parse_aoi
-    from .pipeline import reconstruct
+    from satsweep.geometry.aoi import parse_aoi
+    from satsweep.pipeline.run import reconstruct
 
     config = _pipeline_config(args)
     aoi = parse_aoi(args.aoi)
@@ -343,7 +345,7 @@ def _add_demo(sub) -> None:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import DemoOptions, run_demo
+    from satsweep.demo import DemoOptions, run_demo
 
     given = {"n_views": args.views, "size_px": args.size, "bias_px": args.bias, "seed": args.seed}
     options = DemoOptions(**{k: v for k, v in given.items() if v is not None})
@@ -370,7 +372,7 @@ def _add_config(sub) -> None:
 
 
 def _cmd_config(args: argparse.Namespace) -> int:
-    from .config import PipelineConfig
+    from satsweep.config import PipelineConfig
 
     if args.config is None:
         text = PipelineConfig().to_toml(header="satsweep configuration: the defaults")
@@ -415,7 +417,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def console_main() -> int:
     """The ``satsweep`` command: ``main`` under the command's heap policy (see ``heap``)."""
-    from .heap import keep_freed_memory  # noqa: PLC0415
+    from satsweep.heap import keep_freed_memory  # noqa: PLC0415
 
     keep_freed_memory()
     return main()

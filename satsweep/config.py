@@ -14,16 +14,16 @@ import math
 import os
 from typing import Any, Literal, Mapping
 
-from .bundle import BundleOptions
-from .camera import CameraOptions
-from .dsm import DSMOptions
-from .errors import OptionsError
-from .mrf import MRFOptions
-from .options import Options, dumps_toml, load_toml
-from .sparse import SparseOptions
-from .sweep import SweepOptions
-from .tiling import MIN_TILE_M
-from .viewselect import ViewSelectionOptions
+from satsweep.dense.mrf import MRFOptions
+from satsweep.dense.selection import ViewSelectionOptions
+from satsweep.dense.sweep import SweepOptions
+from satsweep.errors import OptionsError
+from satsweep.geometry.camera import CameraOptions
+from satsweep.options import Options, dumps_toml, load_toml
+from satsweep.pipeline.tiling import MIN_TILE_M
+from satsweep.products.fusion import DSMOptions
+from satsweep.sparse.bundle import BundleOptions
+from satsweep.sparse.options import SparseOptions
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,11 +41,11 @@ class ReconstructOptions(Options):
     # (the images' own units) at each cell's highest point, i.e. a true orthophoto
     tie_altitude_quantile: float = 0.01  # without --alt-range or --dem, the altitudes between
     # this quantile and 1 - it of the SIFT tie points inside the AOI (triangulated with the RPCs)
-    # are swept (satsweep.tiepoints; Pleiades pair: 2273.1..2374.3 m, S2P's DSM 2273.8..2373.2 m)
+    # are swept (satsweep.sparse.tiepoints; Pleiades pair: 2273.1..2374.3 m, S2P's DSM 2273.8..2373.2 m)
     tie_altitude_margin_m: float = 20.0  # ... widened by this much (m) on each side: tie points
     # are scarce on the lowest ground and the highest roofs
     tile_m: float = 1000.0  # an AOI wider or taller than this (m) is reconstructed in tiles of
-    # at most this side, each with its own cameras (satsweep.tiling): the perspective
+    # at most this side, each with its own cameras (satsweep.pipeline.tiling): the perspective
     # approximation of a Pleiades RPC is within 0.095 px over 1 km, 0.43 px over 4 km; 0: never
     tile_overlap_m: float = 50.0  # context (m) each tile is reconstructed with beyond its cells
     tile_max_error_px: float = 0.1  # an area (the AOI or a tile) whose perspective

@@ -3,7 +3,7 @@
 It generates a small seeded town seen by two or more pushbroom satellites (``satsweep.synth``),
 reconstructs it from the images and their RPCs alone (``satsweep.pipeline.reconstruct``: the
 pipeline estimates its own cameras), and evaluates the DSM against the scene's truth with the
-IARPA MVS3DM protocol (``satsweep.evaluate``).
+IARPA MVS3DM protocol (``satsweep.products.evaluate``).
 """
 
 from __future__ import annotations
@@ -13,10 +13,11 @@ import os
 import tempfile
 from pathlib import Path
 
-from .aoi import AltitudeRange
-from .config import PipelineConfig
-from .options import Options
-from .pipeline import ReconstructResult, reconstruct
+from satsweep.config import PipelineConfig
+from satsweep.geometry.altitude import AltitudeRange
+from satsweep.options import Options
+from satsweep.pipeline.outputs import ReconstructResult
+from satsweep.pipeline.run import reconstruct
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,8 +43,8 @@ def run_demo(out_dir: str | os.PathLike | None = None, *, options: DemoOptions =
     ``out_dir`` None: a new folder under the system's temporary directory. Returns the folder
     and the reconstruction result (its ``evaluation`` holds the metrics against the truth).
     """
-    from .pipeline import OutputFolder
-    from .synth import SynthOptions, generate_scene
+    from satsweep.pipeline.outputs import OutputFolder
+    from satsweep.synth.scene import SynthOptions, generate_scene
 
     if out_dir is None:
         out_dir = Path(tempfile.mkdtemp(prefix="satsweep-demo-"))

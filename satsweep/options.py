@@ -18,7 +18,7 @@ import tomllib
 import typing
 from typing import Any, Mapping, TypeVar
 
-from .errors import InputError, OptionsError
+from satsweep.errors import InputError, OptionsError
 
 T = TypeVar("T", bound="Options")
 

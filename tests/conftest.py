@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from satsweep import device as sdev
+from satsweep.opencl import device as sdev
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("SATSWEEP_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -76,3 +76,32 @@ def pleiades_pair(shared_data) -> Path:
     if not (d / "img_01.tif").is_file():
         pytest.skip(f"{d}/img_01.tif is absent")
     return d
+
+
+# The small synthetic town that the pipeline, sweep and tie-point tests share: two views of a
+# 192 px town at 0.5 m (96 m square), base-to-height about 0.2, no pointing bias.
+SMALL_TOWN = dict(seed=3, n_views=2, size_px=192, gsd_m=0.5)
+
+
+@pytest.fixture(scope="session")
+def synthetic_scene(tmp_path_factory):
+    """A factory of synthetic scenes (``satsweep.synth``), each generated once per session: the
+    tests that ask for the same options share its files (which no test may change)."""
+    from satsweep.synth.scene import SynthOptions, generate_scene
+
+    cache = {}
+
+    def make(**options):
+        key = tuple(sorted(options.items()))
+        if key not in cache:
+            cache[key] = generate_scene(tmp_path_factory.mktemp("scene") / "scene",
+                                        SynthOptions(**options))
+        return cache[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def small_town(synthetic_scene):
+    """``SMALL_TOWN``: the shared two-view town."""
+    return synthetic_scene(**SMALL_TOWN)

@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from satsweep.mrf import SGM_DIRECTIONS, SATSWEEP_INVALID
+from satsweep.dense.mrf import SATSWEEP_INVALID
+from satsweep.dense.sgm import SGM_DIRECTIONS
 
 F32 = np.float32
 

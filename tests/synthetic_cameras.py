@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from satsweep.camera import PerspectiveCamera
+from satsweep.geometry.camera import PerspectiveCamera
 
 
 def look_at(center: np.ndarray, roll: float) -> np.ndarray:

@@ -13,8 +13,9 @@ import pytest
 import tifffile
 
 from satsweep.cli import main
-from satsweep.geo import ENUFrame
-from satsweep.rpc import RPCModel, write_rpc_txt
+from satsweep.geometry.geodesy import ENUFrame
+from satsweep.geometry.rpc import RPCModel
+from satsweep.geometry.rpc_formats import write_rpc_txt
 
 # AOI of about 300 m x 300 m around the centre of the pair's first image (55.6503 E, 21.2306 S)
 # and the ground heights of the pair's README.

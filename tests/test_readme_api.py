@@ -10,7 +10,7 @@ import numpy as np
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 # Sanity bounds for the examples' 256 px town (2 views, B/H 0.20). They check that the examples
-# do what the README says, not the accuracy (tests/test_pipeline.py and tools/bench_e2e.py do):
+# do what the README says, not the accuracy (tests/pipeline/test_pipeline.py and tools/bench_e2e.py do):
 # at this size the run measured 0.25 m / 80% within 1 m.
 EXAMPLE_MAX_MEDIAN_M = 0.5
 EXAMPLE_MIN_COMPLETENESS = 0.6

@@ -8,7 +8,7 @@ and crops the views, fits the cameras, then times the adjustment stage by stage:
 matching (ratio test, mutual check, epipolar verification), tracks, bundle adjustment. Prints
 seconds per stage (best of ``--repeat`` runs), the counts and errors of the report, and the
 recovered shifts against the injected biases (relative to the mean over views, after removing the
-unobservable height/translation motion; see satsweep.bundle).
+unobservable height/translation motion; see satsweep.sparse.bundle).
 """
 
 from __future__ import annotations
@@ -24,12 +24,12 @@ import numpy as np
 
 
 def main(argv=None) -> int:
-    from satsweep import bundle
-    from satsweep.aoi import AltitudeRange
-    from satsweep.camera import build_cameras
-    from satsweep.imageio import tonemap
-    from satsweep.synth import Scene, SynthOptions, generate_scene
-    from satsweep.views import load_views
+    from satsweep.geometry.altitude import AltitudeRange
+    from satsweep.geometry.camera import build_cameras
+    from satsweep.io.images import tonemap
+    from satsweep.io.views import load_views
+    from satsweep.sparse import bundle
+    from satsweep.synth.scene import Scene, SynthOptions, generate_scene
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--size", type=int, default=1000, help="view width and height (px)")

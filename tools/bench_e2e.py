@@ -8,7 +8,7 @@ issue's 0.1-0.3), both with pointing biases up to ``--bias`` pixels (2 by defaul
 every view but the first. Each scene is reconstructed by ``satsweep.pipeline.reconstruct`` from
 the images and their RPCs alone (the pipeline approximates the cameras and bundle-adjusts them),
 with the altitude range of the scene's truth widened by 5 m (as ``satsweep demo`` does), and
-evaluated against the exact truth DSM (IARPA MVS3DM protocol, ``satsweep.evaluate``). The table
+evaluated against the exact truth DSM (IARPA MVS3DM protocol, ``satsweep.products.evaluate``). The table
 gives the aligned median absolute error, the completeness within 1 m, the RMSE and the seconds of
 each stage; the issue's targets are a median of at most 0.10 m and a completeness of at least 93%.
 
@@ -57,11 +57,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from satsweep.aoi import AOI, AltitudeRange  # noqa: E402
 from satsweep.config import PipelineConfig  # noqa: E402
 from satsweep.errors import OptionsError  # noqa: E402
+from satsweep.geometry.altitude import AltitudeRange  # noqa: E402
+from satsweep.geometry.aoi import AOI
 from satsweep.heap import keep_freed_memory  # noqa: E402
-from satsweep.pipeline import reconstruct  # noqa: E402
+from satsweep.pipeline.run import reconstruct  # noqa: E402
 
 # The issue's accuracy targets on the synthetic scenes.
 TARGET_MEDIAN_M = 0.10
@@ -111,7 +112,7 @@ def parse_set(items: list[str]) -> dict[str, dict[str, object]]:
 
 def parse_scene_set(items: list[str]) -> dict[str, object]:
     """``FIELD=VALUE`` SynthOptions overrides (VALUE a Python literal) -> dict, checked."""
-    from satsweep.synth import SynthOptions
+    from satsweep.synth.scene import SynthOptions
 
     names = {f.name for f in dataclasses.fields(SynthOptions)}
     out: dict[str, object] = {}
@@ -168,7 +169,7 @@ def scene_specs(sizes: int, seeds: list[int], bias: float,
 def get_scene(cache: Path, spec: dict, log):
     """Load the cached scene of ``spec`` when its options match, else generate it."""
     from satsweep.errors import InputError
-    from satsweep.synth import Scene, SynthOptions, generate_scene
+    from satsweep.synth.scene import Scene, SynthOptions, generate_scene
 
     options = SynthOptions(**spec["options"])
     folder = cache / spec["key"]
@@ -225,7 +226,7 @@ def split_by_relief(error_tif: Path, truth_tif: Path) -> dict:
     from scipy import ndimage
 
     from satsweep.errors import InputError
-    from satsweep.evaluate import _read_dsm
+    from satsweep.products.evaluate import _read_dsm
 
     err, _ = _read_dsm(error_tif)
     truth, _ = _read_dsm(truth_tif)
@@ -273,7 +274,7 @@ def print_synthetic(rows: list[dict]) -> None:
 # -- the Pleiades pair -------------------------------------------------------------------------
 def pleiades_aoi(pair: Path) -> AOI:
     """Lon/lat box of img_01's region PLEIADES_BOX localised at PLEIADES_GROUND_M."""
-    from satsweep.rpc import RPCModel
+    from satsweep.geometry.rpc import RPCModel
 
     rpc = RPCModel.from_image(pair / "img_01.tif")
     x0, y0, x1, y1 = PLEIADES_BOX
@@ -285,7 +286,7 @@ def pleiades_aoi(pair: Path) -> AOI:
 
 def compare_with_s2p(dsm_path: Path, s2p_path: Path, out_dir: Path) -> dict:
     """Median |satsweep - S2P| over the common cells (S2P's grid), raw and MVS3DM-aligned."""
-    from satsweep.evaluate import _read_dsm, evaluate_dsm, resample_to_grid
+    from satsweep.products.evaluate import _read_dsm, evaluate_dsm, resample_to_grid
 
     s2p, sinfo = _read_dsm(s2p_path)
     ours, oinfo = _read_dsm(dsm_path)

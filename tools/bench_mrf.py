@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Benchmark of the MRF refinements (satsweep.mrf): time and accuracy of SGM and graph cut.
+"""Benchmark of the MRF refinements (satsweep.dense.mrf): time and accuracy of SGM and graph cut.
 
 Runs both methods on the same synthetic cost volume (``mrf.synthetic_roof_volume``: textured
 terrain around a large weakly textured roof, known true plane per pixel) and prints, per method:
@@ -26,13 +26,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from satsweep import mrf  # noqa: E402
-from satsweep.device import open_device  # noqa: E402
+from satsweep.dense import graphcut, mrf  # noqa: E402
+from satsweep.dense import sgm as sgm_mod  # noqa: E402
+from satsweep.opencl.device import open_device  # noqa: E402
+from tests import synthetic_volumes  # noqa: E402
 
 COMPLETENESS_M = 1.0  # |error| threshold of the completeness figure (metres)
 
 
-def _accuracy(height: np.ndarray, valid: np.ndarray, scene: mrf.SyntheticVolume,
+def _accuracy(height: np.ndarray, valid: np.ndarray, scene: synthetic_volumes.SyntheticVolume,
               mask: np.ndarray) -> tuple[float, float]:
     err = np.where(valid, np.abs(height - scene.truth_height), np.inf)[mask]
     return float(np.median(err)), float(np.mean(err < COMPLETENESS_M))
@@ -47,7 +49,7 @@ def _best_time(fn, repeats: int):
     return best, out
 
 
-def _aexpansion_seconds(scene: mrf.SyntheticVolume, options: mrf.MRFOptions) -> float:
+def _aexpansion_seconds(scene: synthetic_volumes.SyntheticVolume, options: mrf.MRFOptions) -> float:
     """PyMaxflow's aexpansion_grid with one global truncated-linear matrix (no contrast term)."""
     import maxflow  # noqa: PLC0415
 
@@ -86,7 +88,7 @@ def main(argv=None) -> int:
     if args.sgm_paths is not None:
         opts = opts.replace(sgm_paths=args.sgm_paths)
 
-    scene = mrf.synthetic_roof_volume((rows, cols), args.planes, seed=args.seed)
+    scene = synthetic_volumes.synthetic_roof_volume((rows, cols), args.planes, seed=args.seed)
     device = open_device(args.device)
     mpx_100 = rows * cols / 1e6 * args.planes / 100.0
     print(f"volume {args.planes} planes x {rows} x {cols} ({scene.cost.nbytes / 2**20:.0f} MiB), "
@@ -94,7 +96,7 @@ def main(argv=None) -> int:
     print(f"options: {opts.to_dict()}")
 
     # Build the SGM and WTA programs outside the timing.
-    mrf.sgm_refine(device, scene.cost[:, :8, :8], scene.guide[:8, :8], scene.heights, opts,
+    sgm_mod.sgm_refine(device, scene.cost[:, :8, :8], scene.guide[:8, :8], scene.heights, opts,
                    cost_scale=scene.cost_scale)
 
     rows_out = []
@@ -103,7 +105,7 @@ def main(argv=None) -> int:
     rows_out.append(("wta (host argmin)", t_wta,
                      _accuracy(scene.heights[wta], everywhere, scene, scene.roof),
                      _accuracy(scene.heights[wta], everywhere, scene, ~scene.roof)))
-    t_sgm, sgm = _best_time(lambda: mrf.sgm_refine(device, scene.cost, scene.guide, scene.heights,
+    t_sgm, sgm = _best_time(lambda: sgm_mod.sgm_refine(device, scene.cost, scene.guide, scene.heights,
                                                    opts, cost_scale=scene.cost_scale),
                             args.repeats)
     form = "two raster scans" if opts.sgm_scan else "a launch per direction"
@@ -112,11 +114,11 @@ def main(argv=None) -> int:
                      _accuracy(sgm.height, sgm.valid, scene, ~scene.roof)))
     # The other form of SGM's aggregation (MRFOptions.sgm_scan), in the same run (CPUs only:
     # GPUs run one work-group per scanline, which has no scan form).
-    if mrf.sgm_work_group(device, opts, args.planes) == 1:
+    if sgm_mod.sgm_work_group(device, opts, args.planes) == 1:
         other = opts.replace(sgm_scan=not opts.sgm_scan)
-        mrf.sgm_refine(device, scene.cost[:, :8, :8], scene.guide[:8, :8], scene.heights, other,
+        sgm_mod.sgm_refine(device, scene.cost[:, :8, :8], scene.guide[:8, :8], scene.heights, other,
                        cost_scale=scene.cost_scale)
-        t_other, res = _best_time(lambda: mrf.sgm_refine(device, scene.cost, scene.guide,
+        t_other, res = _best_time(lambda: sgm_mod.sgm_refine(device, scene.cost, scene.guide,
                                                          scene.heights, other,
                                                          cost_scale=scene.cost_scale),
                                   args.repeats)
@@ -124,7 +126,7 @@ def main(argv=None) -> int:
         rows_out.append((f"sgm ({other.sgm_paths} paths, {form})", t_other,
                          _accuracy(res.height, res.valid, scene, scene.roof),
                          _accuracy(res.height, res.valid, scene, ~scene.roof)))
-    t_gc, gc = _best_time(lambda: mrf.graphcut_refine(scene.cost, scene.guide, scene.heights,
+    t_gc, gc = _best_time(lambda: graphcut.graphcut_refine(scene.cost, scene.guide, scene.heights,
                                                       opts, cost_scale=scene.cost_scale),
                           args.repeats)
     rows_out.append((f"graphcut (levels {opts.gc_levels}, window {opts.gc_label_window})", t_gc,

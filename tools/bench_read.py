@@ -35,8 +35,8 @@ def _scene(size: int) -> np.ndarray:
 def main(argv=None) -> int:
     import tifffile
 
-    from satsweep.imageio import read_image
-    from satsweep.report import peak_memory_bytes
+    from satsweep.io.images import read_image
+    from satsweep.pipeline.report import peak_memory_bytes
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--size", type=int, default=20000, help="scene width and height (px)")

@@ -29,12 +29,12 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))  # the numpy references live with the tests
+sys.path.insert(0, str(REPO))  # the numpy references live with the tests (package tests)
 
-import reference_sweep as ref  # noqa: E402
-
-from satsweep.device import open_device  # noqa: E402
-from satsweep.sweep import PlaneSweep, SweepOptions, translation_homographies  # noqa: E402
+from satsweep.dense.planes import translation_homographies  # noqa: E402
+from satsweep.dense.sweep import PlaneSweep, SweepOptions
+from satsweep.opencl.device import open_device  # noqa: E402
+from tests import reference_sweep as ref  # noqa: E402
 
 
 def _scene(size: int, n_src: int, n_planes: int, seed: int = 0):

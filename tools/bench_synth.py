@@ -19,8 +19,16 @@ import numpy as np
 
 
 def main(argv=None) -> int:
-    from satsweep.synth import SynthOptions, design_scene, generate_scene, render_radiance, truth_dsm, dsm_grid_for, _aoi_box
-    from satsweep.synth_scene import ShadowMap, build_surface, cast_rays, sun_vector
+    from satsweep.products.grid import dsm_grid_for_aoi
+    from satsweep.synth.scene import (
+        SynthOptions,
+        _aoi_box,
+        design_scene,
+        generate_scene,
+        render_radiance,
+        truth_dsm,
+    )
+    from satsweep.synth.town import ShadowMap, build_surface, cast_rays, sun_vector
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--size", type=int, default=512, help="view width and height (px)")
@@ -53,7 +61,7 @@ def main(argv=None) -> int:
     cast_rays(grid, o, d)
     t_cast = time.perf_counter() - t
     t = time.perf_counter()
-    truth_dsm(grid, design.frame, dsm_grid_for(_aoi_box(design.frame, design.aoi_half_m), resolution=opts.dsm_resolution_m))
+    truth_dsm(grid, design.frame, dsm_grid_for_aoi(_aoi_box(design.frame, design.aoi_half_m), opts.dsm_resolution_m))
     t_dsm = time.perf_counter() - t
     print(f"surface grid {grid.shape[1]}x{grid.shape[0]} cells: {t_surface:.2f} s; shadow map: {t_shadow:.2f} s")
     print(f"render {cam.width}x{cam.height} view {args.view} ({n_rays} rays, "

@@ -30,10 +30,10 @@ sys.path.insert(0, str(REPO / "tools"))
 
 from bench_e2e import PLEIADES_ALT_RANGE, pleiades_aoi  # noqa: E402
 
-from satsweep.aoi import AltitudeRange  # noqa: E402
 from satsweep.config import PipelineConfig  # noqa: E402
-from satsweep.imageio import read_geotiff  # noqa: E402
-from satsweep.pipeline import reconstruct  # noqa: E402
+from satsweep.geometry.altitude import AltitudeRange  # noqa: E402
+from satsweep.io.geotiff import read_geotiff  # noqa: E402
+from satsweep.pipeline.run import reconstruct  # noqa: E402
 
 # Issue 6's bound on the median height difference between devices (m).
 TOLERANCE_M = 0.05

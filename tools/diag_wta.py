@@ -32,15 +32,18 @@ from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from satsweep import camera as scam  # noqa: E402
-from satsweep.aoi import AltitudeRange  # noqa: E402
-from satsweep.device import open_device  # noqa: E402
-from satsweep.imageio import tonemap  # noqa: E402
-from satsweep.pipeline import enu_height_range  # noqa: E402
-from satsweep.sweep import SweepOptions, sweep_views  # noqa: E402
-from satsweep.synth import Scene, SynthOptions, generate_scene  # noqa: E402
-from satsweep.synth_scene import MATERIAL_NAMES, cast_rays  # noqa: E402
-from satsweep.views import load_views  # noqa: E402
+from satsweep.dense.sweep import SweepOptions, sweep_views  # noqa: E402
+from satsweep.geometry import camera as scam  # noqa: E402
+from satsweep.geometry import skew
+from satsweep.geometry.altitude import (
+    AltitudeRange,  # noqa: E402
+    enu_height_range,  # noqa: E402
+)
+from satsweep.io.images import tonemap  # noqa: E402
+from satsweep.io.views import load_views  # noqa: E402
+from satsweep.opencl.device import open_device  # noqa: E402
+from satsweep.synth.scene import Scene, SynthOptions, generate_scene  # noqa: E402
+from satsweep.synth.town import MATERIAL_NAMES, cast_rays  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 # --calibration's view angles (B/H 0.26), those of bench_e2e's --calibration.
@@ -52,7 +55,7 @@ ALT_MARGIN_M = 5.0
 FLAT_RANGE_M = 0.5
 FLAT_WINDOW_PX = 9
 # "Textured": local standard deviation of the tonemapped reference over a 7x7 window above this
-# (as in tests/test_sweep_scene.py).
+# (as in tests/dense/test_sweep_scene.py).
 TEXTURE_STD = 0.04
 TEXTURE_WINDOW_PX = 7
 # Completeness threshold (m) and the height jump that counts as an edge (m).
@@ -166,7 +169,7 @@ def main(argv=None) -> int:
     alt = AltitudeRange(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M)
     views = load_views([v.image for v in scene.views], scene.aoi, alt)
     cams = scam.build_cameras(views, scene.aoi, alt, scam.CameraOptions(grid_size=(20, 20, 6)))
-    cams, images = scam.skew_correct_set(cams, [tonemap(v.image) for v in views])
+    cams, images = skew.skew_correct_set(cams, [tonemap(v.image) for v in views])
     images = [np.where(np.isfinite(im), im, 0.0).astype(np.float32) for im in images]
     u_range = enu_height_range(cams.frame, scene.aoi, alt)
     check = camera_check(scene, cams, (lo, hi), np.random.default_rng(0))

@@ -1,0 +1,404 @@
+"""MRF refinement of plane-sweep height maps: the options, the conventions and ``refine``.
+
+Winner-take-all over a filtered cost volume fails where the image has little texture (plain
+roofs, roads, plazas): the cost curve is flat and its minimum is noise. Both methods here add a
+smoothness prior in the plane index (the label) and trade speed for accuracy:
+
+- ``sgm`` (:mod:`satsweep.dense.sgm`): semi-global matching (Hirschmueller 2008) along 4 or 8 scanline directions on the
+  device (``kernels/sgm.cl``), the path costs summed, then the sweep's streaming winner-take-all
+  (``kernels/wta.cl``) on the aggregated volume. Fast: a few passes over the volume.
+- ``graphcut`` (:mod:`satsweep.dense.graphcut`): alpha-expansion (Boykov, Veksler and Zabih 2001) with PyMaxflow on the host,
+  minimising the energy below exactly per expansion move. Bounded in cost by solving
+  coarse-to-fine and restricting each pixel to a window of labels around the coarser solution,
+  and by tiling with overlap.
+
+Conventions (shared by both; they are those of ``satsweep.dense.sweep``):
+
+- The cost volume is (L, H, W) float32, plane-major: ``cost[d, y, x]`` is the (filtered) matching
+  cost of reference pixel (x, y) on plane d, lower is better, mostly in [0, cost_scale]. For the
+  sweep's costs ``cost_scale`` is the number of census bits (``SweepOptions.census_bits``): the
+  penalties are fractions of it. The sweep's AD and gradient terms can add up to ``ad_weight +
+  grad_weight`` more (``SweepOptions.max_cost``, also the cost of a pixel that no source sees).
+  Entries at or below
+  ``SATSWEEP_INVALID / 2`` (the device-side invalid marker, -1e30) and NaN are read as
+  ``cost_scale``.
+- The label of a pixel is a plane index; the planes are at the equally spaced heights
+  ``heights[L]`` (metres, ENU up), so a one-label change is one plane spacing.
+- Penalties are given as fractions of ``cost_scale``, so that they do not depend on the census
+  window size.
+- ``guide`` is the reference image (H, W), tonemapped to about [0, 1]: smoothness is weaker across
+  its edges (contrast-sensitive weights), where height discontinuities are likely.
+- ``visible`` (optional) tells where a pixel is seen by at least one source: (H, W), or (L, H, W)
+  per plane. A result pixel is valid when it is visible at its chosen plane and, with
+  ``reject_range_edges``, its plane is neither the first nor the last, as in the sweep's WTA.
+
+Results (``MRFResult``) carry the fields of ``sweep.SweepResult`` that describe pixels (height
+with NaN where invalid, fractional plane index, confidence in [0, 1], validity) plus the integer
+labels, so a pipeline can take either.
+
+Energy minimised by the graph cut (``mrf_energy`` computes it):
+
+    E(l) = sum_p D(p, l_p) + sum_{p~q, 4-connected} w_pq min(|l_p - l_q|, T)
+    w_pq = gc_smoothness * cost_scale * exp(-(I_p - I_q)^2 / (2 gc_edge_sigma^2))
+
+D is the cost volume; truncated linear smoothness is a metric, so each expansion move is an exact
+minimum cut (Kolmogorov and Zabih 2004).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Literal
+
+import numpy as np
+
+from satsweep.errors import DeviceError, InputError
+from satsweep.opencl.device import Device
+from satsweep.options import Options
+
+# The device-side invalid marker (kernels/common.h SATSWEEP_INVALID); costs at or below half of
+# it are missing.
+SATSWEEP_INVALID = -1.0e30
+
+
+@dataclasses.dataclass(frozen=True)
+class MRFOptions(Options):
+    """Options of the MRF refinement of a sweep's cost volume (penalties in cost_scale units)."""
+
+    method: Literal["none", "sgm", "graphcut"] = "sgm"  # none: the sweep's winner-take-all; sgm:
+    # semi-global matching on the device; graphcut: alpha-expansion on the host (see README table)
+    sgm_p1: float = 0.5  # SGM penalty of a one-plane height change (fraction of cost_scale);
+    # tuned with tools/bench_e2e.py together with sgm_p2 and sgm_sweep_gf_radius
+    # (docs/measurements.md: better on all 8 scenes of seeds 0-3 and against S2P than 0.4 / 1.0 /
+    # radius 3, and 0.4 beat 0.15 before). Much more over-smooths: a path pays max(P1, P2') to
+    # jump onto a weakly textured roof, whose census evidence is only ~0.02-0.03 cost_scale per
+    # pixel, so roofs keep the ground's height (tests/dense/test_mrf.py weak-texture roof: p1 0.6 /
+    # p2 2.0 fails)
+    sgm_p2: float = 1.25  # SGM penalty of a larger jump (fraction of cost_scale), before adaptation
+    sgm_sweep_gf_radius: int | None = 2  # guided-filter radius of the sweep whose costs SGM
+    # refines, in place of [sweep] gf_radius (None: that one). SGM aggregates along its paths,
+    # so it wants less spatial filtering than the winner-take-all alone (whose best radius is 5)
+    sgm_paths: Literal[4, 8] = 8  # number of scanline directions aggregated
+    sgm_p2_sigma: float = 0.05  # guide intensity difference (image in [0, 1]) at which P2 is
+    # halved: P2' = max(P1, P2 / (1 + |dI| / sigma)); 0 disables the adaptation
+    sgm_work_group: int = 0  # work-items per scanline (power of two); 0: 1 on CPUs, 32 on GPUs
+    sgm_scan: bool = True  # with one work-item per scanline (CPUs): all directions in two raster
+    # scans run side by side (sgm.cl sgm_scan), each pixel's volumes read and written once per
+    # scan instead of once per direction; the same path costs, summed in another order (label
+    # windows of a coarse-to-fine search too). False: one sgm_path launch per direction
+    sgm_subplane: Literal["equiangular", "parabola"] = "equiangular"  # sub-plane fit through the
+    # aggregated costs of the best plane and its neighbours: SGM's sums are V-shaped near their
+    # minimum (linear P1 penalties), which a symmetric V fits; tools/bench_e2e.py, 4 scenes:
+    # median 0.210 -> 0.196 m, completeness unchanged, against the parabola
+    gc_sweep_gf_radius: int | None = 3  # guided-filter radius of the sweep whose costs the graph
+    # cut refines, in place of [sweep] gf_radius (None: that one). tools/bench_e2e.py, seeds 0-1:
+    # radius 5 lowers the median (0.240 -> 0.219 m) but loses completeness (85.8 -> 84.5%; with
+    # gc_smoothness 0.1 or 0.25 too), so the graph cut keeps the radius it was tuned with
+    gc_smoothness: float = 0.15  # graph-cut weight of a one-plane change between 4-neighbours
+    # (fraction of cost_scale), before the contrast weight
+    gc_truncation_labels: int = 4  # smoothness is linear up to this many planes, then constant
+    gc_edge_sigma: float = 0.1  # guide intensity scale of the contrast weight exp(-dI^2/(2 s^2));
+    # 0: no contrast sensitivity
+    gc_label_window: int = 3  # each pixel may take labels within +-window of the coarser level's
+    # labels around it (the range of its 3x3 coarse neighbourhood), or of initial_labels
+    gc_levels: int = 2  # coarse-to-fine levels below full resolution (each halves the image); the
+    # coarsest level is solved over the full label range; 0: one level, window around the WTA
+    gc_tile: int = 256  # graph-cut tile side (pixels) at full resolution
+    gc_tile_overlap: int = 16  # pixels each tile extends past its kept part on every side
+    gc_iterations: int = 2  # most sweeps over the labels (stops earlier when nothing changes)
+    tile_px: int = 1024  # reconstruct sweeps and refines a reference in tiles of at most this
+    # side (pixels), so that memory holds one tile's cost volume, not the whole image's; smaller
+    # when the device's memory budget needs it (satsweep.pipeline.mrf_tile_side)
+    tile_overlap_px: int = 64  # pixels each such tile is swept and refined past its kept part on
+    # every side, so that SGM paths and graph-cut neighbourhoods reach into the neighbours
+
+    def check(self) -> None:
+        self._require(math.isfinite(self.sgm_p1) and self.sgm_p1 >= 0.0, "sgm_p1", "must be >= 0")
+        self._require(math.isfinite(self.sgm_p2) and self.sgm_p2 >= self.sgm_p1, "sgm_p2",
+                      "must be finite and >= sgm_p1")
+        self._require(self.sgm_sweep_gf_radius is None or 0 <= self.sgm_sweep_gf_radius <= 64,
+                      "sgm_sweep_gf_radius", "must be in [0, 64] (or None)")
+        self._require(self.gc_sweep_gf_radius is None or 0 <= self.gc_sweep_gf_radius <= 64,
+                      "gc_sweep_gf_radius", "must be in [0, 64] (or None)")
+        self._require(math.isfinite(self.sgm_p2_sigma) and self.sgm_p2_sigma >= 0.0,
+                      "sgm_p2_sigma", "must be >= 0 (0 disables the adaptation)")
+        wg = self.sgm_work_group
+        self._require(wg == 0 or (1 <= wg <= 1024 and wg & (wg - 1) == 0), "sgm_work_group",
+                      "must be 0 (automatic) or a power of two up to 1024")
+        self._require(math.isfinite(self.gc_smoothness) and self.gc_smoothness >= 0.0,
+                      "gc_smoothness", "must be >= 0")
+        self._require(self.gc_truncation_labels >= 1, "gc_truncation_labels", "must be >= 1")
+        self._require(self.tile_px >= 64, "tile_px", "must be >= 64 pixels")
+        self._require(0 <= self.tile_overlap_px <= 1024, "tile_overlap_px",
+                      "must be in [0, 1024] pixels")
+        self._require(math.isfinite(self.gc_edge_sigma) and self.gc_edge_sigma >= 0.0,
+                      "gc_edge_sigma", "must be >= 0 (0: no contrast sensitivity)")
+        self._require(self.gc_label_window >= 1, "gc_label_window", "must be >= 1")
+        self._require(0 <= self.gc_levels <= 6, "gc_levels", "must be in [0, 6]")
+        self._require(self.gc_tile >= 16, "gc_tile", "must be >= 16 pixels")
+        self._require(0 <= self.gc_tile_overlap <= self.gc_tile // 2, "gc_tile_overlap",
+                      "must be in [0, gc_tile / 2]")
+        self._require(1 <= self.gc_iterations <= 100, "gc_iterations", "must be in [1, 100]")
+
+
+@dataclasses.dataclass
+class MRFResult:
+    """Per-pixel outputs of an MRF refinement, arrays of the reference image's shape.
+
+    height: metres (the planes' heights interpolated at plane_index, float64); NaN where invalid.
+    plane_index: fractional plane index (float32), defined everywhere: the label plus an offset
+        in [-0.5, 0.5] fitted through the costs of the label and its neighbours (SGM:
+        ``sgm_subplane``, on the aggregated costs; graph cut: a parabola through the data costs).
+    labels: the integer label (plane index) chosen by the MRF (int32).
+    confidence: in [0, 1] (float32): (second-lowest local minimum - value at the label) of the
+        aggregated cost (SGM, divided by paths * cost_scale) or of the conditional energy of each
+        pixel given its neighbours (graph cut, divided by cost_scale).
+    valid: visible at the chosen plane and, with reject_range_edges, not at an end of the range.
+    cost_min: aggregated cost (SGM) or data cost (graph cut) at the label (float32).
+    seconds: wall time of the refinement; energy: the graph-cut energy E (NaN for SGM).
+    """
+
+    height: np.ndarray
+    plane_index: np.ndarray
+    labels: np.ndarray
+    confidence: np.ndarray
+    valid: np.ndarray
+    cost_min: np.ndarray
+    seconds: float = 0.0
+    energy: float = math.nan
+
+
+# ---------------------------------------------------------------------------------------------
+# input checks
+# ---------------------------------------------------------------------------------------------
+def _check_heights(heights, n_labels: int, *, banded: bool = False) -> np.ndarray:
+    """The plane heights: one per label, or with label bands (``banded``) at least as many
+    planes as the window of labels."""
+    h = np.asarray(heights, dtype=np.float64).reshape(-1)
+    if (h.size < n_labels) if banded else (h.size != n_labels):
+        raise InputError(None, f"heights: {h.size} values for a cost volume of {n_labels} planes")
+    if not np.isfinite(h).all():
+        raise InputError(None, "heights: holds NaN or infinite values")
+    if h.size > 1:
+        d = np.diff(h)
+        if not (np.all(d > 0) or np.all(d < 0)):
+            raise InputError(None, "heights: must be strictly monotonic")
+        if not np.allclose(d, d[0], rtol=1e-6, atol=0.0):
+            raise InputError(None, "heights: the planes must be equally spaced (labels are "
+                                   "plane indices and the smoothness counts planes)")
+    return h
+
+
+def _check_guide(guide, shape: tuple[int, int]) -> np.ndarray:
+    g = np.asarray(guide)
+    if g.shape != shape:
+        raise InputError(None, f"guide: shape {g.shape}, expected {shape} (the cost volume's H, W)")
+    g = np.ascontiguousarray(g, dtype=np.float32)
+    if not np.isfinite(g).all():
+        raise InputError(None, "guide: holds NaN or infinite values")
+    return g
+
+
+def _check_volume(cost_volume) -> np.ndarray:
+    c = np.asarray(cost_volume)
+    if c.ndim != 3 or min(c.shape) < 1:
+        raise InputError(None, f"cost_volume: expected (planes, H, W), got shape {c.shape}")
+    if not np.issubdtype(c.dtype, np.floating):
+        raise InputError(None, f"cost_volume: expected floats, got dtype {c.dtype}")
+    return c
+
+
+def _check_visible(visible, shape: tuple[int, int, int]) -> np.ndarray | None:
+    if visible is None:
+        return None
+    v = np.asarray(visible, dtype=bool)
+    if v.shape != shape and v.shape != shape[1:]:
+        raise InputError(None, f"visible: shape {v.shape}, expected {shape[1:]} or {shape}")
+    return v
+
+
+def _check_label_base(label_base, shape: tuple[int, int], n_labels: int,
+                      n_planes: int | None, label_count=None) -> tuple[np.ndarray | None,
+                                                                       np.ndarray | None]:
+    """The (H, W) int32 first plane of each pixel's label window and its (H, W) int32 label
+    count (None, None: no bands; a count of None: n_labels everywhere): label d < count[p] of
+    pixel p stands for plane label_base[p] + d, which must lie in [0, n_planes)."""
+    if label_base is None:
+        if label_count is not None:
+            raise InputError(None, "label_count: needs label_base (the windows' first planes)")
+        return None, None
+    b = np.asarray(label_base)
+    if b.shape != shape or not np.issubdtype(b.dtype, np.integer):
+        raise InputError(None, f"label_base: expected integers of shape {shape}, got "
+                               f"{b.dtype} {b.shape}")
+    if label_count is None:
+        n = np.full(shape, n_labels, np.int32)
+    else:
+        n = np.asarray(label_count)
+        if n.shape != shape or not np.issubdtype(n.dtype, np.integer):
+            raise InputError(None, f"label_count: expected integers of shape {shape}, got "
+                                   f"{n.dtype} {n.shape}")
+        if n.size and (n.min() < 1 or n.max() > n_labels):
+            raise InputError(None, f"label_count: counts {n.min()}..{n.max()} outside 1.."
+                                   f"{n_labels} (the volume's labels per pixel)")
+    if b.size and (b.min() < 0 or (n_planes is not None and (b + n).max() > n_planes)):
+        raise InputError(None, f"label_base: windows of {n.min()}..{n.max()} labels from planes "
+                               f"{b.min()}..{b.max()} leave the {n_planes} planes")
+    return (np.ascontiguousarray(b, dtype=np.int32),
+            None if label_count is None else np.ascontiguousarray(n, dtype=np.int32))
+
+
+def _check_scale(cost_scale: float) -> float:
+    s = float(cost_scale)
+    if not (math.isfinite(s) and s > 0.0):
+        raise InputError(None, f"cost_scale = {cost_scale!r}: must be > 0 (the worst cost)")
+    return s
+
+
+def _sanitised(cost: np.ndarray, cost_scale: float) -> np.ndarray:
+    """float32 copy-if-needed of the volume with invalid markers replaced by cost_scale."""
+    c = np.asarray(cost, dtype=np.float32)
+    bad = ~(c > np.float32(0.5 * SATSWEEP_INVALID))
+    if bad.any():
+        c = np.where(bad, np.float32(cost_scale), c)
+    return c
+
+
+# ---------------------------------------------------------------------------------------------
+# shared finalisation (labels -> heights, validity)
+# ---------------------------------------------------------------------------------------------
+def _parabola_offset(cm: np.ndarray, c0: np.ndarray, cp: np.ndarray,
+                     interior: np.ndarray) -> np.ndarray:
+    """Vertex offset of the parabola through (-1, cm), (0, c0), (1, cp), in [-0.5, 0.5].
+
+    The rule of wta.cl: 0 where the label is at an end of the range (``interior`` False) or the
+    curvature is not positive.
+    """
+    cm, c0, cp = (np.asarray(a, dtype=np.float64) for a in (cm, c0, cp))
+    denom = cm - 2.0 * c0 + cp
+    ok = interior & (denom > 0.0)
+    off = np.zeros(c0.shape)
+    off[ok] = np.clip(0.5 * (cm[ok] - cp[ok]) / denom[ok], -0.5, 0.5)
+    return off
+
+
+def _equiangular_offset(cm: np.ndarray, c0: np.ndarray, cp: np.ndarray,
+                        interior: np.ndarray) -> np.ndarray:
+    """Vertex offset of the symmetric V (two lines of opposite slopes) through (-1, cm), (0, c0),
+    (1, cp), c0 the smallest, in [-0.5, 0.5]: 0.5 (cm - cp) / (max(cm, cp) - c0).
+
+    0 where the label is at an end of the range (``interior`` False), where c0 is not the smallest
+    of the three, or where the three are equal.
+    """
+    cm, c0, cp = (np.asarray(a, dtype=np.float64) for a in (cm, c0, cp))
+    rise = np.maximum(cm, cp) - c0
+    ok = interior & (c0 <= cm) & (c0 <= cp) & (rise > 0.0)
+    off = np.zeros(c0.shape)
+    off[ok] = np.clip(0.5 * (cm[ok] - cp[ok]) / rise[ok], -0.5, 0.5)
+    return off
+
+
+def _finish(labels: np.ndarray, offset: np.ndarray, confidence: np.ndarray, cost_min: np.ndarray,
+            heights: np.ndarray, visible: np.ndarray | None, reject_range_edges: bool,
+            seconds: float, energy: float = math.nan, *, label_base: np.ndarray | None = None,
+            n_labels: int | None = None) -> MRFResult:
+    """Labels (and offsets) -> plane indices and heights. With ``label_base``, label d of a pixel
+    is plane label_base + d of ``heights``, its window holds ``n_labels`` labels (an int, or one
+    per pixel), and the range edges that ``reject_range_edges`` refuses are the window's (a
+    minimum there may lie outside it)."""
+    if n_labels is None:
+        n_labels = heights.size
+    window = labels.astype(np.int64)
+    if label_base is not None:
+        labels = window + label_base
+    index = (labels + offset).astype(np.float32)
+    if visible is None:
+        valid = np.ones(labels.shape, bool)
+    elif visible.ndim == 2:
+        valid = visible.copy()
+    else:
+        valid = np.take_along_axis(visible, labels[None].astype(np.intp), axis=0)[0]
+    if reject_range_edges:
+        valid &= (window > 0) & (window < n_labels - 1)
+    if heights.size > 1:
+        height = np.interp(index.astype(np.float64), np.arange(heights.size), heights)
+    else:
+        height = np.full(labels.shape, heights[0])
+    height[~valid] = np.nan
+    return MRFResult(height=height, plane_index=index, labels=labels.astype(np.int32),
+                     confidence=np.clip(confidence, 0.0, 1.0).astype(np.float32), valid=valid,
+                     cost_min=np.asarray(cost_min, dtype=np.float32), seconds=seconds,
+                     energy=energy)
+
+
+# ---------------------------------------------------------------------------------------------
+# graph cut (host, PyMaxflow)
+# ---------------------------------------------------------------------------------------------
+def edge_weights(guide: np.ndarray, options: MRFOptions,
+                 cost_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Contrast-sensitive smoothness weights of the 4-connected grid (float64).
+
+    Returns (horizontal (H, W-1) between (x, y) and (x+1, y), vertical (H-1, W) between (x, y)
+    and (x, y+1)): ``gc_smoothness * cost_scale * exp(-dI^2 / (2 gc_edge_sigma^2))``.
+    """
+    g = np.asarray(guide, dtype=np.float64)
+    lam = options.gc_smoothness * cost_scale
+    dh, dv = np.diff(g, axis=1), np.diff(g, axis=0)
+    if options.gc_edge_sigma == 0.0:
+        return np.full(dh.shape, lam), np.full(dv.shape, lam)
+    k = 1.0 / (2.0 * options.gc_edge_sigma ** 2)
+    return lam * np.exp(-k * dh * dh), lam * np.exp(-k * dv * dv)
+
+
+def mrf_energy(cost_volume, guide, labels, options: MRFOptions, *,
+               cost_scale: float = 1.0) -> float:
+    """The graph-cut energy E(labels) (see the module docstring), in cost units (float64)."""
+    c = _sanitised(_check_volume(cost_volume), _check_scale(cost_scale))
+    lab = np.asarray(labels, dtype=np.intp)
+    if lab.shape != c.shape[1:]:
+        raise InputError(None, f"labels: shape {lab.shape}, expected {c.shape[1:]}")
+    wh, wv = edge_weights(_check_guide(guide, c.shape[1:]), options, cost_scale)
+    t = options.gc_truncation_labels
+    data = np.take_along_axis(c, lab[None], axis=0)[0].astype(np.float64).sum()
+    sh = np.minimum(np.abs(np.diff(lab, axis=1)), t)
+    sv = np.minimum(np.abs(np.diff(lab, axis=0)), t)
+    return float(data + (wh * sh).sum() + (wv * sv).sum())
+
+
+def wta_labels(cost_volume) -> np.ndarray:
+    """Winner-take-all labels (first argmin over planes) of a host cost volume, int32."""
+    return np.argmin(_check_volume(cost_volume), axis=0).astype(np.int32)
+
+
+def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptions, *,
+           cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
+           initial_labels=None, pixel_major: bool = False,
+           label_base=None, label_count=None, label_offset=None) -> MRFResult | None:
+    """Dispatch on ``options.method``: None for ``none`` (keep the sweep's WTA), else the result.
+
+    SGM needs ``device`` (and alone takes a ``pixel_major`` device volume, see
+    ``sgm_aggregate``); the graph cut runs on the host and uses ``initial_labels`` only with
+    ``gc_levels`` = 0 (see ``graphcut_refine``).
+    """
+    from satsweep.dense.graphcut import graphcut_refine  # noqa: PLC0415 (they import this module)
+    from satsweep.dense.sgm import sgm_refine  # noqa: PLC0415
+
+    if options.method == "none":
+        return None
+    if options.method == "sgm":
+        if device is None:
+            raise DeviceError("MRF method sgm needs an OpenCL device")
+        return sgm_refine(device, cost_volume, guide, heights, options, cost_scale=cost_scale,
+                          visible=visible, reject_range_edges=reject_range_edges,
+                          pixel_major=pixel_major, label_base=label_base,
+                          label_count=label_count, label_offset=label_offset)
+    if label_base is not None or label_count is not None or label_offset is not None:
+        raise InputError(None, f"label_base: MRF method {options.method} takes no label bands "
+                               "(SGM does)")
+    if pixel_major:
+        raise InputError(None, f"cost_volume: MRF method {options.method} takes a plane-major "
+                               "host volume, not a pixel-major device volume")
+    return graphcut_refine(cost_volume, guide, heights, options, cost_scale=cost_scale,
+                           visible=visible, reject_range_edges=reject_range_edges,
+                           initial_labels=initial_labels)

@@ -1,0 +1,1178 @@
+"""OpenCL plane sweep: census matching cost, multi-view aggregation, guided filtering and
+winner-take-all height maps for one reference view.
+
+Conventions: images are 2-D float32 arrays, tonemapped to about [0, 1], row-major; pixel (0, 0)
+is the centre of the first pixel. A plane is ``u = h`` in the ENU frame of the scene (``h`` in
+metres); for each plane and source a 3x3 homography (float64 on the host) maps homogeneous
+reference pixels ``(x, y, 1)`` to source pixels. Kernels run in float32; the homographies are
+re-expressed in tile-local reference coordinates on the host (float64) before the cast, so the
+float32 coordinates on the device stay small.
+
+Pipeline per reference tile (kernels/*.cl, one file per stage):
+
+1. ``census.cl``: census codes of the reference tile (window ``census_window``, 64-bit codes);
+2. ``sweep.cl``: per plane, each source warped into the reference by the plane's homography, the
+   Hamming distance between census codes (of the warped source image, or of the source sampled
+   at the warped position) plus, by default, a truncated absolute intensity difference
+   (AD-census; ``ad_weight``) and optionally a gradient term (``grad_weight``), then the mean of
+   the ``k`` lowest costs over the sources that see the pixel (robust to occlusion); a pixel that
+   no source sees gets the worst cost;
+3. ``guided_filter.cl``: every cost slice filtered by the guided filter (He et al.) with the
+   reference image as guide, or by a box filter, from O(1)-per-pixel box sums;
+4. ``wta.cl``: streaming argmin over the planes with a parabola through the best plane and its
+   neighbours, a confidence (margin to the second-best local minimum) and a validity mask.
+
+The cost volume never leaves the device and never exists whole: planes are processed in batches,
+and the reference image in tiles (with the filter's margin), so that a memory budget holds.
+Images are uploaded once per run; the source census codes (``sampled_codes`` mode) are computed
+once on the device.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import time
+from typing import Callable, Literal, Sequence
+
+import numpy as np
+
+from satsweep.dense.planes import ellipsoid_heights, plane_heights, view_homographies
+from satsweep.errors import DeviceError, InputError
+from satsweep.opencl.device import Device
+from satsweep.options import Options
+
+# Number of floats of per-pixel winner-take-all state (kernels/wta.cl WTA_NSTATE).
+_WTA_NSTATE = 8
+# Bytes per interior pixel of the per-tile outputs: plane index, confidence, best cost (float32)
+# and validity (uint8).
+_OUT_BYTES_PER_PX = 4 + 4 + 4 + 1
+# Smallest tile interior side (pixels) worth processing before the plane batch is reduced instead.
+_MIN_TILE_SIDE = 64
+# Columns per work-item of guided_filter.cl's column kernels (its COLS_VEC; float8 there).
+GF_COLS_VEC = 8
+# Positions per work-item of sweep.cl's split kernels, sweep_warp and sweep_warped_cost (its
+# SWEEP_VEC; float8 there).
+SWEEP_VEC = 8
+# Pixels per work-item of wta.cl's wta_update and wta_pixel_major (its WTA_VEC; float8 there).
+WTA_VEC = 8
+# Planes warped per launch by the split census kernels (their warped-source buffer holds this
+# many planes of every source over the tile plus the census margin), at least; a small tile
+# (a coarse-to-fine block) warps more planes per launch, up to _WARP_CHUNK_POSITIONS positions
+# (5 bytes each: about 5 MiB, the buffer stays in cache between the two launches), so that it
+# needs fewer launches.
+SPLIT_WARP_PLANES = 8
+_WARP_CHUNK_POSITIONS = 1 << 20
+# Fixed allowance (bytes) for small buffers and driver bookkeeping per tile.
+_SMALL_BUFFERS_BYTES = 1 << 16
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepOptions(Options):
+    """Options of the OpenCL plane sweep."""
+
+    census_window: tuple[int, int] = (5, 5)  # census window (rows, columns), odd sizes, area-1 <=
+    # 64; 5x5 beats 7x9 end to end (tools/bench_e2e.py: small trees and roof structures) and
+    # is faster
+    cost_mode: Literal["warped_census", "sampled_codes"] = "warped_census"  # census of the bilinearly
+    # warped source image (sub-pixel), or the source's own codes sampled at the nearest warped pixel
+    ad_weight: float = 8.0  # AD-census: each source's cost adds ad_weight * min(|I_src - I_ref|,
+    # ad_truncation) / ad_truncation census bits (warped source against reference intensity, images
+    # in [0, 1]); 0: census alone. tools/bench_e2e.py, seeds 0-1 with SGM: completeness 86.1 ->
+    # 87.9%, median 0.194 -> 0.192 m; against S2P 0.262 -> 0.250 m (docs/measurements.md). Needs
+    # intensities that agree between views (census alone is the choice for other dates or sensors)
+    ad_truncation: float = 0.15  # intensity difference at which the AD term saturates
+    grad_weight: float = 0.0  # each source's cost adds grad_weight * (min(|dx_src - dx_ref|, t) +
+    # min(|dy_src - dy_ref|, t)) / (2 t) census bits, t = grad_truncation: central differences of
+    # the warped source and of the reference; 0: none. Measured at 4 (docs/measurements.md):
+    # completeness +0.3 to +0.5 points end to end (means), medians mixed (-0.002 to +0.009 m per
+    # scene), closer to S2P; so off
+    grad_truncation: float = 0.1  # gradient difference at which the gradient term saturates
+    prefilter_sigma_px: float = 0.0  # Gaussian blur (pixels) of the reference and source images
+    # before the census (0: none); lowers the pull of the bilinear warp towards whole source pixels
+    step_px: float = 0.5  # plane spacing: one step moves a pixel by at most this much (pixels) in the
+    # widest-baseline source view
+    n_best_sources: int | None = None  # k: per-pixel cost = mean of the k lowest source costs; None =
+    # half the sources, rounded up; larger than the number of sources means all of them
+    cost_filter: Literal["guided", "box", "none"] = "guided"  # filtering of each cost slice
+    gf_radius: int = 5  # guided filter radius (pixels; window 2r+1 = 11): the winner-take-all
+    # path's (--mrf none); SGM and the graph cut sweep with their own radius ([mrf]
+    # sgm_sweep_gf_radius, gc_sweep_gf_radius). tools/bench_e2e.py --mrf none, 8 scenes of seeds
+    # 0-3: 0.240 m / 82.1% against 0.282 m / 80.6% with radius 3, better on 15 of the 16 figures
+    # (radius 6-7: lower medians, lower completeness); tools/diag_wta.py: docs/measurements.md
+    gf_eps: float = 1e-4  # guided filter regularisation (guide units squared, guide in [0, 1])
+    box_radius: int = 2  # box filter radius for cost_filter = "box" (2: a 5x5 box)
+    subplane: bool = True  # parabola refinement between planes
+    reject_range_edges: bool = True  # a best plane at either end of the height range is invalid
+    lr_check: bool = False  # left-right style check: sweep again with the first source as reference
+    lr_tolerance_planes: float = 1.0  # largest |plane index difference| accepted by the check
+    memory_fraction: float = 0.5  # device memory budget as a fraction of its global memory
+    memory_budget_bytes: int | None = None  # explicit budget (bytes); overrides memory_fraction
+    max_planes_per_batch: int = 32  # planes filtered together (memory grows linearly with it)
+    census_kernel: Literal["split", "staged"] = "split"  # warped_census kernels: "split" warps the
+    # sources in one launch and takes the census in another (sweep_warp + sweep_warped_cost; 1.x
+    # times faster on PoCL, tools/bench_sweep.py); "staged" does both in one work-group kernel
+    # with the warped patch in local memory (sweep_census_cost). Same costs, bit for bit.
+    work_group: tuple[int, int] = (16, 16)  # work-group size of the staged census kernel (x, y)
+    search: Literal["full", "coarse_to_fine"] = "coarse_to_fine"  # with SGM: "coarse_to_fine"
+    # sweeps and refines the reference at half resolution over every coarse_plane_stride-th
+    # plane first, then sweeps each block of the reference over a window of the planes only
+    # (satsweep/dense/coarse.py; as accurate, and faster where the altitude range spans many planes:
+    # docs/measurements.md); "full" sweeps every plane everywhere. The winner-take-all path
+    # (--mrf none), the graph cut and the left-right check always sweep every plane.
+    coarse_plane_stride: int = 4  # coarse_to_fine: the half-resolution pass sweeps every this
+    # many planes (4 planes of step_px = 0.5 are one half-resolution pixel apart)
+    window_block_px: int = 64  # coarse_to_fine: side of the blocks that share a plane window
+    window_halo_px: int = 8  # coarse_to_fine: pixels around a block whose coarse heights its
+    # window also spans (the coarse map's edges lie a pixel or two off)
+    window_margin_planes: int = 4  # coarse_to_fine: planes added below and above each window
+    window_max_fraction: float = 0.6  # coarse_to_fine: sweep all planes when the windows would
+    # hold more than this fraction of them (too little to gain)
+
+    def check(self) -> None:
+        rows, cols = self.census_window
+        self._require(rows >= 1 and cols >= 1 and rows % 2 == 1 and cols % 2 == 1,
+                      "census_window", "both sizes must be odd and positive")
+        self._require(2 <= rows * cols <= 65, "census_window",
+                      "the window must hold between 1 and 64 neighbours (64-bit codes)")
+        for term, weight, trunc in (("the AD term", "ad_weight", "ad_truncation"),
+                                    ("the gradient term", "grad_weight", "grad_truncation")):
+            w = getattr(self, weight)
+            self._require(math.isfinite(w) and 0 <= w <= 64, weight, "must be in [0, 64] census bits")
+            self._require(w == 0 or self.cost_mode == "warped_census", weight,
+                          f"{term} needs cost_mode = 'warped_census' (sampled_codes has no "
+                          f"intensities): set {weight} = 0")
+            t = getattr(self, trunc)
+            self._require(math.isfinite(t) and t > 0, trunc, "must be > 0 (intensity units)")
+        self._require(self.grad_weight == 0 or min(self.census_window) >= 3, "grad_weight",
+                      "the gradient term needs a census window of at least 3x3: set grad_weight = 0")
+        self._require(math.isfinite(self.prefilter_sigma_px) and 0 <= self.prefilter_sigma_px <= 5,
+                      "prefilter_sigma_px", "must be in [0, 5] pixels")
+        self._require(math.isfinite(self.step_px) and self.step_px > 0, "step_px", "must be > 0")
+        self._require(self.n_best_sources is None or self.n_best_sources >= 1, "n_best_sources",
+                      "must be >= 1 (or None)")
+        self._require(0 <= self.gf_radius <= 64, "gf_radius", "must be in [0, 64]")
+        self._require(math.isfinite(self.gf_eps) and self.gf_eps > 0, "gf_eps", "must be > 0")
+        self._require(0 <= self.box_radius <= 64, "box_radius", "must be in [0, 64]")
+        self._require(math.isfinite(self.lr_tolerance_planes) and self.lr_tolerance_planes >= 0,
+                      "lr_tolerance_planes", "must be >= 0")
+        self._require(0 < self.memory_fraction <= 1, "memory_fraction", "must be in (0, 1]")
+        self._require(self.memory_budget_bytes is None or self.memory_budget_bytes > 0,
+                      "memory_budget_bytes", "must be > 0 (or None)")
+        self._require(1 <= self.max_planes_per_batch <= 4096, "max_planes_per_batch",
+                      "must be in [1, 4096]")
+        wx, wy = self.work_group
+        self._require(1 <= wx <= 256 and 1 <= wy <= 256 and wx * wy <= 1024, "work_group",
+                      "sizes must be in [1, 256] with a product <= 1024")
+        self._require(8 <= self.window_block_px <= 4096, "window_block_px",
+                      "must be in [8, 4096] pixels")
+        self._require(1 <= self.coarse_plane_stride <= 64, "coarse_plane_stride",
+                      "must be in [1, 64] planes")
+        self._require(0 <= self.window_halo_px <= 256, "window_halo_px",
+                      "must be in [0, 256] pixels")
+        self._require(0 <= self.window_margin_planes <= 256, "window_margin_planes",
+                      "must be in [0, 256] planes")
+        self._require(math.isfinite(self.window_max_fraction) and 0 < self.window_max_fraction <= 1,
+                      "window_max_fraction", "must be in (0, 1]")
+
+    @property
+    def census_radii(self) -> tuple[int, int]:
+        """(rx, ry): census window half-width and half-height in pixels."""
+        return self.census_window[1] // 2, self.census_window[0] // 2
+
+    @property
+    def census_bits(self) -> int:
+        """Bits per census code (window area minus the centre)."""
+        return self.census_window[0] * self.census_window[1] - 1
+
+    @property
+    def max_cost(self) -> float:
+        """The largest cost of one source at one pixel and plane: census bits plus the AD and
+        gradient terms (also the cost of a pixel that no source sees)."""
+        return float(self.census_bits) + self.ad_weight + self.grad_weight
+
+    @property
+    def filter_radius(self) -> int:
+        """Radius of the box sums used by the chosen cost filter (0 for none)."""
+        return {"guided": self.gf_radius, "box": self.box_radius, "none": 0}[self.cost_filter]
+
+    @property
+    def tile_margin(self) -> int:
+        """Margin (pixels) around a tile so that its interior equals a whole-image computation.
+
+        The guided filter applies two box filters in sequence (2 r), a box filter one (r). The
+        census needs none: the sweep kernel clamps census neighbours to the reference image, not
+        to the tile, and the reference codes of a tile are computed from the whole image.
+        """
+        return {"guided": 2 * self.gf_radius, "box": self.box_radius, "none": 0}[self.cost_filter]
+
+    def best_k(self, n_sources: int) -> int:
+        """The number of lowest source costs averaged per pixel for ``n_sources`` sources."""
+        k = (n_sources + 1) // 2 if self.n_best_sources is None else self.n_best_sources
+        return max(1, min(k, n_sources))
+
+
+@dataclasses.dataclass
+class SweepResult:
+    """Per-pixel outputs of a sweep, arrays of the reference image's shape.
+
+    height: plane parameter (metres, the ``h`` of the planes, float64) of the best plane with
+        sub-plane refinement; NaN where invalid.
+    plane_index: fractional index of the best plane (float32), defined everywhere.
+    confidence: (second-lowest local minimum - best cost) / ``SweepOptions.max_cost`` (census
+        bits plus the AD and gradient weights), in [0, 1] (float32).
+    valid: True where the pixel is seen by a source at its best plane, the best plane is not at
+        an end of the range (``reject_range_edges``) and, with ``lr_check``, where the check passed.
+    cost_min: the best (filtered) cost, in census bits (plus the AD and gradient terms; float32).
+    n_tiles, n_batches: how the work was split; peak_device_bytes: the most device memory held
+        by this run's buffers at once.
+    A run with ``winner_take_all=False`` (the volume only) has None for height, plane_index,
+    confidence, valid and cost_min.
+    """
+
+    height: np.ndarray
+    plane_index: np.ndarray
+    confidence: np.ndarray
+    valid: np.ndarray
+    cost_min: np.ndarray
+    n_tiles: int = 1
+    n_batches: int = 1
+    peak_device_bytes: int = 0
+    # The filtered cost volume (n_planes, H, W) float32 in census bits, only when the sweep was
+    # asked for it (``keep_volume``: an MRF refinement needs every plane's cost); None otherwise.
+    volume: np.ndarray | None = None
+    altitude: np.ndarray | None = None  # heights above the WGS84 ellipsoid (sweep_views + frame)
+    # With plane windows: (H, W) int32, the plane of the volume's first label at each pixel
+    # (label d of pixel p is plane plane_base[p] + d); None when every pixel has every plane.
+    plane_base: np.ndarray | None = None
+    # With plane windows: (H, W) int32, the labels of each pixel's window (a kept host volume's
+    # labels past it hold the worst cost; a kept device volume is then ragged, see plane_offset).
+    plane_count: np.ndarray | None = None
+    # With plane windows of their own counts and the volume on the device: the volume is ragged
+    # (1-D), pixel p's plane_count[p] labels starting at float plane_offset[p] ((H, W) uint64).
+    plane_offset: np.ndarray | None = None
+    window_planes: int | None = None  # planes per window of a coarse-to-fine sweep (else None)
+
+
+@dataclasses.dataclass(frozen=True)
+class TilePlan:
+    """How a sweep is split: interior tile size, planes per batch and the memory it needs."""
+
+    tile_w: int  # interior width (pixels)
+    tile_h: int  # interior height (pixels)
+    margin: int  # filter margin around each interior (pixels)
+    planes_per_batch: int
+    resident_bytes: int  # images (and codes) kept for the whole run
+    tile_bytes: int  # per-tile buffers at the planned size
+    n_tiles: int
+
+    @property
+    def total_bytes(self) -> int:
+        return self.resident_bytes + self.tile_bytes
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PlaneWindows:
+    """Which planes a coarse-to-fine sweep evaluates: square blocks of the reference, each with a
+    window of consecutive planes (``satsweep.dense.coarse`` derives them from a coarse height map).
+    Block (i, j) covers reference rows [i block, (i + 1) block) and columns [j block, (j + 1)
+    block); it sweeps the ``count[i, j]`` planes from first[i, j] (``n_planes`` when count is
+    None), which become its labels 0 .. count - 1. A kept volume holds ``n_planes`` labels per
+    pixel (the most of any block): a block on gentle terrain sweeps fewer planes than one across
+    a cliff, and SGM refines each pixel over its own count (``mrf.sgm_refine``'s label_count).
+    """
+
+    block: int  # block side (pixels); the blocks start at the reference's pixel (0, 0)
+    first: np.ndarray  # (ceil(H / block), ceil(W / block)) int: first plane of each block
+    n_planes: int  # labels per pixel of the volume (the widest window)
+    count: np.ndarray | None = None  # like first: planes of each block's window (None: n_planes)
+
+    def sweep_range(self, i: int, j: int) -> tuple[int, int]:
+        """(first plane, planes) of block (i, j)."""
+        return int(self.first[i, j]), self.n_planes if self.count is None else int(self.count[i, j])
+
+    def check(self, shape: tuple[int, int], total_planes: int) -> None:
+        """Raise InputError unless the windows fit a reference of ``shape`` and the planes."""
+        h, w = shape
+        want = (-(-h // self.block), -(-w // self.block)) if self.block >= 1 else None
+        first = np.asarray(self.first)
+        if want is None or first.shape != want or not np.issubdtype(first.dtype, np.integer):
+            raise InputError(None, f"plane_windows: first must be integers of shape {want} for "
+                                   f"blocks of {self.block} px over {w} x {h}, got "
+                                   f"{first.dtype} {first.shape}")
+        count = np.full(first.shape, self.n_planes) if self.count is None \
+            else np.asarray(self.count)
+        if count.shape != first.shape or not np.issubdtype(count.dtype, np.integer):
+            raise InputError(None, f"plane_windows: count must be integers of shape {want}, got "
+                                   f"{count.dtype} {count.shape}")
+        if not 1 <= self.n_planes <= total_planes or first.min() < 0 or count.min() < 1 \
+                or count.max() > self.n_planes or (first + count).max() > total_planes:
+            raise InputError(None, f"plane_windows: windows of {count.min()}..{count.max()} "
+                                   f"planes (at most {self.n_planes}) from planes "
+                                   f"{first.min()}..{first.max()} leave the {total_planes} planes")
+
+    def per_pixel(self, shape: tuple[int, int]) -> np.ndarray:
+        """(H, W) int32: the first plane of every pixel's window."""
+        return self._expand(self.first, shape)
+
+    def counts(self, shape: tuple[int, int]) -> np.ndarray:
+        """(H, W) int32: the planes of every pixel's window."""
+        if self.count is None:
+            return np.full(shape, self.n_planes, np.int32)
+        return self._expand(self.count, shape)
+
+    def _expand(self, per_block, shape: tuple[int, int]) -> np.ndarray:
+        h, w = shape
+        b = np.asarray(per_block, dtype=np.int32)
+        return np.ascontiguousarray(np.repeat(np.repeat(b, self.block, axis=0), self.block,
+                                              axis=1)[:h, :w])
+
+
+# -- memory planning ----------------------------------------------------------------------------
+def _volume_planes(options: SweepOptions, nb: int) -> int:
+    """Cost-volume planes held on the device per batch of nb planes (see PlaneSweep._filter)."""
+    return {"guided": 4 * nb, "box": 2 * nb, "none": nb}[options.cost_filter]
+
+
+def _tile_bytes(options: SweepOptions, tile_dims: tuple[int, int], interior: int, nb: int,
+                n_planes: int, n_src: int) -> int:
+    """Device bytes of one tile of (width, height) ``tile_dims`` (margins included): ref codes,
+    guide, cost batches, the split kernels' warped sources, WTA state, outputs."""
+    area = tile_dims[0] * tile_dims[1]
+    guide = 3 * 4 * area if options.cost_filter == "guided" else 0
+    return (8 * area + guide + 4 * _volume_planes(options, nb) * area
+            + _warped_bytes(options, tile_dims, nb, n_src)
+            + (4 * _WTA_NSTATE + _OUT_BYTES_PER_PX) * interior
+            + 36 * n_planes * n_src + _SMALL_BUFFERS_BYTES)
+
+
+def _split_census(options: SweepOptions) -> bool:
+    return options.cost_mode == "warped_census" and options.census_kernel == "split"
+
+
+def _warp_plane_positions(options: SweepOptions, tile_dims: tuple[int, int], n_src: int) -> int:
+    """Positions the split kernels warp per plane of a tile: every source over the tile plus the
+    census margin."""
+    rx, ry = options.census_radii
+    return n_src * (tile_dims[0] + 2 * rx) * (tile_dims[1] + 2 * ry)
+
+
+def _warp_chunk(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
+    """Planes per launch of the split kernels for a tile of ``tile_dims`` in batches of nb planes:
+    SPLIT_WARP_PLANES, or more on a tile small enough (_WARP_CHUNK_POSITIONS); at most nb."""
+    per_plane = _warp_plane_positions(options, tile_dims, n_src)
+    return max(1, min(nb, max(SPLIT_WARP_PLANES, _WARP_CHUNK_POSITIONS // per_plane)))
+
+
+def _warped_positions(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
+    """Positions of the split kernels' warped sources for a tile (0 for the other kernels)."""
+    if not _split_census(options):
+        return 0
+    return _warp_chunk(options, tile_dims, nb, n_src) * _warp_plane_positions(options, tile_dims,
+                                                                              n_src)
+
+
+def _warped_bytes(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
+    """Bytes of the split kernels' buffers for a tile: the warped sources (float32) and their
+    validity (one byte a position)."""
+    return 5 * _warped_positions(options, tile_dims, nb, n_src)
+
+
+def _resident_bytes(options: SweepOptions, ref_shape: tuple[int, int],
+                    src_shapes: Sequence[tuple[int, int]]) -> int:
+    """Device bytes kept for the whole run: the reference image and the source images, or in
+    ``sampled_codes`` mode the source codes plus one source's image and codes while converting."""
+    src_px = sum(h * w for h, w in src_shapes)
+    if options.cost_mode == "sampled_codes":
+        srcs = 8 * src_px + 12 * max(h * w for h, w in src_shapes)
+    else:
+        srcs = 4 * src_px
+    return 4 * ref_shape[0] * ref_shape[1] + srcs + _SMALL_BUFFERS_BYTES
+
+
+def plan_tiles(options: SweepOptions, ref_shape: tuple[int, int],
+               src_shapes: Sequence[tuple[int, int]], n_planes: int, budget_bytes: int,
+               max_alloc_bytes: int | None = None, extra_resident_bytes: int = 0) -> TilePlan:
+    """Split a sweep into tiles and plane batches that fit ``budget_bytes`` of device memory.
+
+    Whole images stay resident; each tile holds its reference codes, guide statistics, the cost
+    of one batch of planes with the filter's temporaries, and the WTA state of its interior. The
+    plane batch is kept as large as allowed (up to ``max_planes_per_batch``) while tiles are at
+    least ``_MIN_TILE_SIDE`` pixels; then the batch shrinks. Raises DeviceError when even one
+    plane of a minimal tile does not fit.
+    """
+    h_img, w_img = ref_shape
+    m = options.tile_margin
+    resident = _resident_bytes(options, ref_shape, src_shapes) + int(extra_resident_bytes)
+    free = budget_bytes - resident
+    n_src = len(src_shapes)
+    if free <= 0:
+        what = "images themselves" + (" and the kept cost volume" if extra_resident_bytes else "")
+        raise DeviceError(f"memory budget of {budget_bytes / 2**20:.0f} MiB is smaller than the "
+                          f"{what} ({resident / 2**20:.0f} MiB): raise "
+                          "SweepOptions.memory_budget_bytes or memory_fraction")
+
+    src_bytes = (8 if options.cost_mode == "sampled_codes" else 4) * sum(h * w for h, w in src_shapes)
+    if max_alloc_bytes is not None and src_bytes > max_alloc_bytes:
+        raise DeviceError(f"the {n_src} source images need one {src_bytes / 2**20:.0f} MiB buffer, "
+                          f"more than the device's largest allocation "
+                          f"({max_alloc_bytes / 2**20:.0f} MiB): use fewer or smaller sources")
+
+    def fits(tw: int, th: int, nb: int) -> bool:
+        dims = (min(tw + 2 * m, w_img), min(th + 2 * m, h_img))
+        area = dims[0] * dims[1]
+        if _tile_bytes(options, dims, tw * th, nb, n_planes, n_src) > free:
+            return False
+        if max_alloc_bytes is not None:
+            largest = max(4 * area * max(2 * nb if options.cost_filter == "guided" else nb, 1),
+                          4 * _warped_positions(options, dims, nb, n_src))
+            if largest > max_alloc_bytes:
+                return False
+        return True
+
+    nb = max(1, min(n_planes, options.max_planes_per_batch))
+    min_side = min(_MIN_TILE_SIDE, w_img, h_img)
+    while True:
+        if fits(w_img, h_img, nb):
+            tw, th = w_img, h_img
+            break
+        side = _largest_square(lambda s: fits(min(s, w_img), min(s, h_img), nb), max(w_img, h_img))
+        if side >= min_side or nb == 1:
+            if side < 1:
+                raise DeviceError(
+                    f"memory budget of {budget_bytes / 2**20:.0f} MiB cannot hold one plane of a "
+                    f"1-pixel tile after {resident / 2**20:.0f} MiB of images: raise "
+                    "SweepOptions.memory_budget_bytes or memory_fraction")
+            th = min(side, h_img)
+            # Widen the tile while it fits (useful for wide, short images).
+            tw = min(side, w_img)
+            tw = _largest_square(lambda s: fits(s, th, nb), w_img) if tw < w_img else tw
+            break
+        nb = max(1, nb // 2)
+    dims = (min(tw + 2 * m, w_img), min(th + 2 * m, h_img))
+    n_tiles = math.ceil(w_img / tw) * math.ceil(h_img / th)
+    return TilePlan(tile_w=tw, tile_h=th, margin=m, planes_per_batch=nb, resident_bytes=resident,
+                    tile_bytes=_tile_bytes(options, dims, tw * th, nb, n_planes, n_src),
+                    n_tiles=n_tiles)
+
+
+def _largest_square(ok: Callable[[int], bool], upper: int) -> int:
+    """Largest s in [0, upper] with ok(s) (ok monotone decreasing); 0 if none."""
+    lo, hi = 0, upper
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if ok(mid):
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+# -- the processing class -----------------------------------------------------------------------
+class _Buffers:
+    """Device buffers of one run, with the running and peak total of their sizes."""
+
+    def __init__(self, context):
+        self.context = context
+        self.live = 0
+        self.peak = 0
+
+    def alloc(self, nbytes: int, hostbuf: np.ndarray | None = None):
+        import pyopencl as cl  # noqa: PLC0415
+
+        mf = cl.mem_flags
+        nbytes = max(int(nbytes), 4)
+        if hostbuf is not None:
+            buf = cl.Buffer(self.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=hostbuf)
+        else:
+            buf = cl.Buffer(self.context, mf.READ_WRITE, nbytes)
+        self.live += nbytes
+        self.peak = max(self.peak, self.live)
+        return buf
+
+    def free(self, *bufs) -> None:
+        for b in bufs:
+            if b is not None:
+                self.live -= max(int(b.size), 4)
+                b.release()
+
+
+def _round_up(n: int, m: int) -> int:
+    return ((n + m - 1) // m) * m
+
+
+# Fixed work-group sizes of the kernels that need none in particular: PoCL compiles one
+# work-group function per local size, so a fixed size is compiled once per kernel instead of
+# once per tile shape; every kernel ignores the items past its global size.
+_LOCAL_2D = (16, 8)
+_LOCAL_3D = (16, 4, 1)
+
+
+def _launch(kernel, queue, gsize: tuple[int, ...], *args):
+    """Enqueue ``kernel`` over ``gsize`` rounded up to the fixed local size of its dimension."""
+    local = _LOCAL_2D if len(gsize) == 2 else _LOCAL_3D
+    return kernel(queue, tuple(_round_up(int(n), m) for n, m in zip(gsize, local)), local, *args)
+
+
+def _check_image(name: str, img) -> np.ndarray:
+    a = np.asarray(img)
+    if a.ndim != 2 or a.shape[0] < 1 or a.shape[1] < 1:
+        raise InputError(None, f"{name}: expected a 2-D image, got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
+        raise InputError(None, f"{name}: expected a numeric image, got dtype {a.dtype}")
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    if not np.isfinite(a).all():
+        raise InputError(None, f"{name}: holds NaN or infinite values (fill no-data first)")
+    return a
+
+
+def prefilter(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``image`` (float32) blurred by a Gaussian of ``sigma_px`` pixels, edges replicated."""
+    import cv2  # noqa: PLC0415
+
+    return cv2.GaussianBlur(image, (0, 0), sigmaX=float(sigma_px), sigmaY=float(sigma_px),
+                            borderType=cv2.BORDER_REPLICATE)
+
+
+class PlaneSweep:
+    """The plane-sweep engine on one device: builds the kernels once, sweeps reference views.
+
+    ``run`` takes float32 images (tonemapped, about [0, 1]), homographies (n_planes, n_src, 3, 3)
+    float64 mapping reference pixels to source pixels for each plane, and the plane heights.
+    """
+
+    def __init__(self, device: Device, options: SweepOptions | None = None, *,
+                 profile: bool = False):
+        self.device = device
+        self.options = options if options is not None else SweepOptions()
+        # With profile, the queue is drained around each stage and its wall time (s) summed
+        # into stage_seconds ("census", "sweep", "filter", "wta"); slower, for benchmarks.
+        self.profile = profile
+        self.stage_seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def _stage(self, name: str):
+        """Account the wall time of the enclosed kernel launches to ``name`` when profiling."""
+        if not self.profile:
+            yield
+            return
+        self.device.queue.finish()
+        t0 = time.perf_counter()
+        yield
+        self.device.queue.finish()
+        self.stage_seconds[name] = self.stage_seconds.get(name, 0.0) + time.perf_counter() - t0
+
+    # -- programs -------------------------------------------------------------------------------
+    def program_requests(self, n_src: int, *, wta: bool = True) -> list[tuple[str, dict | None]]:
+        """The (source, defines) of the programs that ``run`` builds for ``n_src`` sources: census,
+        sweep, the cost filter (None for cost_filter = "none") and, with ``wta``, the
+        winner-take-all (else None: a volume-only sweep, SGM's, never launches it)."""
+        o = self.options
+        rx, ry = o.census_radii
+        sweep_defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": o.best_k(n_src),
+                      "AD_WEIGHT": float(o.ad_weight), "AD_TRUNC": float(o.ad_truncation),
+                      "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation),
+                      "SWEEP_VEC": SWEEP_VEC}
+        if o.cost_mode == "warped_census" and o.census_kernel == "staged":
+            sweep_defs.update({"WG_X": o.work_group[0], "WG_Y": o.work_group[1]})
+        wta_defs = {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry, "AD_WEIGHT": float(o.ad_weight),
+                    "GRAD_WEIGHT": float(o.grad_weight), "WTA_VEC": WTA_VEC}
+        return [("census", {"CENSUS_RX": rx, "CENSUS_RY": ry}), ("sweep", sweep_defs),
+                self._filter_request(), ("wta", wta_defs) if wta else None]
+
+    def _programs(self, n_src: int, *, wta: bool = True):
+        """The built programs of ``program_requests`` (None where it has None)."""
+        return tuple(None if r is None else self.device.build(*r)
+                     for r in self.program_requests(n_src, wta=wta))
+
+    def _filter_request(self) -> tuple[str, dict] | None:
+        """The cost-filter program's (source, defines) for the options (None for "none")."""
+        o = self.options
+        if o.cost_filter == "none":
+            return None
+        r = o.filter_radius
+        defs = {"BOX_R": r, "BOX_CHUNK": box_chunk(r), "COLS_VEC": GF_COLS_VEC}
+        if o.cost_filter == "guided":
+            defs["GF_EPS"] = float(o.gf_eps)
+        return "guided_filter", defs
+
+    def _filter_program(self):
+        """The cost-filter program for the options (None for cost_filter = "none")."""
+        request = self._filter_request()
+        return None if request is None else self.device.build(*request)
+
+    def budget_bytes(self) -> int:
+        """The device memory budget of a run (bytes)."""
+        o = self.options
+        if o.memory_budget_bytes is not None:
+            return int(o.memory_budget_bytes)
+        return int(o.memory_fraction * self.device.global_mem_bytes)
+
+    # -- public entry point ---------------------------------------------------------------------
+    def run(self, ref_image, src_images: Sequence, homographies, heights, *,
+            keep_volume: bool = False, volume_on_device: bool = False,
+            plane_windows: PlaneWindows | None = None,
+            winner_take_all: bool = True) -> SweepResult:
+        """Sweep ``ref_image`` against ``src_images`` over the planes ``heights``.
+
+        homographies: (n_planes, n_src, 3, 3), plane p and source s mapping homogeneous reference
+        pixels to source pixels; heights: (n_planes,) strictly monotonic plane heights (metres).
+        keep_volume: also keep the filtered cost of every plane (``SweepResult.volume``) for an
+        MRF refinement; off in the plain WTA path, where the cost volume never exists whole.
+        volume_on_device: with keep_volume, the volume stays on the device, PIXEL-MAJOR (the
+        layout SGM aggregates in, so that it needs no copy of its own): a
+        ``pyopencl.array.Array`` (H, W, n_planes) float32 that the caller releases, counted in
+        the memory budget; else it is copied to the host (numpy, (n_planes, H, W)).
+        plane_windows: sweep each block of the reference over its own window of the planes only
+        (coarse-to-fine); the volume then holds ``plane_windows.n_planes`` labels per pixel,
+        label d < ``SweepResult.plane_count[p]`` of pixel p standing for plane
+        ``SweepResult.plane_base[p] + d`` (a host volume's other labels hold the worst cost;
+        with windows of their own counts a device volume is ragged instead: 1-D, each pixel's
+        labels from ``SweepResult.plane_offset[p]`` on); the results' plane indices and heights
+        are absolute, and a best plane at either end of a window is invalid with
+        ``reject_range_edges``. Not with ``lr_check``.
+        winner_take_all: False skips the per-pixel winner-take-all (for a caller that refines
+        the kept volume and needs nothing else, as SGM does): the result then has ``volume``
+        (keep_volume is required), ``plane_base`` and the counts, and None for the per-pixel
+        maps (``visible_at`` gives the visibility of any plane choice). Not with ``lr_check``.
+        """
+        ref = _check_image("ref_image", ref_image)
+        srcs = [_check_image(f"src_images[{i}]", s) for i, s in enumerate(src_images)]
+        if not srcs:
+            raise InputError(None, "src_images: at least one source view is needed")
+        if len(srcs) > 32:
+            raise InputError(None, f"src_images: {len(srcs)} sources, at most 32 are supported")
+        hom = np.asarray(homographies, dtype=np.float64)
+        hts = np.asarray(heights, dtype=np.float64).reshape(-1)
+        if hom.ndim != 4 or hom.shape[1:] != (len(srcs), 3, 3) or hom.shape[0] != hts.size:
+            raise InputError(None, f"homographies: shape {hom.shape}, expected "
+                                   f"({hts.size}, {len(srcs)}, 3, 3) for {hts.size} heights")
+        if hts.size < 1 or not np.isfinite(hts).all() or not np.isfinite(hom).all():
+            raise InputError(None, "heights/homographies: need at least one plane, finite values")
+        if hts.size > 1:
+            d = np.diff(hts)
+            if not ((d > 0).all() or (d < 0).all()):
+                raise InputError(None, "heights: must be strictly monotonic")
+        if not winner_take_all and not keep_volume:
+            raise InputError(None, "winner_take_all = False leaves nothing to return without "
+                                   "keep_volume")
+        if not winner_take_all and self.options.lr_check:
+            raise InputError(None, "winner_take_all = False: the left-right check needs the "
+                                   "winner-take-all map; set lr_check = false")
+        if plane_windows is not None:
+            plane_windows.check(ref.shape, hts.size)
+            if self.options.lr_check:
+                raise InputError(None, "plane_windows: the left-right check sweeps every plane; "
+                                       "set lr_check = false for a coarse-to-fine sweep")
+        if self.options.prefilter_sigma_px > 0:
+            ref = prefilter(ref, self.options.prefilter_sigma_px)
+            srcs = [prefilter(s, self.options.prefilter_sigma_px) for s in srcs]
+        result = self._sweep(ref, srcs, hom, hts, keep_volume=keep_volume,
+                             volume_on_device=volume_on_device, windows=plane_windows,
+                             wta=winner_take_all)
+        if self.options.lr_check:
+            self._lr_check(result, ref, srcs, hom, hts)
+        return result
+
+    def filter_volume(self, cost, guide) -> np.ndarray:
+        """The configured cost filter applied to host slices (n, h, w) with a 2-D guide.
+
+        Runs the same kernels as the sweep on one whole-image tile; for tests and inspection.
+        """
+        import pyopencl as cl  # noqa: PLC0415
+
+        o = self.options
+        vol = np.ascontiguousarray(cost, dtype=np.float32)
+        g = _check_image("guide", guide)
+        if vol.ndim != 3 or vol.shape[1:] != g.shape:
+            raise InputError(None, f"cost: shape {vol.shape} does not match guide {g.shape}")
+        nb, th, tw = vol.shape
+        filt = self._filter_program()
+        bufs = _Buffers(self.device.context)
+        area = tw * th
+        tile = _Tile(0, 0, tw, th, 0, 0, tw, th)
+        planes_a = 2 * nb if o.cost_filter == "guided" else nb
+        vol_a = bufs.alloc(4 * area * planes_a)
+        cl.enqueue_copy(self.device.queue, vol_a, vol)
+        vol_b = bufs.alloc(4 * area * planes_a) if o.cost_filter != "none" else None
+        guide_i = guide_mean = ref_buf = None
+        if o.cost_filter == "guided":
+            ref_buf = bufs.alloc(g.nbytes, g)
+            guide_i, guide_mean = bufs.alloc(4 * area), bufs.alloc(8 * area)
+            self._guide_stats(filt, tile, ref_buf, tw, guide_i, guide_mean, vol_b)
+        self._filter(filt, tile, nb, vol_a, vol_b, guide_i, guide_mean)
+        out = np.empty_like(vol)
+        cl.enqueue_copy(self.device.queue, out, vol_a)
+        self.device.queue.finish()
+        bufs.free(vol_a, vol_b, guide_i, guide_mean, ref_buf)
+        return out
+
+    # -- implementation -------------------------------------------------------------------------
+    def _sweep(self, ref: np.ndarray, srcs: list[np.ndarray], hom: np.ndarray,
+               hts: np.ndarray, *, keep_volume: bool = False,
+               volume_on_device: bool = False,
+               windows: PlaneWindows | None = None, wta: bool = True) -> SweepResult:
+        import pyopencl as cl  # noqa: PLC0415
+        import pyopencl.array as cla  # noqa: PLC0415
+
+        o = self.options
+        queue = self.device.queue
+        n_src, n_total = len(srcs), hts.size
+        # With windows, every tile (one block) sweeps n_planes planes of its own.
+        n_planes = n_total if windows is None else windows.n_planes
+        h_img, w_img = ref.shape
+        census_prg, sweep_prg, filt_prg, wta_prg = self._programs(n_src, wta=wta)
+        on_device = keep_volume and volume_on_device
+        # A device volume of windows with their own counts is RAGGED: each block's pixels hold
+        # just their window's labels, block after block (label_offset: where each pixel's start).
+        ragged = on_device and windows is not None and windows.count is not None
+        label_offset = block_start = None
+        if ragged:
+            label_offset, block_start = _ragged_layout(windows, ref.shape)
+            volume_bytes = 4 * int(block_start[-1])
+        else:
+            volume_bytes = 4 * n_planes * h_img * w_img
+        if on_device and volume_bytes > self.device.max_alloc_bytes:
+            raise DeviceError(f"{self.device.info.label}: a cost volume of "
+                              f"{volume_bytes / 2**20:.0f} MiB ({n_planes} planes x {h_img} x "
+                              f"{w_img}) exceeds the largest allocation "
+                              f"({self.device.max_alloc_bytes / 2**20:.0f} MiB): sweep smaller tiles")
+        plan = plan_tiles(o, ref.shape, [s.shape for s in srcs], n_planes, self.budget_bytes(),
+                          self.device.max_alloc_bytes,
+                          extra_resident_bytes=volume_bytes if on_device else 0)
+        tile_w, tile_h = plan.tile_w, plan.tile_h
+        if windows is not None:
+            if min(tile_w, w_img) < min(windows.block, w_img) \
+                    or min(tile_h, h_img) < min(windows.block, h_img):
+                raise DeviceError(f"memory budget of {self.budget_bytes() / 2**20:.0f} MiB holds "
+                                  f"tiles of {tile_w} x {tile_h} px, smaller than the plane "
+                                  f"windows' {windows.block} px blocks: use smaller blocks")
+            tile_w = tile_h = windows.block
+        bufs = _Buffers(self.device.context)
+        i32 = np.int32
+        rx, ry = o.census_radii
+
+        # Resident data: the reference image and every source, uploaded once.
+        ref_buf = bufs.alloc(ref.nbytes, ref)
+        sizes = np.array([[s.shape[1], s.shape[0]] for s in srcs], dtype=np.int32).ravel()
+        offsets = np.concatenate([[0], np.cumsum([s.size for s in srcs])[:-1]]).astype(np.int64)
+        size_buf = bufs.alloc(sizes.nbytes, sizes)
+        off_buf = bufs.alloc(offsets.nbytes, offsets)
+        census_k = self.device.kernel(census_prg, "census_transform")
+        if o.cost_mode == "sampled_codes":
+            # Each source's codes computed on the device once, into one concatenated buffer.
+            src_buf = bufs.alloc(8 * sum(s.size for s in srcs))
+            for img, off in zip(srcs, offsets):
+                h_s, w_s = img.shape
+                img_buf = bufs.alloc(img.nbytes, img)
+                tmp = bufs.alloc(8 * img.size)
+                _launch(census_k, queue, (w_s, h_s), img_buf, i32(w_s), i32(h_s), i32(0),
+                        i32(0), i32(w_s), i32(h_s), tmp)
+                cl.enqueue_copy(queue, src_buf, tmp, dst_offset=8 * int(off),
+                                byte_count=8 * img.size)
+                queue.finish()
+                bufs.free(img_buf, tmp)
+            sweep_k = self.device.kernel(sweep_prg, "sweep_code_cost")
+        else:
+            src_buf = bufs.alloc(4 * sum(s.size for s in srcs),
+                                 np.concatenate([s.ravel() for s in srcs]))
+            kern = self.device.kernel
+            sweep_k = (kern(sweep_prg, "sweep_warp"), kern(sweep_prg, "sweep_warped_cost")) \
+                if _split_census(o) else kern(sweep_prg, "sweep_census_cost")
+
+        # The winner-take-all's per-pixel maps (index, confidence, cost, validity), if asked for.
+        outs = (np.zeros((h_img, w_img), np.float32), np.zeros((h_img, w_img), np.float32),
+                np.zeros((h_img, w_img), np.float32), np.zeros((h_img, w_img), np.uint8)) \
+            if wta else None
+        volume = volume_k = None
+        # A host volume's labels past a block's window get the worst cost (a device volume with
+        # counts is ragged and has none).
+        padded = windows is not None and windows.count is not None \
+            and bool(np.any(np.asarray(windows.count) < n_planes))
+        if on_device:
+            volume = bufs.alloc(volume_bytes)
+            volume_k = self.device.kernel(sweep_prg, "volume_pixel_major")
+        elif keep_volume:
+            volume = np.full((n_planes, h_img, w_img), o.max_cost, np.float32) if padded \
+                else np.empty((n_planes, h_img, w_img), np.float32)
+        n_batches = n_tiles = 0
+        m = plan.margin
+        for ix0, iy0, ix1, iy1, tx0, ty0, tx1, ty1 in tile_grid(w_img, h_img, tile_w, tile_h, m):
+            tile = _Tile(tx0, ty0, tx1 - tx0, ty1 - ty0, ix0 - tx0, iy0 - ty0, ix1 - ix0,
+                         iy1 - iy0)
+            first, count = 0, n_planes
+            # where the tile's interior goes in a device volume: (row width, origin x, origin y,
+            # labels per pixel, start)
+            place = (w_img, ix0, iy0, n_planes, 0)
+            if windows is not None:
+                bi, bj = iy0 // tile_h, ix0 // tile_w
+                first, count = windows.sweep_range(bi, bj)
+                if ragged:
+                    place = (ix1 - ix0, 0, 0, count, int(block_start[bi * windows.first.shape[1]
+                                                                     + bj]))
+            n_batches += self._sweep_tile(
+                tile, plan.planes_per_batch, hom[first:first + count], count, bufs,
+                ref_buf, src_buf, off_buf, size_buf, census_k, sweep_k, filt_prg, wta_prg,
+                (w_img, h_img), outs, (ix0, iy0), volume, volume_k, place)
+            if wta:
+                outs[0][iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
+            n_tiles += 1
+        bufs.free(ref_buf, src_buf, off_buf, size_buf)
+        plane_base = None if windows is None else windows.per_pixel(ref.shape)
+        plane_count = None if windows is None else windows.counts(ref.shape)
+        if on_device:
+            volume = cla.Array(queue, (volume_bytes // 4,) if ragged else (h_img, w_img, n_planes),
+                               np.float32, data=volume)
+        if not wta:
+            return SweepResult(height=None, plane_index=None, confidence=None, valid=None,
+                               cost_min=None, n_tiles=n_tiles, n_batches=n_batches,
+                               peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base,
+                               plane_count=plane_count, plane_offset=label_offset)
+        index, out_conf, out_cost, out_valid = outs
+        if not o.subplane:
+            index = np.rint(index).astype(np.float32)
+        valid = out_valid.astype(bool)
+        height = np.interp(index.astype(np.float64), np.arange(n_total), hts) if n_total > 1 \
+            else np.full(index.shape, hts[0])
+        height[~valid] = np.nan
+        return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
+                           cost_min=out_cost, n_tiles=n_tiles, n_batches=n_batches,
+                           peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base,
+                           plane_count=plane_count, plane_offset=label_offset)
+
+    def _sweep_tile(self, tile, nb_max, hom, n_planes, bufs, ref_buf, src_buf, off_buf, size_buf,
+                    census_k, sweep_k, filt_prg, wta_prg, ref_size, outs, interior_origin,
+                    volume=None, volume_k=None, place=None) -> int:
+        """Sweep one tile over the n_planes planes of ``hom``; a kept volume receives them as
+        each pixel's labels 0 .. n_planes - 1: a host volume at the interior's origin, a device
+        volume as ``place`` = (out_w, ox, oy, labels per pixel, start) says (volume_pixel_major).
+        outs = None: no winner-take-all (the volume only)."""
+        import pyopencl as cl  # noqa: PLC0415
+
+        o = self.options
+        queue = self.device.queue
+        i32 = np.int32
+        w_img, h_img = ref_size
+        tw, th, area = tile.tw, tile.th, tile.tw * tile.th
+        n_src = hom.shape[1]
+
+        # Homographies in tile-local reference coordinates: H @ T(tx0, ty0), normalised, float32.
+        shift = np.eye(3)
+        shift[0, 2], shift[1, 2] = tile.tx0, tile.ty0
+        local = hom @ shift
+        local = local / local[:, :, 2:3, 2:3]
+        hom_f32 = np.ascontiguousarray(local.reshape(n_planes, n_src, 9), dtype=np.float32)
+        hom_buf = bufs.alloc(hom_f32.nbytes, hom_f32)
+
+        code_buf = bufs.alloc(8 * area)
+        with self._stage("census"):
+            _launch(census_k, queue, (tw, th), ref_buf, i32(w_img), i32(h_img), i32(tile.tx0),
+                    i32(tile.ty0), i32(tw), i32(th), code_buf)
+
+        nvol = _volume_planes(o, nb_max)
+        vol_a = bufs.alloc(4 * area * (nvol // 2 if o.cost_filter != "none" else nvol))
+        vol_b = bufs.alloc(4 * area * nvol // 2) if o.cost_filter != "none" else None
+        guide_i = guide_mean = None
+        if o.cost_filter == "guided":
+            guide_i = bufs.alloc(4 * area)
+            guide_mean = bufs.alloc(8 * area)
+            with self._stage("filter"):
+                self._guide_stats(filt_prg, tile, ref_buf, w_img, guide_i, guide_mean, vol_b)
+
+        iw, ih = tile.iw, tile.ih
+        wta = outs is not None
+        state = None
+        if wta:
+            state = bufs.alloc(4 * _WTA_NSTATE * iw * ih)
+            wta_update = self.device.kernel(wta_prg, "wta_update")
+            _launch(self.device.kernel(wta_prg, "wta_init"), queue, (iw, ih), state, i32(iw),
+                    i32(ih))
+
+        warped = seen = None
+        if _split_census(o):
+            rx, ry = o.census_radii
+            pw, ph = tw + 2 * rx, th + 2 * ry
+            positions = _warped_positions(o, (tw, th), nb_max, n_src)
+            chunk = _warp_chunk(o, (tw, th), nb_max, n_src)
+            warped = bufs.alloc(4 * positions)
+            seen = bufs.alloc(positions)
+
+        # The cost of a batch lands in vol_a (first nb planes); the filters use vol_b (and the
+        # rest of vol_a) as temporaries and leave the filtered cost in vol_a. Without
+        # winner-take-all, the guided filter's last pass writes the interior straight into the
+        # pixel-major volume instead (no plane-major q, no copy).
+        ix0, iy0 = interior_origin
+        fused = (volume is not None and not isinstance(volume, np.ndarray) and not wta
+                 and o.cost_filter == "guided")
+        wgx, wgy = o.work_group
+        n_batches = 0
+        for p0 in range(0, n_planes, nb_max):
+            nb = min(nb_max, n_planes - p0)
+            with self._stage("sweep"):
+                if warped is not None:
+                    warp_k, cost_k = sweep_k
+                    for c0 in range(0, nb, chunk):
+                        nc = min(chunk, nb - c0)
+                        _launch(warp_k, queue, (_ceil_div(pw, SWEEP_VEC), ph, nc * n_src),
+                                src_buf, off_buf, size_buf,
+                                hom_buf, i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0),
+                                i32(w_img), i32(h_img), i32(p0 + c0), warped, seen)
+                        _launch(cost_k, queue, (_ceil_div(tw, SWEEP_VEC), th, nc), warped,
+                                seen, code_buf, ref_buf, i32(tw), i32(th), i32(tile.tx0),
+                                i32(tile.ty0), i32(w_img), i32(h_img), i32(c0), vol_a)
+                elif o.cost_mode == "warped_census":
+                    sweep_k(queue, (_round_up(tw, wgx), _round_up(th, wgy), nb), (wgx, wgy, 1),
+                            src_buf, off_buf, size_buf, hom_buf, code_buf, ref_buf, i32(tw),
+                            i32(th), i32(tile.tx0), i32(tile.ty0), i32(w_img), i32(h_img),
+                            i32(p0), vol_a)
+                else:
+                    _launch(sweep_k, queue, (tw, th, nb), src_buf, off_buf, size_buf, hom_buf,
+                            code_buf, i32(tw), i32(th), i32(p0), vol_a)
+            to_volume = (volume, *place, p0) if fused else None
+            with self._stage("filter"):
+                self._filter(filt_prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume)
+            if isinstance(volume, np.ndarray):  # MRF path: the filtered interior to the host
+                batch = np.empty((nb, th, tw), np.float32)
+                cl.enqueue_copy(queue, batch, vol_a)
+                volume[p0:p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
+                    batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
+            elif volume is not None and not fused:  # MRF path: the interior, pixel-major
+                with self._stage("copy"):
+                    out_w, ox, oy, n_labels, start = place
+                    _launch(volume_k, queue, (iw, ih), vol_a,
+                            i32(tw), i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih),
+                            i32(nb), volume, i32(out_w), i32(ox), i32(oy), i32(n_labels),
+                            i32(p0), np.uint64(start))
+            if wta:
+                with self._stage("wta"):
+                    _launch(wta_update, queue, (_ceil_div(iw, WTA_VEC), ih), vol_a, i32(tw),
+                            i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih), i32(nb),
+                            i32(p0), state)
+            n_batches += 1
+
+        if not wta:
+            queue.finish()
+            bufs.free(hom_buf, code_buf, vol_a, vol_b, guide_i, guide_mean, warped, seen)
+            return n_batches
+        index = bufs.alloc(4 * iw * ih)
+        conf = bufs.alloc(4 * iw * ih)
+        best = bufs.alloc(4 * iw * ih)
+        valid = bufs.alloc(iw * ih)
+        with self._stage("wta"):
+            _launch(self.device.kernel(wta_prg, "wta_finalize"), queue, (iw, ih), state, i32(iw),
+                    i32(ih), i32(n_planes), i32(tile.mx), i32(tile.my), hom_buf, size_buf,
+                    i32(1 if o.reject_range_edges else 0), index, conf, best, valid)
+        for dev_buf, host, dtype in zip((index, conf, best, valid), outs,
+                                        (np.float32, np.float32, np.float32, np.uint8)):
+            tmp = np.empty((ih, iw), dtype)
+            cl.enqueue_copy(queue, tmp, dev_buf)
+            host[iy0:iy0 + ih, ix0:ix0 + iw] = tmp
+        queue.finish()
+        bufs.free(hom_buf, code_buf, vol_a, vol_b, guide_i, guide_mean, state, index, conf, best,
+                  valid, warped, seen)
+        return n_batches
+
+    def _guide_stats(self, prg, tile, ref_buf, w_img, guide_i, guide_mean, scratch) -> None:
+        """guide_i = I and guide_mean = [box mean of I | box mean of I^2] over the tile."""
+        queue = self.device.queue
+        kern = self.device.kernel
+        i32 = np.int32
+        tw, th = tile.tw, tile.th
+        chunk = box_chunk(self.options.filter_radius)
+        _launch(kern(prg, "gf_guide_fields"), queue, (tw, th), ref_buf, i32(w_img),
+                i32(tile.tx0), i32(tile.ty0), i32(tw), i32(th), guide_i, guide_mean)
+        _launch(kern(prg, "box_cols_sum"), queue,
+                (_ceil_div(tw, GF_COLS_VEC), _ceil_div(th, chunk), 2),
+                guide_mean, scratch, i32(tw), i32(th))
+        _launch(kern(prg, "box_rows_mean"), queue, (_ceil_div(tw, chunk), th, 2),
+                scratch, guide_mean, i32(tw), i32(th))
+
+    def _filter(self, prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume=None) -> None:
+        """Filter the nb cost planes at the start of vol_a in place (through vol_b).
+
+        With ``to_volume`` = (volume, out_w, ox, oy, n_planes, start, plane0) (guided filter
+        only), the tile's interior goes straight into the pixel-major ``volume`` instead, at
+        (ox, oy) of rows of out_w pixels from float ``start`` on, and labels plane0 .. plane0 +
+        nb - 1 (gf_rows_q_pixel_major; vol_a is left holding the [a | b] coefficients).
+        """
+        o = self.options
+        if o.cost_filter == "none":
+            return
+        queue = self.device.queue
+        kern = self.device.kernel
+        i32 = np.int32
+        tw, th = tile.tw, tile.th
+        chunk = box_chunk(o.filter_radius)
+        ncx, ncy = _ceil_div(tw, chunk), _ceil_div(th, chunk)
+        ncv = _ceil_div(tw, GF_COLS_VEC)  # column kernels: GF_COLS_VEC columns per work-item
+        if o.cost_filter == "box":
+            _launch(kern(prg, "box_cols_sum"), queue, (ncv, ncy, nb), vol_a, vol_b, i32(tw),
+                    i32(th))
+            _launch(kern(prg, "box_rows_mean"), queue, (ncx, th, nb), vol_b, vol_a, i32(tw),
+                    i32(th))
+            return
+        # Guided: p = vol_a[0:nb] -> vol_b = [colsum p | colsum I p] -> vol_a = [a | b]
+        # -> vol_b = [colsum a | colsum b] -> vol_a[0:nb] = q.
+        _launch(kern(prg, "gf_cols_p"), queue, (ncv, ncy, nb), vol_a, guide_i, vol_b,
+                i32(tw), i32(th), i32(nb))
+        _launch(kern(prg, "gf_rows_ab"), queue, (ncx, th, nb), vol_b, guide_mean, vol_a,
+                i32(tw), i32(th), i32(nb))
+        _launch(kern(prg, "box_cols_sum"), queue, (ncv, ncy, 2 * nb), vol_a, vol_b,
+                i32(tw), i32(th))
+        if to_volume is None:
+            _launch(kern(prg, "gf_rows_q"), queue, (ncx, th, nb), vol_b, guide_i, vol_a,
+                    i32(tw), i32(th), i32(nb))
+            return
+        volume, out_w, ox, oy, n_planes, start, plane0 = to_volume
+        _launch(kern(prg, "gf_rows_q_pixel_major"), queue, (ncx, tile.ih), vol_b, guide_i,
+                i32(tw), i32(th), i32(nb), i32(tile.mx), i32(tile.my), i32(tile.iw),
+                i32(tile.ih), volume, i32(out_w),
+                i32(ox), i32(oy), i32(n_planes), i32(plane0), np.uint64(start))
+
+    def _lr_check(self, result: SweepResult, ref: np.ndarray, srcs: list[np.ndarray],
+                  hom: np.ndarray, hts: np.ndarray) -> None:
+        """Sweep again with the first source as reference and keep pixels that agree.
+
+        The swapped sweep uses the homographies source 0 -> reference (inverse) and source 0 ->
+        source j (H_j H_0^-1). A reference pixel with fractional plane index f maps to source 0
+        by interpolating the maps of the planes around f; it passes when source 0's nearest
+        pixel is valid with |f - f_0| <= lr_tolerance_planes.
+        """
+        ok = self.lr_mask(result.plane_index, result.valid, ref, srcs, hom, hts)
+        result.valid &= ok
+        result.height[~result.valid] = np.nan
+
+    def lr_mask(self, plane_index: np.ndarray, valid: np.ndarray, ref: np.ndarray,
+                srcs: list[np.ndarray], hom: np.ndarray, hts: np.ndarray) -> np.ndarray:
+        """Pixels of a (whole-reference) winner-take-all map that pass the left-right check.
+
+        The first source is swept as the reference (winner-take-all, no check) against the
+        reference and the other sources; see ``_lr_check`` and ``lr_consistent``.
+        """
+        inv0 = np.linalg.inv(hom[:, 0])
+        swapped = [inv0] + [hom[:, j] @ inv0 for j in range(1, len(srcs))]
+        back = PlaneSweep(self.device, self.options.replace(lr_check=False))
+        other = back._sweep(srcs[0], [ref] + list(srcs[1:]), np.stack(swapped, axis=1), hts)
+        return lr_consistent(plane_index, valid, other.plane_index, other.valid, hom[:, 0],
+                             self.options.lr_tolerance_planes)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Tile:
+    tx0: int  # tile origin in the reference image (margin included)
+    ty0: int
+    tw: int  # tile size (margin included)
+    th: int
+    mx: int  # interior origin inside the tile
+    my: int
+    iw: int  # interior size
+    ih: int
+
+
+def _ragged_layout(windows: PlaneWindows, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The layout of a ragged pixel-major volume over plane windows: block after block (row-major
+    over the blocks), each block's pixels row by row, each pixel its block's count of labels.
+    Returns ((H, W) uint64 start of each pixel's labels, in floats; block starts, one per block
+    plus the total, in the same units)."""
+    h, w = shape
+    b = windows.block
+    nby, nbx = np.asarray(windows.first).shape
+    rows = np.minimum(b, h - b * np.arange(nby))   # pixel rows of each block row
+    cols = np.minimum(b, w - b * np.arange(nbx))   # pixel columns of each block column
+    count = np.asarray(windows.count, dtype=np.uint64)
+    size = rows[:, None].astype(np.uint64) * cols[None, :].astype(np.uint64) * count
+    block_start = np.concatenate([[0], np.cumsum(size.ravel())]).astype(np.uint64)
+    # pixel (y, x) of block (i, j): start + ((y - i b) cols[j] + (x - j b)) count[i, j]
+    y, x = np.arange(h), np.arange(w)
+    bi, bj = y // b, x // b
+    local = ((y - bi * b)[:, None] * cols[bj][None, :] + (x - bj * b)[None, :]).astype(np.uint64)
+    offset = block_start[:-1].reshape(nby, nbx)[bi[:, None], bj[None, :]] \
+        + local * count[bi[:, None], bj[None, :]]
+    return np.ascontiguousarray(offset, dtype=np.uint64), block_start
+
+
+def tile_grid(width: int, height: int, tile_w: int, tile_h: int, margin: int):
+    """Tiles covering a width x height image, row by row: (interior x0, y0, x1, y1, tile x0, y0,
+    x1, y1), ends exclusive, interiors tile_w x tile_h (less at the right and bottom), each tile
+    its interior plus ``margin`` pixels on every side, clipped to the image."""
+    for y0 in range(0, height, tile_h):
+        for x0 in range(0, width, tile_w):
+            x1, y1 = min(x0 + tile_w, width), min(y0 + tile_h, height)
+            yield (x0, y0, x1, y1, max(x0 - margin, 0), max(y0 - margin, 0),
+                   min(x1 + margin, width), min(y1 + margin, height))
+
+
+def _ceil_div(a: int, b: int) -> int:
+    return -(-a // b)
+
+
+def box_chunk(radius: int) -> int:
+    """Samples per work-item of the sliding box sums: at least the window (O(1) per pixel)."""
+    return max(32, 2 * radius + 1)
+
+
+def lr_consistent(index_ref: np.ndarray, valid_ref: np.ndarray, index_src: np.ndarray,
+                  valid_src: np.ndarray, hom_ref_to_src: np.ndarray, tolerance_planes: float,
+                  rows_per_block: int = 256) -> np.ndarray:
+    """Left-right consistency of two plane-index maps (float64 host computation).
+
+    hom_ref_to_src: (n_planes, 3, 3). Each valid reference pixel is mapped to the source with the
+    homography linearly interpolated (in image position) between the planes around its
+    fractional index; the source's nearest pixel must be valid with an index within
+    ``tolerance_planes``. Rows are processed in blocks to bound host memory.
+    """
+    h_img, w_img = index_ref.shape
+    hs, ws = index_src.shape
+    n_planes = hom_ref_to_src.shape[0]
+    out = np.zeros((h_img, w_img), bool)
+    for y0 in range(0, h_img, rows_per_block):
+        ys, xs = np.nonzero(valid_ref[y0:y0 + rows_per_block])
+        ys = ys + y0
+        f = index_ref[ys, xs].astype(np.float64)
+        i0 = np.clip(np.floor(f).astype(np.int64), 0, max(n_planes - 2, 0))
+        t = f - i0
+        pts = np.stack([xs, ys, np.ones(xs.size)], axis=1)[:, :, None].astype(np.float64)
+
+        def project(i):
+            q = (hom_ref_to_src[i] @ pts)[:, :, 0]
+            return q[:, :2] / q[:, 2:3]
+
+        uv = project(i0)
+        if n_planes > 1:
+            uv = (1.0 - t)[:, None] * uv + t[:, None] * project(i0 + 1)
+        iu, iv = np.floor(uv[:, 0] + 0.5).astype(np.int64), np.floor(uv[:, 1] + 0.5).astype(np.int64)
+        inside = (iu >= 0) & (iu < ws) & (iv >= 0) & (iv < hs)
+        good = np.zeros(xs.size, bool)
+        k = np.nonzero(inside)[0]
+        good[k] = valid_src[iv[k], iu[k]] & (np.abs(f[k] - index_src[iv[k], iu[k]]) <= tolerance_planes)
+        out[ys, xs] = good
+    return out
+
+
+def sweep_views(device: Device, ref_image, src_images: Sequence, ref_proj, src_projs: Sequence, *,
+                heights=None, alt_range: tuple[float, float] | None = None,
+                options: SweepOptions | None = None, keep_volume: bool = False,
+                frame=None) -> tuple[SweepResult, np.ndarray]:
+    """Sweep with projections from ``satsweep.geometry.camera`` (homographies by ``plane_homography``).
+
+    Either ``heights`` (ENU up, metres) or ``alt_range`` (then spaced by ``plane_heights``) is
+    given. With ``frame`` (the ``ENUFrame`` of the projections) ``SweepResult.altitude`` holds the
+    heights above the ellipsoid (``ellipsoid_heights``). Returns the result and the plane heights.
+    """
+    opts = options if options is not None else SweepOptions()
+    if len(src_projs) != len(src_images):
+        raise InputError(None, f"src_projs: {len(src_projs)} projections for "
+                               f"{len(src_images)} source images")
+    if heights is None:
+        if alt_range is None:
+            raise InputError(None, "sweep_views: give heights or alt_range")
+        heights = plane_heights(ref_proj, src_projs, alt_range, opts.step_px,
+                                ref_shape=np.asarray(ref_image).shape)
+    heights = np.asarray(heights, dtype=np.float64)
+    hom = view_homographies(ref_proj, src_projs, heights)
+    result = PlaneSweep(device, opts).run(ref_image, src_images, hom, heights,
+                                          keep_volume=keep_volume)
+    if frame is not None:
+        result.altitude = ellipsoid_heights(result.height, ref_proj, frame)
+    return result, heights

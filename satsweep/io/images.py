@@ -1,0 +1,269 @@
+"""Reading satellite images (TIFF) with tifffile, and tonemapping them.
+
+- ``read_image``: the first band of a TIFF as a 2D array in its stored dtype (optionally only a
+  window of it: an uncompressed file is memory-mapped, a tiled or stripped one has only the
+  segments under the window decoded).
+- ``tonemap``: a robust percentile clip and gamma, to about [0, 1].
+
+GeoTIFFs (DSMs, DEMs) are read and written by :mod:`satsweep.io.geotiff`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import struct
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from satsweep.errors import ImageFormatError, OptionsError
+
+# Default tone-mapping percentiles: robust to a few saturated or dead pixels.
+DEFAULT_LOW_PERCENTILE = 1.0
+DEFAULT_HIGH_PERCENTILE = 99.0
+
+
+# -- reading -----------------------------------------------------------------------------------
+# What tifffile raises on files that are not TIFFs or are cut short (struct.error for a file cut
+# inside its header, for instance): each becomes an ImageFormatError naming the file.
+_TIFF_READ_ERRORS = (ValueError, OSError, EOFError, IndexError, KeyError, struct.error)
+
+
+@contextlib.contextmanager
+def _quiet_tifffile() -> Iterator[None]:
+    """Silence tifffile's own log lines while opening a file: a corrupt file is reported once, by
+    the ImageFormatError that names it, not also by a library log line above it."""
+    logger = logging.getLogger("tifffile")
+    previous = logger.disabled
+    logger.disabled = True
+    try:
+        yield
+    finally:
+        logger.disabled = previous
+
+
+# Leading bytes of the other formats satellite images are delivered in, which GDAL converts to
+# GeoTIFF with their RPCs (a conversion keeps the pixel grid the RPCs refer to).
+_OTHER_FORMATS = (
+    (b"\x00\x00\x00\x0cjP  \r\n\x87\n", "a JPEG 2000 (JP2) image"),
+    (b"\xff\x4f\xff\x51", "a JPEG 2000 codestream (J2K)"),
+    (b"NITF", "an NITF image"),
+    (b"NSIF", "an NSIF (NITF) image"),
+)
+
+
+def _not_a_tiff(path: str, exc: Exception) -> str:
+    """Why ``path`` cannot be opened as a TIFF, naming the format it is if a known one."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(12)
+    except OSError:
+        head = b""
+    for magic, what in _OTHER_FORMATS:
+        if head.startswith(magic):
+            return (f"{what}, not a TIFF: satsweep reads TIFF images; convert it with "
+                    f"gdal_translate -of GTiff {os.path.basename(path)} OUT.tif (GDAL carries "
+                    "its RPCs into the GeoTIFF's RPC tag or an .RPB file beside it, which "
+                    "satsweep reads)")
+    return f"not a readable TIFF file ({exc})"
+
+
+@contextlib.contextmanager
+def _open_tiff(path: str | os.PathLike):
+    """Open a TIFF and yield (TiffFile, first page); every failure is an ImageFormatError."""
+    import tifffile
+
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise ImageFormatError(path, "no such file")
+    if os.path.isdir(path):
+        raise ImageFormatError(path, "is a folder, not an image")
+    try:
+        with _quiet_tifffile():
+            tif = tifffile.TiffFile(path)
+    except _TIFF_READ_ERRORS as exc:
+        raise ImageFormatError(path, _not_a_tiff(path, exc)) from None
+    with tif:
+        try:
+            with _quiet_tifffile():
+                pages = tif.pages
+                page = pages.first if len(pages) else None
+        except _TIFF_READ_ERRORS as exc:
+            raise ImageFormatError(path, f"corrupt TIFF image directory ({exc})") from None
+        if page is None:
+            raise ImageFormatError(
+                path, f"truncated or empty TIFF: no image directory within its {tif.filehandle.size} bytes"
+            )
+        yield tif, page
+
+
+def _check_layout(path: str, page) -> None:
+    """Raise ImageFormatError unless the page holds a supported 2D (multi-band) raster."""
+    if page.axes not in ("YX", "YXS", "SYX"):
+        raise ImageFormatError(path, f"unsupported TIFF layout: axes {page.axes} shape {page.shape}")
+    kind = page.dtype.kind if page.dtype is not None else "?"
+    if kind not in "uif" or page.dtype.itemsize > 8:
+        what = "1-bit" if kind == "b" else str(page.dtype)
+        raise ImageFormatError(path, f"unsupported pixel type {what} (need integer or float samples)")
+    size = page.parent.filehandle.size
+    ends = [o + c for o, c in zip(page.dataoffsets, page.databytecounts) if c > 0]
+    if ends and max(ends) > size:
+        raise ImageFormatError(
+            path, f"truncated: pixel data runs to byte {max(ends)} but the file has {size} bytes"
+        )
+
+
+def _first_band(data: np.ndarray, axes: str) -> np.ndarray:
+    if axes == "YXS":
+        return data[..., 0]
+    if axes == "SYX":
+        return data[0]
+    return data
+
+
+def _segment_shape(page) -> tuple[int, int]:
+    """(rows, columns) of a page's tiles, or of its strips (whole rows)."""
+    height = int(page.imagelength)
+    if page.is_tiled:
+        return int(page.tilelength), int(page.tilewidth)
+    rows = int(page.rowsperstrip or height)
+    return min(rows, height), int(page.imagewidth)
+
+
+def _segmented(page) -> bool:
+    """Whether a window of the page can be read segment by segment: tiles, or several strips,
+    in a layout that ``_read_segments`` places (2-D, bits in the usual order)."""
+    if int(page.imagedepth) != 1 or int(page.fillorder) != 1:
+        return False
+    seg_rows, _ = _segment_shape(page)
+    return bool(page.is_tiled) or seg_rows < int(page.imagelength)
+
+
+def _read_segments(tif, page, rows: slice, cols: slice) -> np.ndarray:
+    """The first band's window (native byte order), decoding only the tiles or strips that it
+    overlaps: a small AOI of a large compressed or tiled scene reads a small part of the file.
+
+    Segments are numbered row by row over the page's grid of tiles (or strips), the first band's
+    segments first when the bands are stored separately (planar configuration 2); a segment with
+    no bytes (a sparse file's empty block) reads as zeros, as GDAL and tifffile read it.
+    """
+    seg_rows, seg_cols = _segment_shape(page)
+    across = -(-int(page.imagewidth) // seg_cols)
+    out = np.zeros((rows.stop - rows.start, cols.stop - cols.start),
+                   page.dtype.newbyteorder("="))
+    fh = tif.filehandle
+    decode = page.decode
+    for ty in range(rows.start // seg_rows, (rows.stop - 1) // seg_rows + 1):
+        for tx in range(cols.start // seg_cols, (cols.stop - 1) // seg_cols + 1):
+            index = ty * across + tx
+            if not page.databytecounts[index]:
+                continue
+            fh.seek(page.dataoffsets[index])
+            data = fh.read(page.databytecounts[index])
+            segment, _, _ = decode(data, index, jpegtables=page.jpegtables)
+            y0, x0 = ty * seg_rows, tx * seg_cols
+            # The overlap of the segment and the window, in image coordinates.
+            r0, r1 = max(y0, rows.start), min(y0 + segment.shape[1], rows.stop)
+            c0, c1 = max(x0, cols.start), min(x0 + segment.shape[2], cols.stop)
+            out[r0 - rows.start:r1 - rows.start, c0 - cols.start:c1 - cols.start] = \
+                segment[0, r0 - y0:r1 - y0, c0 - x0:c1 - x0, 0]
+    return out
+
+
+def _window_slices(window, width: int, height: int) -> tuple[slice, slice]:
+    if window is None:
+        return slice(0, height), slice(0, width)
+    x0, y0, x1, y1 = (int(v) for v in window)
+    if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
+        raise ValueError(f"window {window} is not inside the {width}x{height} image")
+    return slice(y0, y1), slice(x0, x1)
+
+
+def _decode_problem(page, exc: Exception) -> str:
+    """One-line reason why tifffile could not decode a page, with the usual remedy."""
+    compression = getattr(page.compression, "name", str(page.compression))
+    if isinstance(exc, ImportError) or "imagecodecs" in str(exc):
+        return (
+            f"cannot decode {compression} compressed pixels without the 'imagecodecs' package "
+            "(pip install imagecodecs, or rewrite it uncompressed: gdal_translate -co COMPRESS=NONE)"
+        )
+    return f"cannot decode the pixel data ({compression} compression: {type(exc).__name__}: {exc})"
+
+
+def image_shape(path: str | os.PathLike) -> tuple[int, int]:
+    """(height, width) of the first band of a TIFF, read from its header only."""
+    path = os.fspath(path)
+    with _open_tiff(path) as (_, page):
+        _check_layout(path, page)
+        return int(page.imagelength), int(page.imagewidth)
+
+
+def read_image(path: str | os.PathLike, *, window: Sequence[int] | None = None) -> np.ndarray:
+    """Read the first band of a TIFF as a 2D array in its stored dtype (native byte order).
+
+    ``window = (x0, y0, x1, y1)`` (pixel indices, ends excluded) reads only that part; an
+    uncompressed contiguous file is then memory-mapped so that only the window is read.
+    Raises ImageFormatError naming the file when it is missing, not a TIFF, truncated, or of an
+    unsupported layout (volumes, 1-bit, complex samples) or compression.
+    """
+    path = os.fspath(path)
+    with _open_tiff(path) as (tif, page):
+        _check_layout(path, page)
+        rows, cols = _window_slices(window, int(page.imagewidth), int(page.imagelength))
+        dtype = page.dtype.newbyteorder(tif.byteorder)
+        mappable = (
+            window is not None
+            and page.is_contiguous
+            and int(page.compression) == 1
+            and int(page.predictor) == 1
+            and int(page.fillorder) == 1
+            and page.bitspersample == 8 * dtype.itemsize
+        )
+        try:
+            if mappable:
+                data = np.memmap(path, dtype=dtype, mode="r", offset=page.dataoffsets[0], shape=page.shape)
+                out = np.array(_first_band(data, page.axes)[rows, cols])
+                del data
+            elif window is not None and _segmented(page):
+                out = _read_segments(tif, page, rows, cols)
+            else:
+                out = np.array(_first_band(page.asarray(), page.axes)[rows, cols])
+        except Exception as exc:  # noqa: BLE001 - any decoder failure on this file is a format error
+            raise ImageFormatError(path, _decode_problem(page, exc)) from None
+    return out.astype(out.dtype.newbyteorder("="), copy=False)
+
+
+def tonemap(
+    image: np.ndarray,
+    *,
+    low_percentile: float = DEFAULT_LOW_PERCENTILE,
+    high_percentile: float = DEFAULT_HIGH_PERCENTILE,
+    gamma: float = 1.0 / 2.2,
+) -> np.ndarray:
+    """Map an image to float32 in [0, 1] for display: clip at robust percentiles, scale, gamma.
+
+    ``out = clip((v - p_low) / (p_high - p_low), 0, 1) ** gamma`` with the percentiles taken over
+    the finite pixels. A constant image (or one without finite pixels) maps to zeros; non-finite
+    pixels map to 0, so the result never holds NaN.
+    """
+    if not 0.0 <= low_percentile < high_percentile <= 100.0:
+        raise OptionsError(
+            f"tonemap percentiles low={low_percentile!r}, high={high_percentile!r}: "
+            "need 0 <= low < high <= 100"
+        )
+    if not (math.isfinite(gamma) and gamma > 0.0):
+        raise OptionsError(f"tonemap gamma = {gamma!r}: must be finite and > 0")
+    a = np.asarray(image, dtype=np.float64)
+    finite = np.isfinite(a)
+    out = np.zeros(a.shape, dtype=np.float32)
+    if not finite.any():
+        return out
+    lo, hi = np.percentile(a[finite], [low_percentile, high_percentile])
+    if not hi > lo:
+        return out
+    t = np.clip((np.where(finite, a, lo) - lo) / (hi - lo), 0.0, 1.0) ** gamma
+    out[...] = t
+    return out

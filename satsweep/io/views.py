@@ -1,0 +1,183 @@
+"""Loading the user's images for the pipeline: read, find the AOI in each, crop, shift the RPC.
+
+A ``View`` is one image cropped to the part that sees the AOI box between the altitude range's
+bounds (plus a margin), with the RPC of the crop (``rpc.cropped``) and the crop offset. Only the
+window is read from disk when the TIFF is uncompressed and contiguous, so full satellite scenes
+can be given directly.
+
+Pixel convention: (0, 0) is the centre of the first pixel; a crop box ``(x0, y0, x1, y1)`` holds
+the pixels ``x0 <= col < x1``, ``y0 <= row < y1`` (ends excluded, as Python slices).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from typing import TYPE_CHECKING, Any, Callable, Sequence
+
+import numpy as np
+
+from satsweep.errors import AOIError, InputError, OptionsError
+from satsweep.geometry.altitude import AltitudeRange
+from satsweep.geometry.aoi import AOI
+
+if TYPE_CHECKING:  # pragma: no cover
+    from satsweep.geometry.rpc import RPCModel
+
+log = logging.getLogger(__name__)
+
+# Pixels added around the AOI footprint: room for matching windows, for RPC bias (typically a few
+# pixels for Pleiades/WorldView) and for sub-pixel interpolation at the crop edges.
+DEFAULT_MARGIN_PX = 32
+
+# Minimum number of views for stereo.
+MIN_VIEWS = 2
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class View:
+    """One image cropped to the AOI, with the RPC of the crop.
+
+    ``image`` is the raw crop (uint8/uint16 kept as stored, other pixel types as float32);
+    ``rpc`` projects ground points into crop pixels; ``(x0, y0)`` is the crop's top-left pixel in
+    the original image, so crop pixel (c, r) is original pixel (c + x0, r + y0).
+    """
+
+    path: str  # the image file
+    image: np.ndarray  # cropped raw pixels, 2D
+    rpc: "RPCModel"  # RPC of the crop (projects ground points to crop pixels)
+    x0: int  # column of the crop's first pixel in the original image
+    y0: int  # row of the crop's first pixel in the original image
+
+    @property
+    def height(self) -> int:
+        """Crop height in pixels."""
+        return int(self.image.shape[0])
+
+    @property
+    def width(self) -> int:
+        """Crop width in pixels."""
+        return int(self.image.shape[1])
+
+    @property
+    def name(self) -> str:
+        """The image's file name without folders, for logs and reports."""
+        return os.path.basename(self.path)
+
+
+def projected_aoi_box(project: Callable[..., tuple], aoi: AOI,
+                      alt_range: AltitudeRange) -> tuple[float, float, float, float]:
+    """(col_min, row_min, col_max, row_max) of the AOI box's edges at both altitude bounds (a
+    vertical projects to a segment, so these bound the whole cube), projected by
+    ``project(lon=, lat=, alt=) -> (col, row)`` (an RPC's ``projection``, or a camera's)."""
+    lon, lat = aoi.boundary()
+    alt = np.array([alt_range.min, alt_range.max], dtype=np.float64)
+    col, row = project(lon=lon[None, :], lat=lat[None, :], alt=alt[:, None])
+    col, row = np.asarray(col, np.float64), np.asarray(row, np.float64)
+    if not (np.isfinite(col).all() and np.isfinite(row).all()):
+        raise AOIError(f"the RPC projects the AOI {aoi} to non-finite pixel coordinates")
+    return float(col.min()), float(row.min()), float(col.max()), float(row.max())
+
+
+def aoi_footprint(
+    rpc: Any,
+    aoi: AOI,
+    alt_range: AltitudeRange,
+    image_shape: Sequence[int],
+    *,
+    margin_px: int = 0,
+    path: str | os.PathLike | None = None,
+) -> tuple[int, int, int, int]:
+    """Pixel box ``(x0, y0, x1, y1)`` (ends excluded) of the image that sees the AOI.
+
+    Projects the AOI box's edges (its 4 corners and points between them) at the lowest and the
+    highest altitude, takes the bounding box of every pixel whose centre it touches, widens it by
+    ``margin_px`` and clips it to the image of shape ``(height, width)``. Raises AOIError (naming
+    ``path`` when given) when the box misses the image. Logs a warning when the image sees only
+    part of the AOI.
+    """
+    if int(margin_px) != margin_px or margin_px < 0:
+        raise OptionsError(f"margin_px = {margin_px!r}: must be an integer >= 0")
+    height, width = int(image_shape[0]), int(image_shape[1])
+    where = f"{os.fspath(path)}: " if path is not None else ""
+    c0, r0, c1, r1 = projected_aoi_box(rpc.projection, aoi, alt_range)
+    # Pixel centres are integers: pixels floor(c0) .. ceil(c1) cover [c0, c1].
+    bx0, by0 = int(np.floor(c0)) - int(margin_px), int(np.floor(r0)) - int(margin_px)
+    bx1, by1 = int(np.ceil(c1)) + 1 + int(margin_px), int(np.ceil(r1)) + 1 + int(margin_px)
+    x0, y0, x1, y1 = max(bx0, 0), max(by0, 0), min(bx1, width), min(by1, height)
+    if x0 >= x1 or y0 >= y1:
+        raise AOIError(
+            f"{where}the image ({width}x{height} pixels) does not see the AOI {aoi} at "
+            f"{alt_range}: it projects to columns {c0:.0f}..{c1:.0f}, rows {r0:.0f}..{r1:.0f}"
+        )
+    # Coverage of the AOI itself (without the margin) by the image.
+    inner = (max(c0, -0.5), max(r0, -0.5), min(c1, width - 0.5), min(r1, height - 0.5))
+    area = max(c1 - c0, 1e-9) * max(r1 - r0, 1e-9)
+    seen = max(inner[2] - inner[0], 0.0) * max(inner[3] - inner[1], 0.0) / area
+    if seen < 1.0:
+        log.warning("%sthe image sees only about %.0f%% of the AOI footprint", where, 100.0 * seen)
+    return x0, y0, x1, y1
+
+
+def _pixels(image: np.ndarray) -> np.ndarray:
+    """Keep uint8/uint16 pixels as stored; convert any other type to float32."""
+    if image.dtype in (np.uint8, np.uint16, np.float32):
+        return image
+    return image.astype(np.float32)
+
+
+def crop_to_aoi(
+    image: np.ndarray,
+    rpc: Any,
+    aoi: AOI,
+    alt_range: AltitudeRange,
+    *,
+    margin_px: int = DEFAULT_MARGIN_PX,
+    path: str | os.PathLike | None = None,
+) -> View:
+    """Crop an image already in memory to the AOI footprint (see ``aoi_footprint``)."""
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise ValueError(f"crop_to_aoi needs a 2D image, got shape {image.shape}")
+    x0, y0, x1, y1 = aoi_footprint(rpc, aoi, alt_range, image.shape, margin_px=margin_px, path=path)
+    crop = np.array(image[y0:y1, x0:x1])
+    return View(
+        path=os.fspath(path) if path is not None else "<memory>",
+        image=_pixels(crop), rpc=rpc.cropped(x0=x0, y0=y0), x0=x0, y0=y0,
+    )
+
+
+def load_views(
+    paths: Sequence[str | os.PathLike],
+    aoi: AOI,
+    alt_range: AltitudeRange,
+    *,
+    margin_px: int = DEFAULT_MARGIN_PX,
+) -> list[View]:
+    """Read each image's RPC and the window that sees the AOI; one View per image, in order.
+
+    Raises InputError for fewer than two images or an image given twice, ImageFormatError /
+    RPCError naming a bad image or RPC, AOIError naming an image that does not see the AOI.
+    """
+    from satsweep.geometry.rpc import RPCModel
+    from satsweep.io.images import image_shape, read_image
+
+    paths = [os.fspath(p) for p in paths]
+    if len(paths) < MIN_VIEWS:
+        raise InputError(None, f"stereo needs at least {MIN_VIEWS} images, got {len(paths)}")
+    seen: dict[str, str] = {}
+    for p in paths:
+        key = os.path.realpath(p)
+        if key in seen:
+            raise InputError(p, f"image given twice (also as {seen[key]})")
+        seen[key] = p
+    views = []
+    for p in paths:
+        shape = image_shape(p)
+        rpc = RPCModel.from_image(p)
+        x0, y0, x1, y1 = aoi_footprint(rpc, aoi, alt_range, shape, margin_px=margin_px, path=p)
+        crop = read_image(p, window=(x0, y0, x1, y1))
+        views.append(View(path=p, image=_pixels(crop), rpc=rpc.cropped(x0=x0, y0=y0), x0=x0, y0=y0))
+        log.info("%s: crop x=%d..%d, y=%d..%d of %dx%d", p, x0, x1, y0, y1, shape[1], shape[0])
+    return views

@@ -1,0 +1,122 @@
+"""The "dsm" stage of one area: its reference views' height maps -> cross-check -> points over
+each pixel's footprint -> per-view rasters -> fused DSM, confidence and orthophoto.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from satsweep.config import PipelineConfig
+
+
+def _nanmean_stack(arrays: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
+    """Per-cell mean over the arrays that have a value there; NaN where none has one."""
+    if not arrays:
+        return np.full(shape, np.nan, np.float32)
+    stack = np.stack(arrays).astype(np.float64)
+    have = np.isfinite(stack)
+    n = have.sum(axis=0)
+    total = np.where(have, stack, 0.0).sum(axis=0)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan).astype(np.float32)
+
+
+# Metres added around the pixel centres' box for the ENU -> map fit: the footprint sub-samples
+# lie within half a pixel of their centres (well under this at any satellite's ground sampling).
+FOOTPRINT_PAD_M = 5.0
+
+
+def _enu_to_map(frame, epsg: int, points: list[tuple[np.ndarray, ...]]):
+    """The ENU -> (UTM, height) map (``dsm.ENUToMap``) fitted over the bounding box of the
+    points, widened by ``FOOTPRINT_PAD_M`` for their footprint sub-samples."""
+    from satsweep.products.points import ENUToMap
+
+    lo, hi = np.zeros(3), np.ones(3)  # any box when there is no point at all
+    present = [p for p in points if p[0].size]
+    if present:  # the box of every view's points, without concatenating millions of them
+        lo = np.array([min(p[k].min() for p in present) for k in range(3)])
+        hi = np.array([max(p[k].max() for p in present) for k in range(3)])
+        lo[:2] -= FOOTPRINT_PAD_M
+        hi[:2] += FOOTPRINT_PAD_M
+    return ENUToMap.fit(frame, epsg, e_range=(lo[0], hi[0]), n_range=(lo[1], hi[1]),
+                        u_range=(lo[2], hi[2]))
+
+
+def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *,
+                  ortho_images=None):
+    """The "dsm" stage of one area on its ``grid``: each reference view's height map ->
+    cross-check -> points over each pixel's footprint (ENU -> UTM) -> per-view rasters ->
+    fusion. Returns (DSM before hole filling, confidence raster, orthophoto of
+    ``ortho_images``' values (the views' in the cameras' pixels; None: no orthophoto), one cloud
+    (x, y, z, grey colours) per reference view); the stage's figures go to ``rep["dsm"]``."""
+    from satsweep.products.fusion import (
+        cross_check_heights,
+        flat_cells,
+        fuse_dsms,
+        rasterise_max_cells,
+    )
+    from satsweep.products.ortho import match_radiometry, value_at_highest
+    from satsweep.products.points import height_map_to_enu, map_view_points
+
+    d = config.dsm
+    with rep.stage("dsm"):
+        heights = [np.where(pv["valid"], pv["height"], np.nan) for pv in per_view]
+        projections = [cameras.views[pv["index"]].camera.P for pv in per_view]
+        # Every view's pixel centres in ENU (solved once: the cross-check reads them too), one
+        # polynomial ENU -> UTM map fitted over all of them; then each view's centres (the
+        # cloud) and footprint sub-samples (the rasters).
+        centres = [height_map_to_enu(height, np.isfinite(height), P)
+                   for height, P in zip(heights, projections)]
+        checked = [np.isfinite(h) for h in heights]
+        cross_check = d.cross_check_m > 0 and len(per_view) >= 2
+        if cross_check:
+            checked = cross_check_heights(heights, projections, tolerance_m=d.cross_check_m,
+                                          min_agreeing=d.cross_check_views, points=centres)
+            centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
+                       for c, keep in zip(centres, checked)]
+        to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
+        rasters, conf_rasters, orthos, clouds = [], [], [], []
+        for pv, centre, height, keep in zip(per_view, centres, heights, checked):
+            (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
+                centre, height, keep, cameras.views[pv["index"]].camera.P, to_map,
+                subsamples=d.subsamples)
+            cells = flat_cells(sx, sy, grid)
+            rasters.append(rasterise_max_cells(cells, sz, grid))
+            if pv["confidence"] is not None:
+                conf_rasters.append(rasterise_max_cells(cells, np.ravel(pv["confidence"])[spix],
+                                                        grid))
+            if ortho_images is not None:
+                grey = np.ravel(ortho_images[pv["index"]])[spix]
+                orthos.append(value_at_highest(cells, sz, grey, grid))
+            if not config.reconstruct.write_cloud:
+                continue
+            gray = np.clip(np.nan_to_num(images[pv["index"]]) * 255.0, 0, 255).astype(np.uint8)
+            # The cloud covers the area's DSM grid, like the DSM (the crops extend beyond it).
+            keep = ((x >= grid.x_min) & (x <= grid.x_min + grid.width * grid.resolution)
+                    & (y <= grid.y_max) & (y >= grid.y_max - grid.height * grid.resolution))
+            clouds.append((x[keep], y[keep], z[keep],
+                           np.repeat(gray.ravel()[pixel[keep]][:, None], 3, axis=1)))
+        fused, _count = fuse_dsms(rasters, outlier_m=d.outlier_m, min_views=d.min_views)
+        conf = _nanmean_stack(conf_rasters, grid.shape)
+        # Each cell's grey level: the mean over the views whose height there is the fused one's
+        # (within outlier_m, the fusion's own rule), so that no view shows a wall or a lower roof.
+        ortho = None
+        if ortho_images is not None:
+            with np.errstate(invalid="ignore"):
+                kept = [np.where(np.abs(h - fused) <= d.outlier_m, o, np.nan)
+                        for h, o in zip(rasters, orthos)]
+            # Views of other dates or sensors differ in gain and offset: each is brought to the
+            # radiometry of the first image given (of those swept as references) before the
+            # mean, so that cells seen by one view and cells seen by two look alike.
+            first = int(np.argmin([pv["index"] for pv in per_view]))
+            kept = [o if k == first else match_radiometry(kept[first], o)
+                    for k, o in enumerate(kept)]
+            ortho = _nanmean_stack(kept, grid.shape)
+        rep["dsm"] = {
+            "cross_check": ({"tolerance_m": d.cross_check_m, "views": d.cross_check_views,
+                             "kept_fraction": [float(k.sum() / max(1, np.isfinite(h).sum()))
+                                               for k, h in zip(checked, heights)]}
+                            if cross_check else None),
+            "per_view_filled_fraction": [float(np.isfinite(a).mean()) for a in rasters],
+            "enu_to_map": {"polynomial": to_map.accurate, "max_error_m": to_map.max_error_m},
+        }
+    return fused, conf, ortho, clouds

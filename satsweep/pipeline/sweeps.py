@@ -1,0 +1,144 @@
+"""The dense-matching driver of an area: every reference view swept against its sources over
+the pixels that see the AOI, with the MRF refinement the options ask for.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from satsweep.config import PipelineConfig
+from satsweep.dense.tiled import mrf_sweep_options, sweep_refine_tiled
+from satsweep.errors import InputError
+from satsweep.geometry.altitude import AltitudeRange
+from satsweep.geometry.aoi import AOI
+from satsweep.pipeline.report import RunReport
+
+# Pixels of context kept around the AOI's footprint in a reference view (``reference_window``):
+# SGM's paths enter the AOI with some history. The sweep stage widens it to the cost filter's
+# margin where that is larger (``SweepOptions.tile_margin``: 2 r = 10 px for the
+# winner-take-all's radius 5), so that every AOI pixel is filtered over its whole window. The
+# rest of the crop margin (``crop_margin_px``, which the sources need) lies outside the AOI at
+# every height and is not swept.
+REFERENCE_CONTEXT_PX = 8
+
+
+def reference_window(camera, frame, aoi: AOI, alt_range: AltitudeRange, shape: tuple[int, int],
+                     context_px: int = REFERENCE_CONTEXT_PX) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1), end exclusive: the pixels of a reference image of ``shape`` that see the
+    AOI cube (the AOI box x the altitude range), through ``camera`` (ENU -> pixels, the image's
+    own, skew-corrected where the image is), grown by ``context_px`` and clipped to the image.
+    The cube's box is the crop's (``views.projected_aoi_box``), grown by one more pixel for the
+    edges' curvature between its samples. A point of the DSM lies inside the AOI, so only these
+    pixels can contribute to it."""
+    from satsweep.errors import AOIError  # noqa: PLC0415
+    from satsweep.io.views import projected_aoi_box  # noqa: PLC0415
+
+    P = np.asarray(camera.P, dtype=np.float64)
+
+    def project(*, lon, lat, alt):
+        lon, lat, alt = (np.ravel(a) for a in np.broadcast_arrays(lon, lat, alt))
+        e, n, u = frame.from_geodetic(lon=lon, lat=lat, alt=alt)
+        x = P @ np.stack([e, n, u, np.ones_like(e)])
+        x[:, x[2] <= 0] = np.nan  # behind the camera: projected_aoi_box refuses non-finite pixels
+        return x[0] / x[2], x[1] / x[2]
+
+    h, w = shape
+    try:
+        c0, r0, c1, r1 = projected_aoi_box(project, aoi, alt_range)
+    except AOIError:
+        return 0, 0, w, h  # the cube reaches behind the camera: keep everything
+    grow = context_px + 1
+    x0 = min(max(int(math.floor(c0)) - grow, 0), w - 1)
+    y0 = min(max(int(math.floor(r0)) - grow, 0), h - 1)
+    x1 = max(min(int(math.ceil(c1)) + grow + 1, w), x0 + 1)
+    y1 = max(min(int(math.ceil(r1)) + grow + 1, h), y0 + 1)
+    return x0, y0, x1, y1
+
+
+def _placed(result, window: tuple[int, int, int, int], shape: tuple[int, int]):
+    """The per-pixel maps of a sweep of the reference window ``window``, placed in full-size maps
+    of ``shape`` (no height, invalid, zero confidence outside the window)."""
+    x0, y0, x1, y1 = window
+    height = np.full(shape, np.nan)
+    valid = np.zeros(shape, bool)
+    confidence = np.zeros(shape, np.float32)
+    height[y0:y1, x0:x1] = result.height
+    valid[y0:y1, x0:x1] = result.valid
+    confidence[y0:y1, x0:x1] = result.confidence
+    return height, valid, confidence
+
+
+def _sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
+                      rep: RunReport, names, *, aoi: AOI, alt_range: AltitudeRange) -> list[dict]:
+    """Sweep every reference view against its sources; MRF refinement per the options.
+
+    Each reference is swept over its ``reference_window`` only (the pixels that see the AOI cube,
+    with some context), not over the crop's whole margin; the plane spacing is that of the whole
+    image. Without an MRF, the sweep's winner-take-all (its own tiling keeps the cost volume on
+    the device). With one, ``sweep_refine_tiled``, timed as the "sweep" stage, whose refinement
+    time is then moved to the "mrf" stage and also given in the view's entry with its tile count.
+    """
+    from satsweep.dense.planes import plane_heights, view_homographies
+    from satsweep.dense.sweep import PlaneSweep
+
+    per_view, sweeps = [], []
+    progress = rep.progress("sweep", len(selection.references))
+    with_mrf = config.mrf.method != "none"
+    swept = mrf_sweep_options(config.sweep, config.mrf)  # the sweep options as run
+    for k, r in enumerate(selection.references):
+        srcs = list(selection.sources[r])
+        ref_proj = cameras.views[r].projection
+        src_projs = [cameras.views[s].projection for s in srcs]
+        shape = images[r].shape
+        window = reference_window(cameras.views[r].camera, cameras.frame, aoi, alt_range, shape,
+                                  context_px=max(REFERENCE_CONTEXT_PX, swept.tile_margin))
+        x0, y0, x1, y1 = window
+        mrf_info = None
+        with rep.stage("sweep"):
+            heights = plane_heights(ref_proj, src_projs, u_range, config.sweep.step_px,
+                                    ref_shape=shape)
+            shift = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+            hom = view_homographies(ref_proj, src_projs, heights) @ shift
+            ref_image = images[r][y0:y1, x0:x1]  # a view: the sweep makes its own copy
+            src_images = [images[s] for s in srcs]
+            if with_mrf:
+                _check_sgm_labels(heights, config)
+                result, seconds = sweep_refine_tiled(
+                    device, ref_image, src_images, hom, heights, config.sweep, config.mrf,
+                    progress=rep.progress("sweep tiles", 1).callback(names[r]))
+            else:
+                result = PlaneSweep(device, config.sweep).run(ref_image, src_images, hom, heights)
+        if with_mrf:
+            rep.move_time("sweep", "mrf", seconds)
+            mrf_info = {"method": config.mrf.method, "seconds": seconds,
+                        "tiles": int(result.n_tiles),
+                        "valid_fraction": float(np.mean(result.valid))}
+        progress.update(k + 1, names[r])
+        height, valid, confidence = _placed(result, window, shape)
+        sweeps.append({
+            "reference": names[r], "sources": [names[s] for s in srcs],
+            "planes": int(len(heights)),
+            "plane_step_m": float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
+            "window": [int(v) for v in window],
+            "valid_fraction": float(np.mean(result.valid)), "tiles": int(result.n_tiles),
+            "window_planes": result.window_planes,
+            "mrf": mrf_info,
+        })
+        per_view.append({"index": r, "height": height, "valid": valid,
+                         "confidence": confidence})
+    rep["sweep"] = sweeps
+    return per_view
+
+
+def _check_sgm_labels(heights: np.ndarray, config: PipelineConfig) -> None:
+    """Refuse, before sweeping, an altitude range with more planes than SGM handles."""
+    from satsweep.dense.sgm import SGM_MAX_LABELS
+
+    if config.mrf.method == "sgm" and heights.size > SGM_MAX_LABELS:
+        raise InputError(None, f"the altitude range spans {abs(heights[-1] - heights[0]):.0f} m: "
+                               f"{heights.size} planes at [sweep] step_px = "
+                               f"{config.sweep.step_px:g}, more than SGM's {SGM_MAX_LABELS}; "
+                               "give a tighter --alt-range or --dem, a larger step_px, or "
+                               "--mrf none")

@@ -1,0 +1,285 @@
+"""From per-view height maps to a DSM on a UTM grid: cross-check, rasterisation, fusion.
+
+Stages (host code, float64 numpy, vectorised):
+
+1. ``cross_check_heights`` keeps only the pixels whose 3D point another reference view's height
+   map confirms (the points themselves: :mod:`satsweep.products.points`).
+2. ``rasterise_max``: points to cells of the grid (:mod:`satsweep.products.grid`), highest point
+   per cell (a DSM is the top surface: a roof point beats a wall point falling in the same cell).
+3. ``fuse_dsms``: per cell, median of the per-reference-view DSMs after discarding values farther
+   than ``outlier_m`` from their first median (a consistency filter across views).
+4. ``fill_small_holes``: optional; fills enclosed holes of a few cells and returns how many cells
+   it filled, so the caller reports it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Literal, Sequence
+
+import numpy as np
+
+from satsweep.errors import OptionsError
+from satsweep.options import Options
+from satsweep.products.grid import DSMGrid
+from satsweep.products.points import Points, points_to_utm, project_points, solve_ground_en
+
+# fuse_dsms works on row blocks of at most this many values (views x cells): ~64 MB per float64
+# temporary, whatever the DSM size.
+FUSE_BLOCK_VALUES = 8_000_000
+
+
+@dataclasses.dataclass(frozen=True)
+class DSMOptions(Options):
+    """Options of the DSM stage (rasterisation, fusion across reference views, hole filling)."""
+
+    resolution: float = 0.5  # DSM cell size in metres (UTM)
+    subsamples: int = 2  # each reference pixel is splatted as subsamples x subsamples points over its footprint (1: centre only, which leaves empty cells between the pixels' centres)
+    cross_check_m: float = 2.0  # keep a reference view's pixel only where another reference view's height map agrees within this (m); 0: no check
+    cross_check_views: int = 1  # how many other reference views must agree (at most all the others; a single reference view is not checked)
+    outlier_m: float = 2.0  # fusion: discard per-view heights farther than this (m) from the first per-cell median
+    min_views: int = 1  # fusion: cells kept by fewer reference views are left empty
+    fill_max_hole_cells: int = 1000  # fill enclosed holes of at most this many cells (0: no filling); the
+    # holes left by occlusions and by the cross-check are mostly ground hidden by a wall (filled cells are counted in report.json)
+    fill_method: Literal["min", "median"] = "min"  # value given to a filled hole: min or median of its rim
+
+    def check(self) -> None:
+        self._require(math.isfinite(self.resolution) and self.resolution > 0.0, "resolution", "must be > 0 metres")
+        self._require(1 <= self.subsamples <= 8, "subsamples", "must be 1..8")
+        self._require(math.isfinite(self.cross_check_m) and self.cross_check_m >= 0.0, "cross_check_m",
+                      "must be >= 0 metres (0 disables the check)")
+        self._require(self.cross_check_views >= 1, "cross_check_views", "must be >= 1")
+        self._require(math.isfinite(self.outlier_m) and self.outlier_m > 0.0, "outlier_m", "must be > 0 metres")
+        self._require(self.min_views >= 1, "min_views", "must be >= 1")
+        self._require(self.fill_max_hole_cells >= 0, "fill_max_hole_cells", "must be >= 0 (0 disables filling)")
+
+
+def cross_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.ndarray], *,
+                        tolerance_m: float, min_agreeing: int = 1,
+                        points: Sequence[tuple[np.ndarray, ...]] | None = None) -> list[np.ndarray]:
+    """Consistency of the height maps of several reference views (a geometric cross-check).
+
+    ``heights[k]``: (H_k, W_k) ENU up coordinate (m) of the surface seen at each pixel of
+    reference view k, NaN where unknown; ``projections[k]``: that view's 3x4 ENU -> pixel matrix.
+    Each known pixel of view k becomes its 3-D point (the pixel's ray at its height); the point is
+    projected into every other view j, whose height at the nearest pixel (``floor(x + 0.5)``)
+    must lie within ``tolerance_m`` of the point's height. A pixel is kept when at least
+    ``min_agreeing`` other views confirm it (all the others when there are fewer): a wrong match
+    (occlusion, low texture, fattened edge) rarely lands on the same 3-D point from another
+    viewpoint. Returns one boolean mask per view (True = known and confirmed). With a single view
+    nothing can be checked and its known pixels are returned as they are. ``points``: each
+    view's ``height_map_to_enu(heights[k], isfinite(heights[k]), projections[k])``, when the
+    caller has them already (they are then not solved again; the same masks).
+    """
+    maps = [np.asarray(h, dtype=np.float64) for h in heights]
+    if len(maps) != len(projections):
+        raise ValueError(f"cross_check_heights: {len(maps)} height maps, {len(projections)} projections")
+    if not (math.isfinite(tolerance_m) and tolerance_m > 0.0):
+        raise OptionsError(f"tolerance_m = {tolerance_m!r}: must be > 0 metres")
+    if not (isinstance(min_agreeing, int) and min_agreeing >= 1):
+        raise OptionsError(f"min_agreeing = {min_agreeing!r}: must be an integer >= 1")
+    known = [np.isfinite(h) for h in maps]
+    if points is not None and len(points) != len(maps):
+        raise ValueError(f"cross_check_heights: {len(maps)} height maps, {len(points)} point sets")
+    if len(maps) < 2:
+        return known
+    need = min(min_agreeing, len(maps) - 1)
+    out = []
+    for k, (h, P) in enumerate(zip(maps, projections)):
+        if points is None:
+            rows, cols = np.nonzero(known[k])
+            u = h[rows, cols]
+            e, n = solve_ground_en(P, col=cols.astype(np.float64), row=rows.astype(np.float64),
+                                   u=u)
+        else:
+            e, n, u, pixel = points[k]
+            rows, cols = np.divmod(pixel, h.shape[1])
+        agree = np.zeros(u.size, dtype=np.int64)
+        for j, (hj, Pj) in enumerate(zip(maps, projections)):
+            if j == k:
+                continue
+            col, row = project_points(Pj, e=e, n=n, u=u)
+            with np.errstate(invalid="ignore"):
+                ic = np.floor(col + 0.5)
+                ir = np.floor(row + 0.5)
+                inside = (ic >= 0) & (ic < hj.shape[1]) & (ir >= 0) & (ir < hj.shape[0])
+            idx = np.nonzero(inside)[0]
+            other = hj[ir[idx].astype(np.int64), ic[idx].astype(np.int64)]
+            with np.errstate(invalid="ignore"):
+                agree[idx] += np.abs(other - u[idx]) <= tolerance_m
+        mask = np.zeros(h.shape, dtype=bool)
+        mask[rows, cols] = agree >= need
+        out.append(mask)
+    return out
+
+
+# -- rasterisation -----------------------------------------------------------------------------
+def rasterise_max(points_x, points_y, values, grid: DSMGrid) -> np.ndarray:
+    """Highest value per grid cell: (grid.height, grid.width) float32, NaN where no point fell.
+
+    ``points_x``/``points_y``: map coordinates (metres, the grid's CRS); a point belongs to the
+    cell whose half-open square ``[x0, x0 + res) x (y1 - res, y1]`` holds it (so a point on a cell
+    boundary goes to the cell east / south of it). Points outside the grid and non-finite values
+    are ignored. The maximum is taken in float64, then rounded to float32.
+    """
+    x = np.asarray(points_x, np.float64).ravel()
+    y = np.asarray(points_y, np.float64).ravel()
+    if x.size != y.size:
+        raise ValueError(f"rasterise_max: lengths differ ({x.size}, {y.size})")
+    return rasterise_max_cells(flat_cells(x, y, grid), values, grid)
+
+
+def flat_cells(points_x, points_y, grid: DSMGrid) -> np.ndarray:
+    """Row-major index of the grid cell of each point (``rasterise_max``'s rule), -1 outside."""
+    i, j = grid.cell_of(x=np.ravel(points_x), y=np.ravel(points_y))
+    inside = (i >= 0) & (i < grid.height) & (j >= 0) & (j < grid.width)
+    return np.where(inside, i * grid.width + j, -1).astype(np.int64)
+
+
+def rasterise_max_cells(cells: np.ndarray, values, grid: DSMGrid) -> np.ndarray:
+    """``rasterise_max`` of points whose cells (``flat_cells``) are already known: several value
+    sets over the same points (heights, confidences) share them."""
+    c = np.asarray(cells, np.int64).ravel()
+    z = np.asarray(values, np.float64).ravel()
+    if c.size != z.size:
+        raise ValueError(f"rasterise_max: lengths differ ({c.size} cells, {z.size} values)")
+    ok = np.isfinite(z) & (c >= 0)
+    out = np.full(grid.width * grid.height, -np.inf)
+    np.maximum.at(out, c[ok], z[ok])
+    out[np.isneginf(out)] = np.nan
+    return out.reshape(grid.shape).astype(np.float32)
+
+
+def rasterise_points(points: Points, grid: DSMGrid) -> np.ndarray:
+    """DSM of one point set on ``grid``: ``points_to_utm`` then ``rasterise_max`` of the heights."""
+    x, y, z = points_to_utm(points, grid.epsg)
+    return rasterise_max(x, y, z, grid)
+
+
+# -- fusion ------------------------------------------------------------------------------------
+def _nanmedian_first_axis(stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median over axis 0 ignoring NaN (NaN where all are NaN) and the count of finite values.
+
+    Sorting puts NaN last, so the finite values of each cell are the first ``k`` of its column and
+    the median is the mean of entries ``(k - 1) // 2`` and ``k // 2``.
+    """
+    s = np.sort(stack, axis=0)
+    k = np.count_nonzero(np.isfinite(stack), axis=0)
+    lo = np.take_along_axis(s, np.maximum((k - 1) // 2, 0)[None], axis=0)[0]
+    hi = np.take_along_axis(s, np.maximum(k // 2 - (k == 0), 0)[None], axis=0)[0]
+    med = 0.5 * (lo.astype(np.float64) + hi.astype(np.float64))
+    med[k == 0] = np.nan
+    return med, k
+
+
+def fuse_dsms(
+    dsms: Sequence[np.ndarray], *, outlier_m: float = 2.0, min_views: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Robust per-cell fusion of per-reference-view DSMs on the same grid.
+
+    For each cell: m0 = median of the finite values; values with ``|v - m0| > outlier_m`` are
+    discarded; the result is the median of the rest (NaN when fewer than ``min_views`` remain).
+    With two views that disagree by more than ``2 * outlier_m`` both are discarded: neither can be
+    trusted. Returns (fused float32, count of values kept per cell as int32).
+    """
+    if not dsms:
+        raise ValueError("fuse_dsms needs at least one DSM")
+    if not (math.isfinite(outlier_m) and outlier_m > 0.0):
+        raise OptionsError(f"outlier_m = {outlier_m!r}: must be > 0 metres")
+    shape = np.asarray(dsms[0]).shape
+    if len(shape) != 2:
+        raise ValueError(f"fuse_dsms needs 2D rasters, got shape {shape}")
+    for k, d in enumerate(dsms):
+        if np.asarray(d).shape != shape:
+            raise ValueError(f"fuse_dsms: DSM {k} has shape {np.asarray(d).shape}, DSM 0 has {shape}")
+    fused = np.full(shape, np.nan, dtype=np.float32)
+    count = np.zeros(shape, dtype=np.int32)
+    # Row blocks bound the temporary memory to about FUSE_BLOCK_VALUES float64 values per copy.
+    rows_per_block = max(1, FUSE_BLOCK_VALUES // max(1, len(dsms) * int(np.prod(shape[1:], dtype=np.int64))))
+    for r0 in range(0, shape[0], rows_per_block):
+        block = slice(r0, r0 + rows_per_block)
+        stack = np.stack([np.asarray(d)[block].astype(np.float64) for d in dsms])
+        stack[~np.isfinite(stack)] = np.nan
+        m0, _ = _nanmedian_first_axis(stack)
+        with np.errstate(invalid="ignore"):
+            far = np.abs(stack - m0[None]) > outlier_m
+        stack[far] = np.nan
+        f, k = _nanmedian_first_axis(stack)
+        low = k < min_views
+        f[low] = np.nan
+        k[low] = 0
+        fused[block] = f
+        count[block] = k
+    return fused, count
+
+
+# -- hole filling ------------------------------------------------------------------------------
+def fill_small_holes(
+    dsm: np.ndarray, *, max_hole_cells: int, method: Literal["min", "median"] = "min"
+) -> tuple[np.ndarray, int]:
+    """Fill enclosed no-data holes of at most ``max_hole_cells`` 4-connected cells.
+
+    A hole is a 4-connected set of NaN cells that does not touch the raster border (a gap at the
+    border is not known to be closed). Each hole gets one value from its rim (the valid cells
+    4-adjacent to it): the minimum by default, because small holes in satellite DSMs are mostly
+    ground occluded by a wall, i.e. the lower side; or the median. Returns (filled float32 copy,
+    number of cells filled), which the caller must report.
+    """
+    import cv2
+
+    # float32 throughout (a copy): the fill values are the rim's own float32 values (min) or
+    # their mean rounded to float32 on assignment (median), as the float32 result needs anyway;
+    # a float64 copy would double the memory of a large AOI's grid.
+    a = np.array(dsm, dtype=np.float32)
+    if a.ndim != 2:
+        raise ValueError(f"fill_small_holes needs a 2D array, got shape {a.shape}")
+    if not (isinstance(max_hole_cells, int) and max_hole_cells >= 0):
+        raise OptionsError(f"max_hole_cells = {max_hole_cells!r}: must be an integer >= 0")
+    if method not in ("min", "median"):
+        raise OptionsError(f"fill method = {method!r}: must be 'min' or 'median'")
+    hole = ~np.isfinite(a)
+    if max_hole_cells == 0 or not hole.any() or hole.all():
+        return a, 0
+    n, labels = cv2.connectedComponents(hole.astype(np.uint8), connectivity=4, ltype=cv2.CV_32S)
+    n -= 1  # label 0 is the background (the valid cells)
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    eligible = (sizes <= max_hole_cells)
+    eligible[0] = False
+    eligible[border] = False
+    if not eligible[1:].any():
+        return a, 0
+    # Rim pairs (hole label, rim value) from the four neighbour directions.
+    pair_labels, pair_values = [], []
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        lab = labels[max(dy, 0):a.shape[0] + min(dy, 0), max(dx, 0):a.shape[1] + min(dx, 0)]
+        nb = a[max(-dy, 0):a.shape[0] + min(-dy, 0), max(-dx, 0):a.shape[1] + min(-dx, 0)]
+        sel = (lab > 0) & np.isfinite(nb)
+        pair_labels.append(lab[sel])
+        pair_values.append(nb[sel])
+    pl = np.concatenate(pair_labels)
+    pv = np.concatenate(pair_values).astype(np.float64)
+    keep = eligible[pl]
+    pl, pv = pl[keep], pv[keep]
+    fill = np.full(n + 1, np.nan)
+    if method == "min":
+        fill_min = np.full(n + 1, np.inf)
+        np.minimum.at(fill_min, pl, pv)
+        fill = np.where(np.isfinite(fill_min), fill_min, np.nan)
+    else:
+        order = np.lexsort((pv, pl))
+        pl, pv = pl[order], pv[order]
+        starts = np.searchsorted(pl, np.arange(n + 1), side="left")
+        ends = np.searchsorted(pl, np.arange(n + 1), side="right")
+        cnt = ends - starts
+        has = cnt > 0
+        lo_idx = starts + np.maximum(cnt - 1, 0) // 2
+        hi_idx = starts + cnt // 2
+        lo_idx = np.minimum(lo_idx, max(pv.size - 1, 0))
+        hi_idx = np.minimum(hi_idx, max(pv.size - 1, 0))
+        if pv.size:
+            fill[has] = 0.5 * (pv[lo_idx[has]] + pv[hi_idx[has]])
+    target = eligible[labels] & np.isfinite(fill[labels])
+    a[target] = fill[labels[target]]
+    return a, int(np.count_nonzero(target))

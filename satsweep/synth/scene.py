@@ -1,0 +1,610 @@
+"""``satsweep synth``: synthetic satellite views of a known surface, with exact ground truth.
+
+``generate_scene(out_dir, SynthOptions(...))`` writes into ``out_dir``:
+
+* ``view_NN.tif``: single-band uint16 (12-bit values) images of a seeded town, each seen by a
+  linear pushbroom satellite (``satsweep.synth.pushbroom``) from its own off-nadir angle and azimuth,
+  rendered by exact ray casting (first surface point along each line of sight) with
+  ``supersampling**2`` rays per pixel, Lambertian shading under a sun with cast shadows, and
+  Gaussian noise. The RPC is in TIFF tag 50844 and in the sidecar ``view_NN_RPC.TXT``.
+* ``truth_dsm.tif``: the true surface as a float32 GeoTIFF on the UTM grid of the scene
+  (``dsm_resolution_m`` cells aligned to multiples of the resolution, covering the AOI; each cell
+  holds the maximum ellipsoidal altitude of the surface over the cell, taken over a 5x5 grid of
+  points that includes the cell centre; nodata NaN).
+* ``scene.json``: the AOI (lon/lat box and GeoJSON), the altitude range, each view's file,
+  angles, pointing bias and RPC fit residual, the base-to-height ratio of each pair, the
+  options, the exact cameras and the building list.
+
+RPC and pointing bias. Each view's RPC is a least-squares fit (``satsweep.synth.rpcfit``) of its
+pushbroom camera over the scene's ground cube; its residual is reported (a few 1e-9 px). A view
+with pointing bias ``b = (bx, by)`` pixels was rendered with the true camera, but the RPC written
+beside it is the fit of the true camera *shifted by -b*: a ground point ``X`` appears in the
+image at ``RPC(X) + b``. The first view has no bias; the others draw theirs uniformly in
+``[-bias_px, bias_px]^2``. A bundle adjustment should find the corrections ``+b``.
+
+Every random draw comes from ``seed``: the same options give the same files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from satsweep import __version__
+from satsweep.errors import InputError, OptionsError
+from satsweep.geometry.aoi import AOI
+from satsweep.geometry.geodesy import ENUFrame, utm_to_lonlat
+from satsweep.geometry.rpc import RPCModel
+from satsweep.geometry.rpc_formats import rpc_tiff_extratag, write_rpc_txt
+from satsweep.io.atomic import atomic_output, check_output_dir
+from satsweep.io.geotiff import write_geotiff, write_tiff
+from satsweep.options import Options
+from satsweep.products.grid import DSMGrid, dsm_grid_for_aoi
+from satsweep.synth.pushbroom import PushbroomCamera, base_to_height
+from satsweep.synth.rpcfit import RPCFitResidual, cube_grid, fit_rpc, rpc_residual
+from satsweep.synth.town import (
+    GROUND_RELIEF_M,
+    MAX_BUILDING_M,
+    ShadowMap,
+    SurfaceGrid,
+    build_surface,
+    cast_rays,
+    shade,
+    sun_vector,
+)
+
+SCENE_FILE = "scene.json"
+TRUTH_DSM_FILE = "truth_dsm.tif"
+SCENE_FORMAT = "satsweep-synth-scene"
+SCENE_VERSION = 1
+
+# Viewing geometry of the built-in views: (off-nadir angle, satellite azimuth) in degrees. The
+# first three give base-to-height ratios 0.20, 0.25 and 0.43 (all pairs within 0.1 .. 0.5).
+# Views beyond the table repeat it with the azimuth turned by 37 degrees per round.
+DEFAULT_VIEW_ANGLES: tuple[tuple[float, float], ...] = (
+    (10.0, 20.0), (4.0, 120.0), (14.0, 200.0), (9.0, 290.0),
+    (16.0, 75.0), (7.0, 250.0), (12.0, 160.0), (18.0, 330.0),
+)
+DEFAULT_AZIMUTH_TURN_DEG = 37.0
+
+# Nominal height range of the surface relative to the scene centre's ground (ENU up, m): ground
+# relief, plus the tallest building. Cameras, the surface grid and the RPC cube cover it.
+NOMINAL_Z_RANGE = (-GROUND_RELIEF_M - 1.0, GROUND_RELIEF_M + MAX_BUILDING_M + 1.0)
+# Extra ground around the views' footprints on the surface grid (m).
+WORLD_MARGIN_M = 4.0
+# The AOI stays this many pixels inside every image, at every nominal height.
+AOI_MARGIN_PX = 4.0
+# DN per unit radiance (albedo x irradiance): bright roofs reach about 3000 of 4095 (12 bits).
+DN_PER_RADIANCE = 4000.0
+DN_MAX = 4095
+# Sampling of the RPC fit over the ground cube (lon x lat x alt) and of its check.
+RPC_FIT_GRID = (15, 15, 7)
+RPC_CHECK_POINTS = 2000
+# Sub-samples per DSM cell side for the per-cell maximum (odd: the centre is one of them).
+DSM_SUBSAMPLES = 5
+# Rays cast at once while rendering (bounds memory to a few hundred MB).
+RENDER_CHUNK_RAYS = 1 << 17
+
+BIAS_CONVENTION = (
+    "image content of ground point X is at RPC(X) + bias_px (col, row): the image was rendered "
+    "with the true camera and the RPC is the fit of the true camera shifted by -bias_px"
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class SynthOptions(Options):
+    """Options of a synthetic scene. Angles in degrees, lengths in metres, images in pixels."""
+
+    seed: int = 0  # random seed: the same options give the same scene
+    n_views: int = 3  # number of views
+    size_px: int = 512  # width and height of every view
+    gsd_m: float = 0.5  # ground sample distance at the scene centre (horizontal plane)
+    bias_px: float = 0.0  # max |pointing bias| per axis; view 0 has none, others uniform draws
+    location: tuple[float, float] = (2.3488, 48.8534)  # (lon, lat) of the scene centre
+    ground_alt_m: float = 100.0  # height of the ground at the centre above the WGS84 ellipsoid
+    orbit_height_m: float = 694000.0  # height of the orbit line above the scene
+    orbit_azimuth_deg: float = 192.0  # heading of the satellite's motion (descending orbit)
+    off_nadir_deg: tuple[float, ...] = ()  # per view; () = built-in DEFAULT_VIEW_ANGLES
+    azimuth_deg: tuple[float, ...] = ()  # satellite azimuth per view; () = built-in
+    sun_elevation_deg: float = 55.0  # sun height above the horizon
+    sun_azimuth_deg: float = 155.0  # sun azimuth, clockwise from north
+    supersampling: int = 2  # rays per pixel side (2 -> 2x2 rays averaged per pixel)
+    noise_dn: float = 6.0  # standard deviation of the Gaussian image noise (DN)
+    cell_m: float = 0.25  # cell size of the true surface grid
+    dsm_resolution_m: float = 0.5  # cell size of truth_dsm.tif (UTM metres)
+
+    def check(self) -> None:
+        self._require(self.n_views >= 1, "n_views", "need at least one view")
+        self._require(self.n_views <= 64, "n_views", "at most 64 views")
+        self._require(16 <= self.size_px <= 8192, "size_px", "must lie in 16 .. 8192 pixels")
+        self._require(0.05 <= self.gsd_m <= 5.0, "gsd_m", "must lie in 0.05 .. 5 m")
+        self._require(math.isfinite(self.bias_px) and 0.0 <= self.bias_px <= 50.0, "bias_px",
+                      "must lie in 0 .. 50 pixels")
+        lon, lat = self.location
+        self._require(math.isfinite(lon) and -180.0 <= lon <= 180.0, "location", "longitude must lie in [-180, 180]")
+        self._require(math.isfinite(lat) and -80.0 <= lat <= 84.0, "location",
+                      "latitude must lie in [-80, 84] (the UTM range)")
+        self._require(math.isfinite(self.ground_alt_m) and -500.0 <= self.ground_alt_m <= 9000.0,
+                      "ground_alt_m", "must lie in -500 .. 9000 m")
+        self._require(100e3 <= self.orbit_height_m <= 2000e3, "orbit_height_m", "must lie in 100 .. 2000 km")
+        self._require(math.isfinite(self.orbit_azimuth_deg), "orbit_azimuth_deg", "must be finite")
+        for name in ("off_nadir_deg", "azimuth_deg"):
+            value = getattr(self, name)
+            self._require(len(value) in (0, self.n_views), name,
+                          f"give one angle per view ({self.n_views}) or none for the built-in views")
+            self._require(all(math.isfinite(v) for v in value), name, "angles must be finite")
+        self._require(len(self.off_nadir_deg) == len(self.azimuth_deg), "azimuth_deg",
+                      "give off_nadir_deg and azimuth_deg together")
+        self._require(all(0.0 <= v <= 30.0 for v in self.off_nadir_deg), "off_nadir_deg",
+                      "off-nadir angles must lie in 0 .. 30 degrees")
+        self._require(5.0 <= self.sun_elevation_deg <= 90.0, "sun_elevation_deg", "must lie in 5 .. 90 degrees")
+        self._require(math.isfinite(self.sun_azimuth_deg), "sun_azimuth_deg", "must be finite")
+        self._require(2 <= self.supersampling <= 8, "supersampling", "must lie in 2 .. 8 (rays per pixel side)")
+        self._require(math.isfinite(self.noise_dn) and 0.0 <= self.noise_dn <= 500.0, "noise_dn",
+                      "must lie in 0 .. 500 DN")
+        self._require(0.02 <= self.cell_m <= 0.25, "cell_m", "must lie in 0.02 .. 0.25 m")
+        self._require(self.cell_m <= self.gsd_m / 2.0 + 1e-12, "cell_m",
+                      f"must be at most half the GSD ({self.gsd_m / 2:g} m)")
+        self._require(0.1 <= self.dsm_resolution_m <= 10.0, "dsm_resolution_m", "must lie in 0.1 .. 10 m")
+
+    def view_angles(self) -> list[tuple[float, float]]:
+        """(off-nadir, azimuth) in degrees of every view."""
+        if self.off_nadir_deg:
+            return list(zip(self.off_nadir_deg, self.azimuth_deg))
+        out = []
+        for k in range(self.n_views):
+            th, az = DEFAULT_VIEW_ANGLES[k % len(DEFAULT_VIEW_ANGLES)]
+            turn = DEFAULT_AZIMUTH_TURN_DEG * (k // len(DEFAULT_VIEW_ANGLES))
+            out.append((th, (az + turn) % 360.0))
+        return out
+
+    def view_biases(self) -> list[tuple[float, float]]:
+        """Pointing bias (col, row) in pixels of every view: view 0 none, the others seeded."""
+        rng = np.random.default_rng([self.seed, 7])
+        draws = rng.uniform(-self.bias_px, self.bias_px, size=(self.n_views, 2))
+        draws[0] = 0.0
+        return [(float(a), float(b)) for a, b in draws]
+
+
+# ---------------------------------------------------------------------------------------------
+# Scene design: frame, cameras, surface extent, AOI
+# ---------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class SceneDesign:
+    """Everything about a scene that follows from its options before the surface is drawn."""
+
+    frame: ENUFrame  # ENU frame at the scene centre (ground altitude)
+    cameras: tuple[PushbroomCamera, ...]  # exact cameras (ENU)
+    world: tuple[float, float, float, float]  # surface grid extent (e_min, n_min, e_max, n_max), m
+    aoi_half_m: float  # the AOI is the ENU square [-a, a]^2 (its lon/lat box)
+    z_range: tuple[float, float]  # nominal surface heights (ENU up, m) the cameras must cover
+
+
+def design_scene(options: SynthOptions) -> SceneDesign:
+    """Cameras, surface grid extent and AOI of a scene (deterministic in the options)."""
+    lon, lat = options.location
+    frame = ENUFrame(float(lon), float(lat), float(options.ground_alt_m))
+    cams = tuple(
+        PushbroomCamera.from_angles(
+            off_nadir_deg=th, azimuth_deg=az, orbit_azimuth_deg=options.orbit_azimuth_deg,
+            orbit_height_m=options.orbit_height_m, gsd_m=options.gsd_m,
+            width=options.size_px, height=options.size_px,
+        )
+        for th, az in options.view_angles()
+    )
+    z_lo, z_hi = NOMINAL_Z_RANGE
+    w = options.size_px
+    corners_c = np.array([-0.5, w - 0.5, w - 0.5, -0.5])
+    corners_r = np.array([-0.5, -0.5, w - 0.5, w - 0.5])
+    pts = [np.stack(cam.ground_point(col=corners_c, row=corners_r, u=z), axis=1)
+           for cam in cams for z in (z_lo, z_hi)]
+    pts = np.concatenate(pts)
+    c = options.cell_m
+    e_min = math.floor((pts[:, 0].min() - WORLD_MARGIN_M) / c) * c
+    n_min = math.floor((pts[:, 1].min() - WORLD_MARGIN_M) / c) * c
+    e_max = math.ceil((pts[:, 0].max() + WORLD_MARGIN_M) / c) * c
+    n_max = math.ceil((pts[:, 1].max() + WORLD_MARGIN_M) / c) * c
+    aoi_half = _aoi_half_size(cams, z_range=(z_lo, z_hi), size_px=w)
+    if aoi_half < 4.0 * options.gsd_m:
+        raise OptionsError(
+            f"SynthOptions.size_px = {w}: too small for the views' relief displacement "
+            f"(the area seen by every view is {2 * aoi_half:.1f} m wide); use a larger size or "
+            "smaller off-nadir angles"
+        )
+    return SceneDesign(frame=frame, cameras=cams, world=(e_min, n_min, e_max, n_max),
+                       aoi_half_m=aoi_half, z_range=(z_lo, z_hi))
+
+
+def _aoi_half_size(cams: Sequence[PushbroomCamera], *, z_range: tuple[float, float], size_px: int) -> float:
+    """Largest a such that the square [-a, a]^2 at every height in z_range is inside every view."""
+    zs = np.array([z_range[0], 0.5 * (z_range[0] + z_range[1]), z_range[1]])
+
+    def fits(a: float) -> bool:
+        t = np.linspace(-a, a, 9)
+        edge_e = np.concatenate([t, t, np.full(9, -a), np.full(9, a)])
+        edge_n = np.concatenate([np.full(9, -a), np.full(9, a), t, t])
+        e = np.repeat(edge_e[None], zs.size, 0)
+        n = np.repeat(edge_n[None], zs.size, 0)
+        u = np.repeat(zs[:, None], edge_e.size, 1)
+        for cam in cams:
+            col, row = cam.project(e=e, n=n, u=u)
+            lo, hi = AOI_MARGIN_PX, size_px - 1 - AOI_MARGIN_PX
+            if not (np.all((col >= lo) & (col <= hi)) and np.all((row >= lo) & (row <= hi))):
+                return False
+        return True
+
+    lo, hi = 0.0, 0.5 * size_px * max(c.line_step_m for c in cams) * 2.0
+    if not fits(lo):
+        return 0.0
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    return lo
+
+
+def _aoi_box(frame: ENUFrame, half: float) -> AOI:
+    """Lon/lat box of the ENU square [-half, half]^2 at the frame's altitude (edges sampled)."""
+    t = np.linspace(-half, half, 9)
+    e = np.concatenate([t, t, np.full(9, -half), np.full(9, half)])
+    n = np.concatenate([np.full(9, -half), np.full(9, half), t, t])
+    lon, lat, _ = frame.to_geodetic(e=e, n=n, u=np.zeros_like(e))
+    return AOI(float(lon.min()), float(lat.min()), float(lon.max()), float(lat.max()))
+
+
+# ---------------------------------------------------------------------------------------------
+# Rendering
+# ---------------------------------------------------------------------------------------------
+def render_radiance(grid: SurfaceGrid, shadows: ShadowMap, camera: PushbroomCamera, *,
+                    supersampling: int, rows: tuple[int, int] | None = None) -> np.ndarray:
+    """Noise-free radiance image (float64, albedo units) of ``camera`` over rows [r0, r1).
+
+    Each pixel averages ``supersampling**2`` rays through a regular sub-grid of the pixel
+    (offsets ``(k + 0.5) / s - 0.5``); each ray shows the first surface point along it.
+    """
+    s = int(supersampling)
+    r0, r1 = (0, camera.height) if rows is None else rows
+    off = (np.arange(s) + 0.5) / s - 0.5
+    width = camera.width
+    rows_per_chunk = max(1, RENDER_CHUNK_RAYS // (width * s * s))
+    out = np.empty((r1 - r0, width))
+    for a in range(r0, r1, rows_per_chunk):
+        b = min(a + rows_per_chunk, r1)
+        rr = (np.arange(a, b)[:, None] + off[None, :]).reshape(-1)  # sub-rows
+        cc = (np.arange(width)[:, None] + off[None, :]).reshape(-1)  # sub-cols
+        R, C = np.meshgrid(rr, cc, indexing="ij")
+        origin, direction = camera.ray(col=C.ravel(), row=R.ravel())
+        hits = cast_rays(grid, origin, direction)
+        rad = shade(grid, hits, shadows).reshape(b - a, s, width, s)
+        out[a - r0:b - r0] = rad.mean(axis=(1, 3))
+    return out
+
+
+def to_dn(radiance: np.ndarray, *, noise_dn: float, rng: np.random.Generator) -> np.ndarray:
+    """Radiance -> uint16 digital numbers (12-bit range) with Gaussian noise of ``noise_dn``."""
+    dn = radiance * DN_PER_RADIANCE + rng.standard_normal(radiance.shape) * noise_dn
+    return np.clip(np.rint(dn), 0, DN_MAX).astype(np.uint16)
+
+
+# ---------------------------------------------------------------------------------------------
+# RPC of a view
+# ---------------------------------------------------------------------------------------------
+def fit_view_rpc(camera: PushbroomCamera, frame: ENUFrame, *, lon_range: tuple[float, float],
+                 lat_range: tuple[float, float], alt_range: tuple[float, float],
+                 bias_px: tuple[float, float], seed: int) -> tuple[RPCModel, RPCFitResidual, RPCFitResidual]:
+    """RPC of ``camera`` shifted by ``-bias_px``, fitted over the ground cube.
+
+    Returns (rpc, residual over the fit grid, residual at random points of the cube).
+    """
+    def samples(lon, lat, alt):
+        e, n, u = frame.from_geodetic(lon=lon, lat=lat, alt=alt)
+        col, row = camera.project(e=e, n=n, u=u)
+        return col - bias_px[0], row - bias_px[1]
+
+    lon, lat, alt = cube_grid(lon_range=lon_range, lat_range=lat_range, alt_range=alt_range,
+                              n_lon=RPC_FIT_GRID[0], n_lat=RPC_FIT_GRID[1], n_alt=RPC_FIT_GRID[2])
+    col, row = samples(lon, lat, alt)
+    rpc, fit_res = fit_rpc(lon=lon, lat=lat, alt=alt, col=col, row=row)
+    rng = np.random.default_rng([seed, 5])
+    lo = rng.uniform(*lon_range, RPC_CHECK_POINTS)
+    la = rng.uniform(*lat_range, RPC_CHECK_POINTS)
+    al = rng.uniform(*alt_range, RPC_CHECK_POINTS)
+    col, row = samples(lo, la, al)
+    check = rpc_residual(rpc, lon=lo, lat=la, alt=al, col=col, row=row)
+    return rpc, fit_res, check
+
+
+# ---------------------------------------------------------------------------------------------
+# Truth DSM
+# ---------------------------------------------------------------------------------------------
+def surface_altitude(grid: SurfaceGrid, frame: ENUFrame, *, lon, lat,
+                     z_range: tuple[float, float] = NOMINAL_Z_RANGE) -> np.ndarray:
+    """Ellipsoidal altitude (m) of the surface at (lon, lat) (degrees); NaN off the grid.
+
+    The vertical (ellipsoid normal) through (lon, lat) is a straight line in ENU; its crossing
+    with the height field is found by fixed-point steps (exact to float rounding except within
+    micrometres of a wall, where either side may be returned).
+    """
+    lon, lat = np.broadcast_arrays(np.asarray(lon, np.float64), np.asarray(lat, np.float64))
+    a_lo, a_hi = frame.alt0 + z_range[0], frame.alt0 + z_range[1]
+    lo = np.stack(frame.from_geodetic(lon=lon, lat=lat, alt=np.full(lon.shape, a_lo)), axis=-1)
+    hi = np.stack(frame.from_geodetic(lon=lon, lat=lat, alt=np.full(lon.shape, a_hi)), axis=-1)
+    s = _vertical_crossing(grid, lo, hi)
+    return a_lo + s * (a_hi - a_lo)
+
+
+def _vertical_crossing(grid: SurfaceGrid, lo: np.ndarray, hi: np.ndarray, iterations: int = 4) -> np.ndarray:
+    """Fraction s along the segments lo -> hi (ENU, (..., 3)) where they cross the surface."""
+    d = hi - lo
+    s = (0.0 - lo[..., 2]) / d[..., 2]
+    for _ in range(iterations):
+        p = lo + s[..., None] * d
+        h = grid.height(e=p[..., 0], n=p[..., 1])
+        s = s + (h - p[..., 2]) / d[..., 2]
+    return s
+
+
+def truth_dsm(grid: SurfaceGrid, frame: ENUFrame, dsm: DSMGrid, *,
+              z_range: tuple[float, float] = NOMINAL_Z_RANGE) -> np.ndarray:
+    """Max surface altitude per DSM cell (float64, row 0 = north), over DSM_SUBSAMPLES^2 points.
+
+    Cell corners go through pyproj exactly; points inside a cell are interpolated bilinearly
+    between the corners' ENU coordinates (the UTM -> ENU map is affine to nanometres over a
+    cell), at the two altitudes of ``z_range``, and the vertical through each point is
+    intersected with the surface.
+    """
+    res = dsm.resolution
+    xs = dsm.x_min + np.arange(dsm.width + 1) * res
+    ys = dsm.y_max - np.arange(dsm.height + 1) * res
+    X, Y = np.meshgrid(xs, ys)
+    lon, lat = utm_to_lonlat(x=X, y=Y, epsg=dsm.epsg)
+    a_lo, a_hi = frame.alt0 + z_range[0], frame.alt0 + z_range[1]
+    lo = np.stack(frame.from_geodetic(lon=lon, lat=lat, alt=np.full(lon.shape, a_lo)), axis=-1)
+    hi = np.stack(frame.from_geodetic(lon=lon, lat=lat, alt=np.full(lon.shape, a_hi)), axis=-1)
+    k = DSM_SUBSAMPLES
+    f = (np.arange(k) + 0.5) / k
+    out = np.full((dsm.height, dsm.width), -np.inf)
+    for fy in f:
+        for fx in f:
+            def interp(c):
+                return ((1 - fy) * ((1 - fx) * c[:-1, :-1] + fx * c[:-1, 1:])
+                        + fy * ((1 - fx) * c[1:, :-1] + fx * c[1:, 1:]))
+            s = _vertical_crossing(grid, interp(lo), interp(hi))
+            out = np.fmax(out, a_lo + s * (a_hi - a_lo))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The scene on disk
+# ---------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class SceneView:
+    """One synthetic view: files, geometry, pointing bias and RPC fit quality."""
+
+    index: int
+    image: Path  # the uint16 TIFF (RPC in tag 50844)
+    rpc_file: Path  # the _RPC.TXT sidecar
+    camera: PushbroomCamera  # exact camera (ENU of the scene frame)
+    off_nadir_deg: float
+    azimuth_deg: float  # satellite azimuth seen from the scene centre
+    bias_px: tuple[float, float]  # (col, row): content of X is at RPC(X) + bias
+    rpc_fit_max_px: float  # max RPC residual over the fit grid
+    rpc_check_max_px: float  # max RPC residual at random points of the cube
+
+    def rpc(self) -> RPCModel:
+        """The RPC written with the image (tag 50844)."""
+        return RPCModel.from_image(self.image)
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """A synthetic scene written by ``generate_scene`` (or read back by ``Scene.load``)."""
+
+    directory: Path
+    options: SynthOptions
+    frame: ENUFrame
+    aoi: AOI
+    aoi_half_m: float  # the AOI is the lon/lat box of the ENU square [-a, a]^2
+    alt_range: tuple[float, float]  # lowest and highest surface altitude in the AOI (m)
+    world: tuple[float, float, float, float]  # surface grid extent (e_min, n_min, e_max, n_max)
+    truth_dsm: Path
+    dsm_grid: DSMGrid
+    views: tuple[SceneView, ...]
+    pairs: tuple[tuple[int, int, float], ...]  # (view a, view b, base-to-height ratio)
+
+    @property
+    def scene_file(self) -> Path:
+        return self.directory / SCENE_FILE
+
+    def surface(self) -> SurfaceGrid:
+        """The true surface grid (rebuilt from the seed; identical to the one rendered)."""
+        e_min, n_min, e_max, n_max = self.world
+        return build_surface(seed=self.options.seed, e_min=e_min, n_min=n_min, e_max=e_max,
+                             n_max=n_max, cell_m=self.options.cell_m, aoi_half_m=self.aoi_half_m)
+
+    def surface_altitude(self, *, lon, lat, grid: SurfaceGrid | None = None) -> np.ndarray:
+        """True surface altitude (m above the ellipsoid) at lon/lat (degrees)."""
+        return surface_altitude(grid if grid is not None else self.surface(), self.frame, lon=lon, lat=lat)
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike) -> "Scene":
+        """Read ``scene.json`` of a scene folder; InputError naming the file when it is bad."""
+        directory = Path(directory)
+        path = directory / SCENE_FILE
+        try:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise InputError(path, "no scene file (not a satsweep synth folder?)") from None
+        except (OSError, ValueError) as exc:
+            raise InputError(path, f"unreadable scene file ({exc})") from None
+        if not isinstance(doc, dict) or doc.get("format") != SCENE_FORMAT:
+            raise InputError(path, f"not a {SCENE_FORMAT} file")
+        if doc.get("version") != SCENE_VERSION:
+            raise InputError(path, f"scene version {doc.get('version')!r}, this satsweep reads {SCENE_VERSION}")
+        try:
+            return _scene_from_doc(directory, doc)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(path, f"malformed scene file ({type(exc).__name__}: {exc})") from None
+
+
+def _scene_from_doc(directory: Path, doc: dict) -> Scene:
+    options = SynthOptions.from_mapping(doc["options"], source=str(directory / SCENE_FILE))
+    o = doc["origin"]
+    a = doc["aoi"]
+    g = doc["truth_dsm"]
+    views = tuple(
+        SceneView(
+            index=k, image=directory / v["image"], rpc_file=directory / v["rpc_file"],
+            camera=PushbroomCamera.from_dict(v["camera"]), off_nadir_deg=float(v["off_nadir_deg"]),
+            azimuth_deg=float(v["azimuth_deg"]), bias_px=(float(v["bias_px"][0]), float(v["bias_px"][1])),
+            rpc_fit_max_px=float(v["rpc_fit"]["max_px"]), rpc_check_max_px=float(v["rpc_check"]["max_px"]),
+        )
+        for k, v in enumerate(doc["views"])
+    )
+    return Scene(
+        directory=directory, options=options,
+        frame=ENUFrame(float(o["lon"]), float(o["lat"]), float(o["alt"])),
+        aoi=AOI(a["lon_min"], a["lat_min"], a["lon_max"], a["lat_max"]),
+        aoi_half_m=float(doc["aoi_half_m"]),
+        alt_range=(float(doc["altitude_range"][0]), float(doc["altitude_range"][1])),
+        world=tuple(float(doc["world"][k]) for k in ("e_min", "n_min", "e_max", "n_max")),
+        truth_dsm=directory / g["file"],
+        dsm_grid=DSMGrid(epsg=int(g["epsg"]), x_min=float(g["x_min"]), y_max=float(g["y_max"]),
+                         resolution=float(g["resolution"]), width=int(g["width"]), height=int(g["height"])),
+        views=views,
+        pairs=tuple((int(p["views"][0]), int(p["views"][1]), float(p["base_to_height"])) for p in doc["pairs"]),
+    )
+
+
+def view_name(index: int) -> str:
+    return f"view_{index:02d}"
+
+
+def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = None, *,
+                   overwrite: bool = False, log: Callable[[str], None] | None = None) -> Scene:
+    """Generate a synthetic scene into ``out_dir`` (created if missing) and return it.
+
+    Refuses a non-empty folder (OutputExistsError) unless ``overwrite``; with ``overwrite`` the
+    scene's files are replaced and other files are left alone. Every file is written under a
+    temporary name and renamed; ``scene.json`` is written last, so a folder with a scene file
+    holds a complete scene. ``log``: optional callable receiving progress lines.
+    """
+    options = options if options is not None else SynthOptions()
+    out_dir = Path(out_dir)
+    check_output_dir(out_dir, overwrite=overwrite)
+    say = log if log is not None else (lambda _msg: None)
+    design = design_scene(options)
+    frame = design.frame
+    e_min, n_min, e_max, n_max = design.world
+    t0 = time.perf_counter()
+    grid = build_surface(seed=options.seed, e_min=e_min, n_min=n_min, e_max=e_max, n_max=n_max,
+                         cell_m=options.cell_m, aoi_half_m=design.aoi_half_m)
+    sun = sun_vector(elevation_deg=options.sun_elevation_deg, azimuth_deg=options.sun_azimuth_deg)
+    shadows = ShadowMap(grid, sun)
+    say(f"surface: {grid.shape[1]}x{grid.shape[0]} cells of {options.cell_m:g} m, "
+        f"{len(grid.buildings)} buildings ({time.perf_counter() - t0:.1f} s)")
+
+    aoi = _aoi_box(frame, design.aoi_half_m)
+    # The RPC cube: the surface grid's lon/lat box and the nominal altitudes.
+    lon_w, lat_w, _ = frame.to_geodetic(e=np.array([e_min, e_max, e_min, e_max]),
+                                        n=np.array([n_min, n_min, n_max, n_max]), u=np.zeros(4))
+    lon_range = (float(lon_w.min()), float(lon_w.max()))
+    lat_range = (float(lat_w.min()), float(lat_w.max()))
+    alt_cube = (frame.alt0 + design.z_range[0], frame.alt0 + design.z_range[1])
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    biases = options.view_biases()
+    views_doc = []
+    views = []
+    for k, (cam, (th, az), bias) in enumerate(zip(design.cameras, options.view_angles(), biases)):
+        t1 = time.perf_counter()
+        radiance = render_radiance(grid, shadows, cam, supersampling=options.supersampling)
+        image = to_dn(radiance, noise_dn=options.noise_dn, rng=np.random.default_rng([options.seed, 2000 + k]))
+        rpc, fit_res, check = fit_view_rpc(cam, frame, lon_range=lon_range, lat_range=lat_range,
+                                           alt_range=alt_cube, bias_px=bias, seed=options.seed + k)
+        name = view_name(k)
+        image_path = out_dir / f"{name}.tif"
+        rpc_path = out_dir / f"{name}_RPC.TXT"
+        write_tiff(image_path, image, extratags=[rpc_tiff_extratag(rpc)])
+        write_rpc_txt(rpc_path, rpc)
+        incidence, sat_az = cam.viewing_angles()
+        views.append(SceneView(index=k, image=image_path, rpc_file=rpc_path, camera=cam,
+                               off_nadir_deg=float(th), azimuth_deg=float(az), bias_px=bias,
+                               rpc_fit_max_px=fit_res.max_px, rpc_check_max_px=check.max_px))
+        views_doc.append({
+            "image": image_path.name, "rpc_file": rpc_path.name, "width": cam.width, "height": cam.height,
+            "off_nadir_deg": float(th), "azimuth_deg": float(az), "incidence_deg": incidence,
+            "orbit_azimuth_deg": options.orbit_azimuth_deg, "gsd_m": options.gsd_m,
+            "bias_px": list(bias), "rpc_fit": fit_res.to_dict(), "rpc_check": check.to_dict(),
+            "camera": cam.to_dict(),
+        })
+        say(f"{image_path.name}: off-nadir {th:g} deg, azimuth {az:g} deg, bias ({bias[0]:+.3f}, "
+            f"{bias[1]:+.3f}) px, RPC residual {max(fit_res.max_px, check.max_px):.2e} px "
+            f"({time.perf_counter() - t1:.1f} s)")
+
+    t1 = time.perf_counter()
+    dsm_grid = dsm_grid_for_aoi(aoi, options.dsm_resolution_m)
+    dsm = truth_dsm(grid, frame, dsm_grid)
+    write_geotiff(out_dir / TRUTH_DSM_FILE, dsm, epsg=dsm_grid.epsg, x_min=dsm_grid.x_min,
+                  y_max=dsm_grid.y_max, resolution=dsm_grid.resolution, nodata=math.nan)
+    say(f"{TRUTH_DSM_FILE}: {dsm_grid.width}x{dsm_grid.height} cells of {dsm_grid.resolution:g} m, "
+        f"EPSG:{dsm_grid.epsg} ({time.perf_counter() - t1:.1f} s)")
+
+    alt_range = _aoi_altitude_range(grid, frame, design.aoi_half_m)
+    pairs = [(a, b, base_to_height(design.cameras[a], design.cameras[b]))
+             for a in range(len(views)) for b in range(a + 1, len(views))]
+    doc = {
+        "format": SCENE_FORMAT,
+        "version": SCENE_VERSION,
+        "generator": f"satsweep {__version__}",
+        "options": options.to_dict(),
+        "origin": {"lon": frame.lon0, "lat": frame.lat0, "alt": frame.alt0,
+                   "note": "origin of the ENU frame (metres) of the cameras and the surface"},
+        "aoi": {"lon_min": aoi.lon_min, "lat_min": aoi.lat_min, "lon_max": aoi.lon_max,
+                "lat_max": aoi.lat_max, "geojson": aoi.to_geojson()},
+        "aoi_half_m": design.aoi_half_m,
+        "altitude_range": list(alt_range),
+        "rpc_cube": {"lon": list(lon_range), "lat": list(lat_range), "alt": list(alt_cube)},
+        "bias_convention": BIAS_CONVENTION,
+        "sun": {"elevation_deg": options.sun_elevation_deg, "azimuth_deg": options.sun_azimuth_deg},
+        "world": {"e_min": e_min, "n_min": n_min, "e_max": e_max, "n_max": n_max, "cell_m": options.cell_m},
+        "truth_dsm": {"file": TRUTH_DSM_FILE, "epsg": dsm_grid.epsg, "x_min": dsm_grid.x_min,
+                      "y_max": dsm_grid.y_max, "resolution": dsm_grid.resolution,
+                      "width": dsm_grid.width, "height": dsm_grid.height,
+                      "values": "max ellipsoidal altitude over each cell (5x5 points incl. the centre)"},
+        "views": views_doc,
+        "pairs": [{"views": [a, b], "base_to_height": r} for a, b, r in pairs],
+        "ground": grid.ground.to_dict(),
+        "buildings": [b.to_dict() for b in grid.buildings],
+    }
+    with atomic_output(out_dir / SCENE_FILE) as tmp:
+        Path(tmp).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    return Scene(
+        directory=out_dir, options=options, frame=frame, aoi=aoi, aoi_half_m=design.aoi_half_m,
+        alt_range=alt_range, world=design.world, truth_dsm=out_dir / TRUTH_DSM_FILE,
+        dsm_grid=dsm_grid, views=tuple(views), pairs=tuple(pairs),
+    )
+
+
+# Rounding of the reported altitude range, outwards (m): the ENU "up" of the surface grid and
+# the ellipsoidal altitude differ by millimetres at the scene's edges (Earth curvature).
+ALT_RANGE_ROUNDING_M = 0.01
+
+
+def _aoi_altitude_range(grid: SurfaceGrid, frame: ENUFrame, half: float) -> tuple[float, float]:
+    """(lowest, highest) surface altitude over the AOI square, rounded outwards to centimetres."""
+    ec, nc = grid.cell_centres()
+    ii = np.nonzero(np.abs(ec) <= half + grid.cell_m)[0]
+    jj = np.nonzero(np.abs(nc) <= half + grid.cell_m)[0]
+    win = (slice(jj[0], jj[-1] + 1), slice(ii[0], ii[-1] + 1))
+    reach = 0.5 * grid.cell_m * (np.abs(grid.slope_e[win]) + np.abs(grid.slope_n[win]))
+    lo = float(np.min(grid.top[win] - reach)) + frame.alt0
+    hi = float(np.max(grid.top[win] + reach)) + frame.alt0
+    r = ALT_RANGE_ROUNDING_M
+    return math.floor(lo / r) * r - r, math.ceil(hi / r) * r + r

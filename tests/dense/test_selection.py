@@ -1,0 +1,95 @@
+"""View selection against analytic satellite geometry."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from satsweep.dense.selection import ViewSelectionOptions, b_over_h, select_views, view_geometry
+from satsweep.errors import CameraError, OptionsError
+
+ORBIT_M = 600e3
+TIGHT = 1e-9  # pure float64 geometry, no approximation involved
+
+
+@dataclasses.dataclass
+class Pinhole:
+    P: np.ndarray
+    center: np.ndarray
+    width: int = 400
+    height: int = 400
+
+
+def look_at(center, focal=1.2e6, size=400):
+    """A pinhole at ``center`` looking at the ENU origin, principal point at the image centre."""
+    center = np.asarray(center, float)
+    z = -center / np.linalg.norm(center)
+    x = np.cross(z, [0.0, 0.0, 1.0]) if abs(z[2]) < 0.999 else np.array([1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    K = np.array([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1]])
+    P = K @ np.hstack([R, -R @ center[:, None]])
+    return Pinhole(P=P, center=center, width=size, height=size)
+
+
+def satellite(off_nadir_deg, azimuth_deg):
+    t, a = np.radians(off_nadir_deg), np.radians(azimuth_deg)
+    h = ORBIT_M * np.tan(t)
+    return look_at([h * np.sin(a), h * np.cos(a), ORBIT_M])
+
+
+def test_geometry_of_a_known_view():
+    g = view_geometry(satellite(20, 90).center, np.zeros(3))
+    assert g.incidence_deg == pytest.approx(20, abs=TIGHT)
+    assert g.azimuth_deg == pytest.approx(90, abs=TIGHT)
+
+
+def test_b_over_h_is_sum_of_tangents_for_opposite_views():
+    g1 = view_geometry(satellite(10, 0).center, np.zeros(3))
+    g2 = view_geometry(satellite(5, 180).center, np.zeros(3))
+    assert b_over_h(g1, g2) == pytest.approx(np.tan(np.radians(10)) + np.tan(np.radians(5)), abs=TIGHT)
+
+
+def test_two_views_each_reference_once():
+    cams = [satellite(8, 0), satellite(7, 180)]
+    sel = select_views(cams, mid_height=0.0)
+    assert sorted(sel.references) == [0, 1]
+    assert sel.sources == {0: (1,), 1: (0,)}
+    assert not sel.warnings
+
+
+def test_sources_ranked_by_useful_b_over_h():
+    # view 1 is almost the same direction as view 0 (B/H ~ 0.02): not a useful source for 0.
+    cams = [satellite(10, 0), satellite(11, 0), satellite(5, 180), satellite(30, 180)]
+    sel = select_views(cams, mid_height=0.0, options=ViewSelectionOptions(max_sources=2))
+    bh = sel.b_over_h
+    assert bh[0, 1] < 0.1
+    assert 1 not in sel.sources[0]
+    assert all(0.1 <= bh[0, j] <= 0.5 for j in sel.sources[0])
+    # ranked by closeness to the target ratio
+    d = [abs(bh[0, j] - 0.25) for j in sel.sources[0]]
+    assert d == sorted(d)
+
+
+def test_no_useful_pair_falls_back_with_a_warning():
+    cams = [satellite(10, 0), satellite(11, 0)]
+    sel = select_views(cams, mid_height=0.0)
+    assert sel.sources[0] == (1,)
+    assert any("no source with B/H" in w for w in sel.warnings)
+
+
+def test_non_overlapping_views_are_an_error():
+    far = look_at([5000.0, 0.0, ORBIT_M])
+    # aim the second camera 50 km away: its crop sees nothing of the first one's
+    shifted = dataclasses.replace(far)
+    shifted.P = far.P @ np.array([[1, 0, 0, -5e4], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    with pytest.raises(CameraError, match="no pair of views overlaps"):
+        select_views([satellite(5, 0), shifted], mid_height=0.0)
+
+
+def test_options_are_checked():
+    with pytest.raises(OptionsError, match="min_b_over_h"):
+        ViewSelectionOptions(min_b_over_h=0.6, max_b_over_h=0.5)

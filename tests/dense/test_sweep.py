@@ -1,0 +1,576 @@
+"""The plane-sweep host API (satsweep/dense/sweep.py): options, plane spacing, memory plan and tiling,
+and height accuracy on synthetic scenes with exact ground truth, on every usable device.
+
+The synthetic scenes (tests/reference_sweep.translation_scene) have a parallax that is a pure
+translation proportional to height, as for a pair at base-to-height 0.26 and 0.5 m ground
+sample distance (0.52 px per metre), so the plane homographies and the true heights are exact.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from satsweep.dense.planes import plane_heights_for, translation_homographies, visible_at
+from satsweep.dense.sweep import (
+    PlaneSweep,
+    PlaneWindows,
+    SweepOptions,
+    lr_consistent,
+    plan_tiles,
+    prefilter,
+)
+from satsweep.errors import DeviceError, InputError, OptionsError
+from tests import reference_sweep as ref
+
+# Parallax of the synthetic pair: base-to-height 0.26 at 0.5 m/px -> 0.52 px per metre.
+PX_PER_M = 0.52
+ALT_RANGE = (0.0, 20.0)
+# Issue requirement: WTA heights (guided filter, no MRF) within 0.15 m median on textured areas.
+MEDIAN_ERROR_MAX_M = 0.15
+# Band (pixels) ignored at the image borders in accuracy checks: parts of it fall outside the
+# source and the census window is clamped there.
+BORDER = 8
+# Share of pixels valid and within 1 m of the truth: the calibration run of the issue reached
+# 92% on a harder (occluded, real-renderer) town; these smooth scenes reach ~99%.
+COMPLETENESS_MIN = 0.9
+# Tiled versus single-tile runs: the filters' running sums restart at different places, so the
+# filtered costs agree only to float32 rounding (~1e-5 relative); the parabola divides cost
+# differences by the curvature (down to ~0.1 bit per plane^2), which amplifies that to ~2e-3 of
+# a plane (measured). Argmin flips between near-equal planes are not expected on these scenes.
+TILE_INDEX_ATOL = 1e-2
+# A windowed sweep's plane index is the window's float32 index plus the window's first plane,
+# rounded once more than the full sweep's: a few float32 ulp of indices below 64.
+WINDOW_INDEX_ATOL = 1e-5
+# Guided-filtered costs (0..62 bits) of the device versus the float64 reference: float32 means
+# and the division by var + eps (eps = 1e-3 in that test) give errors of ~1e-3 bits (measured).
+PIPELINE_COST_ATOL = 2e-2
+# prefilter (OpenCV, float32) versus scipy's float64 Gaussian: both truncate the kernel at 4 sigma
+# (radius 3 at sigma 0.7) and replicate the edges, so they differ by float32 rounding only.
+PREFILTER_ATOL = 1e-5
+# The 10000 x 10000 requirement of the issue, with a 4 GB PoCL budget.
+BIG_SHAPE = (10000, 10000)
+BIG_BUDGET = 4 * 10**9
+
+
+def _scene(shape=(96, 96), shifts=((PX_PER_M, 0.0),), seed=1, noise=0.01):
+    shifts = np.asarray(shifts, np.float64)
+    ref_img, srcs, truth = ref.translation_scene(shape, shifts, ALT_RANGE, seed=seed, noise=noise)
+    fn = lambda h: translation_homographies(shifts, h)  # noqa: E731
+    heights = plane_heights_for(fn, shape, ALT_RANGE, 0.5)
+    return ref_img, srcs, truth, fn(heights), heights
+
+
+def _rolled_pair(seed: int, shape: tuple[int, int], roll_px: int, px_per_m: float,
+                 max_height_m: float, n_planes: int):
+    """A random reference, its copy rolled by ``roll_px`` columns plus 1% noise as the source,
+    ``n_planes`` heights over 0..max_height_m and their homographies (``px_per_m`` columns per
+    metre): (ref, src, heights, hom)."""
+    rng = np.random.default_rng(seed)
+    ref_img = rng.random(shape).astype(np.float32)
+    src = np.roll(ref_img, roll_px, axis=1) + 0.01 * rng.random(shape).astype(np.float32)
+    heights = np.linspace(0.0, max_height_m, n_planes)
+    return ref_img, src, heights, translation_homographies(np.array([[px_per_m, 0.0]]), heights)
+
+
+def _errors(res, truth):
+    err = np.abs(res.height - truth)[BORDER:-BORDER, BORDER:-BORDER]
+    valid = res.valid[BORDER:-BORDER, BORDER:-BORDER]
+    return err, valid
+
+
+# -- options and inputs -------------------------------------------------------------------------
+@pytest.mark.parametrize("field,value", [("census_window", (7, 8)), ("census_window", (9, 9)),
+                                         ("step_px", 0.0), ("gf_eps", -1.0),
+                                         ("n_best_sources", 0), ("memory_fraction", 1.5),
+                                         ("cost_filter", "median"), ("work_group", (64, 64)),
+                                         ("prefilter_sigma_px", -0.5),
+                                         ("prefilter_sigma_px", float("nan"))])
+def test_bad_options_name_the_field(field, value):
+    with pytest.raises(OptionsError, match=field):
+        SweepOptions(**{field: value})
+
+
+def test_defaults_and_derived_sizes():
+    o = SweepOptions()
+    assert o.census_bits == 24 and o.census_radii == (2, 2)
+    assert SweepOptions(census_window=(7, 9)).census_radii == (4, 3)
+    assert o.tile_margin == 2 * o.gf_radius
+    assert o.best_k(1) == 1 and o.best_k(2) == 1 and o.best_k(5) == 3
+    assert SweepOptions(n_best_sources=4).best_k(2) == 2
+
+
+def test_bad_inputs_are_input_errors(cl_device):
+    sweep = PlaneSweep(cl_device)
+    img = np.zeros((16, 16), np.float32)
+    hom = translation_homographies([[1.0, 0.0]], [0.0, 1.0])
+    with pytest.raises(InputError, match="homographies"):
+        sweep.run(img, [img], hom[:1], [0.0, 1.0])
+    with pytest.raises(InputError, match="monotonic"):
+        sweep.run(img, [img], hom, [1.0, 1.0])
+    with pytest.raises(InputError, match=r"src_images\[0\]"):
+        sweep.run(img, [np.full((16, 16), np.nan)], hom, [0.0, 1.0])
+    with pytest.raises(InputError, match="ref_image"):
+        sweep.run(np.zeros(16), [img], hom, [0.0, 1.0])
+
+
+# -- plane spacing ---------------------------------------------------------------------------------
+def test_plane_spacing_moves_at_most_step_in_the_widest_baseline_source():
+    shifts = np.array([[0.52, 0.0], [-0.3, 0.9]])  # the second source has the wider baseline
+    fn = lambda h: translation_homographies(shifts, h)  # noqa: E731
+    for step in (0.25, 0.5, 1.0):
+        hts = plane_heights_for(fn, (100, 120), ALT_RANGE, step)
+        move = np.diff(hts)[:, None] * np.linalg.norm(shifts, axis=1)[None]
+        assert move.max() <= step * (1 + 1e-9)
+        # One plane fewer would exceed the step: the count is the smallest that satisfies it.
+        fewer = (ALT_RANGE[1] - ALT_RANGE[0]) / (hts.size - 2) * np.linalg.norm(shifts, axis=1).max()
+        assert fewer > step
+        assert hts[0] == ALT_RANGE[0] and hts[-1] == ALT_RANGE[1]
+
+
+def test_plane_spacing_rejects_bad_ranges():
+    fn = lambda h: translation_homographies([[1.0, 0.0]], h)  # noqa: E731
+    with pytest.raises(InputError, match="alt_range"):
+        plane_heights_for(fn, (10, 10), (5.0, 5.0), 0.5)
+    with pytest.raises(InputError, match="parallax"):
+        plane_heights_for(lambda h: translation_homographies([[0.0, 0.0]], h), (10, 10), (0, 1), 0.5)
+
+
+# -- memory plan and tiling ---------------------------------------------------------------------------
+def test_10000_square_reference_fits_4gb(cl_device):
+    for n_src in (1, 2, 4):
+        for filt in ("guided", "box", "none"):
+            o = SweepOptions(cost_filter=filt, memory_budget_bytes=BIG_BUDGET)
+            plan = plan_tiles(o, BIG_SHAPE, [BIG_SHAPE] * n_src, 128, BIG_BUDGET,
+                              cl_device.max_alloc_bytes)
+            assert plan.total_bytes <= BIG_BUDGET
+            assert plan.n_tiles > 1 and plan.tile_w >= 256 and plan.planes_per_batch >= 8
+
+
+def test_budget_smaller_than_the_images_is_a_device_error():
+    o = SweepOptions()
+    with pytest.raises(DeviceError, match="memory budget"):
+        plan_tiles(o, (1000, 1000), [(1000, 1000)], 64, 10**6)
+
+
+@pytest.mark.parametrize("cost_filter", ["guided", "box", "none"])
+def test_tiny_budget_tiles_give_the_single_tile_result(cl_device, cost_filter):
+    ref_img, srcs, truth, hom, heights = _scene((56, 64), shifts=((PX_PER_M, 0.0), (-0.2, 0.3)))
+    o = SweepOptions(cost_filter=cost_filter, max_planes_per_batch=8)
+    whole = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights)
+    budget = 4 * 3 * ref_img.size + 300_000  # the images plus room for about 40x40-pixel tiles
+    tiled = PlaneSweep(cl_device, o.replace(memory_budget_bytes=budget)).run(ref_img, srcs, hom, heights)
+    assert whole.n_tiles == 1 and tiled.n_tiles >= 4
+    assert tiled.peak_device_bytes <= budget
+    np.testing.assert_allclose(tiled.plane_index, whole.plane_index, atol=TILE_INDEX_ATOL, rtol=0)
+    np.testing.assert_array_equal(tiled.valid, whole.valid)
+    np.testing.assert_allclose(tiled.confidence, whole.confidence, atol=TILE_INDEX_ATOL, rtol=0)
+
+
+def test_plane_batches_do_not_change_the_result(cl_device):
+    ref_img, srcs, truth, hom, heights = _scene((48, 56))
+    a = PlaneSweep(cl_device, SweepOptions(max_planes_per_batch=64)).run(ref_img, srcs, hom, heights)
+    b = PlaneSweep(cl_device, SweepOptions(max_planes_per_batch=5)).run(ref_img, srcs, hom, heights)
+    assert a.n_batches == 1 and b.n_batches == -(-heights.size // 5)
+    np.testing.assert_array_equal(a.plane_index, b.plane_index)
+    np.testing.assert_array_equal(a.valid, b.valid)
+
+
+def test_warp_chunks_do_not_change_the_costs(cl_device, monkeypatch):
+    """The split kernels warp a small tile's whole batch in one launch, a large tile's in chunks
+    of SPLIT_WARP_PLANES: the same costs, bit for bit, either way (chunks of 8, 8 and 4 here)."""
+    from satsweep.dense import sweep as sw
+
+    ref_img, srcs, truth, hom, heights = _scene((48, 56))
+    o = SweepOptions(max_planes_per_batch=20)
+    dims = (56 + 2 * o.tile_margin, 48 + 2 * o.tile_margin)
+    assert sw._warp_chunk(o, dims, 20, len(srcs)) == 20 and heights.size > 20
+    one = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights, keep_volume=True)
+    monkeypatch.setattr(sw, "_WARP_CHUNK_POSITIONS", 0)
+    assert sw._warp_chunk(o, dims, 20, len(srcs)) == sw.SPLIT_WARP_PLANES == 8
+    chunked = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights, keep_volume=True)
+    np.testing.assert_array_equal(one.volume, chunked.volume)
+    np.testing.assert_array_equal(one.plane_index, chunked.plane_index)
+
+
+def test_prefilter_is_a_gaussian_blur_with_replicated_edges():
+    from scipy import ndimage
+
+    img = np.random.default_rng(5).random((23, 31)).astype(np.float32)
+    expected = ndimage.gaussian_filter(img.astype(np.float64), 0.7, mode="nearest", truncate=4.0)
+    np.testing.assert_allclose(prefilter(img, 0.7), expected, atol=PREFILTER_ATOL, rtol=0)
+
+
+def test_prefilter_option_sweeps_the_blurred_images(cl_device):
+    """prefilter_sigma_px = s is the sweep of the images blurred by s, not a change of the maths."""
+    ref_img, srcs, _, hom, heights = _scene((40, 44))
+    a = PlaneSweep(cl_device, SweepOptions(prefilter_sigma_px=0.6)).run(ref_img, srcs, hom, heights)
+    b = PlaneSweep(cl_device, SweepOptions()).run(prefilter(ref_img, 0.6),
+                                                  [prefilter(s, 0.6) for s in srcs], hom, heights)
+    c = PlaneSweep(cl_device, SweepOptions()).run(ref_img, srcs, hom, heights)
+    np.testing.assert_array_equal(a.plane_index, b.plane_index)
+    np.testing.assert_array_equal(a.valid, b.valid)
+    assert not np.array_equal(a.plane_index, c.plane_index)
+
+
+# -- the whole pipeline against the numpy references ---------------------------------------------
+def test_pipeline_matches_the_numpy_reference(cl_device):
+    ref_img, srcs, _, hom, heights = _scene((40, 52), shifts=((PX_PER_M, 0.0), (0.1, -0.4)))
+    o = SweepOptions(census_window=(7, 9), n_best_sources=1, gf_radius=3, gf_eps=1e-3,
+                     grad_weight=4.0)
+    res = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights)
+    assert o.ad_weight > 0  # the default AD term and the optional gradient term, end to end
+    vol = ref.sweep_volume(ref_img, srcs, hom.astype(np.float32).astype(np.float64), 4, 3, 1,
+                           ad_weight=o.ad_weight, ad_truncation=o.ad_truncation,
+                           grad_weight=o.grad_weight, grad_truncation=o.grad_truncation)
+    vol = ref.guided_filter(vol, ref_img, 3, 1e-3)
+    i1, frac, conf, m1 = ref.wta(vol, o.max_cost)
+    valid = ref.valid_at_plane(i1, hom, [s.shape for s in srcs], reject_edges=True)
+    # float32 filtering may swap near-equal minima: compare where the best two are apart.
+    sorted_vol = np.sort(vol, axis=0)
+    clear = (sorted_vol[1] - sorted_vol[0]) > 0.05
+    assert clear.mean() > 0.9
+    assert (np.abs(res.plane_index - frac)[clear] < 1e-2).all()
+    np.testing.assert_array_equal(res.valid[clear], valid[clear])
+    np.testing.assert_allclose(res.height[res.valid], np.interp(res.plane_index, np.arange(heights.size), heights)[res.valid])
+    assert np.isnan(res.height[~res.valid]).all()
+    # Confidence and best cost follow the float64 reference to float32 filtering rounding.
+    np.testing.assert_allclose(res.confidence[clear], conf[clear],
+                               atol=PIPELINE_COST_ATOL / o.max_cost)
+    np.testing.assert_allclose(res.cost_min[clear], m1[clear], atol=PIPELINE_COST_ATOL)
+
+
+# -- accuracy on synthetic scenes -----------------------------------------------------------------
+def test_guided_wta_height_accuracy_on_a_synthetic_pair(cl_device):
+    ref_img, srcs, truth, hom, heights = _scene()
+    res = PlaneSweep(cl_device, SweepOptions()).run(ref_img, srcs, hom, heights)
+    err, valid = _errors(res, truth)
+    assert np.nanmedian(err) < MEDIAN_ERROR_MAX_M
+    assert np.mean(valid & (err < 1.0)) > COMPLETENESS_MIN
+
+
+def test_warped_census_is_more_accurate_than_sampled_codes(cl_device):
+    """The measured choice of the census: sub-pixel warping beats nearest-pixel codes."""
+    ref_img, srcs, truth, hom, heights = _scene(seed=2)
+    meds = {}
+    for mode in ("warped_census", "sampled_codes"):
+        # Census alone in both (the AD term needs the warped intensities).
+        res = PlaneSweep(cl_device, SweepOptions(cost_mode=mode, ad_weight=0.0, grad_weight=0.0)).run(
+            ref_img, srcs, hom, heights)
+        meds[mode] = np.nanmedian(_errors(res, truth)[0])
+    assert meds["warped_census"] < MEDIAN_ERROR_MAX_M < meds["sampled_codes"]
+
+
+def test_slanted_plane_heights(cl_device):
+    """A planar ground (slanted in both axes), two sources in different directions."""
+    shifts = np.array([[PX_PER_M, 0.1], [-0.2, 0.45]])
+    h, w = 80, 88
+    rng = np.random.default_rng(11)
+    tex = ref.smooth_noise((h + 60, w + 60), 1.0, rng)
+    from scipy import ndimage
+
+    plane = lambda X, Y: 4.0 + 0.06 * X + 0.04 * Y  # noqa: E731  metres
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    ref_img = ndimage.map_coordinates(tex, [ys + 30, xs + 30], order=3).astype(np.float32)
+    srcs = []
+    for sx, sy in shifts:
+        # Solve u = X + sx plane(X, Y), v = Y + sy plane(X, Y) exactly (a linear system).
+        a = np.array([[1 + 0.06 * sx, 0.04 * sx], [0.06 * sy, 1 + 0.04 * sy]])
+        rhs = np.stack([xs - 4.0 * sx, ys - 4.0 * sy])
+        X, Y = np.einsum("ij,jhw->ihw", np.linalg.inv(a), rhs)
+        srcs.append(ndimage.map_coordinates(tex, [Y + 30, X + 30], order=3).astype(np.float32))
+    fn = lambda hh: translation_homographies(shifts, hh)  # noqa: E731
+    heights = plane_heights_for(fn, (h, w), ALT_RANGE, 0.5)
+    res = PlaneSweep(cl_device, SweepOptions(n_best_sources=2)).run(ref_img, srcs, fn(heights), heights)
+    err = np.abs(res.height - plane(xs, ys))[BORDER:-BORDER, BORDER:-BORDER]
+    assert np.nanmedian(err) < MEDIAN_ERROR_MAX_M
+    assert res.valid[BORDER:-BORDER, BORDER:-BORDER].mean() > COMPLETENESS_MIN
+
+
+def test_best_k_is_robust_to_a_bad_source(cl_device):
+    """Three sources, one of them pure noise: the mean of the best 2 ignores it, the mean of all
+    3 does not (the occlusion-robust aggregation the issue asks for)."""
+    shifts = ((PX_PER_M, 0.0), (-0.4, 0.3), (0.1, -0.5))
+    ref_img, srcs, truth, hom, heights = _scene(shifts=shifts, seed=4)
+    srcs = [srcs[0], srcs[1], np.random.default_rng(0).random(srcs[2].shape).astype(np.float32)]
+    med = {}
+    for k in (2, 3):
+        res = PlaneSweep(cl_device, SweepOptions(n_best_sources=k)).run(ref_img, srcs, hom, heights)
+        med[k] = np.nanmedian(_errors(res, truth)[0])
+    assert med[2] < MEDIAN_ERROR_MAX_M
+    assert med[2] < med[3]
+
+
+def test_pixels_outside_every_source_are_invalid(cl_device):
+    ref_img, srcs, truth, hom, heights = _scene((48, 64))
+    # Source cropped to its left half: reference pixels beyond it have no valid source.
+    src = srcs[0][:, :32]
+    res = PlaneSweep(cl_device, SweepOptions()).run(ref_img, [src], hom, heights)
+    u_max = 31 - PX_PER_M * heights.min()  # columns that map outside at every plane
+    cols = np.arange(64)
+    assert not res.valid[:, cols > u_max + 1].any()
+    assert np.isnan(res.height[:, cols > u_max + 1]).all()
+    assert res.valid[BORDER:-BORDER, BORDER:24].mean() > COMPLETENESS_MIN
+
+
+def test_lr_check_rejects_a_corrupted_region(cl_device):
+    ref_img, srcs, truth, hom, heights = _scene(seed=5)
+    src = srcs[0].copy()
+    src[30:70, 30:70] = np.random.default_rng(1).random((40, 40))
+    o = SweepOptions(lr_check=True, lr_tolerance_planes=1.0)
+    res = PlaneSweep(cl_device, o).run(ref_img, [src], hom, heights)
+    plain = PlaneSweep(cl_device, o.replace(lr_check=False)).run(ref_img, [src], hom, heights)
+    assert (res.valid <= plain.valid).all()
+    # Reference pixels seeing the corrupted block (shifted by the parallax, ~2-10 px).
+    inside = res.valid[36:64, 26:58].mean()
+    outside = res.valid[BORDER:24, BORDER:-BORDER].mean()
+    assert outside > COMPLETENESS_MIN and inside < 0.5 * outside
+    err, valid = _errors(res, truth)
+    assert np.nanmedian(err) < MEDIAN_ERROR_MAX_M
+
+
+def test_lr_consistency_rule():
+    """Identity homographies: a pixel passes when the other map agrees within the tolerance."""
+    hom = np.tile(np.eye(3), (5, 1, 1))
+    a = np.full((4, 6), 2.0)
+    b = a.copy()
+    b[1, 2] = 3.5
+    b[2, 3] = 2.9
+    va = np.ones((4, 6), bool)
+    vb = va.copy()
+    vb[3, 5] = False
+    ok = lr_consistent(a, va, b, vb, hom, 1.0)
+    assert not ok[1, 2] and ok[2, 3] and not ok[3, 5]
+    assert ok.sum() == 24 - 2
+
+
+# -- with camera projections (satsweep.geometry.camera) -----------------------------------------------------
+def _look_at_camera(centre, size, gsd):
+    """A pinhole camera at ``centre`` (ENU, m) looking at the origin, ``gsd`` m/px there."""
+    from satsweep.geometry.camera import PerspectiveCamera
+
+    centre = np.asarray(centre, np.float64)
+    z = -centre / np.linalg.norm(centre)
+    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    f = np.linalg.norm(centre) / gsd
+    K = np.array([[f, 0.0, size / 2], [0.0, f, size / 2], [0.0, 0.0, 1.0]])
+    P = K @ np.hstack([R, (-R @ centre)[:, None]])
+    return PerspectiveCamera.from_projection(P, width=size, height=size)
+
+
+def test_sweep_views_with_plane_parallax_projections(cl_device):
+    """Flat textured ground at u = 7 m seen by a nadir view and a view at base-to-height 0.26
+    (700 km orbit, 0.5 m/px): the height map is 7 m and the ellipsoidal altitude alt0 + 7 m."""
+    from scipy import ndimage
+
+    from satsweep.dense.sweep import sweep_views
+    from satsweep.geometry.geodesy import ENUFrame
+    from satsweep.geometry.parallax import reparametrise
+
+    size, gsd, ground = 64, 0.5, 7.0
+    orbit = 700e3
+    cams = [_look_at_camera((0.0, 0.0, orbit), size, gsd),
+            _look_at_camera((0.26 * orbit, 0.0, orbit), size, gsd)]
+    tex = ref.smooth_noise((200, 200), 1.5, np.random.default_rng(9))  # 0.25 m cells over 50 m
+    images = []
+    for cam in cams:
+        rows, cols = np.mgrid[0:size, 0:size].astype(np.float64)
+        e, n = cam.backproject(cols, rows, u=ground)
+        images.append(ndimage.map_coordinates(tex, [n / 0.25 + 100, e / 0.25 + 100], order=3)
+                      .astype(np.float32))
+    projs = [reparametrise(c, d=-5.0, zbar=float(c.depth(0.0, 0.0, 0.0))) for c in cams]
+    frame = ENUFrame(lon0=2.35, lat0=48.85, alt0=100.0)
+    res, heights = sweep_views(cl_device, images[0], images[1:], projs[0], projs[1:],
+                               alt_range=ALT_RANGE, frame=frame)
+    # About 0.26 / 0.5 = 0.52 px per metre: 20 m / (0.5 px / 0.52 px/m) -> ~22 planes.
+    assert 20 <= heights.size <= 24
+    inner = (slice(BORDER, -BORDER), slice(BORDER, -BORDER))
+    assert res.valid[inner].mean() > COMPLETENESS_MIN
+    assert np.nanmedian(np.abs(res.height[inner] - ground)) < MEDIAN_ERROR_MAX_M
+    # Near the frame origin the ellipsoidal height is alt0 + u (curvature < 1 mm over 16 m).
+    np.testing.assert_allclose(res.altitude[res.valid], 100.0 + res.height[res.valid], atol=1e-3)
+
+
+def test_plane_windows_sweep_the_same_costs_of_fewer_planes(cl_device):
+    """A coarse-to-fine sweep (plane windows per block) computes, for each pixel, exactly the
+    costs that the full sweep computes for the planes of its window (each block is a tile with
+    the filter's margin; census alone and a box filter give integer costs, summed exactly), and
+    where the full sweep's best plane lies inside a window, the same plane index."""
+    ref, src, heights, hom = _rolled_pair(6, (45, 58), 3, 0.4, 15.0, 31)
+    box = SweepOptions(cost_filter="box", ad_weight=0.0, grad_weight=0.0)
+    whole = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True)
+    block, n_win = 16, 9
+    first = np.array([[3, 12, 20, 0], [14, 6, 22, 9], [18, 1, 11, 16]])
+    windows = PlaneWindows(block=block, first=first, n_planes=n_win)
+    part = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True,
+                                          plane_windows=windows)
+    base = windows.per_pixel(ref.shape)
+    np.testing.assert_array_equal(part.plane_base, base)
+    assert part.volume.shape == (n_win, *ref.shape) and part.n_tiles == first.size
+    labels = base[None] + np.arange(n_win)[:, None, None]
+    want = np.take_along_axis(whole.volume, labels, axis=0)
+    np.testing.assert_array_equal(part.volume, want)
+    best = np.argmin(whole.volume, axis=0)
+    inside = (best > base) & (best < base + n_win - 1) & whole.valid
+    assert inside.mean() > 0.2
+    np.testing.assert_allclose(part.plane_index[inside], whole.plane_index[inside], rtol=0,
+                               atol=WINDOW_INDEX_ATOL)
+    np.testing.assert_allclose(part.height[inside], whole.height[inside], rtol=0,
+                               atol=WINDOW_INDEX_ATOL * (heights[1] - heights[0]))
+    # pixel-major on the device, SGM's layout: the same costs
+    dev = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True,
+                                         volume_on_device=True, plane_windows=windows)
+    try:
+        np.testing.assert_array_equal(dev.volume.get().transpose(2, 0, 1), want)
+    finally:
+        dev.volume.data.release()
+    # Windows of their own lengths (at most n_win): each pixel's first count labels are the
+    # same costs; a host volume's labels past them hold the worst cost, a device volume's are
+    # not written (SGM skips them).
+    count = np.array([[9, 1, 4, 9], [5, 9, 2, 7], [3, 8, 9, 6]])
+    ragged = PlaneWindows(block=block, first=first, n_planes=n_win, count=count)
+    host = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True,
+                                          plane_windows=ragged)
+    counts = ragged.counts(ref.shape)
+    np.testing.assert_array_equal(host.plane_count, counts)
+    mine = np.arange(n_win)[:, None, None] < counts[None]
+    np.testing.assert_array_equal(host.volume[mine], want[mine])
+    assert (host.volume[~mine] == box.max_cost).all()
+    # On the device the volume is ragged: each pixel holds just its window's labels, from
+    # plane_offset on; with the guided filter, whose last pass writes it directly
+    # (gf_rows_q_pixel_major), the same values as the host volume's, bit for bit.
+    for opts in (box, SweepOptions(ad_weight=0.0, grad_weight=0.0)):
+        on_host = host if opts is box else PlaneSweep(cl_device, opts).run(
+            ref, [src], hom, heights, keep_volume=True, plane_windows=ragged)
+        dev = PlaneSweep(cl_device, opts).run(ref, [src], hom, heights, keep_volume=True,
+                                              volume_on_device=True, plane_windows=ragged,
+                                              winner_take_all=False)
+        try:
+            flat = dev.volume.get()
+        finally:
+            dev.volume.data.release()
+        assert flat.shape == (int(counts.sum()),)
+        np.testing.assert_array_equal(dev.plane_count, counts)
+        at = dev.plane_offset[None].astype(np.int64) + np.arange(n_win)[:, None, None]
+        np.testing.assert_array_equal(flat[np.where(mine, at, 0)][mine], on_host.volume[mine])
+    with pytest.raises(InputError, match="plane_windows"):
+        PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
+            block=block, first=first, n_planes=n_win, count=count + 1))
+    with pytest.raises(InputError, match="plane_windows"):
+        PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
+            block=block, first=first + 20, n_planes=n_win))
+    with pytest.raises(InputError, match="plane_windows"):
+        PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
+            block=8, first=first, n_planes=n_win))
+
+
+def test_volume_without_winner_take_all(cl_device):
+    """winner_take_all = False (SGM's path) returns the same kept volume with no per-pixel maps,
+    and needs keep_volume and no left-right check. Its guided filter writes the pixel-major
+    volume itself (gf_rows_q_pixel_major): the same values as the plane-major q that the
+    winner-take-all path reads, bit for bit, in one tile and in several."""
+    ref, src, heights, hom = _rolled_pair(6, (36, 44), 2, 0.5, 10.0, 23)
+    # Batches of 11 planes and rows of 44 pixels: partial batches and a row chunk narrower than
+    # the kernels' 8-column groups occur.
+    opts = SweepOptions(max_planes_per_batch=11)
+    engine = PlaneSweep(cl_device, opts)
+    host = engine.run(ref, [src], hom, heights, keep_volume=True)
+    bare = engine.run(ref, [src], hom, heights, keep_volume=True, volume_on_device=True,
+                      winner_take_all=False)
+    try:
+        np.testing.assert_array_equal(bare.volume.get().transpose(2, 0, 1), host.volume)
+        assert bare.plane_index is None and bare.valid is None and bare.height is None
+    finally:
+        bare.volume.data.release()
+    # Tiles whose kept interiors start inside them (the filter's margins), and batches of 4,
+    # against the winner-take-all path's copy of the same tiles (the plan is the same: tiles
+    # change the filter's float32 sums, so the single-tile volume is no reference here).
+    volume_bytes = 4 * heights.size * ref.size
+    tiled_engine = PlaneSweep(cl_device, opts.replace(
+        memory_budget_bytes=4 * 2 * ref.size + volume_bytes + 200_000, max_planes_per_batch=4))
+    kept = [tiled_engine.run(ref, [src], hom, heights, keep_volume=True, volume_on_device=True,
+                             winner_take_all=wta) for wta in (True, False)]
+    try:
+        assert kept[0].n_tiles == kept[1].n_tiles > 1
+        np.testing.assert_array_equal(kept[1].volume.get(), kept[0].volume.get())
+    finally:
+        for res in kept:
+            res.volume.data.release()
+    with pytest.raises(InputError, match="keep_volume"):
+        engine.run(ref, [src], hom, heights, winner_take_all=False)
+    with pytest.raises(InputError, match="left-right check"):
+        PlaneSweep(cl_device, opts.replace(lr_check=True)).run(
+            ref, [src], hom, heights, keep_volume=True, winner_take_all=False)
+
+
+def test_visible_at_is_the_winner_take_all_rule(cl_device):
+    """The host's visibility of a plane choice equals the sweep's validity rule (wta.cl): swept
+    over one plane at a time, the winner-take-all is that plane at every pixel."""
+    rng = np.random.default_rng(7)
+    ref = rng.random((30, 40)).astype(np.float32)
+    srcs = [rng.random((30, 40)).astype(np.float32), rng.random((26, 45)).astype(np.float32)]
+    shapes = [a.shape for a in srcs]
+    heights = np.linspace(0.0, 20.0, 5)
+    # Shifts of several pixels per plane, so that pixels leave either source over the range.
+    hom = translation_homographies(np.array([[0.97, 0.11], [0.79, -0.23]]), heights)
+    engine = PlaneSweep(cl_device, SweepOptions(reject_range_edges=False))
+    seen_any = []
+    for p in range(heights.size):
+        res = engine.run(ref, srcs, hom[p:p + 1], heights[p:p + 1])
+        seen = visible_at(hom, np.full(ref.shape, p), shapes)
+        np.testing.assert_array_equal(seen, res.valid)
+        seen_any.append(seen.mean())
+    assert min(seen_any) < 0.9 and max(seen_any) == 1.0  # pixels leave the sources
+    # One pixel by hand, from the homographies themselves.
+    x, y, p = 39, 29, 4
+    inside = [0 <= (q := hom[p, s] @ [x, y, 1.0])[0] / q[2] <= shapes[s][1] - 1
+              and 0 <= q[1] / q[2] <= shapes[s][0] - 1 for s in range(2)]
+    assert visible_at(hom, np.full(ref.shape, p), shapes)[y, x] == any(inside)
+    with pytest.raises(InputError, match="plane_index"):
+        visible_at(hom, np.full(ref.shape, heights.size), shapes)
+    with pytest.raises(InputError, match="plane_index"):
+        visible_at(hom, np.zeros(ref.shape), shapes)
+
+
+def test_kept_volume_matches_the_wta_and_does_not_depend_on_tiling(cl_device):
+    """keep_volume (the MRF path) returns the filtered cost of every plane: its per-pixel argmin
+    is the WTA's best plane, and a tiled run returns the same volume as a single-tile run (bit
+    for bit: census alone has integer costs, whose box sums float32 adds exactly in any order)."""
+    ref, src, heights, hom = _rolled_pair(5, (40, 52), 2, 0.5, 10.0, 12)
+    box = SweepOptions(cost_filter="box", ad_weight=0.0, grad_weight=0.0)
+    whole = PlaneSweep(cl_device, box).run(
+        ref, [src], hom, heights, keep_volume=True)
+    assert whole.volume.shape == (heights.size, *ref.shape)
+    best = np.argmin(whole.volume, axis=0)
+    ok = whole.valid
+    # the parabola moves the index by at most half a plane from the volume's argmin
+    assert ok.mean() > 0.5
+    assert np.max(np.abs(whole.plane_index[ok] - best[ok])) <= 0.5
+    budget = 4 * 2 * ref.size + 260_000  # the images plus room for a few tiles
+    tiled = PlaneSweep(cl_device, box.replace(memory_budget_bytes=budget,
+                                               max_planes_per_batch=4)).run(
+        ref, [src], hom, heights, keep_volume=True)
+    assert tiled.n_tiles > 1
+    np.testing.assert_array_equal(tiled.volume, whole.volume)
+    plain = PlaneSweep(cl_device, box).run(ref, [src], hom, heights)
+    assert plain.volume is None
+    # Kept on the device (each tile's interior written pixel-major, SGM's layout): the same
+    # volume, counted in the budget (so the images, the volume and the tiles share it: more tiles).
+    volume_bytes = 4 * heights.size * ref.size
+    on_device = PlaneSweep(cl_device, box.replace(
+        memory_budget_bytes=budget + volume_bytes, max_planes_per_batch=4)).run(
+        ref, [src], hom, heights, keep_volume=True, volume_on_device=True)
+    try:
+        assert on_device.n_tiles > 1 and on_device.peak_device_bytes >= volume_bytes
+        assert on_device.volume.shape == ref.shape + (heights.size,)
+        np.testing.assert_array_equal(on_device.volume.get().transpose(2, 0, 1), whole.volume)
+        np.testing.assert_array_equal(on_device.plane_index, whole.plane_index)
+    finally:
+        on_device.volume.data.release()
+    too_small = 4 * 2 * ref.size + volume_bytes // 2
+    with pytest.raises(DeviceError, match="images themselves and the kept cost volume"):
+        PlaneSweep(cl_device, box.replace(memory_budget_bytes=too_small)).run(
+            ref, [src], hom, heights, keep_volume=True, volume_on_device=True)

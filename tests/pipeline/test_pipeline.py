@@ -1,0 +1,653 @@
+"""End to end: `satsweep reconstruct` / `satsweep demo` on a tiny synthetic scene with exact truth,
+the configuration file, and the bad-input cases of the command line."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+
+from satsweep.cli import main
+from satsweep.config import PipelineConfig
+from satsweep.errors import InputError, OptionsError, OutputExistsError
+from satsweep.geometry.altitude import AltitudeRange
+from satsweep.pipeline.run import reconstruct
+from satsweep.products.ply import read_ply
+
+# A small camera-fit grid keeps the test fast; the approximation error stays far below 0.01 px.
+FAST_CAMERA = {"camera": {"grid_size": [20, 20, 6]}}
+# Accuracy bounds on the tiny scene (96 m square at 0.5 m, 2 views, B/H 0.2). The issue's
+# targets (0.10 m, 93%) are measured on larger scenes by tools/bench_e2e.py; a 96 m scene is
+# mostly building edges and image borders, so the bounds here only catch a broken pipeline
+# (a wrong frame or axis, a lost half-pixel, a swapped view would give metres of error).
+MAX_MEDIAN_ABS_ERROR_M = 0.5
+MIN_COMPLETENESS_1M = 0.6
+# What the alignment search may gain over the unaligned DSM when the DSM is in place. Measured
+# on the demo town: moving its DSM by one 0.5 m cell costs 1.1 points of completeness unaligned
+# (two cells: 2.8 points) but only 0.004 m of median error, so completeness is the sensitive
+# figure; the median bound only catches gross misplacement.
+MAX_ALIGNMENT_GAIN_M = 0.05
+MAX_ALIGNMENT_GAIN_COMPLETENESS = 0.01
+# The synthetic scene's altitude range, widened so that the true surface is never at its edge.
+ALT_MARGIN_M = 5.0
+
+
+@pytest.fixture(scope="module")
+def scene(small_town):
+    return small_town
+
+
+def _alt(scene) -> AltitudeRange:
+    lo, hi = scene.alt_range
+    return AltitudeRange(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M)
+
+
+def _aoi_arg(scene) -> str:
+    a = scene.aoi
+    return f"{a.lon_min},{a.lat_min},{a.lon_max},{a.lat_max}"
+
+
+def _reconstruct(scene, out: Path, mapping: dict, *, with_range: bool = True):
+    """reconstruct the scene's views into ``out`` with the config ``mapping``, evaluated against
+    its truth; with the scene's altitude range (widened) unless ``with_range`` is False."""
+    return reconstruct([v.image for v in scene.views], scene.aoi, out,
+                       alt_range=_alt(scene) if with_range else None,
+                       config=PipelineConfig.from_mapping(mapping), truth=scene.truth_dsm,
+                       verbose=False)
+
+
+def _check_accuracy(result) -> None:
+    """The aligned accuracy bounds of every reconstruction of the scene."""
+    a = result.evaluation["aligned"]
+    assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M, result.evaluation
+    assert a["completeness_1m"] >= MIN_COMPLETENESS_1M, result.evaluation
+
+
+@pytest.fixture(scope="module")
+def reconstruction(scene, tmp_path_factory):
+    return _reconstruct(scene, tmp_path_factory.mktemp("rec") / "out", FAST_CAMERA)
+
+
+def test_reconstruct_writes_every_output(reconstruction):
+    out = reconstruction.out_dir
+    names = {p.name for p in out.iterdir()}
+    assert {"dsm.tif", "confidence.tif", "ortho.tif", "cloud.ply", "dsm.png", "cameras.json",
+            "config.toml", "report.json", "evaluation"} <= names
+    assert not [n for n in names if n.startswith(".satsweep-partial")]
+
+
+def test_dsm_georeferencing_read_by_gdal(reconstruction, scene):
+    """rasterio (GDAL) reads dsm.tif with the scene's UTM CRS, its 0.5 m north-up transform on
+    the same cell lattice as the truth, and NaN nodata."""
+    with rasterio.open(reconstruction.out_dir / "dsm.tif") as pred, rasterio.open(scene.truth_dsm) as truth:
+        assert pred.crs.to_epsg() == truth.crs.to_epsg() == scene.dsm_grid.epsg
+        assert pred.dtypes[0] == "float32" and np.isnan(pred.nodata)
+        a, t = pred.transform, truth.transform
+        assert (a.a, a.e, a.b, a.d) == (0.5, -0.5, 0.0, 0.0)
+        # both grids snap to multiples of the cell size: same lattice
+        assert ((a.c - t.c) / 0.5) == pytest.approx(round((a.c - t.c) / 0.5), abs=1e-9)
+        assert ((a.f - t.f) / 0.5) == pytest.approx(round((a.f - t.f) / 0.5), abs=1e-9)
+        data = pred.read(1)
+    assert np.isfinite(data).mean() > MIN_COMPLETENESS_1M
+
+
+def test_accuracy_against_the_exact_truth(reconstruction):
+    ev = reconstruction.evaluation
+    a = ev["aligned"]
+    assert a["median_abs_error_m"] <= MAX_MEDIAN_ABS_ERROR_M, ev
+    assert a["completeness_1m"] >= MIN_COMPLETENESS_1M, ev
+    # The estimated cameras put the DSM in place: the alignment search gains little over the
+    # unaligned DSM. (Which shift wins is not a stable statistic: neighbouring shifts score within
+    # a fraction of a millimetre of each other on a small scene.)
+    u = ev["unaligned"]
+    assert u["median_abs_error_m"] - a["median_abs_error_m"] <= MAX_ALIGNMENT_GAIN_M, ev
+    assert a["completeness_1m"] - u["completeness_1m"] <= MAX_ALIGNMENT_GAIN_COMPLETENESS, ev
+
+
+# The orthophoto against each view sampled where its RPC projects the DSM's cells (bilinear, in
+# the images' own units): measured correlation 0.990, median |difference| 0.0039 of the
+# reference's 1-99% range. The same orthophoto moved by one 0.5 m cell (a row or a column)
+# measured 0.955-0.962 and 0.0075-0.0077: the bounds sit between, so a misplaced orthophoto
+# fails, not only a wrong one.
+ORTHO_MIN_CORRELATION = 0.975
+ORTHO_MAX_MEDIAN_DIFF = 0.0055  # of the reference's 1-99% range
+# View 1 given another gain and offset; the orthophoto against the one of the unchanged views,
+# in fractions of its 1-99% range: measured bias 0.0001 and median |difference| 0.0002; without
+# the radiometric matching 0.073 and 0.073 (matched to the first reference swept, view 1: 0.148).
+ORTHO_TEST_GAIN, ORTHO_TEST_OFFSET = 1.5, 100.0
+ORTHO_RADIOMETRY_MAX_BIAS = 0.01
+ORTHO_RADIOMETRY_MAX_DIFF = 0.02
+
+
+def _rpc_sampled(scene, lon, lat, alt):
+    """Each view's image sampled bilinearly where its RPC projects (lon, lat, alt)."""
+    import cv2
+
+    from satsweep.geometry.rpc import RPCModel
+    from satsweep.io.images import read_image
+
+    out = []
+    for v in scene.views:
+        col, row = RPCModel.from_image(v.image).projection(lon=lon, lat=lat, alt=alt)
+        image = read_image(v.image).astype(np.float32)
+        out.append(cv2.remap(image, col.astype(np.float32)[None], row.astype(np.float32)[None],
+                             cv2.INTER_LINEAR, borderValue=np.nan)[0])
+    return out
+
+
+def test_orthophoto_shows_each_cell_where_the_views_see_it(reconstruction, scene):
+    from satsweep.geometry.geodesy import utm_to_lonlat
+
+    with rasterio.open(reconstruction.out_dir / "ortho.tif") as o, \
+            rasterio.open(reconstruction.dsm_path) as d:
+        assert o.crs == d.crs and o.transform == d.transform and o.shape == d.shape
+        ortho, dsm, t = o.read(1), d.read(1), d.transform
+    assert np.isfinite(ortho).mean() >= MIN_COMPLETENESS_1M
+    rows, cols = np.nonzero(np.isfinite(ortho) & np.isfinite(dsm))
+    lon, lat = utm_to_lonlat(x=t.c + (cols + 0.5) * t.a, y=t.f + (rows + 0.5) * t.e,
+                             epsg=o.crs.to_epsg())
+    for ref in _rpc_sampled(scene, lon, lat, dsm[rows, cols]):
+        ok = np.isfinite(ref)
+        got = ortho[rows, cols][ok]
+        span = np.percentile(ref[ok], 99) - np.percentile(ref[ok], 1)
+        assert np.corrcoef(got, ref[ok])[0, 1] >= ORTHO_MIN_CORRELATION
+        assert np.median(np.abs(got - ref[ok])) <= ORTHO_MAX_MEDIAN_DIFF * span
+
+
+def test_orthophoto_brings_the_views_to_one_radiometry(scene, reconstruction, tmp_path):
+    """View 1 with another gain and offset (as from another date): the orthophoto stays in
+    view 0's radiometry, as when the views agree."""
+    from satsweep.geometry.rpc import RPCModel
+    from satsweep.geometry.rpc_formats import rpc_tiff_extratag
+    from satsweep.io.geotiff import write_tiff
+    from satsweep.io.images import read_image
+
+    src = scene.views[1].image
+    brighter = tmp_path / "bright" / src.name
+    brighter.parent.mkdir()
+    dn = read_image(src).astype(np.float64) * ORTHO_TEST_GAIN + ORTHO_TEST_OFFSET
+    write_tiff(brighter, np.clip(dn, 0, 65535).astype(np.uint16),
+               extratags=[rpc_tiff_extratag(RPCModel.from_image(src))])
+    res = reconstruct([scene.views[0].image, brighter], scene.aoi, tmp_path / "out",
+                      alt_range=_alt(scene), config=PipelineConfig.from_mapping(FAST_CAMERA),
+                      verbose=False)
+    with rasterio.open(res.out_dir / "ortho.tif") as a, \
+            rasterio.open(reconstruction.out_dir / "ortho.tif") as b:
+        got, ref = a.read(1), b.read(1)
+    both = np.isfinite(got) & np.isfinite(ref)
+    span = np.percentile(ref[both], 99) - np.percentile(ref[both], 1)
+    assert abs(np.median(got[both] - ref[both])) <= ORTHO_RADIOMETRY_MAX_BIAS * span
+    assert np.median(np.abs(got - ref)[both]) <= ORTHO_RADIOMETRY_MAX_DIFF * span
+
+
+def test_report_records_settings_device_timings_and_views(reconstruction):
+    rep = json.loads((reconstruction.out_dir / "report.json").read_text())
+    for stage in ("views", "cameras", "select", "sweep", "dsm", "outputs", "evaluate", "total"):
+        assert rep["timings_s"][stage] >= 0
+    assert rep["device"]["can_build"] is True
+    assert rep["settings"]["camera"]["grid_size"] == [20, 20, 6]
+    refs = rep["view_selection"]["references"]
+    assert sorted(r["reference"] for r in refs) == ["view_00.tif", "view_01.tif"]  # 2 views: each once
+    assert rep["evaluation"]["prediction"] == str(reconstruction.out_dir / "dsm.tif")
+
+
+# How far inside its reference window a point of the AOI cube may project, in pixels, less than
+# the window's own context: the window is found with the pipeline's perspective cameras, the
+# check uses the exact RPCs, which they approximate to well under 0.05 px, and the adjustment's
+# principal-point shifts, a fraction of a pixel on this unbiased scene.
+FOOTPRINT_TOLERANCE_PX = 1.0
+
+
+def test_each_reference_is_swept_over_its_aoi_footprint_only(reconstruction, scene):
+    """The sweep covers every pixel that sees the AOI cube (its corners and random points of it
+    projected by the exact RPCs, then into the skew-corrected crop) with REFERENCE_CONTEXT_PX
+    around them, and leaves out the rest of the crop's margin."""
+    from satsweep.geometry.rpc import RPCModel
+    from satsweep.pipeline.sweeps import REFERENCE_CONTEXT_PX
+
+    rep = json.loads((reconstruction.out_dir / "report.json").read_text())
+    cams = {Path(v["image"]).name: v for v in
+            json.loads((reconstruction.out_dir / "cameras.json").read_text())["views"]}
+    rng = np.random.default_rng(0)
+    a, alt = scene.aoi, _alt(scene)
+    lon = rng.uniform(a.lon_min, a.lon_max, 20000)
+    lat = rng.uniform(a.lat_min, a.lat_max, 20000)
+    h = rng.uniform(alt.min, alt.max, 20000)
+    # with the cube's 8 corners, where its image reaches furthest
+    lon = np.concatenate([lon, np.tile([a.lon_min, a.lon_max, a.lon_min, a.lon_max], 2)])
+    lat = np.concatenate([lat, np.tile([a.lat_min, a.lat_min, a.lat_max, a.lat_max], 2)])
+    h = np.concatenate([h, np.repeat([alt.min, alt.max], 4)])
+    paths = {Path(v.image).name: v.image for v in scene.views}
+    for entry in rep["sweep"]:
+        cam = cams[entry["reference"]]
+        col, row = RPCModel.from_image(paths[entry["reference"]]).projection(lon=lon, lat=lat, alt=h)
+        ox, oy = cam["crop_offset"]
+        x = np.array(cam["skew_warp"]) @ np.stack([col - ox, row - oy, np.ones_like(col)])
+        col, row = x[0] / x[2], x[1] / x[2]
+        x0, y0, x1, y1 = entry["window"]
+        w, h_img = cam["width"], cam["height"]
+        inner = REFERENCE_CONTEXT_PX - FOOTPRINT_TOLERANCE_PX
+        # every side: at least the context beyond the cube's pixels, unless at the crop's edge
+        assert x0 == 0 or x0 <= col.min() - inner, (entry, col.min())
+        assert y0 == 0 or y0 <= row.min() - inner, (entry, row.min())
+        assert x1 == w or x1 - 1 >= col.max() + inner, (entry, col.max())
+        assert y1 == h_img or y1 - 1 >= row.max() + inner, (entry, row.max())
+        # and not much more: the crop's margin (32 px) is left out
+        slack = REFERENCE_CONTEXT_PX + 2 + FOOTPRINT_TOLERANCE_PX
+        assert x0 >= col.min() - slack and y0 >= row.min() - slack, entry
+        assert x1 - 1 <= col.max() + slack and y1 - 1 <= row.max() + slack, entry
+        assert (x1 - x0) * (y1 - y0) < w * h_img, entry
+
+
+def test_tiled_mrf_reconstruction_is_as_accurate_and_reports_its_tiles(scene, reconstruction,
+                                                                          tmp_path):
+    """mrf.tile_px small enough to cut each reference into several tiles: same accuracy bounds,
+    the tiles and the MRF's own time in the report."""
+    tiled = _reconstruct(scene, tmp_path / "out",
+                         {**FAST_CAMERA, "mrf": {"tile_px": 96, "tile_overlap_px": 32}})
+    _check_accuracy(tiled)
+    rep = json.loads((tiled.out_dir / "report.json").read_text())
+    assert all(v["mrf"]["tiles"] >= 4 for v in rep["sweep"])
+    assert rep["timings_s"]["mrf"] > 0
+    one = json.loads((reconstruction.out_dir / "report.json").read_text())
+    assert all(v["mrf"]["tiles"] == 1 for v in one["sweep"])
+
+
+# AOI tiles for the test town (its AOI is 59 m square): the smallest tile side gives 2 x 2 tiles.
+AOI_TILE_M = 50.0
+AOI_TILE_OVERLAP_M = 16.0
+# The tiled DSM against the untiled one (the same views, other cameras per tile and less context
+# at the tile seams): measured 0.09 m median difference, 98.6% of the common cells within 1 m.
+TILED_MAX_MEDIAN_DIFF_M = 0.15
+TILED_MIN_AGREEMENT_1M = 0.9
+# The tiled cloud holds each tile's core points only: without that, the 16 m overlaps around
+# 30 m cores would bring up to (62 / 30)^2 = 4 times as many points (fewer at the AOI's edges).
+TILED_MAX_CLOUD_RATIO = 1.2
+
+
+# Below the camera errors of the test town (about 0.003 px), so that any area is cut again.
+TINY_MAX_ERROR_PX = 1e-4
+# A smaller minimum tile side for that case, so that the 59 m AOI can be cut once (into 30 m).
+TEST_MIN_TILE_M = 20.0
+
+
+@pytest.mark.parametrize("how", ["tile_m", "max_error"])
+def test_aoi_tiles_each_with_their_cameras_make_one_dsm(scene, reconstruction, tmp_path,
+                                                        monkeypatch, how):
+    """The AOI reconstructed in 2 x 2 tiles, each with its own cameras: planned from [reconstruct]
+    tile_m below the AOI's side, or cut after the AOI's cameras came out further from the RPCs
+    than tile_max_error_px. Their cores fill one DSM on the untiled run's grid, as accurate and
+    in agreement with it; the report and the output folder hold each tile's cameras."""
+    table = {"tile_overlap_m": AOI_TILE_OVERLAP_M}
+    if how == "tile_m":
+        table["tile_m"] = AOI_TILE_M
+    else:
+        import satsweep.pipeline.tiling
+
+        monkeypatch.setattr(satsweep.pipeline.tiling, "MIN_TILE_M", TEST_MIN_TILE_M)
+        table["tile_max_error_px"] = TINY_MAX_ERROR_PX
+    tiled = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "reconstruct": table})
+    _check_accuracy(tiled)
+    rep = json.loads((tiled.out_dir / "report.json").read_text())
+    assert rep["tiling"]["tiles"] == 4 and len(rep["aoi_tiles"]) == 4
+    alt = _alt(scene)
+    assert rep["altitude_range"] == {"min": alt.min, "max": alt.max, "source": "user"}
+    if how == "tile_m":
+        assert rep["tiling"]["splits"] == [] and all(t["level"] == 0 for t in rep["aoi_tiles"])
+    else:
+        (split,) = rep["tiling"]["splits"]
+        assert split["into"] == 4 and split["max_error_px"] > TINY_MAX_ERROR_PX
+        assert all(t["level"] == 1 for t in rep["aoi_tiles"])
+    whole = json.loads((reconstruction.out_dir / "report.json").read_text())
+    assert whole["tiling"]["tiles"] == 1 and whole["tiling"]["splits"] == []
+    assert "aoi_tiles" not in whole and {"views", "cameras", "ba", "sweep"} <= set(whole)
+    for key in ("epsg", "resolution_m", "width", "height", "x_min", "y_max"):
+        assert rep["dsm"][key] == whole["dsm"][key]
+    for k, tile in enumerate(rep["aoi_tiles"]):
+        assert {"views", "cameras", "ba", "view_selection", "sweep", "dsm"} <= set(tile)
+        assert tile["cameras_file"] == f"tiles/tile_{k:02d}/cameras.json"
+        assert (tiled.out_dir / tile["cameras_file"]).is_file()
+    assert not (tiled.out_dir / "cameras.json").exists()
+
+    with rasterio.open(tiled.dsm_path) as a, rasterio.open(reconstruction.dsm_path) as b:
+        t, w = a.read(1), b.read(1)
+    both = np.isfinite(t) & np.isfinite(w)
+    diff = np.abs(t - w)[both]
+    assert np.median(diff) <= TILED_MAX_MEDIAN_DIFF_M
+    assert np.mean(diff < 1.0) >= TILED_MIN_AGREEMENT_1M
+    n_tiled = len(read_ply(tiled.out_dir / "cloud.ply")["x"])
+    n_whole = len(read_ply(reconstruction.out_dir / "cloud.ply")["x"])
+    assert n_tiled <= TILED_MAX_CLOUD_RATIO * n_whole
+
+
+def test_a_tile_without_matches_takes_the_other_tiles_pointing_corrections(scene, tmp_path,
+                                                                         monkeypatch):
+    """A tile whose views cannot be adjusted (its first adjustment and its second fail here)
+    waits for the others, then takes the median of their principal-point shifts."""
+    import satsweep.sparse.bundle
+    from satsweep.errors import CameraError
+
+    real = satsweep.sparse.bundle.adjust_principal_points
+    calls = []
+
+    def flaky(*args, **kwargs):
+        calls.append(len(calls))
+        if len(calls) in (1, 5):  # the first tile, at its first and at its second turn
+            raise CameraError("too few matches (planted by the test)")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(satsweep.sparse.bundle, "adjust_principal_points", flaky)
+    res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "reconstruct": {
+        "tile_m": AOI_TILE_M, "tile_overlap_m": AOI_TILE_OVERLAP_M}})
+    _check_accuracy(res)
+    tiles = json.loads((res.out_dir / "report.json").read_text())["aoi_tiles"]
+    assert len(calls) == 5 and len(tiles) == 4
+    assert tiles[-1]["core_cells"][:3:2] == [0, 0]  # the north-west tile, done last
+    own = [[t["ba"]["principal_point_shift_px"][n] for n in ("view_00.tif", "view_01.tif")]
+           for t in tiles[:3]]
+    borrowed = tiles[-1]["ba"]["borrowed_principal_point_shift_px"]
+    np.testing.assert_array_equal(borrowed, np.median(np.array(own), axis=0))
+
+
+def _cropped_view(scene, tmp_path, columns: int) -> Path:
+    """The scene's view 1 cut to its first ``columns`` columns (same RPC: the crop starts at 0)."""
+    from satsweep.geometry.rpc import RPCModel
+    from satsweep.geometry.rpc_formats import rpc_tiff_extratag
+    from satsweep.io.geotiff import write_tiff
+    from satsweep.io.images import read_image
+
+    src = scene.views[1].image
+    out = tmp_path / "narrow" / src.name
+    out.parent.mkdir(parents=True)
+    write_tiff(out, read_image(src)[:, :columns],
+               extratags=[rpc_tiff_extratag(RPCModel.from_image(src))])
+    return out
+
+
+# The cut view sees the tiles it keeps only in part: of their cells, those it sees get heights
+# (measured 67% and 43% of the two tiles' cells, 0.06 and 0.11 m from the untiled DSM).
+SEEN_TILE_MIN_COVERAGE = 0.25
+
+
+def test_tiles_take_the_images_that_see_them(scene, reconstruction, tmp_path):
+    """A large AOI need not lie in every image: with view 1 cut to a third of its width, the
+    tiles it no longer sees are left without heights (reported), the others are reconstructed;
+    when no tile is seen by two images the run fails with one line naming the images."""
+    # The AOI spans about columns 37..155 of view 1: its first 70 columns see the tiles of one
+    # side only, once the tiles' context is small.
+    narrow = _cropped_view(scene, tmp_path, columns=70)
+    config = PipelineConfig.from_mapping({**FAST_CAMERA, "reconstruct": {
+        "tile_m": AOI_TILE_M, "tile_overlap_m": 2.0}})
+    res = reconstruct([scene.views[0].image, narrow], scene.aoi, tmp_path / "out",
+                      alt_range=_alt(scene), config=config, verbose=False)
+    rep = json.loads((res.out_dir / "report.json").read_text())
+    unseen, tiles = rep["tiling"]["unseen"], rep["aoi_tiles"]
+    assert unseen and tiles and len(unseen) + len(tiles) == 4, rep["tiling"]
+    assert all(u["images"] == [scene.views[0].image.name] for u in unseen)
+    with rasterio.open(res.dsm_path) as a, rasterio.open(reconstruction.dsm_path) as b:
+        dsm, whole = a.read(1), b.read(1)
+    for u in unseen:
+        r0, r1, c0, c1 = u["core_cells"]
+        assert np.isnan(dsm[r0:r1, c0:c1]).all()
+    for t in tiles:
+        r0, r1, c0, c1 = t["core_cells"]
+        part, ref = dsm[r0:r1, c0:c1], whole[r0:r1, c0:c1]
+        both = np.isfinite(part) & np.isfinite(ref)
+        assert both.mean() >= SEEN_TILE_MIN_COVERAGE
+        assert np.median(np.abs(part - ref)[both]) <= TILED_MAX_MEDIAN_DIFF_M
+
+    blind = _cropped_view(scene, tmp_path / "blind", columns=8)
+    with pytest.raises(InputError, match="no tile of the AOI is seen by two"):
+        reconstruct([scene.views[0].image, blind], scene.aoi, tmp_path / "none",
+                    alt_range=_alt(scene), config=config, verbose=False)
+
+
+@pytest.mark.parametrize("search", ["coarse_to_fine", "full"])
+def test_either_search_is_as_accurate_and_reports_its_windows(scene, tmp_path, search):
+    """[sweep] search = "coarse_to_fine" (the default: a half-resolution pass, then plane windows
+    per block; blocks small enough here for the tiny scene to have several) and "full" (every
+    plane everywhere): the same accuracy bounds, and each reference's window size in the report,
+    below its planes (None for the full search)."""
+    res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "sweep": {
+        "search": search, "window_block_px": 32, "window_max_fraction": 1.0}})
+    _check_accuracy(res)
+    rep = json.loads((res.out_dir / "report.json").read_text())
+    if search == "full":
+        assert all(v["window_planes"] is None for v in rep["sweep"]), rep["sweep"]
+    else:
+        assert all(v["window_planes"] is not None and v["window_planes"] <= v["planes"]
+                   for v in rep["sweep"]), rep["sweep"]
+
+
+def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
+    """No --alt-range and no DEM: the RPCs' coarse range is narrowed by tie points (reported),
+    and the reconstruction still succeeds against the truth."""
+    res = _reconstruct(scene, tmp_path / "out", FAST_CAMERA, with_range=False)
+    alt = res.report["altitude_range"]
+    assert alt["source"] == "tie points" and alt["tie_points"] >= 20
+    lo, hi = scene.alt_range
+    # the range holds the ground, within the RPCs' heights (these synthetic RPCs are fitted over
+    # the relief alone, so theirs is not the kilometres of a real RPC)
+    assert alt["min"] <= lo and alt["max"] > lo + 1.0
+    assert alt["rpc_range"][0] <= alt["min"] and alt["max"] <= alt["rpc_range"][1]
+    assert "altitude" in res.report["timings_s"]
+    _check_accuracy(res)  # the bounds of the run given the range
+
+
+@pytest.mark.parametrize("mrf, search", [("sgm", "coarse_to_fine"), ("sgm", "full"),
+                                         ("none", "full")])
+def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, tmp_path,
+                                                                         monkeypatch, mrf,
+                                                                         search):
+    """The kernels prebuilt while the cameras are adjusted are exactly the ones the sweep stage
+    then asks for (none built in the foreground, none built for nothing), bundle adjustment and
+    skew correction included; with the coarse-to-fine search, its coarse pass's programs too."""
+    from satsweep.opencl import device as sdev
+
+    forecast, asked, foreground = set(), set(), []
+    real_build, real_prebuild = sdev.Device.build, sdev.Device.prebuild
+
+    def build(self, source, defines=None):
+        key = self._key(source, defines)
+        asked.add(key)
+        with self._lock:
+            if key not in self._programs and key not in self._pending:
+                foreground.append(key)
+        return real_build(self, source, defines)
+
+    def prebuild(self, requests):
+        requests = list(requests)
+        forecast.update(self._key(s, d) for s, d in requests)
+        return real_prebuild(self, requests)
+
+    monkeypatch.setattr(sdev.Device, "build", build)
+    monkeypatch.setattr(sdev.Device, "prebuild", prebuild)
+    res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "reconstruct": {"adjust": "on"},
+                                                 "mrf": {"method": mrf},
+                                                 "sweep": {"search": search}})
+    assert "skipped" not in res.report["ba"]
+    # SGM over every plane (the windows of a coarse-to-fine search too), and for its coarse
+    # pass over every coarse_plane_stride-th plane
+    sgm_labels = {dict(k[1])["SGM_NL"] for k in asked if k[0] == "sgm"}
+    planes = {v["planes"] for v in res.report["sweep"]}
+    stride = PipelineConfig().sweep.coarse_plane_stride  # the default's
+    want = set() if mrf == "none" else planes | ({-(-n // stride) for n in planes}
+                                                 if search == "coarse_to_fine" else set())
+    assert sgm_labels == want, (sgm_labels, planes)
+    assert foreground == [] and forecast == asked, (foreground, forecast ^ asked)
+    assert {k[0] for k in forecast} == ({"census", "sweep", "guided_filter", "sgm", "wta"}
+                                        if mrf == "sgm" else {"census", "sweep", "guided_filter", "wta"})
+
+
+def test_config_written_is_the_config_used(reconstruction):
+    again = PipelineConfig.from_toml(reconstruction.out_dir / "config.toml")
+    assert again == PipelineConfig.from_mapping(FAST_CAMERA)
+
+
+def test_point_cloud_is_utm_with_colour_and_epsg(reconstruction, scene):
+    ply = read_ply(reconstruction.out_dir / "cloud.ply")
+    assert any(f"EPSG:{scene.dsm_grid.epsg}" in c for c in ply["comments"])
+    x, y, z = ply["x"], ply["y"], ply["z"]
+    assert x.dtype == np.float64 and len(x) > 1000
+    with rasterio.open(scene.truth_dsm) as truth:
+        b = truth.bounds
+        lo, hi = scene.alt_range
+    # the cloud covers the AOI's grid (the truth grid is the same AOI's)
+    assert x.min() >= b.left - 0.5 and x.max() <= b.right + 0.5
+    assert y.min() >= b.bottom - 0.5 and y.max() <= b.top + 0.5
+    assert lo - ALT_MARGIN_M <= np.median(z) <= hi + ALT_MARGIN_M
+    assert {"red", "green", "blue"} <= set(ply)
+
+
+def test_existing_output_is_refused_and_left_untouched(scene, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep")
+    rc = main(["reconstruct", *map(str, (v.image for v in scene.views)), "--aoi", _aoi_arg(scene),
+               "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "not empty" in err and "--overwrite" in err
+    assert [p.name for p in out.iterdir()] == ["mine.txt"]
+
+
+def test_failing_run_writes_nothing(scene, tmp_path):
+    """A failure after the outputs' folder was created (here: a device that does not exist,
+    found before any stage) removes what the run created."""
+    out = tmp_path / "new"
+    config = PipelineConfig.from_mapping({"reconstruct": {"device": "9:9"}})
+    with pytest.raises(Exception):
+        reconstruct([v.image for v in scene.views], scene.aoi, out, alt_range=_alt(scene),
+                    config=config, verbose=False)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "table, needle",
+    [
+        ({"sweep": {"gf_radius": -1}}, "SweepOptions.gf_radius"),
+        ({"sweep": {"gf_radus": 3}}, "unknown key(s) gf_radus"),
+        ({"sweeps": {}}, "unknown table(s) [sweeps]"),
+        ({"mrf": {"method": "magic"}}, "MRFOptions.method"),
+        ({"dsm": {"resolution": "half"}}, "DSMOptions.resolution"),
+    ],
+)
+def test_config_errors_name_the_key(table, needle):
+    with pytest.raises(OptionsError) as info:
+        PipelineConfig.from_mapping(table, source="my.toml")
+    assert needle in str(info.value)
+
+
+def test_cli_overrides_the_config_file(tmp_path):
+    from satsweep.cli import _pipeline_config, build_parser
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[mrf]\nmethod = "graphcut"\n[dsm]\nresolution = 1.0\n')
+    args = build_parser().parse_args(["reconstruct", "a.tif", "b.tif", "--aoi", "0,0,1,1", "--out",
+                                      "o", "--config", str(cfg), "--mrf", "none"])
+    config = _pipeline_config(args)
+    assert config.mrf.method == "none" and config.dsm.resolution == 1.0
+
+
+def test_cli_config_prints_the_explained_defaults(capsys):
+    import tomllib
+
+    assert main(["config"]) == 0
+    text = capsys.readouterr().out
+    assert PipelineConfig.from_mapping(tomllib.loads(text)) == PipelineConfig()
+    lines = text.splitlines()
+    for table, options in PipelineConfig().to_dict().items():
+        for key, value in options.items():
+            if value is None:
+                continue
+            # every key is preceded by its explanation (a comment line)
+            at = next(i for i, line in enumerate(lines) if line.startswith(f"{key} = "))
+            assert lines[at - 1].startswith("# "), key
+    assert "# AD-census: each source's cost adds ad_weight" in text
+
+
+def test_cli_config_shows_and_checks_a_file(tmp_path, capsys):
+    import tomllib
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[sweep]\nad_weight = 0.0\n")
+    assert main(["config", "--config", str(cfg)]) == 0
+    shown = tomllib.loads(capsys.readouterr().out)
+    assert shown["sweep"]["ad_weight"] == 0.0 and shown["sweep"]["gf_radius"] == 5
+    cfg.write_text("[sweep]\ngf_radius = 1000\n")
+    assert main(["config", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert f"{cfg} [sweep]: SweepOptions.gf_radius = 1000" in err and err.count("\n") == 1
+
+
+def _cli_error(capsys, args) -> str:
+    rc = main(args)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("satsweep: error:"), err
+    return lines[0]
+
+
+def test_cli_bad_inputs(scene, tmp_path, capsys):
+    imgs = [str(v.image) for v in scene.views]
+    aoi = _aoi_arg(scene)
+    out = tmp_path / "out"
+    not_tiff = tmp_path / "notes.tif"
+    not_tiff.write_text("hello")
+    fine_steps = tmp_path / "fine.toml"
+    fine_steps.write_text("[camera]\ngrid_size = [20, 20, 6]\n[sweep]\nstep_px = 0.01\n")
+    cases = [
+        (["reconstruct", imgs[0], "--aoi", aoi, "--out", str(out)], "at least two images"),
+        (["reconstruct", *imgs, "--aoi", "3,1,2,2", "--out", str(out)], "lon_min = 3.0 >= lon_max"),
+        (["reconstruct", *imgs, "--aoi", aoi, "--alt-range", "200", "100", "--out", str(out)],
+         "--alt-range 200 100"),
+        (["reconstruct", str(not_tiff), imgs[1], "--aoi", aoi, "--alt-range", "90", "160", "--out",
+          str(out)], "notes.tif"),
+        (["reconstruct", *imgs, "--aoi", aoi, "--out", str(out), "--config", str(tmp_path / "no.toml")],
+         "no.toml"),
+        (["reconstruct", *imgs, "--aoi", aoi, "--out", str(out), "--device", "7:7"], "7:7"),
+        # more planes than SGM takes (here from a tiny plane step): refused before the sweep
+        (["reconstruct", *imgs, "--aoi", aoi, "--alt-range", "90", "170", "--out", str(out),
+          "--config", str(fine_steps)], "more than SGM's 1024; give a tighter"),
+    ]
+    for args, needle in cases:
+        line = _cli_error(capsys, args + ["--quiet"])
+        assert needle in line, (args, line)
+        assert not out.exists(), args
+
+
+def test_demo_command(tmp_path, capsys):
+    """The README's first command ends with `satsweep demo`: it must run and print the metrics."""
+    rc = main(["demo", "--out", str(tmp_path / "demo"), "--size", "128", "--quiet",
+               "--config", str(_fast_config(tmp_path))])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "median |error|" in out and "completeness_1m" in out
+    assert (tmp_path / "demo" / "reconstruction" / "dsm.tif").is_file()
+    assert (tmp_path / "demo" / "scene" / "truth_dsm.tif").is_file()
+    with pytest.raises(OutputExistsError):
+        from satsweep.demo import run_demo
+
+        run_demo(tmp_path / "demo", verbose=False)
+
+
+def _fast_config(tmp_path: Path) -> Path:
+    path = tmp_path / "fast.toml"
+    path.write_text("[camera]\ngrid_size = [20, 20, 6]\n")
+    return path
+
+
+def test_preloading_imports_the_listed_modules():
+    """The background import of the later stages' libraries ends, with every one imported (a
+    misspelt or missing module would stop the thread before the rest)."""
+    import sys
+
+    from satsweep.pipeline.preload import PRELOADED_MODULES, _start_preloading
+
+    thread = _start_preloading()
+    thread.join(timeout=120)
+    assert not thread.is_alive() and thread.daemon
+    assert all(name in sys.modules for name in PRELOADED_MODULES)

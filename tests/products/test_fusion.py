@@ -1,0 +1,524 @@
+"""DSM stage: height maps to points, grids, rasterisation, fusion, hole filling, GeoTIFF output."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from satsweep.errors import CameraError, OptionsError
+from satsweep.geometry.aoi import AOI
+from satsweep.geometry.geodesy import ENUFrame, lonlat_to_utm
+from satsweep.products import fusion as dsm
+from satsweep.products import grid as dsm_grid
+from satsweep.products import ortho
+from satsweep.products import points as dsm_points
+
+# Points recovered from a height map must match the exact ray/plane intersection to this (m):
+# float64 keeps ~1e-9 m at the 600 km camera distance; ENU -> geodetic -> ENU adds ~1e-9 m.
+POINT_TOL_M = 1e-6
+# Fused heights are rounded to float32: at 2400 m its spacing is 2.4e-4 m.
+FLOAT32_HEIGHT_TOL_M = 5e-4
+
+FRAME = ENUFrame(lon0=55.65, lat0=-21.23, alt0=2340.0)  # La Reunion, as the real pair
+
+
+def _satellite_camera(width: int = 64, height: int = 48, *, off_nadir_deg: float = 10.0,
+                      azimuth_rad: float = 0.3):
+    """A pinhole 600 km up, ``off_nadir_deg`` off nadir looking at the ENU origin, ~0.5 m pixels.
+
+    Returns (P, K, R, C): P = K R [I | -C], R ENU -> camera (x along columns, y along rows).
+    """
+    off = math.radians(off_nadir_deg)
+    C = np.array([600e3 * math.tan(off) * math.sin(azimuth_rad),
+                  -600e3 * math.tan(off) * math.cos(azimuth_rad), 600e3])
+    forward = -C / np.linalg.norm(C)
+    north = np.array([0.0, 1.0, 0.0])
+    right = np.cross(forward, north)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    R = np.stack([right, down, forward])
+    f = np.linalg.norm(C) / 0.5
+    K = np.array([[f, 3.0, width / 2 + 7.3], [0.0, f * 1.0002, height / 2 - 4.1], [0.0, 0.0, 1.0]])
+    P = K @ R @ np.hstack([np.eye(3), -C[:, None]])
+    return P, K, R, C
+
+
+def _ray_plane(K, R, C, col, row, u):
+    """Exact ground point: the ray of pixel (col, row) through the camera centre, cut at height u."""
+    d = (R.T @ np.linalg.solve(K, np.stack([col, row, np.ones_like(col)])))  # ENU directions
+    lam = (u - C[2]) / d[2]
+    return C[0] + lam * d[0], C[1] + lam * d[1]
+
+
+def test_height_map_to_points_recovers_exact_enu_points():
+    P, K, R, C = _satellite_camera()
+    h, w = 48, 64
+    rng = np.random.default_rng(0)
+    height = (rng.uniform(-20.0, 40.0, (h, w))).astype(np.float32)
+    valid = rng.random((h, w)) > 0.2
+    height[5, 7] = np.nan
+    valid[5, 7] = True  # a NaN height is skipped even when flagged valid
+    colors = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    conf = rng.random((h, w)).astype(np.float32)
+    pts = dsm_points.height_map_to_points(height, valid, P * -3.7, FRAME, colors=colors, confidence=conf)
+    rows, cols = np.nonzero(valid & np.isfinite(height))
+    assert len(pts) == rows.size
+    e_ref, n_ref = _ray_plane(K, R, C, cols.astype(float), rows.astype(float), height[rows, cols].astype(float))
+    e, n, u = FRAME.from_geodetic(lon=pts.lon, lat=pts.lat, alt=pts.alt)
+    np.testing.assert_allclose(e, e_ref, rtol=0, atol=POINT_TOL_M)
+    np.testing.assert_allclose(n, n_ref, rtol=0, atol=POINT_TOL_M)
+    np.testing.assert_allclose(u, height[rows, cols], rtol=0, atol=POINT_TOL_M)
+    # And the points project back onto their pixels.
+    q = P @ np.stack([e, n, u, np.ones_like(e)])
+    np.testing.assert_allclose(q[0] / q[2], cols, atol=1e-6)
+    np.testing.assert_allclose(q[1] / q[2], rows, atol=1e-6)
+    np.testing.assert_array_equal(pts.colors, colors[rows, cols])
+    np.testing.assert_array_equal(pts.confidence, conf[rows, cols])
+
+
+def test_subsamples_cover_the_pixel_footprint():
+    P, K, R, C = _satellite_camera()
+    height = np.full((3, 4), 12.5, np.float32)
+    valid = np.zeros((3, 4), bool)
+    valid[1, 2] = True
+    grey = np.full((3, 4), 77, np.uint8)
+    pts = dsm_points.height_map_to_points(height, valid, P, FRAME, colors=grey, subsamples=2)
+    assert len(pts) == 4
+    offs = np.array([-0.25, 0.25])
+    dy, dx = np.meshgrid(offs, offs, indexing="ij")
+    e_ref, n_ref = _ray_plane(K, R, C, 2 + dx.ravel(), 1 + dy.ravel(), np.full(4, 12.5))
+    e, n, u = FRAME.from_geodetic(lon=pts.lon, lat=pts.lat, alt=pts.alt)
+    np.testing.assert_allclose(e, e_ref, atol=POINT_TOL_M)
+    np.testing.assert_allclose(n, n_ref, atol=POINT_TOL_M)
+    assert np.all(pts.colors == 77) and pts.colors.shape == (4, 3)
+
+
+# A slanted plane u = a + b e + c n (m): the surface the cross-check tests see.
+PLANE = (5.0, 0.02, -0.01)
+# Tolerance of the cross-check in those tests (m), and the error injected into one view (m).
+CHECK_TOL_M = 1.0
+INJECTED_ERROR_M = 3.0
+
+
+def _plane_height_map(K, R, C, shape):
+    """Exact ENU height of the plane PLANE seen at every pixel (ray-plane intersection)."""
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    d = R.T @ np.linalg.solve(K, np.stack([cols.ravel(), rows.ravel(), np.ones(cols.size)]))
+    a, b, c = PLANE
+    lam = (a + b * C[0] + c * C[1] - C[2]) / (d[2] - b * d[0] - c * d[1])
+    return (C[2] + lam * d[2]).reshape(shape)
+
+
+def _views_of_the_plane(n: int, shape=(48, 64)):
+    cams = [_satellite_camera(shape[1], shape[0], off_nadir_deg=off, azimuth_rad=az)
+            for off, az in ((10.0, 0.3), (6.0, 2.4), (12.0, 4.2))[:n]]
+    return [P for P, *_ in cams], [_plane_height_map(K, R, C, shape) for _, K, R, C in cams], cams
+
+
+def _seen_by(cam_from, cam_to, height, shape):
+    """Pixels of one view whose plane point falls inside another view (exact geometry)."""
+    _, K, R, C = cam_from
+    rows, cols = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    e, n = _ray_plane(K, R, C, cols.ravel(), rows.ravel(), height.ravel())
+    P = cam_to[0]
+    q = P @ np.stack([e, n, height.ravel(), np.ones(e.size)])
+    col, row = np.floor(q[0] / q[2] + 0.5), np.floor(q[1] / q[2] + 0.5)
+    return ((col >= 0) & (col < shape[1]) & (row >= 0) & (row < shape[0])).reshape(shape)
+
+
+def test_cross_check_keeps_consistent_maps_and_rejects_an_injected_error():
+    shape = (48, 64)
+    Ps, maps, cams = _views_of_the_plane(2, shape)
+    seen = [_seen_by(cams[0], cams[1], maps[0], shape), _seen_by(cams[1], cams[0], maps[1], shape)]
+    assert all(0.5 < s.mean() < 1.0 for s in seen)  # the views overlap, not completely
+    keep = dsm.cross_check_heights(maps, Ps, tolerance_m=CHECK_TOL_M)
+    for k in range(2):
+        np.testing.assert_array_equal(keep[k], seen[k])
+    bad = [m.copy() for m in maps]
+    bad[0][10:30, 20:40] += INJECTED_ERROR_M
+    bad[0][0, 0] = np.nan  # unknown pixels are never kept
+    keep = dsm.cross_check_heights(bad, Ps, tolerance_m=CHECK_TOL_M)
+    assert not keep[0][10:30, 20:40].any() and not keep[0][0, 0]
+    # The caller's ENU points of the known pixels, when given, give the same masks.
+    points = [dsm_points.height_map_to_enu(m, np.isfinite(m), P) for m, P in zip(bad, Ps)]
+    given = dsm.cross_check_heights(bad, Ps, tolerance_m=CHECK_TOL_M, points=points)
+    for k in range(2):
+        np.testing.assert_array_equal(given[k], keep[k])
+    outside = seen[0].copy()
+    outside[10:30, 20:40] = False
+    outside[0, 0] = False
+    np.testing.assert_array_equal(keep[0][outside], True)
+    # View 1's pixels that see the corrupted block disagree with it; the others are kept.
+    assert (keep[1] <= seen[1]).all() and 0.5 * seen[1].mean() < keep[1].mean() < seen[1].mean()
+
+
+def test_cross_check_with_three_views_needs_one_or_all_agreeing():
+    shape = (48, 64)
+    Ps, maps, cams = _views_of_the_plane(3, shape)
+    bad = [m.copy() for m in maps]
+    bad[0] += INJECTED_ERROR_M  # view 0 is wrong everywhere
+    one = dsm.cross_check_heights(bad, Ps, tolerance_m=CHECK_TOL_M, min_agreeing=1)
+    both = dsm.cross_check_heights(bad, Ps, tolerance_m=CHECK_TOL_M, min_agreeing=2)
+    assert not one[0].any() and not both[0].any()
+    seen12 = _seen_by(cams[1], cams[2], maps[1], shape)
+    np.testing.assert_array_equal(one[1], seen12)  # view 2 confirms what view 0 cannot
+    assert not both[1].any()  # view 0 never agrees
+    # A single view cannot be checked: its known pixels are returned.
+    single = dsm.cross_check_heights([maps[0]], [Ps[0]], tolerance_m=CHECK_TOL_M)
+    assert single[0].all()
+    with pytest.raises(OptionsError, match="tolerance_m"):
+        dsm.cross_check_heights(maps, Ps, tolerance_m=0.0)
+    with pytest.raises(OptionsError, match="min_agreeing"):
+        dsm.cross_check_heights(maps, Ps, tolerance_m=1.0, min_agreeing=0)
+
+
+def test_height_map_to_enu_matches_the_points_and_names_their_pixels():
+    P, K, R, C = _satellite_camera()
+    rng = np.random.default_rng(3)
+    height = rng.uniform(-5.0, 30.0, (48, 64))
+    valid = rng.random((48, 64)) > 0.3
+    for s in (1, 2):
+        e, n, u, pixel = dsm_points.height_map_to_enu(height, valid, P, subsamples=s)
+        pts = dsm_points.height_map_to_points(height, valid, P, FRAME, subsamples=s)
+        lon, lat, alt = FRAME.to_geodetic(e=e, n=n, u=u)
+        np.testing.assert_allclose(lon, pts.lon, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(lat, pts.lat, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(alt, pts.alt, rtol=0, atol=POINT_TOL_M)
+        rows, cols = np.divmod(pixel, 64)
+        assert valid[rows, cols].all() and len(e) == s * s * valid.sum()
+        np.testing.assert_array_equal(u, height[rows, cols])
+
+
+def _map_for(P, height, valid):
+    """An ENUToMap over a height map's points (with room for their footprints)."""
+    from satsweep.geometry.geodesy import utm_epsg
+
+    e, n, u, _ = dsm_points.height_map_to_enu(height, valid, P)
+    return dsm_points.ENUToMap.fit(FRAME, utm_epsg(lon=FRAME.lon0, lat=FRAME.lat0),
+                            e_range=(e.min() - 5, e.max() + 5), n_range=(n.min() - 5, n.max() + 5),
+                            u_range=(u.min(), u.max()))
+
+
+@pytest.mark.parametrize("subsamples", [2, 3])
+def test_footprint_splats_match_the_exact_sub_samples(subsamples):
+    # A 2000 x 1500 px view, 25 degrees off nadir, heights over 150 m: the Jacobian moves each
+    # sub-sample from its centre as solving and mapping it exactly would, within SPLAT_TOL_M.
+    P, *_ = _satellite_camera(2000, 1500, off_nadir_deg=25.0)
+    rng = np.random.default_rng(7)
+    height = rng.uniform(-50.0, 100.0, (1500, 2000))
+    valid = rng.random(height.shape) > 0.995
+    valid[[0, 0, -1, -1], [0, -1, 0, -1]] = True  # the corners
+    to_map = _map_for(P, height, valid)
+    centres = dsm_points.height_map_to_enu(height, valid, P)
+    (x, y, z, pixel), (sx, sy, sz, spix) = dsm_points.map_view_points(centres, height, valid, P, to_map,
+                                                               subsamples=subsamples)
+    e, n, u, ref_pix = dsm_points.height_map_to_enu(height, valid, P, subsamples=subsamples)
+    rx, ry, rz = dsm_points._exact_enu_to_map(FRAME, to_map.epsg, e, n, u)
+    np.testing.assert_array_equal(spix, ref_pix)
+    assert dsm_points.footprint_jacobian(P, to_map, col=pixel % 2000, row=pixel // 2000, u=z) is not None
+    for got, ref in ((sx, rx), (sy, ry), (sz, rz)):
+        np.testing.assert_allclose(got, ref, rtol=0, atol=dsm_points.SPLAT_TOL_M)
+    # The centres are the exact points themselves.
+    ce, cn, cu, _ = centres
+    cx, cy, cz = dsm_points._exact_enu_to_map(FRAME, to_map.epsg, ce, cn, cu)
+    np.testing.assert_allclose(x, cx, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(z, cz, rtol=0, atol=1e-5)
+
+
+def test_footprint_jacobian_refuses_a_varying_footprint():
+    # A camera 6 km up (not a satellite): footprints change by far more than SPLAT_TOL_M across the
+    # view, so the sub-samples are solved one by one, and still match the exact points.
+    P, K, R, C = _satellite_camera(400, 300, off_nadir_deg=40.0)
+    C, K = C / 100.0, np.diag([0.01, 0.01, 1.0]) @ K  # still about 0.5 m pixels
+    P = K @ R @ np.hstack([np.eye(3), -C[:, None]])
+    rng = np.random.default_rng(8)
+    height = rng.uniform(-50.0, 100.0, (300, 400))
+    valid = rng.random(height.shape) > 0.9
+    to_map = _map_for(P, height, valid)
+    centres = dsm_points.height_map_to_enu(height, valid, P)
+    e, n, u, pixel = centres
+    assert dsm_points.footprint_jacobian(P, to_map, col=pixel % 400, row=pixel // 400, u=u) is None
+    _, (sx, sy, sz, spix) = dsm_points.map_view_points(centres, height, valid, P, to_map, subsamples=2)
+    e2, n2, u2, ref_pix = dsm_points.height_map_to_enu(height, valid, P, subsamples=2)
+    rx, ry, rz = to_map(e=e2, n=n2, u=u2)
+    np.testing.assert_array_equal(spix, ref_pix)
+    np.testing.assert_array_equal(sx, rx)
+    np.testing.assert_array_equal(sz, rz)
+
+
+def test_rasterise_max_cells_shares_the_cells_of_rasterise_max():
+    grid = dsm_grid.DSMGrid(epsg=32740, x_min=100.0, y_max=50.0, resolution=0.5, width=30, height=20)
+    rng = np.random.default_rng(9)
+    x, y = rng.uniform(95.0, 120.0, 4000), rng.uniform(35.0, 55.0, 4000)
+    x[:10] = 100.0 + 0.5 * np.arange(10)  # on cell boundaries
+    z = rng.normal(size=4000)
+    z[20] = np.nan
+    cells = dsm.flat_cells(x, y, grid)
+    inside = (x >= 100.0) & (x < 115.0) & (y > 40.0) & (y <= 50.0)
+    np.testing.assert_array_equal(cells >= 0, inside)
+    ref = np.full(grid.shape, np.nan, np.float32)
+    for xi, yi, zi in zip(x, y, z):  # the documented rule, point by point
+        i, j = math.floor((50.0 - yi) / 0.5), math.floor((xi - 100.0) / 0.5)
+        if 0 <= i < 20 and 0 <= j < 30 and np.isfinite(zi):
+            ref[i, j] = zi if np.isnan(ref[i, j]) else max(ref[i, j], np.float32(zi))
+    np.testing.assert_array_equal(dsm.rasterise_max_cells(cells, z, grid), ref)
+    np.testing.assert_array_equal(dsm.rasterise_max(x, y, z, grid), ref)
+
+
+# The polynomial ENU -> UTM map must reproduce pyproj to this (m) over an AOI-sized box.
+ENU_MAP_CHECK_TOL_M = 1e-6
+
+
+def test_enu_to_map_reproduces_the_exact_transform():
+    from satsweep.geometry.geodesy import lonlat_to_utm, utm_epsg
+
+    epsg = utm_epsg(lon=FRAME.lon0, lat=FRAME.lat0)
+    m = dsm_points.ENUToMap.fit(FRAME, epsg, e_range=(-400.0, 300.0), n_range=(-250.0, 350.0),
+                         u_range=(-20.0, 150.0))
+    assert m.accurate and m.max_error_m < ENU_MAP_CHECK_TOL_M
+    rng = np.random.default_rng(5)
+    e, n, u = rng.uniform(-400, 300, 5000), rng.uniform(-250, 350, 5000), rng.uniform(-20, 150, 5000)
+    x, y, z = m(e=e, n=n, u=u)
+    lon, lat, alt = FRAME.to_geodetic(e=e, n=n, u=u)
+    xr, yr = lonlat_to_utm(lon=lon, lat=lat, epsg=epsg)
+    np.testing.assert_allclose(x, xr, rtol=0, atol=ENU_MAP_CHECK_TOL_M)
+    np.testing.assert_allclose(y, yr, rtol=0, atol=ENU_MAP_CHECK_TOL_M)
+    np.testing.assert_allclose(z, alt, rtol=0, atol=ENU_MAP_CHECK_TOL_M)
+    # Over a 600 km box the polynomials are not accurate: the exact transform is used instead.
+    far = dsm_points.ENUToMap.fit(FRAME, epsg, e_range=(-3e5, 3e5), n_range=(-3e5, 3e5), u_range=(0, 100))
+    assert not far.accurate
+    x, y, z = far(e=e * 500, n=n * 500, u=u)
+    lon, lat, alt = FRAME.to_geodetic(e=e * 500, n=n * 500, u=u)
+    xr, yr = lonlat_to_utm(lon=lon, lat=lat, epsg=epsg)
+    np.testing.assert_array_equal(x, xr)
+    np.testing.assert_array_equal(z, alt)
+
+
+def test_degenerate_or_bad_camera():
+    with pytest.raises(CameraError):
+        dsm_points.height_map_to_points(np.zeros((2, 2)), np.ones((2, 2), bool), np.zeros((3, 3)), FRAME)
+    # A camera whose rays are horizontal (looking along north) cannot meet a plane u = const.
+    P = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0], [0, 1.0, 0, 0]])
+    e, n = dsm_points.solve_ground_en(P, col=[0.5], row=[0.0], u=[0.0])
+    assert np.isnan(e).all() and np.isnan(n).all()
+
+
+def test_points_concatenate_keeps_common_attributes():
+    a = dsm_points.Points(lon=np.zeros(2), lat=np.zeros(2), alt=np.ones(2), colors=np.zeros((2, 3), np.uint8))
+    b = dsm_points.Points(lon=np.ones(3), lat=np.ones(3), alt=np.ones(3))
+    c = dsm_points.Points.concatenate([a, b])
+    assert len(c) == 5 and c.colors is None
+    assert len(dsm_points.Points.concatenate([])) == 0
+
+
+def test_dsm_grid_for_aoi_covers_the_aoi_and_snaps_to_the_resolution():
+    aoi = AOI(lon_min=55.640, lat_min=-21.240, lon_max=55.660, lat_max=-21.220)
+    grid = dsm_grid.dsm_grid_for_aoi(aoi, 0.5)
+    assert grid.epsg == 32740  # zone 40 south
+    t = np.linspace(0, 1, 2001)
+    lons = np.concatenate([55.640 + 0.02 * t, np.full_like(t, 55.66), 55.640 + 0.02 * t, np.full_like(t, 55.64)])
+    lats = np.concatenate([np.full_like(t, -21.24), -21.24 + 0.02 * t, np.full_like(t, -21.22), -21.24 + 0.02 * t])
+    x, y = lonlat_to_utm(lon=lons, lat=lats, epsg=32740)
+    # Snapped outward to multiples of the cell size, with less than one cell of slack.
+    for edge in (grid.x_min, grid.y_max, grid.x_max, grid.y_min):
+        assert math.isclose(edge / 0.5, round(edge / 0.5), abs_tol=1e-6)
+    assert grid.x_min <= x.min() < grid.x_min + 0.5
+    assert grid.x_max - 0.5 < x.max() <= grid.x_max
+    assert grid.y_min <= y.min() < grid.y_min + 0.5
+    assert grid.y_max - 0.5 < y.max() <= grid.y_max
+    assert (grid.width, grid.height) == (round((grid.x_max - grid.x_min) / 0.5), round((grid.y_max - grid.y_min) / 0.5))
+    # An explicit EPSG is honoured; a bad resolution is an OptionsError.
+    assert dsm_grid.dsm_grid_for_aoi(aoi, 2.0, epsg=32640).epsg == 32640
+    with pytest.raises(OptionsError, match="resolution"):
+        dsm_grid.dsm_grid_for_aoi(aoi, 0.0)
+
+
+def test_grid_cell_convention():
+    grid = dsm_grid.DSMGrid(epsg=32740, x_min=1000.0, y_max=5000.0, resolution=0.5, width=4, height=3)
+    xs, ys = grid.cell_centers()
+    np.testing.assert_array_equal(xs, [1000.25, 1000.75, 1001.25, 1001.75])
+    np.testing.assert_array_equal(ys, [4999.75, 4999.25, 4998.75])
+    i, j = grid.cell_of(x=xs, y=np.full(4, ys[2]))
+    np.testing.assert_array_equal(i, [2, 2, 2, 2])
+    np.testing.assert_array_equal(j, [0, 1, 2, 3])
+    assert grid.geotransform == (1000.0, 0.5, 0.0, 5000.0, 0.0, -0.5)
+    with pytest.raises(OptionsError):
+        dsm_grid.DSMGrid(epsg=32740, x_min=0.0, y_max=0.0, resolution=0.5, width=0, height=3)
+
+
+def test_rasterise_max_matches_a_python_loop():
+    grid = dsm_grid.DSMGrid(epsg=32740, x_min=340_000.0, y_max=7_650_000.0, resolution=0.5, width=23, height=17)
+    rng = np.random.default_rng(1)
+    n = 3000
+    x = rng.uniform(grid.x_min - 1.0, grid.x_max + 1.0, n)
+    y = rng.uniform(grid.y_min - 1.0, grid.y_max + 1.0, n)
+    x[:40] = grid.x_min + 0.5 * rng.integers(0, 24, 40)  # exactly on cell boundaries
+    y[:40] = grid.y_max - 0.5 * rng.integers(0, 18, 40)
+    z = rng.normal(2340.0, 5.0, n)
+    z[50:60] = np.nan
+    got = dsm.rasterise_max(x, y, z, grid)
+    ref = np.full((grid.height, grid.width), -np.inf)
+    for xv, yv, zv in zip(x, y, z):
+        if not math.isfinite(zv):
+            continue
+        j = math.floor((xv - grid.x_min) / grid.resolution)
+        i = math.floor((grid.y_max - yv) / grid.resolution)
+        if 0 <= i < grid.height and 0 <= j < grid.width and zv > ref[i, j]:
+            ref[i, j] = zv
+    ref[np.isinf(ref)] = np.nan
+    assert got.dtype == np.float32 and got.shape == (17, 23)
+    np.testing.assert_array_equal(got, ref.astype(np.float32))
+    assert np.isnan(got).any() and np.isfinite(got).any()
+
+
+def test_rasterise_points_goes_through_utm():
+    grid = dsm_grid.DSMGrid(epsg=32740, x_min=338_000.0, y_max=7_651_000.0, resolution=1.0, width=10, height=10)
+    xs, ys = grid.cell_centers()
+    from satsweep.geometry.geodesy import utm_to_lonlat
+
+    lon, lat = utm_to_lonlat(x=xs[[1, 1, 8]], y=ys[[2, 2, 5]], epsg=32740)
+    pts = dsm_points.Points(lon=lon, lat=lat, alt=np.array([10.0, 30.0, 20.0]))
+    out = dsm.rasterise_points(pts, grid)
+    assert out[2, 1] == 30.0 and out[5, 8] == 20.0
+    assert np.count_nonzero(np.isfinite(out)) == 2
+
+
+@pytest.mark.parametrize("block_values", [dsm.FUSE_BLOCK_VALUES, 5 * 40 * 7])
+def test_fuse_dsms_discards_injected_outliers(block_values, monkeypatch):
+    monkeypatch.setattr(dsm, "FUSE_BLOCK_VALUES", block_values)  # also in row blocks of 7 rows
+    rng = np.random.default_rng(2)
+    base = rng.uniform(2300, 2400, (30, 40))
+    views = [base + rng.uniform(-0.2, 0.2, base.shape) for _ in range(5)]
+    outlier = np.zeros((5, 30, 40), bool)
+    outlier[0, :10] = True  # view 0 is 20 m too high on the first rows
+    outlier[3, 5:15, 20:] = True  # view 3 is 15 m too low on a block
+    views[0][outlier[0]] += 20.0
+    views[3][outlier[3]] -= 15.0
+    missing = np.zeros((5, 30, 40), bool)
+    missing[1, 20:, :5] = True
+    views[1][missing[1]] = np.nan
+    fused, count = dsm.fuse_dsms(views, outlier_m=2.0)
+    stack = np.stack(views)
+    keep = ~outlier & ~missing
+    ref = np.array([[np.median(stack[keep[:, i, j], i, j]) for j in range(40)] for i in range(30)])
+    np.testing.assert_allclose(fused, ref, atol=FLOAT32_HEIGHT_TOL_M)
+    np.testing.assert_array_equal(count, keep.sum(axis=0))
+    assert fused.dtype == np.float32 and count.dtype == np.int32
+
+
+def test_fuse_two_views_that_disagree_are_dropped_and_min_views():
+    a = np.array([[10.0, 10.0, np.nan, np.nan]])
+    b = np.array([[10.4, 20.0, 7.0, np.nan]])
+    fused, count = dsm.fuse_dsms([a, b], outlier_m=1.0)
+    np.testing.assert_allclose(fused[0, :3], [10.2, np.nan, 7.0], atol=FLOAT32_HEIGHT_TOL_M)
+    assert np.isnan(fused[0, 3])
+    np.testing.assert_array_equal(count, [[2, 0, 1, 0]])
+    fused2, count2 = dsm.fuse_dsms([a, b], outlier_m=1.0, min_views=2)
+    assert np.isnan(fused2[0, 2]) and count2[0, 2] == 0 and math.isclose(fused2[0, 0], 10.2, abs_tol=1e-4)
+    with pytest.raises(OptionsError, match="outlier_m"):
+        dsm.fuse_dsms([a], outlier_m=0.0)
+    with pytest.raises(ValueError):
+        dsm.fuse_dsms([a, np.zeros((2, 2))])
+
+
+def _holes_dsm():
+    rng = np.random.default_rng(4)
+    d = rng.uniform(100, 110, (20, 20))
+    d[5:7, 5:7] = np.nan  # 4-cell enclosed hole
+    d[12:18, 10:15] = np.nan  # 30-cell enclosed hole: too large
+    d[0:2, 15:18] = np.nan  # touches the border: never filled
+    d[9, 2] = np.nan  # 1-cell hole
+    return d
+
+
+def _rim_values(d, cells):
+    """Valid 4-neighbours of a set of cells, by a plain loop."""
+    out = []
+    for i, j in cells:
+        for di, dj in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+            a, b = i + di, j + dj
+            if 0 <= a < d.shape[0] and 0 <= b < d.shape[1] and np.isfinite(d[a, b]):
+                out.append(d[a, b])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("method", ["min", "median"])
+def test_fill_small_holes(method):
+    d = _holes_dsm()
+    filled, n = dsm.fill_small_holes(d, max_hole_cells=4, method=method)
+    assert n == 5
+    hole4 = [(5, 5), (5, 6), (6, 5), (6, 6)]
+    rim4 = _rim_values(d, hole4)
+    rim1 = _rim_values(d, [(9, 2)])
+    pick = np.min if method == "min" else np.median
+    for i, j in hole4:
+        assert math.isclose(filled[i, j], np.float32(pick(rim4)), rel_tol=0, abs_tol=1e-4)
+    assert math.isclose(filled[9, 2], np.float32(pick(rim1)), rel_tol=0, abs_tol=1e-4)
+    assert np.isnan(filled[12:18, 10:15]).all() and np.isnan(filled[0:2, 15:18]).all()
+    untouched = np.isfinite(d)
+    np.testing.assert_array_equal(filled[untouched], d[untouched].astype(np.float32))
+    same, zero = dsm.fill_small_holes(d, max_hole_cells=0)
+    assert zero == 0 and np.count_nonzero(np.isnan(same)) == np.count_nonzero(np.isnan(d))
+
+
+def test_dsm_options_are_checked():
+    assert dsm.DSMOptions().resolution == 0.5
+    with pytest.raises(OptionsError, match="DSMOptions.resolution"):
+        dsm.DSMOptions(resolution=-1.0)
+    with pytest.raises(OptionsError, match="fill_method"):
+        dsm.DSMOptions(fill_method="mean")
+    with pytest.raises(OptionsError, match="DSMOptions.cross_check_m"):
+        dsm.DSMOptions(cross_check_m=-1.0)
+    with pytest.raises(OptionsError, match="DSMOptions.cross_check_views"):
+        dsm.DSMOptions(cross_check_views=0)
+
+
+def test_write_dsm_geotiff_is_read_by_rasterio_with_the_right_crs(tmp_path):
+    rasterio = pytest.importorskip("rasterio")
+    grid = dsm_grid.DSMGrid(epsg=32740, x_min=338_000.0, y_max=7_651_000.0, resolution=0.5, width=7, height=5)
+    a = np.arange(35, dtype=np.float32).reshape(5, 7)
+    a[2, 3] = np.nan
+    path = tmp_path / "dsm.tif"
+    dsm_grid.write_dsm_geotiff(path, a, grid)
+    with rasterio.open(path) as src:
+        assert src.crs.to_epsg() == 32740
+        assert src.transform.to_gdal() == grid.geotransform
+        assert np.isnan(src.nodata) and src.dtypes[0] == "float32"
+        np.testing.assert_array_equal(src.read(1), a)
+
+
+def test_value_at_highest_takes_each_cells_top_point():
+    grid = dsm_grid.DSMGrid(epsg=32631, x_min=0.0, y_max=2.0, resolution=1.0, width=3, height=2)
+    #                cell: 0    0    0    1    1     4      5    -1 (outside)  2
+    cells = np.array([0, 0, 0, 1, 1, 4, 5, -1, 2])
+    heights = np.array([10., 12., 11., 5., 5., np.nan, 7., 99., 3.])
+    values = np.array([0.1, 0.2, 0.3, 0.4, 0.6, 0.9, np.nan, 0.8, 0.5])
+    got = ortho.value_at_highest(cells, heights, values, grid)
+    # cell 0: the point at 12 m; cell 1: two tops at 5 m, the larger value; cell 2: its one point;
+    # cell 4: no height, cell 5: no value, cell 3: no point -> NaN
+    expected = np.array([[0.2, 0.6, 0.5], [np.nan, np.nan, np.nan]], np.float32)
+    np.testing.assert_array_equal(got, expected)
+    assert got.dtype == np.float32
+    with pytest.raises(ValueError, match="lengths differ"):
+        ortho.value_at_highest(cells, heights[:-1], values, grid)
+
+
+def test_match_radiometry_fits_gain_and_offset_robustly():
+    from satsweep.products.ortho import RADIOMETRY_MIN_CELLS, match_radiometry
+
+    rng = np.random.default_rng(4)
+    ref = rng.gamma(4.0, 100.0, (60, 60))
+    other = (ref - 30.0) / 1.7  # another gain and offset
+    # 5% of the cells see something else (values of the same kind, unrelated).
+    other[:3] = (rng.gamma(4.0, 100.0, (3, 60)) - 30.0) / 1.7
+    ref[10, 0] = other[11, 1] = np.nan
+    got = match_radiometry(ref, other)
+    agree = np.isfinite(got) & np.isfinite(ref)
+    agree[:3] = False
+    # Those cells move the quartiles a little: measured 0.3% (median relative difference).
+    assert np.median(np.abs(got - ref)[agree] / ref[agree]) < 0.02
+    few = np.full_like(ref, np.nan)
+    few.flat[:RADIOMETRY_MIN_CELLS - 1] = 1.0
+    assert match_radiometry(ref, few) is few

@@ -1,0 +1,333 @@
+"""Tests of satsweep.sparse.bundle: the bundle adjustment of principal points (pointing-error correction).
+
+References: the exact per-view pointing biases of synthetic data (tie points projected through
+known cameras, and rendered scenes of satsweep.synth whose scene.json records each bias), and the
+real Pleiades pair for a run on real data.
+
+What the biases can be compared with. A bias b_v (content at projection + b_v) is recovered only
+up to the motion no image can see: moving the whole scene by a 3-D vector dX while every view
+shifts by -A_v dX (A_v the 2x3 Jacobian of its projection) leaves every residual unchanged. The
+horizontal part of that motion is nearly a translation common to all views; the vertical part (a
+height offset of the scene) shifts each view along its own parallax direction, differently per
+view. So the issue's comparison "relative shifts (each view minus the mean over views) against
+relative biases" is made after removing the best-fitting motion dX (3 unknowns): for 3 views that
+leaves 3 of the 6 shift components checked. (Measured without that removal, the relative
+differences reach 0.2 to 0.8 px on these scenes: the height gauge, not an error of the
+adjustment; see test_height_offset_is_unobservable.)
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from satsweep.errors import CameraError, OptionsError
+from satsweep.geometry.camera import build_cameras
+from satsweep.geometry.parallax import reparametrise
+from satsweep.sparse import bundle, triangulation
+from satsweep.sparse import tracks as sparse_tracks
+from tests.synthetic_cameras import project, three_cameras
+
+# The issue's bound on the recovered relative shifts (px), synthetic scenes with biases up to 2 px
+# (measured on 4 seeds: at most 0.06 px once the unobservable motion is removed).
+SHIFT_TOL_PX = 0.15
+# The issue's bound on the median reprojection error after adjustment (measured ~0.1 px).
+MEDIAN_AFTER_MAX_PX = 0.5
+# The issue's bound on the shifts when no bias is injected (px).
+NO_BIAS_TOL_PX = 0.1
+# Tie points with 0.3 px noise: 600 points, the shifts are estimated to ~0.3 / sqrt(600) ~ 0.01 px
+# per view; 0.05 px leaves room for the robust loss and the outliers.
+GEOMETRIC_SHIFT_TOL_PX = 0.05
+# The gauge claim: moving the scene by dX (~1 m) and the views by -A dX changes reprojections only
+# by the second-order (perspective) terms, ~|dX| * 200 m / 700 km * (px/m) ~ 1e-3 px.
+GAUGE_INVARIANCE_TOL_PX = 1e-2
+# Shifting a principal point moves projections exactly: float64 rounding only.
+EXACT_PX = 1e-8
+# Pixel noise of synthetic tie points (a typical SIFT localisation error).
+NOISE_PX = 0.3
+# Our Levenberg-Marquardt against scipy's trust-region solver on one robust objective: the cost
+# is flat to ~1e-12 (relative) along the weakly anchored gauge, where the two stop up to 1.3e-4 px
+# and ~1e-3 m apart (measured; ours at the lower cost, scipy stopping early even with tolerances
+# of 1e-15). So: ours no costlier than scipy's beyond its own stopping rule (relative decreases
+# below 1e-10), and the shifts and points the same to well below what matters (0.01 px).
+SOLVER_COST_RTOL = 1e-9
+SOLVER_AGREEMENT_PX = 1e-3
+SOLVER_AGREEMENT_M = 1e-2
+
+
+def _tie_points(cams, biases, *, n=600, outliers=0.05, seed=0):
+    """Observations of random points in every view: projection + bias + noise, some blunders."""
+    rng = np.random.default_rng(seed)
+    X = rng.uniform([-200.0, -200.0, 0.0], [200.0, 200.0, 60.0], size=(n, 3))
+    xys = []
+    for cam, b in zip(cams, biases):
+        xy = project(cam, X) + b + rng.normal(0.0, NOISE_PX, (n, 2))
+        bad = rng.random(n) < outliers
+        xy[bad] += rng.uniform(-30.0, 30.0, (int(bad.sum()), 2))
+        xys.append(xy)
+    tracks = [np.array([[v, i] for v in range(len(cams))]) for i in range(n)]
+    return sparse_tracks.observations_from_tracks(tracks, xys), X
+
+
+def _numeric_jacobians(cams, point=(0.0, 0.0, 30.0), step=1.0) -> np.ndarray:
+    """(V, 2, 3) d(pixel)/d(ENU) by central differences of camera.project (independent of bundle)."""
+    out = np.zeros((len(cams), 2, 3))
+    p = np.asarray(point, dtype=np.float64)
+    for v, cam in enumerate(cams):
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = step
+            a, b = project(cam, (p + d)[None]), project(cam, (p - d)[None])
+            out[v, :, k] = (a - b)[0] / (2 * step)
+    return out
+
+
+def _residual_after_gauge(shifts, biases, jacobians) -> np.ndarray:
+    """shifts - biases after removing the best-fitting unobservable motion -A_v dX (least squares)."""
+    diff = np.asarray(shifts) - np.asarray(biases)
+    dX = np.linalg.lstsq(jacobians.reshape(-1, 3), -diff.ravel(), rcond=None)[0]
+    return diff + jacobians @ dX
+
+
+# -- options and small pieces ------------------------------------------------------------------
+@pytest.mark.parametrize("field,value", [("regulariser", 0.0), ("loss", "l2"), ("loss_scale_px", -1.0),
+                                         ("fine_threshold_px", 50.0), ("min_observations", 1)])
+def test_options_name_the_bad_field(field, value):
+    with pytest.raises(OptionsError, match="BundleOptions"):
+        bundle.BundleOptions(**{field: value})
+
+
+def test_shifting_the_principal_point_moves_projections_exactly():
+    cam = three_cameras()[1]
+    X = np.random.default_rng(1).uniform(-200.0, 200.0, (50, 3))
+    moved = bundle.shift_principal_point(cam, (1.25, -0.5))
+    assert np.abs(project(moved, X) - project(cam, X) - [1.25, -0.5]).max() < EXACT_PX
+    assert moved.K[0, 2] == cam.K[0, 2] + 1.25 and moved.K[1, 2] == cam.K[1, 2] - 0.5
+    assert np.array_equal(np.delete(moved.K.ravel(), [2, 5]), np.delete(cam.K.ravel(), [2, 5]))
+    assert np.array_equal(moved.R, cam.R) and np.array_equal(moved.t, cam.t)
+
+
+def test_height_offset_is_unobservable():
+    """The gauge the comparisons remove is real: moving the scene by dX and every view by -A dX
+    leaves the reprojections unchanged, so no adjustment can tell such shifts apart."""
+    cams = three_cameras()
+    A = _numeric_jacobians(cams)
+    X = np.random.default_rng(2).uniform([-200.0, -200.0, 0.0], [200.0, 200.0, 60.0], (100, 3))
+    dX = np.array([0.4, -0.3, 1.5])
+    for v, cam in enumerate(cams):
+        moved = bundle.shift_principal_point(cam, -A[v] @ dX)
+        change = project(moved, X + dX) - project(cam, X)
+        assert np.abs(change).max() < GAUGE_INVARIANCE_TOL_PX
+    # ... while the height offset moves the views by different amounts (it is not a common shift).
+    shifts = -A @ dX
+    assert np.ptp(shifts, axis=0).max() > 0.3
+
+
+# -- the adjustment on tie points --------------------------------------------------------------
+@pytest.mark.parametrize("loss,convex", [("linear", True), ("huber", True), ("soft_l1", True),
+                                         ("cauchy", False), ("arctan", False)])
+def test_solver_matches_scipy_least_squares(loss, convex):
+    """bundle._solve against scipy.optimize.least_squares (the published reference) on the same
+    robust objective: tie points with noise and blunders, anchors off the truth by metres. The
+    non-convex losses (cauchy, arctan) have several minima: there ours must be no costlier (it
+    found a 0.14 px different, lower one for arctan), and the same minimum is asked of the
+    convex ones."""
+    from scipy.optimize import least_squares
+
+    cams = three_cameras()
+    biases = np.array([[0.0, 0.0], [1.3, -0.7], [-0.6, 1.8]])
+    obs, X = _tie_points(cams, biases, n=60, seed=3)
+    P = triangulation.projection_stack(cams)
+    anchors = X + np.random.default_rng(5).normal(0.0, 2.0, X.shape)
+    options = bundle.BundleOptions(loss=loss, max_evaluations=500)
+    V, lam = len(cams), options.regulariser
+
+    def fun(params):
+        s, Xp = params[:2 * V].reshape(V, 2), params[2 * V:].reshape(-1, 3)
+        xy = triangulation.project(P, obs.view, Xp[obs.point])[0]
+        return np.concatenate([(xy + s[obs.view] - obs.xy).ravel(),
+                               np.sqrt(lam) * (Xp - anchors).ravel()])
+
+    ref = least_squares(fun, np.concatenate([np.zeros(2 * V), anchors.ravel()]), loss=loss,
+                        f_scale=options.loss_scale_px, xtol=1e-14, ftol=1e-14, gtol=1e-14,
+                        max_nfev=2000)
+    shifts, points, evaluations = bundle._solve(P, obs, anchors, np.zeros((V, 2)), anchors.copy(),
+                                                options)
+    assert evaluations < options.max_evaluations
+    ours = fun(np.concatenate([shifts.ravel(), points.ravel()]))
+    rho = bundle._LOSSES[loss][0]  # the loss definitions are scipy's: its cost checks them too
+    assert 0.5 * rho(ours * ours).sum() <= ref.cost * (1.0 + SOLVER_COST_RTOL)
+    if not convex:
+        return
+    assert np.abs(shifts - ref.x[:2 * V].reshape(V, 2)).max() < SOLVER_AGREEMENT_PX
+    assert np.abs(points - ref.x[2 * V:].reshape(-1, 3)).max() < SOLVER_AGREEMENT_M
+
+
+def test_adjustment_recovers_biases_on_tie_points():
+    cams = three_cameras()
+    biases = np.array([[0.0, 0.0], [1.7, -0.9], [-1.2, 2.0]])
+    obs, _ = _tie_points(cams, biases)
+    sol = bundle.adjust_observations(cams, obs)
+    resid = _residual_after_gauge(sol.shifts, biases, _numeric_jacobians(cams))
+    assert np.abs(resid).max() < GEOMETRIC_SHIFT_TOL_PX
+    assert np.median(sol.errors_after) < MEDIAN_AFTER_MAX_PX
+    assert np.median(sol.errors_after) < np.median(sol.errors_before)
+    # The blunders (30 px) were rejected; the noise-level residuals stay.
+    assert sol.errors_after.max() <= bundle.BundleOptions().fine_threshold_px * 1.5
+
+
+def test_adjustment_without_bias_stays_put():
+    cams = three_cameras()
+    obs, _ = _tie_points(cams, np.zeros((3, 2)), seed=3)
+    sol = bundle.adjust_observations(cams, obs)
+    assert np.abs(sol.shifts).max() < GEOMETRIC_SHIFT_TOL_PX
+
+
+def test_too_few_tie_points_name_the_view():
+    cams = three_cameras()
+    obs, _ = _tie_points(cams, np.zeros((3, 2)), n=40, outliers=0.0)
+    keep = ~((obs.view == 2) & (obs.point >= 5))  # view 2 sees only 5 points
+    with pytest.raises(CameraError, match=r"img_c \(5\)"):
+        bundle.adjust_observations(cams, obs.subset(keep), names=["img_a", "img_b", "img_c"])
+
+
+# -- rendered synthetic scenes -----------------------------------------------------------------
+SCENE_SIZE_PX = 256  # small views keep each scene to a few seconds on 2 cores
+SCENE_BIAS_PX = 2.0  # the issue's "biases of up to 2 px"
+# A coarser AOI grid than the default for the camera fits: 20x faster, and the approximation
+# error stays below 0.003 px on these small scenes (measured), far below the SIFT noise.
+SCENE_CAMERA_GRID = (30, 30, 10)
+
+
+def _load(scene):
+    from satsweep.geometry.altitude import AltitudeRange
+    from satsweep.geometry.camera import CameraOptions
+    from satsweep.io.images import tonemap
+    from satsweep.io.views import load_views
+
+    alt = AltitudeRange(*scene.alt_range)
+    views = load_views([v.image for v in scene.views], scene.aoi, alt)
+    cams = build_cameras(views, scene.aoi, alt, CameraOptions(grid_size=SCENE_CAMERA_GRID))
+    return cams, [tonemap(v.image) for v in views]
+
+
+@pytest.fixture(scope="module")
+def biased_scene(tmp_path_factory):
+    from satsweep.synth.scene import SynthOptions, generate_scene
+
+    scene = generate_scene(tmp_path_factory.mktemp("biased"),
+                           SynthOptions(seed=0, n_views=3, size_px=SCENE_SIZE_PX, bias_px=SCENE_BIAS_PX))
+    return (scene, *_load(scene))
+
+
+@pytest.fixture(scope="module")
+def unbiased_scene(tmp_path_factory):
+    """Another town (seed 1), no pointing bias."""
+    from satsweep.synth.scene import SynthOptions, generate_scene
+
+    scene = generate_scene(tmp_path_factory.mktemp("unbiased"),
+                           SynthOptions(seed=1, n_views=3, size_px=SCENE_SIZE_PX, bias_px=0.0))
+    return (scene, *_load(scene))
+
+
+def test_synthetic_scene_biases_are_recovered(biased_scene):
+    scene, cams, images = biased_scene
+    biases = np.array([v.bias_px for v in scene.views])
+    assert np.abs(biases).max() > 1.0  # the scene does carry biases of the size the issue names
+    adjusted, report = bundle.adjust_principal_points(cams, images)
+    shifts = np.array(report.principal_point_shift_px)
+    jac = _numeric_jacobians([v.camera for v in cams.views], point=(0.0, 0.0, 10.0))
+    relative = _residual_after_gauge(shifts - shifts.mean(axis=0), biases - biases.mean(axis=0), jac)
+    print("biases", biases.round(3).tolist(), "shifts", shifts.round(3).tolist(),
+          "residual", relative.round(3).tolist(), "reprojection", report.reproj_before_px, report.reproj_after_px)
+    assert np.abs(relative).max() < SHIFT_TOL_PX
+    assert report.reproj_after_px[0] < MEDIAN_AFTER_MAX_PX
+    assert report.reproj_after_px[0] < report.reproj_before_px[0]
+    # The report is consistent with itself.
+    assert sum(report.track_length_histogram.values()) == report.n_tracks
+    assert report.n_points <= report.n_tracks
+    assert len(report.n_matches) == 3 and all(k >= 30 for _, _, k in report.n_matches)
+    # The adjusted cameras are the original ones with the principal points moved by the shifts,
+    # and their plane-plus-parallax projections follow.
+    X = np.random.default_rng(4).uniform(-20.0, 20.0, (10, 3))
+    for v0, v1, s in zip(cams.views, adjusted.views, shifts):
+        assert np.abs(project(v1.camera, X) - project(v0.camera, X) - s).max() < EXACT_PX
+        ref = reparametrise(v1.camera, d=v0.projection.d, zbar=v0.projection.zbar)
+        assert np.array_equal(v1.projection.P4, ref.P4)
+    d = report.to_dict()
+    json.dumps(d)  # JSON-ready
+    assert set(d["principal_point_shift_px"]) == {"view_00.tif", "view_01.tif", "view_02.tif"}
+
+
+def test_synthetic_scene_without_bias_keeps_the_cameras(unbiased_scene):
+    scene, cams, images = unbiased_scene
+    assert all(v.bias_px == (0.0, 0.0) for v in scene.views)
+    _, report = bundle.adjust_principal_points(cams, images)
+    shifts = np.array(report.principal_point_shift_px)
+    print("shifts", shifts.round(4).tolist(), "reprojection", report.reproj_before_px, report.reproj_after_px)
+    assert np.abs(shifts).max() < NO_BIAS_TOL_PX
+
+
+def test_blank_image_is_named(biased_scene):
+    _, cams, images = biased_scene
+    blank = [images[0], np.zeros_like(images[1]), images[2]]
+    with pytest.raises(CameraError, match=r"too few SIFT features in view_01\.tif \(0\)"):
+        bundle.adjust_principal_points(cams, blank)
+
+
+def test_views_of_different_places_are_named(biased_scene, unbiased_scene):
+    """View 1 of another town, given with the cameras of the first: no verified matches."""
+    _, cams, images = biased_scene
+    other = unbiased_scene[2][1]
+    h, w = images[1].shape
+    other = np.pad(other, ((0, max(0, h - other.shape[0])), (0, max(0, w - other.shape[1]))),
+                   mode="reflect")[:h, :w]
+    two = bundle._view_cameras(cams)[0][:2]
+    with pytest.raises(CameraError, match=r"view_01\.tif.*too few verified matches.*view_00\.tif"):
+        bundle.adjust_principal_points(two, [images[0], other], names=["view_00.tif", "view_01.tif"])
+    # With three views the outsider is named alone.
+    with pytest.raises(CameraError, match=r"view_01\.tif shares too few verified matches"):
+        bundle.adjust_principal_points(cams, [images[0], other, images[2]])
+
+
+def test_a_single_view_is_refused(biased_scene):
+    _, cams, images = biased_scene
+    with pytest.raises(CameraError, match="at least 2"):
+        bundle.adjust_principal_points(bundle._view_cameras(cams)[0][:1], images[:1])
+
+
+# -- the real Pleiades pair --------------------------------------------------------------------
+PAIR_ALT_MIN, PAIR_ALT_MAX, PAIR_ALT_CENTRE = 2300.0, 2380.0, 2340.0  # metres, README of the pair
+PAIR_AOI_HALF_SIZE_M = 150.0
+
+
+def test_pleiades_pair_adjustment(pleiades_pair, tmp_path):
+    from satsweep.geometry.altitude import AltitudeRange
+    from satsweep.geometry.aoi import AOI
+    from satsweep.geometry.camera import CameraOptions
+    from satsweep.geometry.geodesy import ENUFrame
+    from satsweep.geometry.rpc import RPCModel
+    from satsweep.io.images import tonemap
+    from satsweep.io.views import load_views
+
+    paths = [pleiades_pair / "img_01.tif", pleiades_pair / "img_02.tif"]
+    lon, lat = RPCModel.from_image(paths[0]).localization(col=511.5, row=511.5, alt=PAIR_ALT_CENTRE)
+    local = ENUFrame(lon0=float(lon), lat0=float(lat), alt0=PAIR_ALT_CENTRE)
+    h = PAIR_AOI_HALF_SIZE_M
+    lons, lats, _ = local.to_geodetic(e=np.array([-h, h]), n=np.array([-h, h]), u=0.0)
+    aoi = AOI(lons[0], lats[0], lons[1], lats[1])
+    alt = AltitudeRange(PAIR_ALT_MIN, PAIR_ALT_MAX)
+    views = load_views(paths, aoi, alt)
+    cams = build_cameras(views, aoi, alt, CameraOptions(grid_size=SCENE_CAMERA_GRID))
+    adjusted, report = bundle.adjust_principal_points(cams, [tonemap(v.image) for v in views])
+    print(json.dumps(report.to_dict(), indent=1))
+    assert report.reproj_after_px[0] < report.reproj_before_px[0]
+    assert report.n_points >= 100
+    out = tmp_path / "ba.json"
+    out.write_text(json.dumps(report.to_dict()))
+    back = json.loads(out.read_text())
+    assert back["reprojection_error_px"]["after"]["median"] == report.reproj_after_px[0]
+    assert set(back["principal_point_shift_px"]) == {"img_01.tif", "img_02.tif"}
+    assert len(adjusted.views) == 2

@@ -1,0 +1,334 @@
+"""Tests of satsweep.sparse: SIFT keypoints, matching and verification, tracks, triangulation.
+
+References: exact synthetic ground truth (blob centres, pinhole cameras and points), the ray-plane
+back-projection of satsweep.geometry.camera for epipolar lines, a plain-Python union-find for tracks and
+scipy's least_squares for the nonlinear triangulation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from satsweep.errors import OptionsError
+from satsweep.sparse import features as sparse
+from satsweep.sparse import matching, options, triangulation
+from satsweep.sparse import tracks as sparse_tracks
+from tests.synthetic_cameras import project, scene_points, three_cameras
+
+# Gaussian blobs are located by SIFT's quadratic interpolation of the DoG extremum: measured
+# errors about 0.01 px, also at half resolution (mapped back); a quarter-pixel convention slip
+# would show as 0.25 px, a slip of the resampling's pixel centres as 0.5 px.
+BLOB_TOL_PX = 0.05
+# Noise-free triangulation: float64 rounding of pixels ~500 px through cameras ~700 km away
+# (measured ~1e-7 m); 1e-4 m is still 1000x below anything that matters (GSD 0.5 m).
+EXACT_POINT_TOL_M = 1e-4
+EXACT_PIXEL_TOL_PX = 1e-6
+# Two minimisers of the same reprojection error (ours and scipy's) agree to their convergence
+# tolerances; points differ by micrometres (measured ~1e-7 m).
+REFINE_TOL_M = 1e-4
+# Pixel noise of the synthetic observations (a typical SIFT localisation error).
+NOISE_PX = 0.3
+# Verification must keep nearly every true match: with 0.3 px noise, a 1.5 px threshold on the
+# epipolar distance loses a match with probability ~1e-6; 98 % recall leaves room for the
+# random sampling of RANSAC on 400 matches.
+MIN_RECALL = 0.98
+# A kept match must be consistent with the true geometry: within the verification threshold
+# plus the wobble of the estimated offset or affine model (a few tenths of a pixel).
+CONSISTENCY_MARGIN_PX = 0.5
+# Lucas-Kanade registration of a smooth 8-bit texture: measured errors 0.010 px median, 0.043 px
+# at most over 39 points; the keypoints it starts from are 0.4-1.2 px off, and a registration
+# that ignored the views' rotation (20 degrees) does not converge to within a pixel.
+REGISTRATION_TOL_PX = 0.1
+
+
+
+# -- options -----------------------------------------------------------------------------------
+@pytest.mark.parametrize("field,value", [("ratio", 1.5), ("ransac_threshold_px", 0.0),
+                                         ("min_matches", 2), ("max_features", 0),
+                                         ("contrast_threshold", -1.0), ("geometric_model", "homography")])
+def test_options_name_the_bad_field(field, value):
+    with pytest.raises(OptionsError, match=field):
+        options.SparseOptions(**{field: value})
+
+
+# -- features ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_keypoints_follow_the_pixel_centre_convention(scale):
+    """Blobs centred at known sub-pixel positions are found there (pixel (0,0) = first centre),
+    also when SIFT runs on the image resampled by half and its keypoints are mapped back."""
+    rows, cols = np.mgrid[0:200, 0:200].astype(np.float64)
+    centres = np.array([[40.3, 50.8], [120.0, 45.25], [60.7, 150.1], [150.45, 139.6]])  # (col, row)
+    image = np.zeros((200, 200))
+    for cx, cy in centres:
+        image += np.exp(-((cols - cx) ** 2 + (rows - cy) ** 2) / (2 * 3.0 ** 2))
+    xy, desc = sparse.detect_features(image, max_features=100, contrast_threshold=0.01,
+                                      scale=scale)
+    assert desc.shape == (len(xy), 128) and desc.dtype == np.float32
+    for c in centres:
+        d = np.hypot(*(xy - c).T)
+        assert d.min() < BLOB_TOL_PX, (c, xy[np.argmin(d)])
+
+
+def test_small_views_keep_full_resolution_features():
+    o = options.SparseOptions(feature_scale=0.5, feature_scale_min_px=512)
+    assert sparse.feature_scale_for((511, 2000), o) == 1.0
+    assert sparse.feature_scale_for((512, 600), o) == 0.5
+    assert sparse.feature_scale_for((300, 300), o.replace(feature_scale_min_px=0)) == 0.5
+
+
+def test_blank_image_has_no_features():
+    xy, desc = sparse.detect_features(np.zeros((64, 80), np.float32), max_features=100)
+    assert xy.shape == (0, 2) and desc.shape == (0, 128)
+
+
+def test_max_features_caps_the_keypoints():
+    rng = np.random.default_rng(0)
+    image = rng.random((200, 200))
+    xy, _ = sparse.detect_features(image, max_features=50)
+    # OpenCV keeps ties at the cut-off and splits multi-orientation keypoints: a few extra.
+    assert 40 <= len(xy) <= 60
+
+
+class _PlaneCamera:
+    """A camera whose ground plane u = 0 maps to pixels by the 3x3 ``H`` (columns e, n, 1)."""
+
+    def __init__(self, H):
+        self.P = np.column_stack([H[:, 0], H[:, 1], np.zeros(3), H[:, 2]])
+
+
+def test_refinement_registers_tie_points_across_rotated_views():
+    """View 1 is view 0 rotated by 20 degrees, scaled by 1.03 and moved, as its camera says,
+    plus a pointing error the camera does not know; observations of view 1 given 0.4-1.2 px off
+    come back to the exact transform of view 0's points; one given 5 px off is dropped."""
+    import cv2
+
+    rng = np.random.default_rng(7)
+    texture = cv2.GaussianBlur(rng.random((300, 300)).astype(np.float32), (0, 0), 2.0)
+    image0 = (texture - texture.min()) / np.ptp(texture)
+    a = np.deg2rad(20.0)
+    A = 1.03 * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    H1 = np.eye(3)
+    H1[:2, :2], H1[:2, 2] = A, [60.0, -40.0]
+    pointing = np.array([0.37, -0.21])  # the view-1 error the cameras do not know
+    M = np.hstack([A, (H1[:2, 2] + pointing)[:, None]])  # view 0 pixels -> view 1 pixels
+    image1 = cv2.warpAffine(image0, M, (300, 300), flags=cv2.INTER_CUBIC)
+    cams = [_PlaneCamera(np.eye(3)), _PlaneCamera(H1)]
+
+    xy0 = rng.uniform(100.0, 200.0, (40, 2))
+    truth = xy0 @ A.T + M[:, 2]
+    angle = rng.uniform(0.0, 2 * np.pi, 40)
+    off = rng.uniform(0.4, 1.2, 40)[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+    off[5] = [5.0, 0.0]  # a wrong match
+    obs = sparse_tracks.Observations(point=np.repeat(np.arange(40), 2), view=np.tile([0, 1], 40),
+                              xy=np.stack([xy0, truth + off], axis=1).reshape(-1, 2), n_points=40)
+    refined, dropped = sparse_tracks.refine_observations(obs, [image0, image1], cams, window_px=15,
+                                                  max_shift_px=2.0)
+    assert dropped == 1 and refined.n_points == 39
+    keep = np.arange(40) != 5
+    np.testing.assert_array_equal(refined.xy[0::2], xy0[keep])  # first observations stay
+    err = np.hypot(*(refined.xy[1::2] - truth[keep]).T)
+    assert err.max() < REGISTRATION_TOL_PX, err.max()
+
+
+# -- matching ----------------------------------------------------------------------------------
+def test_ratio_test_and_mutual_check():
+    """Ambiguous matches fail the ratio test; a one-way nearest neighbour fails the mutual check."""
+    rng = np.random.default_rng(1)
+    base = rng.normal(0.0, 50.0, size=(6, 128)).astype(np.float32)
+    p, q, r = base[0], base[1], base[2]
+    desc1 = np.stack([p, p + 5.0 * (q - p) / np.linalg.norm(q - p), r])  # feature 1 sits near p
+    desc2 = np.stack([p + 0.5, base[3], r + 0.1, r - 0.1])  # r has two equal candidates
+    opts = options.SparseOptions(min_matches=5)
+    i1, i2 = matching._tentative_matches(desc1, desc2, opts)
+    assert list(zip(i1, i2)) == [(0, 0)]  # 1 -> 0 is not mutual, 2 is ambiguous
+    i1, i2 = matching._tentative_matches(desc1, desc2, opts.replace(mutual=False))
+    assert list(zip(i1, i2)) == [(0, 0), (1, 0)]
+
+
+def test_nearest_neighbours_against_brute_force(monkeypatch):
+    """_nearest's blocked float32 search against a float64 brute force over several blocks."""
+    monkeypatch.setattr(matching, "_KNN_BLOCK", 7)
+    rng = np.random.default_rng(3)
+    desc1 = rng.normal(0.0, 40.0, size=(30, 128)).astype(np.float32)
+    desc2 = rng.normal(0.0, 40.0, size=(23, 128)).astype(np.float32)
+    idx12, d12, idx21 = matching._nearest(desc1, desc2)
+    D = np.linalg.norm(desc1[:, None, :].astype(np.float64) - desc2[None, :, :], axis=2)
+    order = np.argsort(D, axis=1)[:, :2]
+    np.testing.assert_array_equal(idx12, order)
+    np.testing.assert_allclose(d12, np.take_along_axis(D, order, axis=1), rtol=1e-5)
+    np.testing.assert_array_equal(idx21, D.argmin(axis=0))
+
+
+def _epipolar_truth(cam1, cam2, xy1, xy2, b1, b2) -> np.ndarray:
+    """Distance (px) of xy2 to the true epipolar line of xy1: back-project xy1 - b1 onto two
+    horizontal planes with camera 1 (satsweep.geometry.camera's ray-plane intersection), project both
+    points with camera 2, add b2."""
+    ends = []
+    for u in (-100.0, 200.0):
+        e, n = cam1.backproject(xy1[:, 0] - b1[0], xy1[:, 1] - b1[1], u=u)
+        ends.append(project(cam2, np.column_stack([e, n, np.full_like(e, u)])) + b2)
+    a, b = ends
+    d = b - a
+    return np.abs(d[:, 0] * (xy2[:, 1] - a[:, 1]) - d[:, 1] * (xy2[:, 0] - a[:, 0])) / np.hypot(*d.T)
+
+
+@pytest.mark.parametrize("model", ["cameras", "affine"])
+def test_verification_keeps_true_matches_and_drops_blunders(model):
+    rng = np.random.default_rng(2)
+    cams = three_cameras()
+    cam1, cam2 = cams[0], cams[2]
+    n = 400
+    X = scene_points(rng, n)
+    b1, b2 = np.array([0.8, -1.2]), np.array([-1.5, 0.6])  # pointing errors (px)
+    xy1 = project(cam1, X) + b1 + rng.normal(0.0, NOISE_PX, (n, 2))
+    xy2 = project(cam2, X) + b2 + rng.normal(0.0, NOISE_PX, (n, 2))
+    wrong = rng.random(n) < 0.25
+    xy2[wrong] = rng.uniform(0.0, 1000.0, (int(wrong.sum()), 2))
+    desc = rng.normal(0.0, 50.0, (n, 128)).astype(np.float32)  # distinct: identity matching
+    opts = options.SparseOptions(geometric_model=model)
+    F = matching.fundamental_from_cameras(cam1, cam2) if model == "cameras" else None
+    i1, i2 = matching.match_pair(desc, desc + 0.5, xy1, xy2, opts, fundamental=F)
+    assert np.array_equal(i1, i2)
+    kept = np.zeros(n, bool)
+    kept[i1] = True
+    recall = kept[~wrong].mean()
+    assert recall >= MIN_RECALL
+    truth = _epipolar_truth(cam1, cam2, xy1[kept], xy2[kept], b1, b2)
+    assert truth.max() < opts.ransac_threshold_px + CONSISTENCY_MARGIN_PX
+    # Blunders dropped: those kept are only the few that fell on their epipolar line by chance.
+    assert kept[wrong].sum() <= 0.05 * wrong.sum()
+
+
+def test_fundamental_matrix_of_the_cameras():
+    rng = np.random.default_rng(3)
+    cams = three_cameras()
+    X = scene_points(rng, 200)
+    F = matching.fundamental_from_cameras(cams[0], cams[1])
+    d = matching._epipolar_distance(F, project(cams[0], X), project(cams[1], X))
+    assert np.abs(d).max() < EXACT_PIXEL_TOL_PX
+
+
+def test_too_few_descriptors_give_no_matches():
+    d = np.zeros((1, 128), np.float32)
+    i1, i2 = matching.match_pair(d, d, np.zeros((1, 2)), np.zeros((1, 2)))
+    assert len(i1) == 0 and len(i2) == 0
+
+
+# -- tracks ------------------------------------------------------------------------------------
+def _reference_tracks(n_views, pair_matches):
+    """Plain union-find over (view, feature) nodes; components with a repeated view dropped."""
+    parent: dict = {}
+
+    def find(a):
+        while parent.setdefault(a, a) != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for (i, j), (a, b) in pair_matches.items():
+        for fa, fb in zip(a, b):
+            ra, rb = find((i, int(fa))), find((j, int(fb)))
+            if ra != rb:
+                parent[ra] = rb
+    groups: dict = {}
+    for node in list(parent):
+        groups.setdefault(find(node), []).append(node)
+    out = set()
+    for nodes in groups.values():
+        views = [v for v, _ in nodes]
+        if len(nodes) >= 2 and len(set(views)) == len(views):
+            out.add(tuple(sorted(nodes)))
+    return out
+
+
+def test_tracks_chain_pairs_and_drop_inconsistent_components():
+    pair_matches = {
+        (0, 1): (np.array([0, 1, 5]), np.array([3, 4, 7])),
+        (1, 2): (np.array([3, 4]), np.array([9, 2])),
+        (0, 2): (np.array([1, 6]), np.array([2, 9])),  # 0:1-1:4-2:2 consistent; 0:6-2:9-1:3-0:0 not
+    }
+    tracks = sparse_tracks.build_tracks(3, pair_matches)
+    got = {tuple(map(tuple, t)) for t in tracks}
+    assert got == {((0, 1), (1, 4), (2, 2)), ((0, 5), (1, 7))}
+    assert all(np.all(np.diff(t[:, 0]) > 0) for t in tracks)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_connected_labels_against_scipy(seed):
+    """sparse.connected_labels against scipy.sparse.csgraph.connected_components on random
+    sparse graphs (chains, isolated nodes, repeated and self edges): the same labels."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(seed)
+    n = 300
+    src, dst = rng.integers(0, n, 200), rng.integers(0, n, 200)
+    chain = np.arange(100, 160)  # a long chain: many hooking rounds
+    src, dst = np.concatenate([src, chain[:-1], [5, 5]]), np.concatenate([dst, chain[1:], [5, 5]])
+    _, ref = connected_components(coo_matrix((np.ones(len(src)), (src, dst)), shape=(n, n)),
+                                  directed=False)
+    np.testing.assert_array_equal(sparse_tracks.connected_labels(n, src, dst), ref)
+    np.testing.assert_array_equal(sparse_tracks.connected_labels(4, np.zeros(0, int), np.zeros(0, int)),
+                                  [0, 1, 2, 3])
+
+
+def test_tracks_match_a_reference_union_find():
+    rng = np.random.default_rng(4)
+    V, nf = 4, 60
+    pair_matches = {}
+    for i in range(V):
+        for j in range(i + 1, V):
+            k = 40
+            pair_matches[(i, j)] = (rng.choice(nf, k, replace=False), rng.choice(nf, k, replace=False))
+    tracks = sparse_tracks.build_tracks(V, pair_matches)
+    got = {tuple(map(tuple, t.tolist())) for t in tracks}
+    assert got == _reference_tracks(V, pair_matches)
+    assert len(got) == len(tracks)
+
+
+# -- triangulation -----------------------------------------------------------------------------
+def _observe(cams, X, rng=None, noise=0.0):
+    xys = [project(c, X) + (rng.normal(0.0, noise, (len(X), 2)) if noise else 0.0) for c in cams]
+    tracks = [np.array([[v, i] for v in range(len(cams))]) for i in range(len(X))]
+    return tracks, xys
+
+
+def test_triangulation_is_exact_on_noise_free_views():
+    rng = np.random.default_rng(5)
+    cams = three_cameras()
+    X = scene_points(rng, 300)
+    tracks, xys = _observe(cams, X)
+    pts, err = triangulation.triangulate(tracks, cams, xys)
+    assert np.abs(pts - X).max() < EXACT_POINT_TOL_M
+    assert err.max() < EXACT_PIXEL_TOL_PX
+    # Two-view tracks too.
+    pts2, _ = triangulation.triangulate([t[[0, 2]] for t in tracks], cams, xys)
+    assert np.abs(pts2 - X).max() < EXACT_POINT_TOL_M
+
+
+def test_triangulation_minimises_the_reprojection_error():
+    """Against scipy's least_squares on each point's pixel residuals."""
+    from scipy.optimize import least_squares
+
+    rng = np.random.default_rng(6)
+    cams = three_cameras()
+    X = scene_points(rng, 20)
+    tracks, xys = _observe(cams, X, rng, noise=1.0)
+    pts, err = triangulation.triangulate(tracks, cams, xys)
+    for i in range(len(X)):
+        def res(p):
+            return np.concatenate([project(c, p[None])[0] - xys[v][i] for v, c in enumerate(cams)])
+        ref = least_squares(res, X[i], xtol=1e-14, ftol=1e-14, gtol=1e-14).x
+        assert np.abs(pts[i] - ref).max() < REFINE_TOL_M
+        assert err[i] == pytest.approx(np.max(np.hypot(*res(ref).reshape(-1, 2).T)), abs=1e-6)
+
+
+def test_points_behind_the_cameras_are_rejected():
+    rng = np.random.default_rng(7)
+    cams = three_cameras()
+    X = scene_points(rng, 5)
+    X[2] = [0.0, 0.0, 2e6]  # above the satellites: negative depth in every view
+    tracks, xys = _observe(cams, X)
+    _, err = triangulation.triangulate(tracks, cams, xys)
+    assert np.isinf(err[2]) and np.all(np.isfinite(np.delete(err, 2)))
