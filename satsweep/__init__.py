@@ -33,6 +33,8 @@ _API = {
     "parse_aoi": "geometry.aoi",
     "RPCModel": "geometry.rpc",
     "ENUFrame": "geometry.geodesy",
+    "prepare_views": "pipeline.prepare",
+    "PreparedViews": "pipeline.prepare",
     "build_cameras": "geometry.camera",
     "CameraSet": "geometry.camera",
     "adjust_principal_points": "sparse.bundle",
@@ -66,6 +68,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from satsweep.geometry.rpc import RPCModel  # noqa: F401
     from satsweep.opencl.device import list_devices, open_device  # noqa: F401
     from satsweep.pipeline.outputs import ReconstructResult  # noqa: F401
+    from satsweep.pipeline.prepare import PreparedViews, prepare_views  # noqa: F401
     from satsweep.pipeline.run import reconstruct  # noqa: F401
     from satsweep.products.evaluate import evaluate_dsm  # noqa: F401
     from satsweep.sparse.bundle import adjust_principal_points  # noqa: F401

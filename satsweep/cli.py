@@ -113,47 +113,41 @@ def _add_cameras(sub) -> None:
 
 
 def _cmd_cameras(args: argparse.Namespace) -> int:
-    from satsweep.geometry import camera as scam
-    from satsweep.geometry import skew
-    from satsweep.geometry.altitude import resolve_altitude_range
+    from satsweep.config import PipelineConfig
     from satsweep.geometry.aoi import parse_aoi
+    from satsweep.geometry.camera import write_cameras
+    from satsweep.geometry.skew import skew_correct_set
     from satsweep.io.atomic import check_output_dir
-    from satsweep.io.views import load_views
+    from satsweep.io.sources import open_sources
+    from satsweep.pipeline.altitude import choose_altitude_range
+    from satsweep.pipeline.prepare import adjust_cameras, crop_views, fit_cameras
 
     check_output_dir(args.out, overwrite=args.overwrite)
-    options = scam.CameraOptions() if args.grid is None else scam.CameraOptions(grid_size=tuple(args.grid))
+    config = PipelineConfig().override("reconstruct", adjust="on")
+    if args.grid is not None:
+        config = config.override("camera", grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
-    alt = _cli_altitude_range(args)
-    if alt is None and args.dem is None:
-        from satsweep.config import ReconstructOptions
-        from satsweep.sparse.options import SparseOptions
-        from satsweep.sparse.tiepoints import altitude_range_for_images
-
-        defaults = ReconstructOptions()
-        alt, _ = altitude_range_for_images(
-            args.images, aoi, SparseOptions(), quantile=defaults.tie_altitude_quantile,
-            margin_m=defaults.tie_altitude_margin_m, crop_margin_px=defaults.crop_margin_px)
-    else:
-        alt = resolve_altitude_range(alt_range=alt, dem=args.dem, aoi=aoi)
-    views = load_views(args.images, aoi, alt)
-    cameras = scam.build_cameras(views, aoi, alt, options)
+    sources = open_sources(args.images)
+    alt = choose_altitude_range(sources, aoi, alt_range=_cli_altitude_range(args), dem=args.dem,
+                                config=config).range
+    views, tonemapped = crop_views(sources, aoi, alt, config)
+    cameras = fit_cameras(views, aoi, alt, config)
     images = None
     if args.adjust:
         import dataclasses
 
-        from satsweep.io.images import tonemap
-        from satsweep.sparse.bundle import adjust_principal_points
-
-        cameras, ba = adjust_principal_points(cameras, [tonemap(v.image) for v in views])
+        cameras, adjustment = adjust_cameras(cameras, tonemapped, config,
+                                             names=[v.name for v in views])
+        ba = adjustment.bundle
         cameras = dataclasses.replace(cameras, ba=ba.to_dict())
         before, after = ba.reproj_before_px[0], ba.reproj_after_px[0]
         print(f"bundle adjustment: {ba.n_points} points, median reprojection error "
               f"{before:.3f} -> {after:.3f} px")
         for name, shift in zip(ba.names, ba.principal_point_shift_px):
             print(f"  {name}: principal point shift ({shift[0]:+.3f}, {shift[1]:+.3f}) px")
-    if args.skew_correct:
-        cameras, images = skew.skew_correct_set(cameras, [v.image for v in views])
-    cameras = scam.write_cameras(args.out, cameras, images)
+    if args.skew_correct:  # the images written are the crops' own values, sheared
+        cameras, images = skew_correct_set(cameras, [v.image for v in views])
+    cameras = write_cameras(args.out, cameras, images)
     f = cameras.frame
     print(f"ENU origin: lon {f.lon0:.7f}, lat {f.lat0:.7f}, alt {f.alt0:.2f} m; UTM EPSG:{cameras.utm_epsg}; "
           f"AOI {aoi}, altitudes {alt}; parallax plane u = {cameras.d:.2f} m")

@@ -18,21 +18,19 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from satsweep.errors import AOIError, InputError, OptionsError
+from satsweep.errors import AOIError, OptionsError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.geometry.aoi import AOI
 
 if TYPE_CHECKING:  # pragma: no cover
     from satsweep.geometry.rpc import RPCModel
+    from satsweep.io.sources import ImageSource
 
 log = logging.getLogger(__name__)
 
 # Pixels added around the AOI footprint: room for matching windows, for RPC bias (typically a few
 # pixels for Pleiades/WorldView) and for sub-pixel interpolation at the crop edges.
 DEFAULT_MARGIN_PX = 32
-
-# Minimum number of views for stereo.
-MIN_VIEWS = 2
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -149,35 +147,27 @@ def crop_to_aoi(
 
 
 def load_views(
-    paths: Sequence[str | os.PathLike],
+    images: Sequence[str | os.PathLike | "ImageSource"],
     aoi: AOI,
     alt_range: AltitudeRange,
     *,
     margin_px: int = DEFAULT_MARGIN_PX,
 ) -> list[View]:
-    """Read each image's RPC and the window that sees the AOI; one View per image, in order.
+    """Each image's window that sees the AOI cube, with the RPC of the crop; one View per image,
+    in order. ``images`` are paths or ``ImageSource`` objects (``satsweep.io.sources``: then no
+    header or RPC is read again).
 
     Raises InputError for fewer than two images or an image given twice, ImageFormatError /
     RPCError naming a bad image or RPC, AOIError naming an image that does not see the AOI.
     """
-    from satsweep.geometry.rpc import RPCModel
-    from satsweep.io.images import image_shape, read_image
+    from satsweep.io.sources import open_sources
 
-    paths = [os.fspath(p) for p in paths]
-    if len(paths) < MIN_VIEWS:
-        raise InputError(None, f"stereo needs at least {MIN_VIEWS} images, got {len(paths)}")
-    seen: dict[str, str] = {}
-    for p in paths:
-        key = os.path.realpath(p)
-        if key in seen:
-            raise InputError(p, f"image given twice (also as {seen[key]})")
-        seen[key] = p
     views = []
-    for p in paths:
-        shape = image_shape(p)
-        rpc = RPCModel.from_image(p)
-        x0, y0, x1, y1 = aoi_footprint(rpc, aoi, alt_range, shape, margin_px=margin_px, path=p)
-        crop = read_image(p, window=(x0, y0, x1, y1))
-        views.append(View(path=p, image=_pixels(crop), rpc=rpc.cropped(x0=x0, y0=y0), x0=x0, y0=y0))
-        log.info("%s: crop x=%d..%d, y=%d..%d of %dx%d", p, x0, x1, y0, y1, shape[1], shape[0])
+    for source in open_sources(images):
+        x0, y0, x1, y1 = source.footprint(aoi, alt_range, margin_px=margin_px)
+        crop = source.read((x0, y0, x1, y1))
+        views.append(View(path=source.path, image=_pixels(crop),
+                          rpc=source.rpc.cropped(x0=x0, y0=y0), x0=x0, y0=y0))
+        log.info("%s: crop x=%d..%d, y=%d..%d of %dx%d", source.path, x0, x1, y0, y1,
+                 source.shape[1], source.shape[0])
     return views

@@ -1,161 +1,190 @@
-"""Every stage of one area (the AOI, or one tile of it), from the views to its DSM rasters."""
+"""Every stage of one area (the AOI, or one tile of it), from its altitude range to its rasters.
+
+``run_area`` returns what the scheduler needs to decide, as types rather than report entries:
+
+- ``AreaResult``: the area's rasters, cameras, its own pointing corrections and the figures of
+  each stage (``AreaRecord``, serialised into report.json only at the end of the run);
+- ``Split``: its cameras are further from their RPCs than the tiling allows (cut it again);
+- ``Wait``: its views match too poorly for their own bundle adjustment (retry it once other tiles
+  have given their corrections).
+"""
 
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
+import os
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from satsweep.config import PipelineConfig
-from satsweep.errors import CameraError
-from satsweep.geometry.altitude import resolve_altitude_range
-
-if TYPE_CHECKING:
-    from satsweep.geometry.camera import CameraSet
-from satsweep.geometry.altitude import enu_height_range
+from satsweep.geometry.altitude import AltitudeRange, enu_height_range
+from satsweep.pipeline.altitude import AltitudeChoice, choose_altitude_range
 from satsweep.pipeline.forecast import program_forecast
-from satsweep.pipeline.rasters import _area_rasters
-from satsweep.pipeline.sweeps import _sweep_references
+from satsweep.pipeline.prepare import (
+    Adjustment,
+    adjust_cameras,
+    crop_views,
+    fit_cameras,
+    ortho_values,
+    skew_correct_views,
+)
+from satsweep.pipeline.rasters import AreaRasters, area_rasters
+from satsweep.pipeline.sweeps import ReferenceHeights, sweep_references
+
+if TYPE_CHECKING:  # pragma: no cover
+    from satsweep.config import PipelineConfig
+    from satsweep.dense.selection import Selection
+    from satsweep.geometry.aoi import AOI
+    from satsweep.geometry.camera import CameraSet
+    from satsweep.io.sources import ImageSource
+    from satsweep.opencl.device import Device
+    from satsweep.pipeline.report import RunReport
+    from satsweep.products.grid import DSMGrid
 
 
-def _fill_nan(image: np.ndarray) -> np.ndarray:
-    """Skew correction leaves NaN where the sheared image has no source pixel: use 0 there (those
-    pixels are in the crop margin, outside the AOI footprint)."""
-    out = np.asarray(image, dtype=np.float32)
-    return np.where(np.isfinite(out), out, np.float32(0.0)).astype(np.float32)
+@dataclasses.dataclass(frozen=True)
+class RunContext:
+    """What every area of a run shares: the device, the options, the user's altitude inputs and
+    the report that times the stages and prints the progress."""
+
+    device: "Device"
+    config: "PipelineConfig"
+    report: "RunReport"
+    alt_range: AltitudeRange | None = None  # --alt-range
+    dem: str | os.PathLike | None = None  # --dem
 
 
-@dataclasses.dataclass
-class _Area:
-    """What one area (the AOI, or one of its tiles) gives: its DSM on its grid before hole
-    filling, the confidence raster, the orthophoto, each reference view's cloud, its cameras and
-    its own pointing corrections (its figures are in its section of the report)."""
+@dataclasses.dataclass(frozen=True, eq=False)
+class AreaJob:
+    """One area to reconstruct: its images, lon/lat box and DSM grid, and how to treat it."""
 
-    dsm: np.ndarray
-    confidence: np.ndarray
-    ortho: np.ndarray | None  # grey level of each cell's highest point (reconstruct.write_ortho)
-    clouds: list
+    sources: Sequence["ImageSource"]  # the images that see it
+    aoi: "AOI"
+    grid: "DSMGrid"
+    split_above_px: float = 0.0  # Split when a camera is further than this from its RPC (0: never)
+    borrowed_shifts: Sequence[Sequence[float]] | None = None  # per view, other tiles' corrections
+    may_wait: bool = False  # Wait (rather than skip) when the views cannot be adjusted
+
+    @property
+    def names(self) -> list[str]:
+        return [s.name for s in self.sources]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class AreaRecord:
+    """The figures of an area's stages, for report.json."""
+
+    altitude: AltitudeChoice
+    crops: list[tuple[str, tuple[int, int, int, int]]]  # (image, (x0, y0, width, height))
     cameras: "CameraSet"
-    shifts: list | None  # per view (dcx, dcy) px of its own bundle adjustment; None without one
+    adjustment: Adjustment
+    selection: "Selection"
+    sweeps: list[ReferenceHeights]
+    rasters: AreaRasters
+
+    def to_report(self) -> dict[str, Any]:
+        names = [name for name, _ in self.crops]
+        return {
+            "altitude_range": self.altitude.to_report(),
+            "views": [{"image": path, "crop": list(box)} for path, box in self.crops],
+            "cameras": {"approx_error_px": {os.path.basename(n): v.camera.error.to_dict()
+                                            for n, v in zip(names, self.cameras.views)},
+                        "warnings": list(self.cameras.warnings)},
+            "ba": self.adjustment.to_report(),
+            "view_selection": self.selection.to_dict([os.path.basename(n) for n in names]),
+            "sweep": [s.to_report() for s in self.sweeps],
+            "dsm": self.rasters.to_report(),
+        }
 
 
-# _reconstruct_area's answers for an area to be done otherwise: cut in pieces, its cameras being
-# too far from the RPCs; or later, its views matching too poorly to be adjusted, once other
-# tiles have given their corrections.
-_CUT = "cut"
-_LATER = "later"
+@dataclasses.dataclass(frozen=True, eq=False)
+class AreaResult:
+    """A reconstructed area: its rasters on its grid, its cameras, its own pointing corrections
+    (per view (dcx, dcy) px; None without its own adjustment) and its figures."""
+
+    rasters: AreaRasters
+    cameras: "CameraSet"
+    shifts: list[list[float]] | None
+    record: AreaRecord
 
 
-def _reconstruct_area(paths, aoi, grid, rep, device, *, alt_range, dem, config: PipelineConfig,
-                      names, split_above_px: float = 0.0, borrowed_shifts=None,
-                      may_wait: bool = False) -> _Area | str:
-    """Every stage from the views to the DSM rasters, for one area (the AOI or one tile of it)
-    on its ``grid``, its figures set in ``rep`` (a section of the run's report).
+@dataclasses.dataclass(frozen=True)
+class Split:
+    """The area's cameras are up to ``max_error_px`` from their RPCs: cut it again."""
 
-    ``_CUT``, after the cameras stage, when a view's perspective approximation is further than
-    ``split_above_px`` (> 0) from its RPC. When the views match too poorly for the bundle
-    adjustment: the views' principal points are moved by ``borrowed_shifts`` (per view (dcx,
-    dcy), other tiles' corrections) if given, else ``_LATER`` if ``may_wait``, else the
-    adjustment is skipped with 2 views under ``adjust = auto`` and the error raised otherwise.
-    """
-    from satsweep.dense.selection import select_views
-    from satsweep.geometry import camera as scam
-    from satsweep.geometry import skew
-    from satsweep.io.images import tonemap
-    from satsweep.io.views import load_views
-    from satsweep.sparse.bundle import adjust_principal_points, shift_principal_points
-    from satsweep.sparse.tiepoints import altitude_range_for_images
+    max_error_px: float
 
-    if alt_range is None and dem is None:
-        # Neither a range nor a DEM: the RPCs' range (kilometres), narrowed by tie points.
+
+@dataclasses.dataclass(frozen=True)
+class Wait:
+    """The area's views cannot be adjusted on their own: retry it with other tiles'
+    corrections."""
+
+    reason: str
+
+
+def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
+    """Every stage from the altitude range to the DSM rasters, for one area on its grid."""
+    config, rep = ctx.config, ctx.report
+    names = job.names
+    if ctx.alt_range is None and ctx.dem is None:
         with rep.stage("altitude"):
-            r = config.reconstruct
-            alt, rep["altitude_range"] = altitude_range_for_images(
-                paths, aoi, config.sparse, quantile=r.tie_altitude_quantile,
-                margin_m=r.tie_altitude_margin_m, crop_margin_px=r.crop_margin_px)
-        rep.log(f"altitude range {alt.min:.1f}..{alt.max:.1f} m from "
-                f"{rep['altitude_range']['tie_points']} tie points (pass --alt-range or --dem to "
+            altitude = choose_altitude_range(job.sources, job.aoi, alt_range=None, dem=None,
+                                             config=config)
+        rep.log(f"altitude range {altitude.range.min:.1f}..{altitude.range.max:.1f} m from "
+                f"{altitude.details['tie_points']} tie points (pass --alt-range or --dem to "
                 "set it)")
     else:
-        alt = resolve_altitude_range(alt_range=alt_range, dem=dem, aoi=aoi)
-        rep["altitude_range"] = {"min": alt.min, "max": alt.max,
-                                 "source": "user" if alt_range is not None else "dem"}
-    with rep.stage("views"):
-        views = load_views(paths, aoi, alt, margin_px=config.reconstruct.crop_margin_px)
-        images = [tonemap(v.image) for v in views]
-        rep["views"] = [{"image": v.path, "crop": [int(v.x0), int(v.y0), int(v.width), int(v.height)]}
-                        for v in views]
-
-    with rep.stage("cameras"):
-        cameras = scam.build_cameras(views, aoi, alt, config.camera)
-        rep["cameras"] = {
-            "approx_error_px": {n: v.camera.error.to_dict() for n, v in zip(names, cameras.views)},
-            "warnings": list(cameras.warnings),
-        }
-        for w in cameras.warnings:
-            rep.log(f"warning: {w}")
-    if split_above_px > 0.0 and max(v.camera.error.max_px for v in cameras.views) > split_above_px:
-        return _CUT
+        altitude = choose_altitude_range(job.sources, job.aoi, alt_range=ctx.alt_range,
+                                         dem=ctx.dem, config=config)
+    alt = altitude.range
+    views, images = crop_views(job.sources, job.aoi, alt, config, report=rep)
+    cameras = fit_cameras(views, job.aoi, alt, config, report=rep)
+    worst = max(v.camera.error.max_px for v in cameras.views)
+    if job.split_above_px > 0.0 and worst > job.split_above_px:
+        return Split(max_error_px=float(worst))
 
     # The kernels the sweep stage will need, built in the background meanwhile.
-    device.prebuild(program_forecast(device, cameras, enu_height_range(cameras.frame, aoi, alt),
-                                     config))
-
-    mode = config.reconstruct.adjust
-    own_shifts = None
-    if mode == "off":
-        rep["ba"] = {"skipped": "reconstruct.adjust = off"}
-    else:
-        with rep.stage("adjust"):
-            try:
-                cameras, ba = adjust_principal_points(cameras, images, config.bundle, config.sparse,
-                                                     names=names)
-                rep["ba"] = ba.to_dict()
-                own_shifts = [list(s) for s in ba.principal_point_shift_px]
-            except CameraError as exc:
-                if borrowed_shifts is not None:
-                    cameras = shift_principal_points(cameras, borrowed_shifts)
-                    rep["ba"] = {"skipped": f"not enough matches for the adjustment: {exc}",
-                                 "borrowed_principal_point_shift_px": borrowed_shifts}
-                    rep.log(f"warning: bundle adjustment of this tile impossible ({exc}); the "
-                            "other tiles' pointing corrections are used")
-                elif may_wait:
-                    rep["ba"] = {"postponed": f"not enough matches for the adjustment: {exc}"}
-                    rep.log(f"bundle adjustment of this tile impossible ({exc}): it waits for "
-                            "the other tiles' pointing corrections")
-                    return _LATER
-                elif mode == "on" or len(views) >= 3:
-                    raise
-                else:
-                    rep["ba"] = {"skipped": f"not enough matches for the adjustment: {exc}"}
-                    rep.log(f"warning: bundle adjustment skipped: {exc}")
-
-    # The orthophoto's grey levels: the crops' own values (sensor units), the same for every tile
-    # (each tile's tonemap stretches its own crop).
-    ortho_images = ([np.asarray(v.image, np.float32) for v in views]
-                    if config.reconstruct.write_ortho else None)
+    ctx.device.prebuild(program_forecast(ctx.device, cameras,
+                                         enu_height_range(cameras.frame, job.aoi, alt), config))
+    cameras, adjustment = adjust_cameras(cameras, images, config, names=names,
+                                         borrowed_shifts=job.borrowed_shifts,
+                                         may_wait=job.may_wait, report=rep)
+    if adjustment.postponed is not None:
+        return Wait(adjustment.postponed)
+    ortho_images = ortho_values(views) if config.reconstruct.write_ortho else None
     if config.reconstruct.skew_correct:
-        with rep.stage("skew"):
-            unsheared = cameras
-            cameras, images = skew.skew_correct_set(cameras, images)
-            images = [_fill_nan(im) for im in images]
-            if ortho_images is not None:
-                _, ortho_images = skew.skew_correct_set(unsheared, ortho_images)
+        cameras, images, ortho_images = skew_correct_views(cameras, images, ortho_images,
+                                                           report=rep)
 
-    frame = cameras.frame
-    u_range = enu_height_range(frame, aoi, alt)
+    from satsweep.dense.selection import select_views
+
+    u_range = enu_height_range(cameras.frame, job.aoi, alt)
     with rep.stage("select"):
         selection = select_views([v.camera for v in cameras.views],
                                  mid_height=0.5 * (u_range[0] + u_range[1]),
                                  options=config.views, names=names)
-        rep["view_selection"] = selection.to_dict(names)
         for w in selection.warnings:
             rep.log(f"warning: {w}")
+    sweeps = sweep_references(ctx.device, cameras, images, selection, u_range, config, rep,
+                              names, aoi=job.aoi, alt_range=alt)
+    rasters = area_rasters(sweeps, cameras, images, job.grid, config, rep,
+                           ortho_images=ortho_images)
+    record = AreaRecord(altitude=altitude,
+                        crops=[(v.path, (int(v.x0), int(v.y0), int(v.width), int(v.height)))
+                               for v in views],
+                        cameras=cameras, adjustment=adjustment, selection=selection,
+                        sweeps=sweeps, rasters=rasters)
+    return AreaResult(rasters=rasters, cameras=cameras, shifts=adjustment.own_shifts,
+                      record=record)
 
-    per_view = _sweep_references(device, cameras, images, selection, u_range, config, rep, names,
-                                 aoi=aoi, alt_range=alt)
-    dsm, confidence, ortho, clouds = _area_rasters(per_view, cameras, images, grid, config, rep,
-                                                   ortho_images=ortho_images)
-    return _Area(dsm=dsm, confidence=confidence, ortho=ortho, clouds=clouds, cameras=cameras,
-                 shifts=own_shifts)
+
+def sources_seeing(sources: Sequence["ImageSource"], aoi: "AOI",
+                   prior: AltitudeRange) -> list["ImageSource"]:
+    """The sources whose footprint of the AOI cube (at the ``prior`` range) meets the image."""
+    return [s for s in sources if s.sees(aoi, prior)]
+
+
+def median_shifts(shifts: Sequence[Sequence[Sequence[float]]]) -> list[list[float]]:
+    """Per view, the median (dcx, dcy) of several tiles' corrections."""
+    return [np.median(np.array(s), axis=0).tolist() for s in shifts]

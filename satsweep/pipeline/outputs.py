@@ -15,6 +15,9 @@ from satsweep.pipeline.report import RunReport, to_json
 
 @dataclasses.dataclass(frozen=True)
 class ReconstructResult:
+    """A finished run: its output folder, the DSM's path, the report and the evaluation (None
+    without a truth)."""
+
     out_dir: Path
     dsm_path: Path
     report: dict
@@ -65,7 +68,7 @@ class OutputFolder:
             shutil.rmtree(self.out_dir, ignore_errors=True)
 
 
-def _write_outputs(fused, conf, ortho, cloud, grid, rep: RunReport, out: OutputFolder, truth):
+def write_products(fused, conf, ortho, cloud, grid, rep: RunReport, out: OutputFolder, truth):
     """The "outputs" stage's rasters (``ortho`` None: none) and cloud (a ``PLYWriter`` holding
     the points, or None), then the evaluation against ``truth`` if given. Returns (the DSM's
     path in the staging folder, the evaluation or None)."""

@@ -14,7 +14,7 @@ import threading
 PRELOADED_MODULES = ("cv2",)
 
 
-def _start_preloading() -> threading.Thread:
+def start_preloading() -> threading.Thread:
     """Import PRELOADED_MODULES in a daemon thread; returns the thread (started)."""
 
     def run():

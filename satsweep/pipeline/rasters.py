@@ -4,6 +4,8 @@ each pixel's footprint -> per-view rasters -> fused DSM, confidence and orthopho
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from satsweep.config import PipelineConfig
@@ -41,13 +43,31 @@ def _enu_to_map(frame, epsg: int, points: list[tuple[np.ndarray, ...]]):
                         u_range=(lo[2], hi[2]))
 
 
-def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *,
-                  ortho_images=None):
-    """The "dsm" stage of one area on its ``grid``: each reference view's height map ->
-    cross-check -> points over each pixel's footprint (ENU -> UTM) -> per-view rasters ->
-    fusion. Returns (DSM before hole filling, confidence raster, orthophoto of
-    ``ortho_images``' values (the views' in the cameras' pixels; None: no orthophoto), one cloud
-    (x, y, z, grey colours) per reference view); the stage's figures go to ``rep["dsm"]``."""
+@dataclasses.dataclass(eq=False)
+class AreaRasters:
+    """One area's rasters on its grid, before hole filling, and the "dsm" stage's figures."""
+
+    dsm: np.ndarray  # float32 heights above the ellipsoid, NaN where none
+    confidence: np.ndarray  # float32, NaN where no view has a value
+    ortho: np.ndarray | None  # the orthophoto (None: not asked for)
+    clouds: list  # per reference view: (x, y, z, colours) of its points on the grid
+    cross_check: dict | None  # tolerance, views and kept fraction per view; None: no check
+    per_view_filled_fraction: list[float]
+    enu_to_map: dict  # whether the polynomial ENU -> map fit was used, and its error
+
+    def to_report(self) -> dict:
+        return {"cross_check": self.cross_check,
+                "per_view_filled_fraction": self.per_view_filled_fraction,
+                "enu_to_map": self.enu_to_map}
+
+
+def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *,
+                 ortho_images=None) -> AreaRasters:
+    """The "dsm" stage of one area on its ``grid``: each reference view's height map
+    (``per_view``: ``sweeps.ReferenceHeights``) -> cross-check -> points over each pixel's
+    footprint (ENU -> UTM) -> per-view rasters -> fusion, with the orthophoto of
+    ``ortho_images``' values (the views' in the cameras' pixels; None: no orthophoto) and one
+    cloud (x, y, z, grey colours) per reference view."""
     from satsweep.products.fusion import (
         cross_check_heights,
         flat_cells,
@@ -59,8 +79,8 @@ def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, 
 
     d = config.dsm
     with rep.stage("dsm"):
-        heights = [np.where(pv["valid"], pv["height"], np.nan) for pv in per_view]
-        projections = [cameras.views[pv["index"]].camera.P for pv in per_view]
+        heights = [np.where(pv.valid, pv.height, np.nan) for pv in per_view]
+        projections = [cameras.views[pv.index].camera.P for pv in per_view]
         # Every view's pixel centres in ENU (solved once: the cross-check reads them too), one
         # polynomial ENU -> UTM map fitted over all of them; then each view's centres (the
         # cloud) and footprint sub-samples (the rasters).
@@ -77,19 +97,19 @@ def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, 
         rasters, conf_rasters, orthos, clouds = [], [], [], []
         for pv, centre, height, keep in zip(per_view, centres, heights, checked):
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
-                centre, height, keep, cameras.views[pv["index"]].camera.P, to_map,
+                centre, height, keep, cameras.views[pv.index].camera.P, to_map,
                 subsamples=d.subsamples)
             cells = flat_cells(sx, sy, grid)
             rasters.append(rasterise_max_cells(cells, sz, grid))
-            if pv["confidence"] is not None:
-                conf_rasters.append(rasterise_max_cells(cells, np.ravel(pv["confidence"])[spix],
+            if pv.confidence is not None:
+                conf_rasters.append(rasterise_max_cells(cells, np.ravel(pv.confidence)[spix],
                                                         grid))
             if ortho_images is not None:
-                grey = np.ravel(ortho_images[pv["index"]])[spix]
+                grey = np.ravel(ortho_images[pv.index])[spix]
                 orthos.append(value_at_highest(cells, sz, grey, grid))
             if not config.reconstruct.write_cloud:
                 continue
-            gray = np.clip(np.nan_to_num(images[pv["index"]]) * 255.0, 0, 255).astype(np.uint8)
+            gray = np.clip(np.nan_to_num(images[pv.index]) * 255.0, 0, 255).astype(np.uint8)
             # The cloud covers the area's DSM grid, like the DSM (the crops extend beyond it).
             keep = ((x >= grid.x_min) & (x <= grid.x_min + grid.width * grid.resolution)
                     & (y <= grid.y_max) & (y >= grid.y_max - grid.height * grid.resolution))
@@ -107,16 +127,15 @@ def _area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, 
             # Views of other dates or sensors differ in gain and offset: each is brought to the
             # radiometry of the first image given (of those swept as references) before the
             # mean, so that cells seen by one view and cells seen by two look alike.
-            first = int(np.argmin([pv["index"] for pv in per_view]))
+            first = int(np.argmin([pv.index for pv in per_view]))
             kept = [o if k == first else match_radiometry(kept[first], o)
                     for k, o in enumerate(kept)]
             ortho = _nanmean_stack(kept, grid.shape)
-        rep["dsm"] = {
-            "cross_check": ({"tolerance_m": d.cross_check_m, "views": d.cross_check_views,
-                             "kept_fraction": [float(k.sum() / max(1, np.isfinite(h).sum()))
-                                               for k, h in zip(checked, heights)]}
-                            if cross_check else None),
-            "per_view_filled_fraction": [float(np.isfinite(a).mean()) for a in rasters],
-            "enu_to_map": {"polynomial": to_map.accurate, "max_error_m": to_map.max_error_m},
-        }
-    return fused, conf, ortho, clouds
+        cross = ({"tolerance_m": d.cross_check_m, "views": d.cross_check_views,
+                  "kept_fraction": [float(k.sum() / max(1, np.isfinite(h).sum()))
+                                    for k, h in zip(checked, heights)]}
+                 if cross_check else None)
+    return AreaRasters(dsm=fused, confidence=conf, ortho=ortho, clouds=clouds, cross_check=cross,
+                       per_view_filled_fraction=[float(np.isfinite(a).mean()) for a in rasters],
+                       enu_to_map={"polynomial": to_map.accurate,
+                                   "max_error_m": to_map.max_error_m})

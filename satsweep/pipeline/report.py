@@ -157,11 +157,6 @@ class RunReport:
     def __getitem__(self, key: str) -> Any:
         return self.data[key]
 
-    def section(self, data: dict[str, Any]) -> "ReportSection":
-        """A view of this report whose figures go into ``data`` (a part of the report, e.g. one
-        tile's entry) while its stages, logs and progress are this report's."""
-        return ReportSection(self, data)
-
     def _record_peak(self, name: str) -> None:
         peak = peak_memory_bytes()
         if peak is not None:
@@ -175,30 +170,3 @@ class RunReport:
 
     def to_json(self) -> str:
         return to_json(self.data)
-
-
-class ReportSection:
-    """``RunReport.section``: stage timings, logs and progress go to the run's report; figures
-    set with ``section[key] = value`` go into the section's own dict."""
-
-    def __init__(self, report: RunReport, data: dict[str, Any]):
-        self.report = report
-        self.data = data
-
-    def stage(self, name: str):
-        return self.report.stage(name)
-
-    def log(self, message: str) -> None:
-        self.report.log(message)
-
-    def move_time(self, source: str, target: str, seconds: float) -> None:
-        self.report.move_time(source, target, seconds)
-
-    def progress(self, stage: str, total: int) -> Progress:
-        return self.report.progress(stage, total)
-
-    def __setitem__(self, key: str, value: Any) -> None:
-        self.data[key] = value
-
-    def __getitem__(self, key: str) -> Any:
-        return self.data[key]

@@ -1,19 +1,25 @@
 """End to end: images + AOI -> DSM, point cloud and report (``satsweep reconstruct``).
 
 Stages (each timed in the report):
-  views     read the images and their RPCs, crop each to the AOI cube's footprint, tonemap
+  altitude  without --alt-range or --dem: the range from tie points (satsweep.pipeline.altitude)
+  views     read the images' windows that see the AOI cube, tonemap (satsweep.pipeline.prepare)
   cameras   perspective approximation of every RPC over the AOI (satsweep.geometry.camera)
   adjust    bundle adjustment of principal points (satsweep.sparse.bundle), per ``reconstruct.adjust``
   skew      shear images so that K has no skew (satsweep.geometry.skew)
   select    reference views and their sources (satsweep.dense.selection)
-  sweep     OpenCL plane sweep per reference view (satsweep.dense.sweep), then the MRF (satsweep.dense.mrf)
-  dsm       height maps -> cross-check across the reference views (satsweep.products.fusion) -> points
-            over each pixel's footprint (ENU -> UTM) -> per-view rasters -> fusion -> filling
-  outputs   dsm.tif, confidence.tif, cloud.ply, dsm.png, cameras.json, config.toml, report.json
+  sweep     OpenCL plane sweep per reference view (satsweep.dense.sweep), then the MRF
+            (satsweep.dense.mrf; satsweep.pipeline.sweeps drives them)
+  dsm       height maps -> cross-check across the reference views (satsweep.products.fusion) ->
+            points over each pixel's footprint (ENU -> UTM) -> per-view rasters -> fusion
+            (satsweep.pipeline.rasters) -> the mosaic's holes filled
+  outputs   dsm.tif, confidence.tif, ortho.tif, cloud.ply, dsm.png, cameras.json, config.toml,
+            report.json (satsweep.pipeline.outputs)
 
-An AOI wider or taller than ``[reconstruct] tile_m`` runs every stage from views to the DSM's
-fusion tile by tile (``satsweep.pipeline.tiling``: each tile with its own cameras); the tiles' cores fill
-one DSM grid, whose holes are then filled, and the outputs are written once.
+An AOI wider or taller than ``[reconstruct] tile_m`` runs every stage from the altitude range to
+the DSM's fusion tile by tile (``satsweep.pipeline.scheduler``, ``satsweep.pipeline.tiling``: each
+tile with its own cameras); the tiles' cores fill one DSM grid, whose holes are then filled, and
+the outputs are written once. The stages hand each other typed results; the report serialises
+them at the end.
 
 Outputs are first written into a hidden staging folder inside DIR and renamed into DIR only
 when every stage has succeeded: a failed run leaves what DIR held before untouched.
@@ -26,14 +32,17 @@ import os
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
+
 from satsweep.config import PipelineConfig
-from satsweep.errors import OptionsError
+from satsweep.errors import InputError, OptionsError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.geometry.aoi import AOI
-from satsweep.pipeline.outputs import OutputFolder, ReconstructResult
-from satsweep.pipeline.preload import _start_preloading
+from satsweep.pipeline.area import RunContext
+from satsweep.pipeline.outputs import OutputFolder, ReconstructResult, write_products
+from satsweep.pipeline.preload import start_preloading
 from satsweep.pipeline.report import RunReport
-from satsweep.pipeline.scheduler import _reconstruct_tiles
+from satsweep.pipeline.scheduler import Mosaic, reconstruct_areas
 
 
 def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os.PathLike, *,
@@ -47,8 +56,6 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
     if len(paths) < 2:
         raise OptionsError(f"need at least two images, got {len(paths)}")
     if truth is not None and not Path(truth).is_file():
-        from satsweep.errors import InputError
-
         raise InputError(truth, "truth DSM does not exist")
     out = OutputFolder(out_dir, overwrite=overwrite)
     try:
@@ -64,12 +71,13 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
 def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: PipelineConfig,
                  truth, verbose: bool, command: str) -> ReconstructResult:
     from satsweep.geometry.geodesy import utm_epsg
+    from satsweep.io.sources import open_sources
     from satsweep.opencl.device import open_device
     from satsweep.pipeline.tiling import plan_tiles
     from satsweep.products.grid import dsm_grid_for_aoi
     from satsweep.products.ply import PLYWriter
 
-    _start_preloading()
+    start_preloading()
     rep = RunReport(command, verbose=verbose)
     rep["settings"] = config.to_dict()
     rep["inputs"] = {"images": paths, "aoi": dataclasses.asdict(aoi), "dem": dem and os.fspath(dem),
@@ -78,23 +86,78 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     device = open_device(config.reconstruct.device)
     rep["device"] = device.info.as_dict()
     rep.log(f"device: {device.info.label}")
+    sources = open_sources(paths)
 
     # The DSM grid: the UTM zone of the AOI centre (every tile's, too), cells of --resolution.
     lon_c, lat_c = aoi.center
     grid = dsm_grid_for_aoi(aoi, config.dsm.resolution, epsg=utm_epsg(lon=lon_c, lat=lat_c))
     r = config.reconstruct
-    pending = plan_tiles(aoi, grid, tile_m=r.tile_m, overlap_m=r.tile_overlap_m)
-    if len(pending) > 1:
+    tiles = plan_tiles(aoi, grid, tile_m=r.tile_m, overlap_m=r.tile_overlap_m)
+    if len(tiles) > 1:
         rep.log(f"AOI of {grid.width * grid.resolution:.0f} m x {grid.height * grid.resolution:.0f}"
-                f" m: {len(pending)} tiles of at most {r.tile_m:g} m, each with its own cameras")
+                f" m: {len(tiles)} tiles of at most {r.tile_m:g} m, each with its own cameras")
     # The cloud is written as the areas give it: only one area's points are held at a time.
     cloud = (PLYWriter(out.path("cloud.ply"), with_colors=True,
                        comments=(f"crs EPSG:{grid.epsg}", "generated by satsweep"))
              if r.write_cloud else None)
     try:
-        return _reconstruct_tiles(paths, aoi, out, grid, pending, cloud, rep, device,
-                                  alt_range=alt_range, dem=dem, config=config, truth=truth)
+        ctx = RunContext(device=device, config=config, report=rep, alt_range=alt_range, dem=dem)
+        mosaic = reconstruct_areas(sources, aoi, grid, tiles, cloud, ctx)
+        return _finish(mosaic, cloud, ctx, out, truth)
     except BaseException:
         if cloud is not None:
             cloud.abort()
         raise
+
+
+def _finish(mosaic: Mosaic, cloud, ctx: RunContext, out: OutputFolder,
+            truth) -> ReconstructResult:
+    """The mosaic's holes filled, the report's figures, the outputs."""
+    from satsweep.geometry.camera import write_cameras
+    from satsweep.products.fusion import fill_small_holes
+
+    config, rep, grid = ctx.config, ctx.report, mosaic.grid
+    r, d = config.reconstruct, config.dsm
+    entries = []  # per area: its cells and its stages' figures
+    for tile, area in mosaic.done:
+        entries.append({**tile.to_dict(), **area.record.to_report()})
+    rep["tiling"] = {"tile_m": r.tile_m, "overlap_m": r.tile_overlap_m,
+                     "max_error_px": r.tile_max_error_px, "tiles": len(mosaic.done),
+                     "splits": mosaic.splits, "unseen": mosaic.unseen}
+    if mosaic.tiled:
+        if ctx.alt_range is not None:  # else each tile's range is in its entry (DEM, tie points)
+            rep["altitude_range"] = {"min": ctx.alt_range.min, "max": ctx.alt_range.max,
+                                     "source": "user"}
+        for k, entry in enumerate(entries):
+            entry["cameras_file"] = f"tiles/tile_{k:02d}/cameras.json"
+        rep["aoi_tiles"] = entries
+    else:  # one piece: its figures at the top of the report, as they always were
+        for key, value in entries[0].items():
+            if key not in ("core_cells", "window_cells", "level", "aoi"):
+                rep[key] = value
+
+    fused = mosaic.dsm
+    with rep.stage("dsm"):
+        filled = 0
+        if d.fill_max_hole_cells > 0:
+            fused, filled = fill_small_holes(fused, max_hole_cells=d.fill_max_hole_cells,
+                                             method=d.fill_method)
+        rep["dsm"] = {
+            "epsg": grid.epsg, "resolution_m": grid.resolution, "width": grid.width,
+            "height": grid.height, "x_min": grid.x_min, "y_max": grid.y_max,
+            "filled_fraction": float(np.isfinite(fused).mean()),
+            "holes_filled_cells": int(filled),
+            **({} if mosaic.tiled else entries[0]["dsm"]),  # a tile's are in its entry
+        }
+    dsm_path, evaluation = write_products(fused, mosaic.confidence, mosaic.ortho, cloud, grid,
+                                          rep, out, truth)
+    with rep.stage("outputs"):
+        if not mosaic.tiled:
+            write_cameras(out.staging, mosaic.done[0][1].cameras)
+        for entry, (_, area) in zip(entries if mosaic.tiled else [], mosaic.done):
+            write_cameras(out.staging / Path(entry["cameras_file"]).parent, area.cameras)
+        out.path("config.toml").write_text(config.to_toml(), encoding="utf-8")
+    report = rep.finish()
+    out.path("report.json").write_text(rep.to_json() + "\n", encoding="utf-8")
+    return ReconstructResult(out_dir=out.out_dir, dsm_path=out.out_dir / dsm_path.name,
+                             report=report, evaluation=evaluation)

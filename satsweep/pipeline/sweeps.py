@@ -4,6 +4,7 @@ the pixels that see the AOI, with the MRF refinement the options ask for.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -70,8 +71,34 @@ def _placed(result, window: tuple[int, int, int, int], shape: tuple[int, int]):
     return height, valid, confidence
 
 
-def _sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
-                      rep: RunReport, names, *, aoi: AOI, alt_range: AltitudeRange) -> list[dict]:
+@dataclasses.dataclass(frozen=True, eq=False)
+class ReferenceHeights:
+    """One reference view's height map over its whole crop, and how it was made."""
+
+    index: int  # the reference's view index
+    height: np.ndarray  # (H, W) ENU up (m) of the surface at each pixel; NaN outside the window
+    valid: np.ndarray  # (H, W) bool
+    confidence: np.ndarray  # (H, W) float32 in [0, 1]
+    reference: str  # file names, for the report
+    sources: tuple[str, ...]
+    planes: int  # planes swept
+    plane_step_m: float | None
+    window: tuple[int, int, int, int]  # the swept pixels (x0, y0, x1, y1), ends excluded
+    valid_fraction: float  # over the window
+    tiles: int  # tiles of the sweep (of the MRF, with one)
+    window_planes: int | None  # with coarse-to-fine windows: the most planes of a tile
+    mrf: dict | None  # the MRF's method, seconds, tiles and valid fraction; None without one
+
+    def to_report(self) -> dict:
+        return {"reference": self.reference, "sources": list(self.sources),
+                "planes": self.planes, "plane_step_m": self.plane_step_m,
+                "window": [int(v) for v in self.window], "valid_fraction": self.valid_fraction,
+                "tiles": self.tiles, "window_planes": self.window_planes, "mrf": self.mrf}
+
+
+def sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
+                     rep: RunReport, names, *, aoi: AOI,
+                     alt_range: AltitudeRange) -> list[ReferenceHeights]:
     """Sweep every reference view against its sources; MRF refinement per the options.
 
     Each reference is swept over its ``reference_window`` only (the pixels that see the AOI cube,
@@ -83,7 +110,7 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
     from satsweep.dense.planes import plane_heights, view_homographies
     from satsweep.dense.sweep import PlaneSweep
 
-    per_view, sweeps = [], []
+    out = []
     progress = rep.progress("sweep", len(selection.references))
     with_mrf = config.mrf.method != "none"
     swept = mrf_sweep_options(config.sweep, config.mrf)  # the sweep options as run
@@ -117,19 +144,13 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
                         "valid_fraction": float(np.mean(result.valid))}
         progress.update(k + 1, names[r])
         height, valid, confidence = _placed(result, window, shape)
-        sweeps.append({
-            "reference": names[r], "sources": [names[s] for s in srcs],
-            "planes": int(len(heights)),
-            "plane_step_m": float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
-            "window": [int(v) for v in window],
-            "valid_fraction": float(np.mean(result.valid)), "tiles": int(result.n_tiles),
-            "window_planes": result.window_planes,
-            "mrf": mrf_info,
-        })
-        per_view.append({"index": r, "height": height, "valid": valid,
-                         "confidence": confidence})
-    rep["sweep"] = sweeps
-    return per_view
+        out.append(ReferenceHeights(
+            index=r, height=height, valid=valid, confidence=confidence, reference=names[r],
+            sources=tuple(names[s] for s in srcs), planes=int(len(heights)),
+            plane_step_m=float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
+            window=tuple(int(v) for v in window), valid_fraction=float(np.mean(result.valid)),
+            tiles=int(result.n_tiles), window_planes=result.window_planes, mrf=mrf_info))
+    return out
 
 
 def _check_sgm_labels(heights: np.ndarray, config: PipelineConfig) -> None:

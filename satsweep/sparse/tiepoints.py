@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import os
 from typing import Sequence
 
 import numpy as np
@@ -140,18 +139,20 @@ def altitude_range_from_tie_points(points: TiePoints, *, quantile: float, margin
     return AltitudeRange(lo, hi)
 
 
-def altitude_range_for_images(paths: Sequence, aoi: AOI, sparse_options, *, quantile: float,
+def altitude_range_for_images(images: Sequence, aoi: AOI, sparse_options, *, quantile: float,
                               margin_m: float, crop_margin_px: int) -> tuple[AltitudeRange, dict]:
     """The altitude range of images that come with no range nor DEM: their RPCs' coarse range
-    (``aoi.altitude_range_from_rpcs``), narrowed by tie points between crops of that range.
-    Returns the range and a record for report.json."""
+    (``altitude_range_from_rpcs``), narrowed by tie points between crops of that range.
+    ``images``: paths or ``ImageSource`` objects. Returns the range and a record for
+    report.json."""
     from satsweep.geometry.altitude import altitude_range_from_rpcs
-    from satsweep.geometry.rpc import RPCModel
+    from satsweep.io.sources import open_sources
     from satsweep.io.views import load_views
 
-    names = [os.path.basename(os.fspath(p)) for p in paths]
-    coarse = altitude_range_from_rpcs([RPCModel.from_image(p) for p in paths], warn=False)
-    views = load_views(paths, aoi, coarse, margin_px=crop_margin_px)
+    sources = open_sources(images)
+    names = [s.name for s in sources]
+    coarse = altitude_range_from_rpcs([s.rpc for s in sources], warn=False)
+    views = load_views(sources, aoi, coarse, margin_px=crop_margin_px)
     ties = tie_points(views, aoi, coarse, sparse_options)
     alt = altitude_range_from_tie_points(ties, quantile=quantile, margin_m=margin_m,
                                          within=coarse, names=names)

@@ -13,13 +13,11 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from satsweep.config import PipelineConfig
 from satsweep.dense.mrf import MRFOptions
 from satsweep.dense.sweep import SweepOptions, sweep_views
-from satsweep.geometry import camera as scam
-from satsweep.geometry import skew
 from satsweep.geometry.altitude import AltitudeRange, enu_height_range
-from satsweep.io.images import tonemap
-from satsweep.io.views import load_views
+from satsweep.pipeline.prepare import prepare_views
 from satsweep.products.points import solve_ground_en
 
 # The bound for WTA on textured areas.
@@ -43,11 +41,12 @@ def scene(small_town):
 def prepared(scene):
     lo, hi = scene.alt_range
     alt = AltitudeRange(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M)
-    views = load_views([v.image for v in scene.views], scene.aoi, alt)
-    cams = scam.build_cameras(views, scene.aoi, alt, scam.CameraOptions(grid_size=(20, 20, 6)))
-    cams, images = skew.skew_correct_set(cams, [tonemap(v.image) for v in views])
-    images = [np.where(np.isfinite(im), im, 0.0).astype(np.float32) for im in images]
-    return cams, images, enu_height_range(cams.frame, scene.aoi, alt)
+    # The views as the pipeline prepares them, with the scene's exact RPCs (no adjustment).
+    config = (PipelineConfig().override("camera", grid_size=(20, 20, 6))
+              .override("reconstruct", adjust="off"))
+    prepared = prepare_views([v.image for v in scene.views], scene.aoi, alt, config)
+    cams = prepared.cameras
+    return cams, prepared.images, enu_height_range(cams.frame, scene.aoi, alt)
 
 
 def _errors(scene, cams, images, result, ref: int):

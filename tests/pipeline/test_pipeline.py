@@ -645,9 +645,9 @@ def test_preloading_imports_the_listed_modules():
     misspelt or missing module would stop the thread before the rest)."""
     import sys
 
-    from satsweep.pipeline.preload import PRELOADED_MODULES, _start_preloading
+    from satsweep.pipeline.preload import PRELOADED_MODULES, start_preloading
 
-    thread = _start_preloading()
+    thread = start_preloading()
     thread.join(timeout=120)
     assert not thread.is_alive() and thread.daemon
     assert all(name in sys.modules for name in PRELOADED_MODULES)

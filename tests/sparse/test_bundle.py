@@ -202,15 +202,17 @@ SCENE_CAMERA_GRID = (30, 30, 10)
 
 
 def _load(scene):
+    """The scene's cameras and tonemapped crops as the pipeline prepares them, unadjusted and
+    with their skew (the adjustment under test works on them)."""
+    from satsweep.config import PipelineConfig
     from satsweep.geometry.altitude import AltitudeRange
-    from satsweep.geometry.camera import CameraOptions
-    from satsweep.io.images import tonemap
-    from satsweep.io.views import load_views
+    from satsweep.pipeline.prepare import prepare_views
 
-    alt = AltitudeRange(*scene.alt_range)
-    views = load_views([v.image for v in scene.views], scene.aoi, alt)
-    cams = build_cameras(views, scene.aoi, alt, CameraOptions(grid_size=SCENE_CAMERA_GRID))
-    return cams, [tonemap(v.image) for v in views]
+    config = (PipelineConfig().override("camera", grid_size=SCENE_CAMERA_GRID)
+              .override("reconstruct", adjust="off", skew_correct=False))
+    prepared = prepare_views([v.image for v in scene.views], scene.aoi,
+                             AltitudeRange(*scene.alt_range), config)
+    return prepared.cameras, prepared.images
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,89 @@
+"""The user's images, each opened once: its path, RPC and size, with windows read on demand.
+
+A run reads every image's header and RPC once (``open_sources``) and hands the ``ImageSource``
+objects to every stage and every tile: the coverage checks, the crops of the views and the
+tie points all use them, so an RPC is parsed once per run whatever the number of tiles.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+
+from satsweep.errors import AOIError, InputError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from satsweep.geometry.altitude import AltitudeRange
+    from satsweep.geometry.aoi import AOI
+    from satsweep.geometry.rpc import RPCModel
+
+# Fewest images stereo needs.
+MIN_IMAGES = 2
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ImageSource:
+    """One input image: its file, its RPC (of the whole image) and its size."""
+
+    path: str  # the image file, as given
+    rpc: "RPCModel"  # projects ground points to pixels of the whole image
+    shape: tuple[int, int]  # (rows, columns) of the whole image
+
+    @property
+    def name(self) -> str:
+        """The file name without folders, for logs and reports."""
+        return os.path.basename(self.path)
+
+    def read(self, window: Sequence[int] | None = None) -> np.ndarray:
+        """The pixels of ``window`` = (x0, y0, x1, y1), ends excluded (None: all), as stored."""
+        from satsweep.io.images import read_image
+
+        return read_image(self.path, window=window)
+
+    def footprint(self, aoi: "AOI", alt_range: "AltitudeRange", *,
+                  margin_px: int = 0) -> tuple[int, int, int, int]:
+        """The pixel box (x0, y0, x1, y1), ends excluded, that sees the AOI cube, widened by
+        ``margin_px`` (``satsweep.io.views.aoi_footprint``); AOIError naming the file when the
+        image does not see it."""
+        from satsweep.io.views import aoi_footprint
+
+        return aoi_footprint(self.rpc, aoi, alt_range, self.shape, margin_px=margin_px,
+                             path=self.path)
+
+    def sees(self, aoi: "AOI", alt_range: "AltitudeRange") -> bool:
+        """Whether the footprint of the AOI cube meets the image."""
+        try:
+            self.footprint(aoi, alt_range)
+        except AOIError:
+            return False
+        return True
+
+
+def open_source(path: str | os.PathLike) -> ImageSource:
+    """Read an image's header and RPC (tag or sidecar); ImageFormatError / RPCError naming it."""
+    from satsweep.geometry.rpc import RPCModel
+    from satsweep.io.images import image_shape
+
+    path = os.fspath(path)
+    shape = image_shape(path)
+    return ImageSource(path=path, rpc=RPCModel.from_image(path), shape=(int(shape[0]),
+                                                                        int(shape[1])))
+
+
+def open_sources(paths: Sequence[str | os.PathLike | ImageSource]) -> list[ImageSource]:
+    """``open_source`` of every path, in order (sources given as such are kept). InputError for
+    fewer than ``MIN_IMAGES`` images or for an image given twice."""
+    items = [p if isinstance(p, ImageSource) else os.fspath(p) for p in paths]
+    if len(items) < MIN_IMAGES:
+        raise InputError(None, f"stereo needs at least {MIN_IMAGES} images, got {len(items)}")
+    seen: dict[str, str] = {}
+    for item in items:
+        path = item.path if isinstance(item, ImageSource) else item
+        key = os.path.realpath(path)
+        if key in seen:
+            raise InputError(path, f"image given twice (also as {seen[key]})")
+        seen[key] = path
+    return [item if isinstance(item, ImageSource) else open_source(item) for item in items]

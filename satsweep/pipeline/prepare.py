@@ -1,0 +1,206 @@
+"""Prepare the views of an area: crops, cameras, pointing correction, skew correction.
+
+This is the front half of every reconstruction, and a stage of its own for the ``satsweep
+cameras`` command, the tests and the tools (``prepare_views`` runs it whole). Its steps, each
+timed as a stage of the run's report when one is given:
+
+  views    each image cropped to the footprint of the AOI cube, tonemapped
+           (``satsweep.io.views``, ``satsweep.io.images.tonemap``)
+  cameras  the perspective approximation of every RPC over the cube (``satsweep.geometry.camera``)
+  adjust   the bundle adjustment of the principal points (``satsweep.sparse.bundle``), per
+           ``[reconstruct] adjust``; an ``Adjustment`` says what was done
+  skew     the images sheared so that K has no skew (``satsweep.geometry.skew``)
+
+The images handed to the sweep are the tonemapped crops; the orthophoto's are the crops' own
+values (sensor units, the same in every tile), sheared alike.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+
+from satsweep.errors import CameraError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from satsweep.config import PipelineConfig
+    from satsweep.geometry.altitude import AltitudeRange
+    from satsweep.geometry.aoi import AOI
+    from satsweep.geometry.camera import CameraSet
+    from satsweep.io.sources import ImageSource
+    from satsweep.io.views import View
+    from satsweep.pipeline.report import RunReport
+    from satsweep.sparse.bundle import BundleReport
+
+
+def _stage(report: "RunReport | None", name: str):
+    """The report's timer of stage ``name``, or nothing without a report."""
+    return report.stage(name) if report is not None else contextlib.nullcontext()
+
+
+def _log(report: "RunReport | None", message: str) -> None:
+    if report is not None:
+        report.log(message)
+
+
+@dataclasses.dataclass(frozen=True)
+class Adjustment:
+    """What the pointing-correction step did with an area's views.
+
+    ``bundle``: the adjustment's own report when it ran; else ``skipped`` says why (and
+    ``borrowed_shift_px`` holds the other tiles' corrections applied instead, if any), or
+    ``postponed`` says why the area waits for other tiles' corrections.
+    """
+
+    bundle: "BundleReport | None" = None
+    skipped: str | None = None
+    borrowed_shift_px: tuple[tuple[float, float], ...] | None = None
+    postponed: str | None = None
+
+    @property
+    def own_shifts(self) -> list[list[float]] | None:
+        """Per view (dcx, dcy) px of this area's own adjustment; None without one."""
+        if self.bundle is None:
+            return None
+        return [list(s) for s in self.bundle.principal_point_shift_px]
+
+    def to_report(self) -> dict[str, Any]:
+        if self.bundle is not None:
+            return self.bundle.to_dict()
+        if self.postponed is not None:
+            return {"postponed": self.postponed}
+        out: dict[str, Any] = {"skipped": self.skipped}
+        if self.borrowed_shift_px is not None:
+            out["borrowed_principal_point_shift_px"] = [list(s) for s in self.borrowed_shift_px]
+        return out
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PreparedViews:
+    """An area's views ready for the sweep: crops, images, cameras and how they were adjusted."""
+
+    views: list["View"]  # the crops (raw pixels, RPCs of the crops)
+    images: list[np.ndarray]  # float32, tonemapped to about [0, 1], sheared like the cameras
+    ortho_images: list[np.ndarray] | None  # the crops' own values, sheared alike (None: none)
+    cameras: "CameraSet"  # adjusted (per ``adjustment``) and skew-corrected (per the options)
+    adjustment: Adjustment
+
+    @property
+    def names(self) -> list[str]:
+        return [v.name for v in self.views]
+
+
+def crop_views(sources: Sequence["ImageSource"], aoi: "AOI", alt_range: "AltitudeRange",
+               config: "PipelineConfig", *, report: "RunReport | None" = None
+               ) -> tuple[list["View"], list[np.ndarray]]:
+    """The "views" step: each image's crop of the AOI cube (``[reconstruct] crop_margin_px``
+    around it) and the crop tonemapped."""
+    from satsweep.io.images import tonemap
+    from satsweep.io.views import load_views
+
+    with _stage(report, "views"):
+        views = load_views(sources, aoi, alt_range, margin_px=config.reconstruct.crop_margin_px)
+        images = [tonemap(v.image) for v in views]
+    return views, images
+
+
+def fit_cameras(views: Sequence["View"], aoi: "AOI", alt_range: "AltitudeRange",
+                config: "PipelineConfig", *, report: "RunReport | None" = None) -> "CameraSet":
+    """The "cameras" step: every view's perspective approximation over the AOI cube."""
+    from satsweep.geometry.camera import build_cameras
+
+    with _stage(report, "cameras"):
+        cameras = build_cameras(views, aoi, alt_range, config.camera)
+        for w in cameras.warnings:
+            _log(report, f"warning: {w}")
+    return cameras
+
+
+def adjust_cameras(cameras: "CameraSet", images: Sequence[np.ndarray], config: "PipelineConfig",
+                   *, names: Sequence[str] | None = None,
+                   borrowed_shifts: Sequence[Sequence[float]] | None = None,
+                   may_wait: bool = False, report: "RunReport | None" = None
+                   ) -> tuple["CameraSet", Adjustment]:
+    """The "adjust" step, per ``[reconstruct] adjust``: the bundle adjustment of the principal
+    points. When the views match too poorly for it: the principal points are moved by
+    ``borrowed_shifts`` (per view, other tiles' corrections) if given; else the adjustment is
+    postponed if ``may_wait`` (``Adjustment.postponed``; the cameras are returned unchanged);
+    else it is skipped with 2 views under ``adjust = auto``, and the CameraError raised
+    otherwise."""
+    from satsweep.sparse import bundle
+
+    mode = config.reconstruct.adjust
+    if mode == "off":
+        return cameras, Adjustment(skipped="reconstruct.adjust = off")
+    with _stage(report, "adjust"):
+        try:
+            adjusted, result = bundle.adjust_principal_points(cameras, images, config.bundle,
+                                                              config.sparse, names=names)
+            return adjusted, Adjustment(bundle=result)
+        except CameraError as exc:
+            why = f"not enough matches for the adjustment: {exc}"
+            if borrowed_shifts is not None:
+                _log(report, f"warning: bundle adjustment of this tile impossible ({exc}); the "
+                             "other tiles' pointing corrections are used")
+                shifts = tuple(tuple(float(v) for v in s) for s in borrowed_shifts)
+                return (bundle.shift_principal_points(cameras, borrowed_shifts),
+                        Adjustment(skipped=why, borrowed_shift_px=shifts))
+            if may_wait:
+                _log(report, f"bundle adjustment of this tile impossible ({exc}): it waits for "
+                             "the other tiles' pointing corrections")
+                return cameras, Adjustment(postponed=why)
+            if mode == "on" or len(cameras.views) >= 3:
+                raise
+            _log(report, f"warning: bundle adjustment skipped: {exc}")
+            return cameras, Adjustment(skipped=why)
+
+
+def _fill_nan(image: np.ndarray) -> np.ndarray:
+    """Skew correction leaves NaN where the sheared image has no source pixel: use 0 there (those
+    pixels are in the crop margin, outside the AOI footprint)."""
+    out = np.asarray(image, dtype=np.float32)
+    return np.where(np.isfinite(out), out, np.float32(0.0)).astype(np.float32)
+
+
+def skew_correct_views(cameras: "CameraSet", images: Sequence[np.ndarray],
+                       ortho_images: Sequence[np.ndarray] | None = None, *,
+                       report: "RunReport | None" = None):
+    """The "skew" step: (cameras without skew, images sheared alike with 0 where no pixel maps,
+    ortho images sheared alike (None stays None))."""
+    from satsweep.geometry.skew import skew_correct_set
+
+    with _stage(report, "skew"):
+        corrected, sheared = skew_correct_set(cameras, images)
+        sheared = [_fill_nan(im) for im in sheared]
+        if ortho_images is not None:
+            _, ortho_images = skew_correct_set(cameras, ortho_images)
+    return corrected, sheared, ortho_images
+
+
+def ortho_values(views: Sequence["View"]) -> list[np.ndarray]:
+    """The orthophoto's grey levels: the crops' own values (sensor units, the same for every
+    tile, where each tile's tonemap stretches its own crop)."""
+    return [np.asarray(v.image, np.float32) for v in views]
+
+
+def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
+                  alt_range: "AltitudeRange", config: "PipelineConfig | None" = None, *,
+                  report: "RunReport | None" = None) -> PreparedViews:
+    """Every step in order: crops, cameras, the adjustment per ``[reconstruct] adjust`` (with
+    the rules of ``adjust_cameras``, without waiting), the skew correction per ``[reconstruct]
+    skew_correct``. ``sources``: ``ImageSource`` objects or image paths."""
+    from satsweep.config import PipelineConfig
+
+    config = config if config is not None else PipelineConfig()
+    views, images = crop_views(sources, aoi, alt_range, config, report=report)
+    cameras = fit_cameras(views, aoi, alt_range, config, report=report)
+    cameras, adjustment = adjust_cameras(cameras, images, config,
+                                         names=[v.name for v in views], report=report)
+    ortho = ortho_values(views) if config.reconstruct.write_ortho else None
+    if config.reconstruct.skew_correct:
+        cameras, images, ortho = skew_correct_views(cameras, images, ortho, report=report)
+    return PreparedViews(views=views, images=list(images), ortho_images=ortho, cameras=cameras,
+                         adjustment=adjustment)
