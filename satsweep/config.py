@@ -30,28 +30,25 @@ from satsweep.sparse.options import SparseOptions
 class ReconstructOptions(Options):
     """Options of the orchestration itself (the stages have their own tables)."""
 
-    device: str | None = None  # OpenCL device: auto | cpu | gpu | PLATFORM:DEVICE; unset: the
-    # SATSWEEP_DEVICE environment variable, else auto (a GPU if one builds kernels, else a CPU)
-    adjust: Literal["auto", "on", "off"] = "auto"  # bundle adjustment of principal points:
-    # auto = on with 3+ views, and on with 2 views when the features match (else skipped, reported)
-    skew_correct: bool = True  # shear images so that K has no skew before the sweep
-    crop_margin_px: int = 32  # margin around the AOI footprint when cropping the images
-    write_cloud: bool = True  # write cloud.ply (all reference views' points, UTM, with colour)
-    write_ortho: bool = True  # write ortho.tif: on the DSM's grid, the reference views' value
-    # (the images' own units) at each cell's highest point, i.e. a true orthophoto
-    tie_altitude_quantile: float = 0.01  # without --alt-range or --dem, the altitudes between
-    # this quantile and 1 - it of the SIFT tie points inside the AOI (triangulated with the RPCs)
-    # are swept (satsweep.sparse.tiepoints; Pleiades pair: 2273.1..2374.3 m, S2P's DSM 2273.8..2373.2 m)
-    tie_altitude_margin_m: float = 20.0  # ... widened by this much (m) on each side: tie points
-    # are scarce on the lowest ground and the highest roofs
+    device: str | None = None  # OpenCL device: auto, cpu, gpu or PLATFORM:DEVICE; unset: the
+    # SATSWEEP_DEVICE environment variable, else auto
+    adjust: Literal["auto", "on", "off"] = "auto"  # bundle adjustment of the principal points:
+    # auto = with 3+ views, and with 2 views when their features match
+    write_cloud: bool = True  # write cloud.ply (every reference view's points, UTM, grey colour)
+    write_ortho: bool = True  # write ortho.tif, a true orthophoto on the DSM grid (image units)
     tile_m: float = 1000.0  # an AOI wider or taller than this (m) is reconstructed in tiles of
-    # at most this side, each with its own cameras (satsweep.pipeline.tiling): the perspective
-    # approximation of a Pleiades RPC is within 0.095 px over 1 km, 0.43 px over 4 km; 0: never
+    # at most this side, each with its own cameras; 0: never
+    skew_correct: bool = True  # shear the images so that K has no skew before the sweep
+    crop_margin_px: int = 32  # margin (px) kept around the AOI footprint in each image's crop
+    tie_altitude_quantile: float = 0.01  # without --alt-range or --dem, the tie points'
+    # altitudes between this quantile and 1 minus it are swept
+    tie_altitude_margin_m: float = 20.0  # ... widened by this (m) on each side
     tile_overlap_m: float = 50.0  # context (m) each tile is reconstructed with beyond its cells
-    tile_max_error_px: float = 0.1  # an area (the AOI or a tile) whose perspective
-    # approximations are further than this from their RPCs (px) is cut again in 2 x 2, down to
-    # tiles of 50 m: the error depends on the sensor (at 1 km, 0.05-0.11 px for WorldView,
-    # Pleiades and SPOT RPCs, 0.5-0.6 px for PlanetScope's); 0: never cut for it
+    tile_max_error_px: float = 0.1  # an area whose cameras are further than this (px) from
+    # their RPCs is cut again in 2 x 2, down to tiles of 50 m; 0: never
+
+    ADVANCED = ("skew_correct", "crop_margin_px", "tie_altitude_quantile",
+                "tie_altitude_margin_m", "tile_overlap_m", "tile_max_error_px")
 
     def check(self) -> None:
         self._require(self.device is None or bool(self.device.strip()), "device",
@@ -70,6 +67,10 @@ class ReconstructOptions(Options):
         self._require(math.isfinite(self.tile_max_error_px) and self.tile_max_error_px >= 0.0,
                       "tile_max_error_px", "must be a number of pixels >= 0 (0: off)")
 
+
+# Written above every stage's advanced sub-table.
+ADVANCED_HEADER = ("Tuning knobs: their defaults were measured (docs/measurements.md); change "
+                   "them with a benchmark at hand.")
 
 SECTIONS: dict[str, type[Options]] = {
     "reconstruct": ReconstructOptions,
@@ -125,7 +126,11 @@ class PipelineConfig:
 
     def to_toml(self, header: str = "satsweep configuration (as used by this run)",
                 comments: bool = True) -> str:
-        """TOML text of every option; with ``comments`` each key is preceded by its field's
-        comment in the source (what it means, its unit, how its default was chosen)."""
+        """TOML text of every option, one table per stage and the tuning knobs in its
+        ``advanced`` sub-table; with ``comments`` each key is preceded by its field's comment in
+        the source (what it means and its unit)."""
+        tables = {name: getattr(self, name).to_tables() for name in SECTIONS}
         notes = {name: SECTIONS[name].field_comments() for name in SECTIONS} if comments else None
-        return f"# {header}\n" + dumps_toml(self.to_dict(), notes)
+        headers = ({f"{name}.{options.ADVANCED_TABLE}": ADVANCED_HEADER
+                    for name, options in SECTIONS.items()} if comments else None)
+        return f"# {header}\n" + dumps_toml(tables, notes, headers)

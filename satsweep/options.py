@@ -1,9 +1,14 @@
 """Typed, validated options, and their mapping from TOML files.
 
 Each pipeline stage declares its options as a frozen dataclass deriving from ``Options``; every
-field has a default with a comment saying what it means, and a ``check()`` method that raises
-``OptionsError`` naming the field. Construction runs the check, so an options object that exists is
-valid. ``from_mapping`` builds one from a (TOML) mapping and rejects unknown keys.
+field has a default with a one-sentence comment giving its meaning and unit, and a ``check()``
+method that raises ``OptionsError`` naming the field. Construction runs the check, so an options
+object that exists is valid. ``from_mapping`` builds one from a (TOML) mapping and rejects
+unknown keys.
+
+The fields a class lists in ``ADVANCED`` are tuning knobs (their defaults were measured, see
+docs/measurements.md): a configuration file gives them in the stage's ``advanced`` sub-table
+(``[sweep.advanced]``), or in the stage's own table; ``satsweep config`` shows them apart.
 
 There is no global configuration: options objects are passed explicitly to the stage that uses
 them, as COLMAP's ``mvs`` option structs are kept apart from the problem data.
@@ -16,7 +21,7 @@ import functools
 import os
 import tomllib
 import typing
-from typing import Any, Mapping, TypeVar
+from typing import Any, ClassVar, Mapping, TypeVar
 
 from satsweep.errors import InputError, OptionsError
 
@@ -26,6 +31,11 @@ T = TypeVar("T", bound="Options")
 @dataclasses.dataclass(frozen=True)
 class Options:
     """Base of all option dataclasses: validation on construction and mapping from TOML."""
+
+    # The fields that are tuning knobs rather than choices (see the module docstring).
+    ADVANCED: ClassVar[tuple[str, ...]] = ()
+    # The sub-table of a stage's table that holds its advanced options.
+    ADVANCED_TABLE: ClassVar[str] = "advanced"
 
     def __post_init__(self) -> None:
         self._check_types()
@@ -52,8 +62,26 @@ class Options:
     # -- construction from mappings ------------------------------------------------------------
     @classmethod
     def from_mapping(cls: type[T], data: Mapping[str, Any], *, source: str = "options") -> T:
-        """Build from a mapping (e.g. a TOML table); unknown keys and wrong types are errors."""
+        """Build from a mapping (e.g. a TOML table); unknown keys and wrong types are errors.
+        The advanced options may be given in the ``advanced`` sub-mapping or at the top."""
         names = {f.name for f in dataclasses.fields(cls)}
+        data = dict(data)
+        nested = data.pop(cls.ADVANCED_TABLE, None)
+        if nested is not None:
+            if not isinstance(nested, Mapping):
+                raise OptionsError(f"{source}: '{cls.ADVANCED_TABLE}' must be a table of "
+                                   f"advanced options")
+            misplaced = sorted(set(nested) - set(cls.ADVANCED))
+            if misplaced:
+                known = ", ".join(cls.ADVANCED) or "none"
+                raise OptionsError(f"{source}: {', '.join(misplaced)} not advanced option(s) of "
+                                   f"{cls.__name__} (advanced: {known}; the others go in the "
+                                   "stage's own table)")
+            twice = sorted(set(nested) & set(data))
+            if twice:
+                raise OptionsError(f"{source}: {', '.join(twice)} given both in the table and in "
+                                   f"its '{cls.ADVANCED_TABLE}' sub-table")
+            data.update(nested)
         unknown = sorted(set(data) - names)
         if unknown:
             raise OptionsError(
@@ -82,6 +110,13 @@ class Options:
 
     def to_dict(self) -> dict[str, Any]:
         return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    def to_tables(self) -> dict[str, Any]:
+        """``to_dict`` with the advanced options in their sub-table (the TOML layout)."""
+        flat = self.to_dict()
+        basic = {k: v for k, v in flat.items() if k not in self.ADVANCED}
+        advanced = {k: flat[k] for k in flat if k in self.ADVANCED}
+        return {**basic, self.ADVANCED_TABLE: advanced} if advanced else basic
 
     @classmethod
     def field_comments(cls) -> dict[str, str]:
@@ -184,24 +219,41 @@ def load_toml(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def dumps_toml(tables: Mapping[str, Mapping[str, Any]],
-               comments: Mapping[str, Mapping[str, str]] | None = None) -> str:
+               comments: Mapping[str, Mapping[str, str]] | None = None,
+               headers: Mapping[str, str] | None = None) -> str:
     """Serialise {table: {key: value}} of plain values (numbers, strings, bools, lists) as TOML;
-    ``comments[table][key]``, where given, is written as ``#`` lines above the key."""
+    a value that is itself a mapping is written as the sub-table ``[table.key]`` after the
+    table's own keys. ``comments[table][key]``, where given, is written as ``#`` lines above the
+    key (the sub-table's keys take their comments from the table's), and ``headers[name]``
+    above a (sub-)table."""
     import textwrap
 
+    def wrap(text: str) -> list[str]:
+        return textwrap.wrap(text, width=98, initial_indent="# ", subsequent_indent="# ",
+                             break_on_hyphens=False)
+
     lines: list[str] = []
-    for table, values in tables.items():
-        lines.append(f"[{table}]")
-        notes = (comments or {}).get(table, {})
+
+    def table(name: str, values: Mapping[str, Any], notes: Mapping[str, str]) -> None:
+        if (headers or {}).get(name):
+            lines.extend(wrap(headers[name]))
+        lines.append(f"[{name}]")
+        subs = {k: v for k, v in values.items() if isinstance(v, Mapping)}
         for key, value in values.items():
+            if key in subs:
+                continue
             if notes.get(key):
-                lines.extend(textwrap.wrap(notes[key], width=98, initial_indent="# ",
-                                           subsequent_indent="# ", break_on_hyphens=False))
+                lines.extend(wrap(notes[key]))
             if value is None:
                 lines.append(f"# {key} is unset")
                 continue
             lines.append(f"{key} = {_toml_value(value)}")
         lines.append("")
+        for key, value in subs.items():
+            table(f"{name}.{key}", value, notes)
+
+    for name, values in tables.items():
+        table(name, values, (comments or {}).get(name, {}))
     return "\n".join(lines)
 
 

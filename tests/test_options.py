@@ -82,3 +82,44 @@ def test_public_api_names_resolve():
         assert getattr(satsweep, name) is not None, name
     with pytest.raises(AttributeError):
         satsweep.no_such_thing  # noqa: B018
+
+
+def test_advanced_options_go_in_their_sub_table_and_round_trip(tmp_path):
+    from satsweep.config import SECTIONS, PipelineConfig
+
+    config = (PipelineConfig().override("dsm", outlier_m=3.0, resolution=1.0)
+              .override("camera", grid_size=(50, 50, 10)))
+    text = config.to_toml()
+    assert "[dsm.advanced]" in text and "[camera.advanced]" in text
+    # Each advanced option is written in the sub-table, each other one in the stage's table.
+    import tomllib
+
+    tables = tomllib.loads(text)
+    for name, options in SECTIONS.items():
+        advanced = tables[name].get("advanced", {})
+        assert set(advanced) == set(options.ADVANCED)
+        assert not set(options.ADVANCED) & (set(tables[name]) - {"advanced"})
+    path = tmp_path / "c.toml"
+    path.write_text(text, encoding="utf-8")
+    assert PipelineConfig.from_toml(path) == config
+
+
+def test_advanced_option_accepted_in_the_table_but_a_basic_one_refused_in_advanced():
+    from satsweep.config import PipelineConfig
+
+    flat = PipelineConfig.from_mapping({"dsm": {"outlier_m": 3.0}})
+    nested = PipelineConfig.from_mapping({"dsm": {"advanced": {"outlier_m": 3.0}}})
+    assert flat == nested and flat.dsm.outlier_m == 3.0
+    with pytest.raises(OptionsError, match=r"resolution not advanced option\(s\) of DSMOptions"):
+        PipelineConfig.from_mapping({"dsm": {"advanced": {"resolution": 1.0}}})
+    with pytest.raises(OptionsError, match="both in the table and in its 'advanced'"):
+        PipelineConfig.from_mapping({"dsm": {"outlier_m": 3.0, "advanced": {"outlier_m": 2.0}}})
+
+
+def test_every_advanced_name_is_a_field():
+    import dataclasses
+
+    from satsweep.config import SECTIONS
+
+    for options in SECTIONS.values():
+        assert set(options.ADVANCED) <= {f.name for f in dataclasses.fields(options)}

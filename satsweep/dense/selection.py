@@ -34,12 +34,14 @@ from satsweep.options import Options
 
 @dataclasses.dataclass(frozen=True)
 class ViewSelectionOptions(Options):
-    min_b_over_h: float = 0.1  # below this a pair has too little parallax
-    max_b_over_h: float = 0.5  # above this occlusions and appearance changes dominate
-    target_b_over_h: float = 0.25  # preferred base-to-height ratio when ranking sources
-    max_sources: int = 3  # sources per reference view
-    max_references: int = 4  # reference views swept (each costs a full sweep)
+    max_references: int = 4  # reference views swept (each costs a sweep)
+    max_sources: int = 3  # source views per reference
+    min_b_over_h: float = 0.1  # least base-to-height ratio of a reference-source pair
+    max_b_over_h: float = 0.5  # largest base-to-height ratio of a reference-source pair
+    target_b_over_h: float = 0.25  # base-to-height ratio preferred when ranking sources
     min_overlap: float = 0.3  # least fraction of a reference crop that a source must see
+
+    ADVANCED = ("min_b_over_h", "max_b_over_h", "target_b_over_h", "min_overlap")
 
     def check(self) -> None:
         self._require(0 <= self.min_b_over_h < self.max_b_over_h, "min_b_over_h",

@@ -71,20 +71,16 @@ _INNER_LIST = re.compile(r"\[\s*([-+0-9.eE,\s]*?)\s*\]")
 class CameraOptions(Options):
     """Options of the RPC -> perspective approximation and of the parallax reparametrisation."""
 
-    # Samples of the AOI cube along longitude (east), latitude (north) and altitude (up).
-    grid_size: tuple[int, int, int] = (100, 100, 20)
-    # Grid samples the fit uses: a seeded random subset of those inside the image (all of them when
-    # fewer); the errors are reported over every sample. On the Pleiades pair's 700 px AOI both
-    # views took 1.0-1.2 s with all 2e5 samples and 0.2 s with 2e4, and the largest errors over
-    # all 2e5 samples moved by 0.0001 px (0.03894 -> 0.03900 and 0.03697 -> 0.03710 px).
-    fit_samples: int = 20_000
-    # Refine the normalised DLT by Gauss-Newton on the reprojection error (pixels).
-    refine: bool = True
-    # Distance (m) of the parallax reference plane u = d below the lowest sample of the AOI cube,
-    # so that the 4th (parallax) coordinate stays positive over the whole scene.
-    plane_margin_m: float = 10.0
-    # A view whose maximum approximation error (px) exceeds this gets a warning (tile the AOI).
-    warn_error_px: float = 0.2
+    warn_error_px: float = 0.2  # a camera further than this (px) from its RPC gets a warning
+    grid_size: tuple[int, int, int] = (100, 100, 20)  # samples of the AOI cube along east,
+    # north and up
+    fit_samples: int = 20_000  # grid samples the fit uses (a seeded random subset); the errors
+    # are reported over all of them
+    refine: bool = True  # refine the normalised DLT by Gauss-Newton on the reprojection error
+    plane_margin_m: float = 10.0  # distance (m) of the parallax plane u = d below the lowest
+    # sample of the AOI cube
+
+    ADVANCED = ("grid_size", "fit_samples", "refine", "plane_margin_m")
 
     def check(self) -> None:
         self._require(all(n >= 2 for n in self.grid_size), "grid_size",

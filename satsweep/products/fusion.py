@@ -34,15 +34,21 @@ FUSE_BLOCK_VALUES = 8_000_000
 class DSMOptions(Options):
     """Options of the DSM stage (rasterisation, fusion across reference views, hole filling)."""
 
-    resolution: float = 0.5  # DSM cell size in metres (UTM)
-    subsamples: int = 2  # each reference pixel is splatted as subsamples x subsamples points over its footprint (1: centre only, which leaves empty cells between the pixels' centres)
-    cross_check_m: float = 2.0  # keep a reference view's pixel only where another reference view's height map agrees within this (m); 0: no check
-    cross_check_views: int = 1  # how many other reference views must agree (at most all the others; a single reference view is not checked)
-    outlier_m: float = 2.0  # fusion: discard per-view heights farther than this (m) from the first per-cell median
-    min_views: int = 1  # fusion: cells kept by fewer reference views are left empty
-    fill_max_hole_cells: int = 1000  # fill enclosed holes of at most this many cells (0: no filling); the
-    # holes left by occlusions and by the cross-check are mostly ground hidden by a wall (filled cells are counted in report.json)
-    fill_method: Literal["min", "median"] = "min"  # value given to a filled hole: min or median of its rim
+    resolution: float = 0.5  # DSM cell size (m, UTM)
+    fill_max_hole_cells: int = 1000  # fill enclosed holes of at most this many cells; 0: none
+    subsamples: int = 2  # points splatted per side of each reference pixel's footprint (1: its
+    # centre only)
+    cross_check_m: float = 2.0  # a reference pixel is kept where another reference view's
+    # height map agrees within this (m); 0: no check
+    cross_check_views: int = 1  # how many other reference views must agree
+    outlier_m: float = 2.0  # fusion: per-view heights farther than this (m) from the cell's
+    # first median are dropped
+    min_views: int = 1  # fusion: cells that fewer reference views fill are left empty
+    fill_method: Literal["min", "median"] = "min"  # a filled hole's value: the minimum or the
+    # median of its rim
+
+    ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
+                "fill_method")
 
     def check(self) -> None:
         self._require(math.isfinite(self.resolution) and self.resolution > 0.0, "resolution", "must be > 0 metres")
