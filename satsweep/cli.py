@@ -7,14 +7,64 @@ exit code 2; nothing is written for a run that fails on its input.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import re
+import signal
 import sys
+import warnings
 from typing import Callable, Sequence
 
 from satsweep import __version__
 from satsweep.errors import SatsweepError
 
 Handler = Callable[[argparse.Namespace], int]
+
+# Exit code of a run that finished but whose warnings say the result is doubtful, with --strict.
+EXIT_DOUBTFUL = 3
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that takes a value starting with a minus and a digit (``--aoi -70.5,-33.4,...``,
+    ``--alt-range -12 40``, ``-1e9``) as a value, not as an unknown option: satsweep has no
+    option that looks like a number."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-(\d|\.\d)")
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP, raised in the main thread so that a run cleans up as on Ctrl-C."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def _termination_raises():
+    """While inside: SIGTERM and SIGHUP raise ``Terminated`` (as SIGINT raises
+    KeyboardInterrupt), so a killed run removes its staging folder; the previous handlers are
+    restored after."""
+
+    def raise_terminated(signum, _frame):
+        raise Terminated(signum)
+
+    previous = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        signum = getattr(signal, name, None)
+        if signum is None:  # pragma: no cover - Windows has no SIGHUP
+            continue
+        try:
+            previous[signum] = signal.signal(signum, raise_terminated)
+        except ValueError:  # not the main thread: signals cannot be handled here
+            pass
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 # -- devices -----------------------------------------------------------------------------------
@@ -254,7 +304,12 @@ def _add_pipeline_options(p) -> None:
                    help="bundle adjustment of principal points (default auto: on with 3+ views, "
                    "and with 2 views when their features match)")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty --out folder")
-    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress lines on stderr (warnings are still printed)")
+    p.add_argument("--strict", action="store_true",
+                   help=f"exit with code {EXIT_DOUBTFUL} (after writing the outputs) when a warning "
+                   "says the result is doubtful: heights piling up at an end of the altitude "
+                   "range, a DSM mostly empty")
 
 
 def _pipeline_config(args: argparse.Namespace):
@@ -273,8 +328,9 @@ def _add_reconstruct(sub) -> None:
         description="Crop and tonemap the images, approximate their RPCs by perspective cameras, "
         "correct pointing errors by bundle adjustment, sweep planes on the OpenCL device, refine "
         "with an MRF, and fuse the height maps into a DSM on the UTM grid of the AOI. Writes "
-        "dsm.tif, confidence.tif, cloud.ply, dsm.png, cameras.json, config.toml and report.json "
-        "into --out (all at the end: a failed run writes nothing).",
+        "dsm.tif, confidence.tif, ortho.tif, cloud.ply, dsm.png, cameras.json, config.toml and "
+        "report.json into --out (all at the end: a failed run writes nothing). Negative "
+        "coordinates may be written as they are: --aoi -70.5,-33.4,-70.4,-33.3.",
     )
     _add_image_inputs(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -294,6 +350,16 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     result = reconstruct(args.images, aoi, args.out, alt_range=alt, dem=args.dem, config=config,
                          overwrite=args.overwrite, truth=args.truth, verbose=not args.quiet)
     _print_summary(result)
+    return _exit_code(result, args)
+
+
+def _exit_code(result, args: argparse.Namespace) -> int:
+    """0, or EXIT_DOUBTFUL with --strict when a warning said the result is doubtful."""
+    doubtful = [w["message"] for w in result.report.get("warnings", []) if w["doubtful"]]
+    if args.strict and doubtful:
+        print(f"satsweep: --strict: {len(doubtful)} warning(s) say the result is doubtful",
+              file=sys.stderr)
+        return EXIT_DOUBTFUL
     return 0
 
 
@@ -347,7 +413,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                                overwrite=args.overwrite, verbose=not args.quiet)
     print(f"demo folder: {out_dir}")
     _print_summary(result)
-    return 0
+    return _exit_code(result, args)
 
 
 # -- config ------------------------------------------------------------------------------------
@@ -384,7 +450,7 @@ _COMMANDS = [_add_demo, _add_reconstruct, _add_synth, _add_cameras, _add_evaluat
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="satsweep",
         description="Satellite multi-view stereo: RPC images + an area of interest -> DSM.",
     )
@@ -400,13 +466,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.handler(args) or 0)
+        with _termination_raises(), warnings.catch_warnings():
+            # numpy's RuntimeWarnings (a degenerate determinant, an empty mean) come from inputs
+            # whose consequences satsweep checks and reports itself, in the user's terms.
+            warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"numpy(\.|$)")
+            return int(args.handler(args) or 0)
     except SatsweepError as exc:
         print(f"satsweep: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         print("satsweep: interrupted", file=sys.stderr)
         return 130
+    except Terminated as exc:
+        print(f"satsweep: terminated ({signal.Signals(exc.signum).name})", file=sys.stderr)
+        return 128 + exc.signum
 
 
 def console_main() -> int:

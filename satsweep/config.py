@@ -38,6 +38,8 @@ class ReconstructOptions(Options):
     write_ortho: bool = True  # write ortho.tif, a true orthophoto on the DSM grid (image units)
     tile_m: float = 1000.0  # an AOI wider or taller than this (m) is reconstructed in tiles of
     # at most this side, each with its own cameras; 0: never
+    warn_filled_below: float = 0.2  # a DSM with a smaller fraction of its cells filled gets a
+    # warning that its result is doubtful
     skew_correct: bool = True  # shear the images so that K has no skew before the sweep
     crop_margin_px: int = 32  # margin (px) kept around the AOI footprint in each image's crop
     tie_altitude_quantile: float = 0.01  # without --alt-range or --dem, the tie points'
@@ -47,7 +49,7 @@ class ReconstructOptions(Options):
     tile_max_error_px: float = 0.1  # an area whose cameras are further than this (px) from
     # their RPCs is cut again in 2 x 2, down to tiles of 50 m; 0: never
 
-    ADVANCED = ("skew_correct", "crop_margin_px", "tie_altitude_quantile",
+    ADVANCED = ("warn_filled_below", "skew_correct", "crop_margin_px", "tie_altitude_quantile",
                 "tie_altitude_margin_m", "tile_overlap_m", "tile_max_error_px")
 
     def check(self) -> None:
@@ -64,6 +66,8 @@ class ReconstructOptions(Options):
         self._require(math.isfinite(self.tile_overlap_m) and self.tile_overlap_m >= 0.0
                       and (self.tile_m == 0.0 or self.tile_overlap_m <= self.tile_m),
                       "tile_overlap_m", "must be a number of metres in [0, tile_m]")
+        self._require(0.0 <= self.warn_filled_below <= 1.0, "warn_filled_below",
+                      "must be a fraction in [0, 1]")
         self._require(math.isfinite(self.tile_max_error_px) and self.tile_max_error_px >= 0.0,
                       "tile_max_error_px", "must be a number of pixels >= 0 (0: off)")
 
@@ -116,6 +120,9 @@ class PipelineConfig:
 
     def override(self, section: str, **changes: Any) -> "PipelineConfig":
         """A copy with some fields of one section changed (None values are ignored)."""
+        if section not in SECTIONS:
+            raise OptionsError(f"no configuration section {section!r} (known: "
+                               f"{', '.join(SECTIONS)})")
         changes = {k: v for k, v in changes.items() if v is not None}
         if not changes:
             return self

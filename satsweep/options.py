@@ -105,7 +105,13 @@ class Options:
             raise OptionsError(f"{source}: {exc}") from None
 
     def replace(self: T, **changes: Any) -> T:
-        """A copy with some fields changed (validated again)."""
+        """A copy with some fields changed (validated again); OptionsError for an unknown
+        field."""
+        names = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(changes) - names)
+        if unknown:
+            raise OptionsError(f"{type(self).__name__} has no option {', '.join(unknown)} "
+                               f"(known: {', '.join(sorted(names))})")
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:

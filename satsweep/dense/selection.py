@@ -31,9 +31,15 @@ import numpy as np
 from satsweep.errors import CameraError
 from satsweep.options import Options
 
+# Below this base-to-height ratio a pair has no usable parallax (a metre of height moves a pixel
+# of 0.5 m by less than 0.02 px): two images of one viewpoint, or a copy of one image.
+MIN_STEREO_B_OVER_H = 0.01
+
 
 @dataclasses.dataclass(frozen=True)
 class ViewSelectionOptions(Options):
+    """Options of the choice of reference views and of their sources."""
+
     max_references: int = 4  # reference views swept (each costs a sweep)
     max_sources: int = 3  # source views per reference
     min_b_over_h: float = 0.1  # least base-to-height ratio of a reference-source pair
@@ -159,6 +165,12 @@ def select_views(cameras: Sequence, *, mid_height: float,
     sources: dict[int, tuple[int, ...]] = {}
     for r in order:
         cands = [j for j in range(n) if j != r and ov[r, j] >= o.min_overlap]
+        flat = [j for j in cands if bh[r, j] < MIN_STEREO_B_OVER_H]
+        if flat:
+            warnings.append(f"{names[r]}: no parallax with {', '.join(names[j] for j in flat)} "
+                            f"(B/H below {MIN_STEREO_B_OVER_H}: the same viewpoint, or a copy of "
+                            "the image)")
+            cands = [j for j in cands if j not in flat]
         good = [j for j in cands if o.min_b_over_h <= bh[r, j] <= o.max_b_over_h]
         if not good and cands:
             best = min(cands, key=lambda j: _range_distance(bh[r, j], o))
@@ -177,7 +189,7 @@ def select_views(cameras: Sequence, *, mid_height: float,
         if len(references) == o.max_references:
             break
     if not references:
-        raise CameraError("no pair of views overlaps: " + "; ".join(warnings))
+        raise CameraError("no stereo pair among the views (" + "; ".join(warnings) + ")")
     return Selection(references=tuple(references), sources=sources, b_over_h=bh, overlap=ov,
                      geometry=geometry, warnings=tuple(warnings))
 

@@ -159,7 +159,8 @@ def altitude_range_from_rpcs(rpcs: Iterable[Any], *, warn: bool = True) -> Altit
         return rng
     log.warning(
         "altitude range %s guessed from the RPC height offset/scale of %d image(s): this is coarse "
-        "(pass --alt-range MIN,MAX or --dem FILE for a tighter, faster sweep)", rng, len(rpcs),
+        "(give --alt-range MIN MAX or --dem FILE, alt_range= or dem= in the Python API, for a "
+        "tighter, faster sweep)", rng, len(rpcs),
     )
     return rng
 
@@ -189,7 +190,8 @@ def resolve_altitude_range(
     rpcs = list(rpcs) if rpcs is not None else []
     if rpcs:
         return altitude_range_from_rpcs(rpcs)
-    raise OptionsError("no altitude range: pass --alt-range MIN,MAX, --dem FILE, or images with RPCs")
+    raise OptionsError("no altitude range: give --alt-range MIN MAX or --dem FILE (alt_range= or "
+                       "dem= in the Python API), or images with RPCs")
 
 
 def enu_height_range(frame, aoi: AOI, alt_range: AltitudeRange) -> tuple[float, float]:

@@ -173,6 +173,9 @@ def _aoi_from_geojson(path: str) -> AOI:
     _collect_polygons(path, doc, positions, where="top level")
     if not positions:
         raise InputError(path, "GeoJSON holds no Polygon or MultiPolygon coordinates")
+    if len(positions) > 1 or not _is_box(positions[0]):
+        log.warning("%s: the AOI is the lon/lat bounding box of its %d polygon ring(s); the DSM "
+                    "covers the whole box", path, len(positions))
     xy = np.concatenate(positions)
     lon_min, lat_min = xy.min(axis=0)
     lon_max, lat_max = xy.max(axis=0)
@@ -190,6 +193,14 @@ def _aoi_from_geojson(path: str) -> AOI:
         raise InputError(
             path, f"bad GeoJSON AOI: {exc} (RFC 7946 GeoJSON is WGS84 lon/lat degrees)"
         ) from None
+
+
+def _is_box(ring: np.ndarray) -> bool:
+    """Whether a polygon ring is its own lon/lat bounding box: its area (shoelace) is the box's."""
+    x, y = ring[:, 0], ring[:, 1]
+    area = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    box = float(np.ptp(x) * np.ptp(y))
+    return box > 0.0 and abs(area - box) <= 1e-9 * box
 
 
 def _check_geojson_crs(path: str, doc: Any) -> None:

@@ -151,8 +151,8 @@ class RPCModel:
 
         Offsets/scales are in pixels (row/col), degrees (lat/lon) and metres (alt). ``source``
         (a file name, for messages) is kept as a string. Raises RPCError naming ``source`` when a
-        coefficient vector does not hold 20 finite numbers or a value is not finite, or a scale
-        is zero.
+        coefficient vector does not hold 20 finite numbers, a denominator is all zeros, a value
+        is not finite, or a scale is zero.
         """
         src = None if source is None else os.fspath(source)
         set_ = object.__setattr__
@@ -167,6 +167,8 @@ class RPCModel:
                 raise RPCError(src, f"{name} has {arr.size} coefficients, expected {N_TERMS}")
             if not np.all(np.isfinite(arr)):
                 raise RPCError(src, f"{name} holds non-finite coefficients")
+            if name.endswith("_den") and not np.any(arr):
+                raise RPCError(src, f"{name} is all zeros: the RPC divides by zero")
             set_(self, name, _readonly(arr))
         scalars = {"row_offset": row_offset, "col_offset": col_offset, "lat_offset": lat_offset,
                    "lon_offset": lon_offset, "alt_offset": alt_offset, "row_scale": row_scale,

@@ -11,19 +11,68 @@ from typing import Iterator
 
 from satsweep.errors import OptionsError
 
-
 # -- atomic outputs ----------------------------------------------------------------------------
+# The hidden staging folder a run writes its outputs into before moving them in place
+# (satsweep.pipeline.outputs.OutputFolder), and the file in it that names the process owning it.
+STAGING_PREFIX = ".satsweep-partial-"
+STAGING_OWNER = "owner.pid"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    except OSError:
+        return False
+    return True
+
+
+def stale_staging(path: str | os.PathLike) -> list[str]:
+    """The staging folders in ``path`` left by runs that are no longer running (killed, or
+    crashed before cleaning up): their owner process is gone, or they name none."""
+    path = os.fspath(path)
+    stale = []
+    try:
+        entries = os.listdir(path)
+    except OSError:
+        return []
+    for name in entries:
+        full = os.path.join(path, name)
+        if not (name.startswith(STAGING_PREFIX) and os.path.isdir(full)):
+            continue
+        try:
+            with open(os.path.join(full, STAGING_OWNER), encoding="ascii") as fh:
+                pid = int(fh.read().strip())
+        except (OSError, ValueError):
+            pid = None
+        if pid is None or not _pid_alive(pid):
+            stale.append(full)
+    return stale
+
+
 def check_output_dir(path: str | os.PathLike, *, overwrite: bool) -> None:
     """Refuse an output folder that is a file, or a non-empty folder without ``overwrite``.
+    Staging folders left by runs that were killed do not count as content.
 
     Called before anything is computed, so that a refused run writes nothing."""
     from satsweep.errors import OutputExistsError
 
     path = os.fspath(path)
     if os.path.exists(path) and not os.path.isdir(path):
-        raise OptionsError(f"--out {path}: exists and is not a folder")
-    if os.path.isdir(path) and os.listdir(path) and not overwrite:
-        raise OutputExistsError(f"--out {path}: folder is not empty (pass --overwrite to write into it)")
+        raise OptionsError(f"output folder {path}: exists and is not a folder")
+    if os.path.isdir(path) and not overwrite:
+        stale = {os.path.basename(p) for p in stale_staging(path)}
+        try:
+            content = [e for e in os.listdir(path) if e not in stale]
+        except OSError as exc:
+            raise OptionsError(f"output folder {path}: cannot be listed "
+                               f"({exc.strerror or exc})") from None
+        if content:
+            raise OutputExistsError(f"output folder {path} is not empty (pass --overwrite, or "
+                                    "overwrite=True in the API, to write into it)")
 
 
 @contextlib.contextmanager

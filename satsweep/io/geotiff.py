@@ -226,13 +226,20 @@ def _parse_nodata(path: str, text) -> float | None:
 
 
 def read_geotiff(path: str | os.PathLike) -> tuple[np.ndarray, GeoInfo]:
-    """Read the first band of a north-up GeoTIFF and its georeferencing.
+    """Read the first band of a north-up GeoTIFF and its georeferencing (``read_geotiff_info``).
+    The array keeps its stored dtype."""
+    info = read_geotiff_info(path)
+    return read_image(path), info
+
+
+def read_geotiff_info(path: str | os.PathLike) -> GeoInfo:
+    """The georeferencing of a north-up GeoTIFF, from its header only.
 
     Supports EPSG projected CRSs (ProjectedCSTypeGeoKey) and geographic ones (GeographicTypeGeoKey,
     e.g. EPSG:4326 DEMs with degree pixels), PixelIsArea and PixelIsPoint (GDAL's half-pixel shift),
-    tie points at any raster position, and axis-aligned ModelTransformation tags. The array keeps
-    its stored dtype. Raises ImageFormatError naming the file for missing or unsupported
-    georeferencing (rotated rasters, user-defined CRSs).
+    tie points at any raster position, and axis-aligned ModelTransformation tags. Raises
+    ImageFormatError naming the file for missing or unsupported georeferencing (rotated
+    rasters, user-defined CRSs).
     """
     path = os.fspath(path)
     with _open_tiff(path) as (_, page):
@@ -278,10 +285,8 @@ def read_geotiff(path: str | os.PathLike) -> tuple[np.ndarray, GeoInfo]:
         # The tie point is the centre of its pixel: move to the outer corner, as GDAL does.
         x_min, y_max = x_min - 0.5 * rx, y_max + 0.5 * ry
     vertical = keys.get(KEY_VERTICAL_CS_TYPE)
-    array = read_image(path)
-    info = GeoInfo(
+    return GeoInfo(
         epsg=int(epsg), x_min=x_min, y_max=y_max, resolution=rx, nodata=nodata,
         resolution_y=None if ry == rx else ry,
         vertical_epsg=None if vertical is None else int(vertical),
     )
-    return array, info

@@ -43,20 +43,20 @@ class ImageSource:
 
         return read_image(self.path, window=window)
 
-    def footprint(self, aoi: "AOI", alt_range: "AltitudeRange", *,
-                  margin_px: int = 0) -> tuple[int, int, int, int]:
+    def footprint(self, aoi: "AOI", alt_range: "AltitudeRange", *, margin_px: int = 0,
+                  warn_partial: bool = True) -> tuple[int, int, int, int]:
         """The pixel box (x0, y0, x1, y1), ends excluded, that sees the AOI cube, widened by
         ``margin_px`` (``satsweep.io.views.aoi_footprint``); AOIError naming the file when the
         image does not see it."""
         from satsweep.io.views import aoi_footprint
 
         return aoi_footprint(self.rpc, aoi, alt_range, self.shape, margin_px=margin_px,
-                             path=self.path)
+                             path=self.path, warn_partial=warn_partial)
 
     def sees(self, aoi: "AOI", alt_range: "AltitudeRange") -> bool:
         """Whether the footprint of the AOI cube meets the image."""
         try:
-            self.footprint(aoi, alt_range)
+            self.footprint(aoi, alt_range, warn_partial=False)
         except AOIError:
             return False
         return True

@@ -86,6 +86,7 @@ def aoi_footprint(
     *,
     margin_px: int = 0,
     path: str | os.PathLike | None = None,
+    warn_partial: bool = True,
 ) -> tuple[int, int, int, int]:
     """Pixel box ``(x0, y0, x1, y1)`` (ends excluded) of the image that sees the AOI.
 
@@ -93,7 +94,7 @@ def aoi_footprint(
     highest altitude, takes the bounding box of every pixel whose centre it touches, widens it by
     ``margin_px`` and clips it to the image of shape ``(height, width)``. Raises AOIError (naming
     ``path`` when given) when the box misses the image. Logs a warning when the image sees only
-    part of the AOI.
+    part of the AOI (unless ``warn_partial`` is False).
     """
     if int(margin_px) != margin_px or margin_px < 0:
         raise OptionsError(f"margin_px = {margin_px!r}: must be an integer >= 0")
@@ -113,7 +114,7 @@ def aoi_footprint(
     inner = (max(c0, -0.5), max(r0, -0.5), min(c1, width - 0.5), min(r1, height - 0.5))
     area = max(c1 - c0, 1e-9) * max(r1 - r0, 1e-9)
     seen = max(inner[2] - inner[0], 0.0) * max(inner[3] - inner[1], 0.0) / area
-    if seen < 1.0:
+    if seen < 1.0 and warn_partial:
         log.warning("%sthe image sees only about %.0f%% of the AOI footprint", where, 100.0 * seen)
     return x0, y0, x1, y1
 
@@ -152,6 +153,7 @@ def load_views(
     alt_range: AltitudeRange,
     *,
     margin_px: int = DEFAULT_MARGIN_PX,
+    warn_partial: bool = True,
 ) -> list[View]:
     """Each image's window that sees the AOI cube, with the RPC of the crop; one View per image,
     in order. ``images`` are paths or ``ImageSource`` objects (``satsweep.io.sources``: then no
@@ -164,7 +166,8 @@ def load_views(
 
     views = []
     for source in open_sources(images):
-        x0, y0, x1, y1 = source.footprint(aoi, alt_range, margin_px=margin_px)
+        x0, y0, x1, y1 = source.footprint(aoi, alt_range, margin_px=margin_px,
+                                          warn_partial=warn_partial)
         crop = source.read((x0, y0, x1, y1))
         views.append(View(path=source.path, image=_pixels(crop),
                           rpc=source.rpc.cropped(x0=x0, y0=y0), x0=x0, y0=y0))

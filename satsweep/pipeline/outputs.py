@@ -24,20 +24,50 @@ class ReconstructResult:
     evaluation: dict | None
 
 
+# What a run may write into its output folder: with --overwrite, those of an earlier run that
+# this run does not write again are removed, so that the folder holds one run's outputs.
+PRODUCTS = ("dsm.tif", "confidence.tif", "ortho.tif", "count.tif", "interpolated.tif",
+            "cloud.ply", "dsm.png", "cameras.json", "config.toml", "report.json", "evaluation",
+            "tiles", "images")
+
+
 class OutputFolder:
     """Stage outputs in a hidden folder inside ``out_dir``; move them in place on ``commit``.
 
-    ``out_dir`` may not exist (it is created) or be empty; a non-empty one needs ``overwrite``
-    (then only the files this run writes are replaced). ``abort`` removes the staging folder, and
-    ``out_dir`` too when this run created it.
+    ``out_dir`` may not exist (it is created, with its missing parents) or be empty; a non-empty
+    one needs ``overwrite`` (then the outputs of an earlier run that this one does not write
+    again are removed on ``commit``; other files are left alone). Staging folders left by killed
+    runs are removed. ``abort`` removes the staging folder, and the folders this run created.
     """
 
     def __init__(self, out_dir: str | os.PathLike, *, overwrite: bool):
+        from satsweep.errors import InputError
+        from satsweep.io.atomic import STAGING_OWNER, STAGING_PREFIX, stale_staging
+
         self.out_dir = Path(out_dir)
+        self.overwrite = overwrite
         self.check(self.out_dir, overwrite=overwrite)
-        self.created = not self.out_dir.exists()
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        self.staging = Path(tempfile.mkdtemp(prefix=".satsweep-partial-", dir=self.out_dir))
+        # The topmost folder this run creates: removed again if the run fails.
+        self.created_root = None
+        for folder in [self.out_dir, *self.out_dir.absolute().parents]:
+            if folder.exists():
+                break
+            self.created_root = folder
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            for stale in stale_staging(self.out_dir):
+                shutil.rmtree(stale, ignore_errors=True)
+            self.staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.out_dir))
+            (self.staging / STAGING_OWNER).write_text(str(os.getpid()), encoding="ascii")
+        except OSError as exc:
+            self._remove_created()
+            raise InputError(self.out_dir, f"cannot write the output folder "
+                                           f"({exc.strerror or exc})") from None
+
+    @property
+    def created(self) -> bool:
+        """Whether this run created ``out_dir``."""
+        return self.created_root is not None
 
     @staticmethod
     def check(out_dir: Path, *, overwrite: bool) -> None:
@@ -52,6 +82,20 @@ class OutputFolder:
         return p
 
     def commit(self) -> list[Path]:
+        """Move the staged outputs into ``out_dir``; return their final paths."""
+        from satsweep.io.atomic import STAGING_OWNER
+
+        (self.staging / STAGING_OWNER).unlink(missing_ok=True)
+        written = {p.relative_to(self.staging).parts[0] for p in self.staging.rglob("*")}
+        if self.overwrite:  # an earlier run's outputs that this run does not replace
+            for name in PRODUCTS:
+                old = self.out_dir / name
+                if name in written or not (old.exists() or old.is_symlink()):
+                    continue
+                if old.is_dir() and not old.is_symlink():
+                    shutil.rmtree(old, ignore_errors=True)
+                else:
+                    old.unlink(missing_ok=True)
         moved = []
         for src in sorted(self.staging.rglob("*")):
             if src.is_file():
@@ -63,38 +107,44 @@ class OutputFolder:
         return moved
 
     def abort(self) -> None:
+        """Remove the staging folder, and every folder this run created."""
         shutil.rmtree(self.staging, ignore_errors=True)
-        if self.created:
-            shutil.rmtree(self.out_dir, ignore_errors=True)
+        self._remove_created()
+
+    def _remove_created(self) -> None:
+        if self.created_root is not None:
+            shutil.rmtree(self.created_root, ignore_errors=True)
 
 
-def write_products(fused, conf, ortho, cloud, grid, rep: RunReport, out: OutputFolder, truth):
-    """The "outputs" stage's rasters (``ortho`` None: none) and cloud (a ``PLYWriter`` holding
-    the points, or None), then the evaluation against ``truth`` if given. Returns (the DSM's
-    path in the staging folder, the evaluation or None)."""
+def write_products(fused, conf, ortho, cloud, grid, out: OutputFolder) -> Path:
+    """The rasters (``ortho`` None: none), the quick look and the cloud (a ``PLYWriter`` holding
+    the points, or None) into the staging folder. Returns the DSM's staged path."""
     from satsweep.io.geotiff import write_geotiff
     from satsweep.products.grid import write_dsm_geotiff
     from satsweep.products.quicklook import height_png
 
-    with rep.stage("outputs"):
-        dsm_path = out.path("dsm.tif")
-        write_dsm_geotiff(dsm_path, fused.astype(np.float32), grid)
-        write_geotiff(out.path("confidence.tif"), conf.astype(np.float32), epsg=grid.epsg,
+    dsm_path = out.path("dsm.tif")
+    write_dsm_geotiff(dsm_path, fused.astype(np.float32), grid)
+    write_geotiff(out.path("confidence.tif"), conf.astype(np.float32), epsg=grid.epsg,
+                  x_min=grid.x_min, y_max=grid.y_max, resolution=grid.resolution)
+    if ortho is not None:
+        write_geotiff(out.path("ortho.tif"), ortho.astype(np.float32), epsg=grid.epsg,
                       x_min=grid.x_min, y_max=grid.y_max, resolution=grid.resolution)
-        if ortho is not None:
-            write_geotiff(out.path("ortho.tif"), ortho.astype(np.float32), epsg=grid.epsg,
-                          x_min=grid.x_min, y_max=grid.y_max, resolution=grid.resolution)
-        height_png(out.path("dsm.png"), fused, title="satsweep DSM (m above WGS84 ellipsoid)")
-        if cloud is not None:
-            cloud.commit()
-    evaluation = None
-    if truth is not None:
-        from satsweep.products.evaluate import evaluate_dsm
+    height_png(out.path("dsm.png"), fused, title="satsweep DSM (m above WGS84 ellipsoid)")
+    if cloud is not None:
+        cloud.commit()
+    return dsm_path
 
-        with rep.stage("evaluate"):
-            evaluation = evaluate_dsm(dsm_path, truth, out_dir=out.path("evaluation"))
-            evaluation["prediction"] = os.fspath(out.out_dir / dsm_path.name)  # its final name
-            out.path("evaluation/evaluation.json").write_text(to_json(evaluation) + "\n",
-                                                              encoding="utf-8")
-            rep["evaluation"] = evaluation
-    return dsm_path, evaluation
+
+def evaluate_products(dsm_path: Path, truth, out: OutputFolder, rep: RunReport) -> dict:
+    """The "evaluate" stage: the staged DSM against ``truth`` (IARPA MVS3DM), written to
+    evaluation/ and to the report."""
+    from satsweep.products.evaluate import evaluate_dsm
+
+    with rep.stage("evaluate"):
+        evaluation = evaluate_dsm(dsm_path, truth, out_dir=out.path("evaluation"))
+        evaluation["prediction"] = os.fspath(out.out_dir / dsm_path.name)  # its final name
+        out.path("evaluation/evaluation.json").write_text(to_json(evaluation) + "\n",
+                                                          encoding="utf-8")
+        rep["evaluation"] = evaluation
+    return evaluation

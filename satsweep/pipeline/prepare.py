@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
@@ -36,6 +37,9 @@ if TYPE_CHECKING:  # pragma: no cover
     from satsweep.sparse.bundle import BundleReport
 
 
+log = logging.getLogger(__name__)
+
+
 def _stage(report: "RunReport | None", name: str):
     """The report's timer of stage ``name``, or nothing without a report."""
     return report.stage(name) if report is not None else contextlib.nullcontext()
@@ -44,6 +48,14 @@ def _stage(report: "RunReport | None", name: str):
 def _log(report: "RunReport | None", message: str) -> None:
     if report is not None:
         report.log(message)
+
+
+def _warn(report: "RunReport | None", message: str) -> None:
+    """A warning in the run's report; without one, a logged warning."""
+    if report is not None:
+        report.warn(message)
+    else:
+        log.warning("%s", message)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,7 +127,7 @@ def fit_cameras(views: Sequence["View"], aoi: "AOI", alt_range: "AltitudeRange",
     with _stage(report, "cameras"):
         cameras = build_cameras(views, aoi, alt_range, config.camera)
         for w in cameras.warnings:
-            _log(report, f"warning: {w}")
+            _warn(report, w)
     return cameras
 
 
@@ -143,7 +155,7 @@ def adjust_cameras(cameras: "CameraSet", images: Sequence[np.ndarray], config: "
         except CameraError as exc:
             why = f"not enough matches for the adjustment: {exc}"
             if borrowed_shifts is not None:
-                _log(report, f"warning: bundle adjustment of this tile impossible ({exc}); the "
+                _warn(report, f"bundle adjustment of this tile impossible ({exc}); the "
                              "other tiles' pointing corrections are used")
                 shifts = tuple(tuple(float(v) for v in s) for s in borrowed_shifts)
                 return (bundle.shift_principal_points(cameras, borrowed_shifts),
@@ -154,7 +166,7 @@ def adjust_cameras(cameras: "CameraSet", images: Sequence[np.ndarray], config: "
                 return cameras, Adjustment(postponed=why)
             if mode == "on" or len(cameras.views) >= 3:
                 raise
-            _log(report, f"warning: bundle adjustment skipped: {exc}")
+            _warn(report, f"bundle adjustment skipped: {exc}")
             return cameras, Adjustment(skipped=why)
 
 

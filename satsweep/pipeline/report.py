@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import json
+import logging
 import math
 import platform
 import sys
@@ -118,14 +119,48 @@ class RunReport:
             "device": None,
             "timings_s": {},
             "peak_memory_mb": {},
+            "warnings": [],
         }
         self.verbose = verbose
         self.stream = stream if stream is not None else sys.stderr
         self._t0 = time.perf_counter()
 
     def log(self, message: str) -> None:
+        """A progress line (not printed when the run is quiet)."""
         if self.verbose:
             print(message, file=self.stream, flush=True)
+
+    def warn(self, message: str, *, doubtful: bool = False) -> None:
+        """A warning: always printed, and kept in the report's ``warnings``. ``doubtful``: the
+        warning says the result itself may be wrong (``satsweep reconstruct --strict`` then
+        exits non-zero)."""
+        self.data["warnings"].append({"message": message, "doubtful": bool(doubtful)})
+        print(f"warning: {message}", file=self.stream, flush=True)
+
+    @property
+    def doubtful(self) -> bool:
+        """Whether a warning said the result may be wrong."""
+        return any(w["doubtful"] for w in self.data["warnings"])
+
+    @contextlib.contextmanager
+    def capturing_warnings(self) -> Iterator[None]:
+        """While inside: the warnings that satsweep's modules log (``logging``, logger
+        ``satsweep.*``) become this report's warnings instead of going to the root logger."""
+        report = self
+
+        class _Handler(logging.Handler):
+            def emit(self, record: logging.LogRecord) -> None:
+                report.warn(record.getMessage())
+
+        logger = logging.getLogger("satsweep")
+        handler = _Handler(level=logging.WARNING)
+        logger.addHandler(handler)
+        propagate, logger.propagate = logger.propagate, False
+        try:
+            yield
+        finally:
+            logger.removeHandler(handler)
+            logger.propagate = propagate
 
     @contextlib.contextmanager
     def stage(self, name: str) -> Iterator[None]:
@@ -147,6 +182,7 @@ class RunReport:
         moved = min(max(float(seconds), 0.0), timings.get(source, 0.0))
         timings[source] = timings.get(source, 0.0) - moved
         timings[target] = timings.get(target, 0.0) + moved
+        self._record_peak(target)
 
     def progress(self, stage: str, total: int) -> Progress:
         return Progress(stage, total, stream=self.stream, enabled=self.verbose)

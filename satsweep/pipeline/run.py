@@ -39,7 +39,12 @@ from satsweep.errors import InputError, OptionsError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.geometry.aoi import AOI
 from satsweep.pipeline.area import RunContext
-from satsweep.pipeline.outputs import OutputFolder, ReconstructResult, write_products
+from satsweep.pipeline.outputs import (
+    OutputFolder,
+    ReconstructResult,
+    evaluate_products,
+    write_products,
+)
 from satsweep.pipeline.preload import start_preloading
 from satsweep.pipeline.report import RunReport
 from satsweep.pipeline.scheduler import Mosaic, reconstruct_areas
@@ -50,13 +55,14 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
                 config: PipelineConfig = PipelineConfig(), overwrite: bool = False,
                 truth: str | os.PathLike | None = None, verbose: bool = True,
                 command: str = "reconstruct") -> ReconstructResult:
-    """Run the whole pipeline; see the module docstring for the stages and outputs."""
+    """Run the whole pipeline; see the module docstring for the stages and outputs.
+
+    ``aoi`` may be given as an ``AOI`` or as a string for ``parse_aoi``, ``alt_range`` as an
+    ``AltitudeRange`` or a (min, max) pair. Every bad argument is a ``SatsweepError``."""
     # Everything that can be checked cheaply is checked before anything is written.
-    paths = [os.fspath(p) for p in images]
-    if len(paths) < 2:
-        raise OptionsError(f"need at least two images, got {len(paths)}")
-    if truth is not None and not Path(truth).is_file():
-        raise InputError(truth, "truth DSM does not exist")
+    paths, aoi, alt_range = _checked_arguments(images, aoi, alt_range, config)
+    if truth is not None:
+        check_truth_dsm(truth, aoi)
     out = OutputFolder(out_dir, overwrite=overwrite)
     try:
         result = _reconstruct(paths, aoi, out, alt_range=alt_range, dem=dem, config=config,
@@ -102,8 +108,9 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
              if r.write_cloud else None)
     try:
         ctx = RunContext(device=device, config=config, report=rep, alt_range=alt_range, dem=dem)
-        mosaic = reconstruct_areas(sources, aoi, grid, tiles, cloud, ctx)
-        return _finish(mosaic, cloud, ctx, out, truth)
+        with rep.capturing_warnings():
+            mosaic = reconstruct_areas(sources, aoi, grid, tiles, cloud, ctx)
+            return _finish(mosaic, cloud, ctx, out, truth)
     except BaseException:
         if cloud is not None:
             cloud.abort()
@@ -137,7 +144,7 @@ def _finish(mosaic: Mosaic, cloud, ctx: RunContext, out: OutputFolder,
                 rep[key] = value
 
     fused = mosaic.dsm
-    with rep.stage("dsm"):
+    with rep.stage("fill"):
         filled = 0
         if d.fill_max_hole_cells > 0:
             fused, filled = fill_small_holes(fused, max_hole_cells=d.fill_max_hole_cells,
@@ -149,15 +156,81 @@ def _finish(mosaic: Mosaic, cloud, ctx: RunContext, out: OutputFolder,
             "holes_filled_cells": int(filled),
             **({} if mosaic.tiled else entries[0]["dsm"]),  # a tile's are in its entry
         }
-    dsm_path, evaluation = write_products(fused, mosaic.confidence, mosaic.ortho, cloud, grid,
-                                          rep, out, truth)
+    _check_filled(rep["dsm"]["filled_fraction"], mosaic, ctx)
     with rep.stage("outputs"):
+        dsm_path = write_products(fused, mosaic.confidence, mosaic.ortho, cloud, grid, out)
         if not mosaic.tiled:
             write_cameras(out.staging, mosaic.done[0][1].cameras)
         for entry, (_, area) in zip(entries if mosaic.tiled else [], mosaic.done):
             write_cameras(out.staging / Path(entry["cameras_file"]).parent, area.cameras)
         out.path("config.toml").write_text(config.to_toml(), encoding="utf-8")
+    evaluation = evaluate_products(dsm_path, truth, out, rep) if truth is not None else None
     report = rep.finish()
     out.path("report.json").write_text(rep.to_json() + "\n", encoding="utf-8")
     return ReconstructResult(out_dir=out.out_dir, dsm_path=out.out_dir / dsm_path.name,
                              report=report, evaluation=evaluation)
+
+
+def _check_filled(fraction: float, mosaic: Mosaic, ctx: RunContext) -> None:
+    """An error when no cell got a height (no stereo was possible: featureless or identical
+    views); a doubtful warning when fewer than ``[reconstruct] warn_filled_below`` of them did."""
+    names = sorted({s for _, area in mosaic.done for s in area.record.names})
+    if fraction == 0.0:
+        raise InputError(None, f"no cell of the DSM got a height: the views "
+                               f"({', '.join(names)}) could not be matched over the AOI "
+                               "(featureless, cloud-covered or identical images?)")
+    floor = ctx.config.reconstruct.warn_filled_below
+    if fraction < floor:
+        ctx.report.warn(f"only {100 * fraction:.1f}% of the DSM's cells got a height (less than "
+                        f"[reconstruct] warn_filled_below = {floor:g}): the views match poorly "
+                        "over the AOI", doubtful=True)
+
+
+def _checked_arguments(images, aoi, alt_range, config) -> tuple[list[str], AOI,
+                                                                 AltitudeRange | None]:
+    """The API's arguments checked and normalised (OptionsError naming the argument)."""
+    from satsweep.geometry.aoi import parse_aoi
+
+    if isinstance(images, (str, bytes, os.PathLike)):
+        raise OptionsError(f"images: give a list of image paths, not the one path {images!r}")
+    try:
+        paths = [os.fspath(p) for p in images]
+    except TypeError:
+        raise OptionsError(f"images: expected a list of image paths, got {images!r}") from None
+    if len(paths) < 2:
+        raise OptionsError(f"need at least two images, got {len(paths)}")
+    if isinstance(aoi, (str, os.PathLike)):
+        aoi = parse_aoi(aoi)
+    elif not isinstance(aoi, AOI):
+        raise OptionsError(f"aoi: expected an AOI or 'LON_MIN,LAT_MIN,LON_MAX,LAT_MAX' (or a "
+                           f"GeoJSON file), got {type(aoi).__name__}")
+    if alt_range is not None and not isinstance(alt_range, AltitudeRange):
+        try:
+            lo, hi = (float(v) for v in alt_range)
+        except (TypeError, ValueError):
+            raise OptionsError(f"alt_range: expected an AltitudeRange or (min, max) in metres, "
+                               f"got {alt_range!r}") from None
+        alt_range = AltitudeRange(lo, hi)
+    if not isinstance(config, PipelineConfig):
+        raise OptionsError(f"config: expected a PipelineConfig, got {type(config).__name__}")
+    return paths, aoi, alt_range
+
+
+def check_truth_dsm(path, aoi: AOI) -> None:
+    """Refuse, before reconstructing, a truth DSM that the evaluation could not use: missing,
+    not a single-band GeoTIFF, not in the DSM's UTM zone (the evaluation compares on the truth's
+    grid, in its CRS)."""
+    from satsweep.geometry.geodesy import utm_epsg
+    from satsweep.io.geotiff import read_geotiff_info
+    from satsweep.io.images import image_shape
+
+    if not Path(path).is_file():
+        raise InputError(path, "truth DSM does not exist")
+    info = read_geotiff_info(path)
+    image_shape(path)  # a readable raster of integer or float samples, or an error naming it
+    lon, lat = aoi.center
+    epsg = utm_epsg(lon=lon, lat=lat)
+    if info.epsg != epsg:
+        raise InputError(path, f"truth DSM in EPSG:{info.epsg}, not in the UTM zone of the AOI "
+                               f"(EPSG:{epsg}) where the DSM is made: reproject it (gdalwarp "
+                               f"-t_srs EPSG:{epsg})")

@@ -85,16 +85,17 @@ def reconstruct_areas(sources: Sequence["ImageSource"], aoi: "AOI", grid: "DSMGr
         tile = pending.pop(0)
         tile_sources = list(sources)
         if tile.core != whole:
+            # Splits add tiles as the run goes: the count is of the tiles queued now.
             done = len(mosaic.done)
             spent = time.perf_counter() - t_start
             left = (f"; {spent:.0f} s so far, about {spent / done * (len(pending) + 1):.0f} s "
                     "left" if done else "")
-            rep.log(f"tile {done + 1}/{done + len(pending) + 1}: cells {tile.core}{left}")
+            rep.log(f"tile {done + 1} ({len(pending)} more queued): cells {tile.core}{left}")
             prior = prior_altitude_range(sources, tile.aoi, alt_range=ctx.alt_range, dem=ctx.dem)
             tile_sources = sources_seeing(sources, tile.aoi, prior)
             if len(tile_sources) < 2:
-                rep.log(f"warning: cells {tile.core} are seen by {len(tile_sources)} image(s): "
-                        "left without heights")
+                rep.warn(f"cells {tile.core} are seen by {len(tile_sources)} image(s): left "
+                         "without heights")
                 mosaic.unseen.append({"core_cells": list(tile.core),
                                       "images": [s.name for s in tile_sources]})
                 continue

@@ -71,6 +71,11 @@ def _placed(result, window: tuple[int, int, int, int], shape: tuple[int, int]):
     return height, valid, confidence
 
 
+# A pixel whose best plane is within this many planes of an end of the range "sits at the end":
+# the surface there may lie beyond the range.
+RANGE_END_PLANES = 1
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class ReferenceHeights:
     """One reference view's height map over its whole crop, and how it was made."""
@@ -88,12 +93,15 @@ class ReferenceHeights:
     tiles: int  # tiles of the sweep (of the MRF, with one)
     window_planes: int | None  # with coarse-to-fine windows: the most planes of a tile
     mrf: dict | None  # the MRF's method, seconds, tiles and valid fraction; None without one
+    at_range_ends: tuple[float, float]  # fractions of the window's pixels whose best plane is
+    # within RANGE_END_PLANES of the lowest / the highest plane
 
     def to_report(self) -> dict:
         return {"reference": self.reference, "sources": list(self.sources),
                 "planes": self.planes, "plane_step_m": self.plane_step_m,
                 "window": [int(v) for v in self.window], "valid_fraction": self.valid_fraction,
-                "tiles": self.tiles, "window_planes": self.window_planes, "mrf": self.mrf}
+                "tiles": self.tiles, "window_planes": self.window_planes, "mrf": self.mrf,
+                "at_range_ends": list(self.at_range_ends)}
 
 
 def sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
@@ -144,12 +152,16 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
                         "valid_fraction": float(np.mean(result.valid))}
         progress.update(k + 1, names[r])
         height, valid, confidence = _placed(result, window, shape)
+        index = np.asarray(result.plane_index)
+        ends = (float(np.mean(index <= RANGE_END_PLANES)),
+                float(np.mean(index >= len(heights) - 1 - RANGE_END_PLANES)))
         out.append(ReferenceHeights(
             index=r, height=height, valid=valid, confidence=confidence, reference=names[r],
             sources=tuple(names[s] for s in srcs), planes=int(len(heights)),
             plane_step_m=float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
             window=tuple(int(v) for v in window), valid_fraction=float(np.mean(result.valid)),
-            tiles=int(result.n_tiles), window_planes=result.window_planes, mrf=mrf_info))
+            tiles=int(result.n_tiles), window_planes=result.window_planes, mrf=mrf_info,
+            at_range_ends=ends))
     return out
 
 
@@ -161,5 +173,5 @@ def _check_sgm_labels(heights: np.ndarray, config: PipelineConfig) -> None:
         raise InputError(None, f"the altitude range spans {abs(heights[-1] - heights[0]):.0f} m: "
                                f"{heights.size} planes at [sweep] step_px = "
                                f"{config.sweep.step_px:g}, more than SGM's {SGM_MAX_LABELS}; "
-                               "give a tighter --alt-range or --dem, a larger step_px, or "
-                               "--mrf none")
+                               "give a tighter altitude range (--alt-range, alt_range=) or "
+                               "a DEM (--dem, dem=), a larger step_px, or no MRF (--mrf none)")

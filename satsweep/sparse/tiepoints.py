@@ -130,8 +130,8 @@ def altitude_range_from_tie_points(points: TiePoints, *, quantile: float, margin
         which = ", ".join(names) if names else "the images"
         raise InputError(None, f"no altitude range given and only {points.alt.size} tie points "
                                f"between {which} fall inside the AOI (at least {MIN_TIE_POINTS} "
-                               "are needed to bound its heights): pass --alt-range MIN MAX or "
-                               "--dem FILE")
+                               "are needed to bound its heights): give --alt-range MIN MAX or "
+                               "--dem FILE (alt_range= or dem= in the Python API)")
     lo, hi = np.quantile(points.alt, [quantile, 1.0 - quantile])
     lo, hi = float(lo) - margin_m, float(hi) + margin_m
     if within is not None and max(lo, within.min) < min(hi, within.max):
@@ -152,7 +152,8 @@ def altitude_range_for_images(images: Sequence, aoi: AOI, sparse_options, *, qua
     sources = open_sources(images)
     names = [s.name for s in sources]
     coarse = altitude_range_from_rpcs([s.rpc for s in sources], warn=False)
-    views = load_views(sources, aoi, coarse, margin_px=crop_margin_px)
+    # Over the RPCs' kilometres of heights the footprints overflow the images: not worth a warning.
+    views = load_views(sources, aoi, coarse, margin_px=crop_margin_px, warn_partial=False)
     ties = tie_points(views, aoi, coarse, sparse_options)
     alt = altitude_range_from_tie_points(ties, quantile=quantile, margin_m=margin_m,
                                          within=coarse, names=names)

@@ -86,8 +86,20 @@ def test_non_overlapping_views_are_an_error():
     # aim the second camera 50 km away: its crop sees nothing of the first one's
     shifted = dataclasses.replace(far)
     shifted.P = far.P @ np.array([[1, 0, 0, -5e4], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
-    with pytest.raises(CameraError, match="no pair of views overlaps"):
+    with pytest.raises(CameraError, match="no stereo pair among the views.*overlaps it"):
         select_views([satellite(5, 0), shifted], mid_height=0.0)
+
+
+def test_a_copy_of_a_view_is_no_stereo_pair():
+    """Two cameras at one viewpoint (an image given twice under two names) have no parallax:
+    an error rather than a sweep of flat planes."""
+    cam = satellite(10, 0)
+    with pytest.raises(CameraError, match="no stereo pair.*no parallax with view 1"):
+        select_views([cam, dataclasses.replace(cam)], mid_height=0.0)
+    # A third view with parallax keeps the run going, without the copy as a source.
+    sel = select_views([cam, dataclasses.replace(cam), satellite(-10, 0)], mid_height=0.0)
+    assert 1 not in sel.sources[0] and 0 not in sel.sources[1]
+    assert any("no parallax" in w for w in sel.warnings)
 
 
 def test_options_are_checked():

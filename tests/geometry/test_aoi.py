@@ -316,3 +316,24 @@ def test_resolve_altitude_range_priority(tmp_path, caplog):
         altitude.resolve_altitude_range(aoi=box)
     with pytest.raises(AOIError, match="inverted"):
         altitude.resolve_altitude_range(alt_range=(20.0, 10.0))
+
+
+def test_geojson_aoi_that_is_not_one_box_says_the_bounding_box_is_used(tmp_path, caplog):
+    multi = {"type": "MultiPolygon", "coordinates": [_polygon(1.0, 2.0, 2.0, 3.0)["coordinates"],
+                                                     _polygon(2.0, 3.0, 3.0, 4.0)["coordinates"]]}
+    triangle = {"type": "Polygon", "coordinates": [[[1.0, 2.0], [3.0, 2.0], [2.0, 4.0],
+                                                    [1.0, 2.0]]]}
+    for doc, rings in ((multi, 2), (triangle, 1)):
+        path = tmp_path / f"aoi_{rings}.geojson"
+        path.write_text(json.dumps(doc))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="satsweep.geometry.aoi"):
+            parse(str(path))
+        assert any("bounding box of its" in r.getMessage() and str(path) in r.getMessage()
+                   for r in caplog.records), doc
+    path = tmp_path / "box.geojson"
+    path.write_text(json.dumps(_polygon(1.0, 2.0, 3.0, 4.0)))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="satsweep.geometry.aoi"):
+        parse(str(path))
+    assert not caplog.records

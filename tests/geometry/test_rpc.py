@@ -510,3 +510,23 @@ def test_analytic_jacobian_matches_finite_differences(shared_data):
                                   (c, (rxp - rxm) / (2 * step)), (d, (ryp - rym) / (2 * step))):
             scale = np.abs(np.stack([a, b, c, d])).max()
             np.testing.assert_allclose(analytic, numeric, rtol=0, atol=JACOBIAN_REL * scale)
+
+
+def test_an_all_zero_denominator_is_an_error_naming_the_file(tmp_path):
+    """Such an RPC would divide by zero in every projection (numpy warnings, NaN pixels)."""
+    from satsweep.errors import RPCError
+    from satsweep.geometry.rpc_formats import write_rpc_txt
+
+    good = RPCModel(row_num=[0.0, 1.0] + [0.0] * 18, row_den=[1.0] + [0.0] * 19,
+                    col_num=[0.0, 0.0, 1.0] + [0.0] * 17, col_den=[1.0] + [0.0] * 19,
+                    row_offset=500.0, col_offset=500.0, lat_offset=45.0, lon_offset=5.0,
+                    alt_offset=100.0, row_scale=500.0, col_scale=500.0, lat_scale=0.01,
+                    lon_scale=0.01, alt_scale=100.0)
+    path = tmp_path / "bad_RPC.TXT"
+    write_rpc_txt(path, good)
+    text = path.read_text()
+    text = "\n".join(ln if not ln.startswith("LINE_DEN_COEFF") else
+                     ln.split(":")[0] + ": 0.0" for ln in text.splitlines())
+    path.write_text(text + "\n")
+    with pytest.raises(RPCError, match=r"bad_RPC.TXT: row_den is all zeros"):
+        RPCModel.from_file(path)

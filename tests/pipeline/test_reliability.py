@@ -1,0 +1,234 @@
+"""A run never ends in a traceback, a silent wrong DSM or leftovers (issue 27): each case here
+failed before its fix (a traceback, exit 0 with a garbage or empty DSM, or files left behind)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from satsweep.cli import EXIT_DOUBTFUL, build_parser, main
+from satsweep.config import PipelineConfig
+from satsweep.errors import OptionsError
+from satsweep.geometry.altitude import AltitudeRange
+from satsweep.io.atomic import STAGING_OWNER, STAGING_PREFIX
+from satsweep.pipeline.run import reconstruct
+
+# A fast camera fit for the small town (its 96 m AOI needs no dense grid).
+FAST = {"camera": {"grid_size": [20, 20, 6]}}
+# The small town's altitude range, widened so that the surface never sits at its ends.
+ALT_MARGIN_M = 5.0
+# A range that starts this far above the town's lowest ground cuts the ground off.
+CUT_GROUND_M = 8.0
+# How long the SIGTERM test waits for the run to create its staging folder (a run takes ~5 s
+# on 2 cores; the first launch also imports and builds kernels).
+STAGING_WAIT_S = 60.0
+
+
+def _aoi_arg(scene) -> str:
+    a = scene.aoi
+    return f"{a.lon_min},{a.lat_min},{a.lon_max},{a.lat_max}"
+
+
+def _alt(scene) -> AltitudeRange:
+    lo, hi = scene.alt_range
+    return AltitudeRange(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M)
+
+
+def _one_error_line(capsys, args) -> str:
+    """Exit 2 with one error line on stderr (after the run's warnings, if any): no traceback."""
+    rc = main(args)
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if ln.startswith("satsweep: error:")]
+    others = [ln for ln in lines if not ln.startswith(("satsweep: error:", "warning: "))]
+    assert rc == 2 and len(errors) == 1 and lines[-1] == errors[0] and not others, (rc, err)
+    return errors[0]
+
+
+def test_negative_coordinates_are_values_not_options():
+    args = build_parser().parse_args(["reconstruct", "a.tif", "b.tif", "--out", "o", "--aoi",
+                                      "-70.5,-33.4,-70.4,-33.3", "--alt-range", "-1e9", "1e9"])
+    assert args.aoi == "-70.5,-33.4,-70.4,-33.3" and args.alt_range == [-1e9, 1e9]
+    args = build_parser().parse_args(["synth", "--out", "o", "--location", "-70.5,-33.4"])
+    assert args.location == "-70.5,-33.4"
+
+
+def test_api_errors_are_satsweep_errors(small_town, tmp_path):
+    with pytest.raises(OptionsError, match="SweepOptions has no option step_pz"):
+        PipelineConfig().override("sweep", step_pz=1.0)
+    with pytest.raises(OptionsError, match="no configuration section 'swep'"):
+        PipelineConfig().override("swep", step_px=1.0)
+    images = [v.image for v in small_town.views]
+    with pytest.raises(OptionsError, match="images: give a list of image paths"):
+        reconstruct(str(images[0]), small_town.aoi, tmp_path / "o")
+    with pytest.raises(OptionsError, match="aoi: expected an AOI"):
+        reconstruct(images, 42, tmp_path / "o")
+    with pytest.raises(OptionsError, match="alt_range: expected"):
+        reconstruct(images, small_town.aoi, tmp_path / "o", alt_range="low")
+    with pytest.raises(OptionsError, match="config: expected a PipelineConfig"):
+        reconstruct(images, small_town.aoi, tmp_path / "o", config={"sweep": {}})
+    assert not (tmp_path / "o").exists()
+
+
+def test_aoi_as_a_string_and_range_as_a_pair_are_accepted(small_town, tmp_path):
+    lo, hi = _alt(small_town).min, _alt(small_town).max
+    result = reconstruct([v.image for v in small_town.views], _aoi_arg(small_town),
+                         tmp_path / "o", alt_range=(lo, hi),
+                         config=PipelineConfig.from_mapping(FAST), verbose=False)
+    assert result.report["altitude_range"] == {"min": lo, "max": hi, "source": "user"}
+
+
+def test_truth_is_checked_before_the_reconstruction(small_town, tmp_path, capsys):
+    """A truth in another CRS is refused at once, naming the truth file (not a staging path)."""
+    from satsweep.io.geotiff import read_geotiff, write_geotiff
+
+    truth, info = read_geotiff(small_town.truth_dsm)
+    wrong = tmp_path / "truth_4326.tif"
+    write_geotiff(wrong, truth.astype(np.float32), epsg=4326, x_min=2.0, y_max=48.0,
+                  resolution=1e-5)
+    out = tmp_path / "out"
+    t = time.perf_counter()
+    line = _one_error_line(capsys, ["reconstruct", *[str(v.image) for v in small_town.views],
+                                    "--aoi", _aoi_arg(small_town), "--out", str(out), "--truth",
+                                    str(wrong), "--alt-range", "90", "170"])
+    assert str(wrong) in line and "EPSG:4326" in line and STAGING_PREFIX not in line
+    assert time.perf_counter() - t < 5.0  # refused before any stage (a run takes longer)
+    assert not out.exists()
+
+
+def test_a_copy_of_an_image_is_no_stereo(small_town, tmp_path, capsys):
+    copy = tmp_path / "copy_of_view_00.tif"
+    shutil.copy(small_town.views[0].image, copy)
+    for sidecar in Path(small_town.views[0].image).parent.glob("view_00_RPC.TXT"):
+        shutil.copy(sidecar, tmp_path / "copy_of_view_00_RPC.TXT")
+    line = _one_error_line(capsys, ["reconstruct", str(small_town.views[0].image), str(copy),
+                                    "--aoi", _aoi_arg(small_town), "--alt-range", "90", "170",
+                                    "--out", str(tmp_path / "out"), "--quiet"])
+    assert "no stereo pair" in line and "no parallax" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_featureless_views_are_an_error_not_an_empty_dsm(small_town, tmp_path, capsys):
+    """Two blank images with the town's RPCs: nothing can be matched, so no DSM is written."""
+    from satsweep.geometry.rpc import RPCModel
+    from satsweep.geometry.rpc_formats import rpc_tiff_extratag
+    from satsweep.io.geotiff import write_tiff
+    from satsweep.io.images import read_image
+
+    blanks = []
+    for v in small_town.views:
+        path = tmp_path / f"blank_{Path(v.image).name}"
+        shape = read_image(v.image).shape
+        write_tiff(path, np.full(shape, 1000, np.uint16),
+                   extratags=[rpc_tiff_extratag(RPCModel.from_image(v.image))])
+        blanks.append(str(path))
+    line = _one_error_line(capsys, ["reconstruct", *blanks, "--aoi", _aoi_arg(small_town),
+                                    "--alt-range", "90", "170", "--out", str(tmp_path / "out"),
+                                    "--adjust", "off", "--quiet"])
+    assert "no cell of the DSM got a height" in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_range_that_cuts_the_ground_off_is_a_doubtful_warning(small_town, tmp_path, capsys):
+    """The sweep's heights pile up at the lower end: a warning naming the end and the range the
+    tie points measure, kept in report.json, printed even with --quiet; --strict exits 3."""
+    lo, hi = small_town.alt_range
+    out = tmp_path / "out"
+    config = tmp_path / "fast.toml"
+    config.write_text("[camera]\ngrid_size = [20, 20, 6]\n")
+    rc = main(["reconstruct", *[str(v.image) for v in small_town.views], "--aoi",
+               _aoi_arg(small_town), "--alt-range", str(lo + CUT_GROUND_M), str(hi + ALT_MARGIN_M),
+               "--out", str(out), "--quiet", "--strict", "--config", str(config)])
+    err = capsys.readouterr().err
+    assert rc == EXIT_DOUBTFUL, err
+    assert "matched best at the lower end" in err and "tie points between the views" in err
+    import json
+
+    report = json.loads((out / "report.json").read_text())
+    assert any(w["doubtful"] and "lower end" in w["message"] for w in report["warnings"])
+    assert (out / "dsm.tif").is_file()  # --strict still writes the outputs
+
+
+def test_a_good_range_gives_no_warning_and_peak_memory_per_stage(small_town, tmp_path):
+    result = reconstruct([v.image for v in small_town.views], small_town.aoi, tmp_path / "o",
+                         alt_range=_alt(small_town), config=PipelineConfig.from_mapping(FAST),
+                         verbose=False)
+    assert result.report["warnings"] == []
+    assert {"sweep", "mrf", "fill", "outputs"} <= set(result.report["peak_memory_mb"])
+
+
+def test_output_folder_problems_are_one_line_and_leave_nothing(small_town, tmp_path, capsys):
+    images = [str(v.image) for v in small_town.views]
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    line = _one_error_line(capsys, ["reconstruct", *images, "--aoi", _aoi_arg(small_town),
+                                    "--out", str(blocker / "sub" / "out"), "--quiet"])
+    assert "cannot write the output folder" in line
+    # A failed run removes every folder it created, parents included.
+    deep = tmp_path / "x" / "y" / "out"
+    _one_error_line(capsys, ["reconstruct", images[0], str(tmp_path / "missing.tif"), "--aoi",
+                             _aoi_arg(small_town), "--alt-range", "90", "170", "--out",
+                             str(deep), "--quiet"])
+    assert not (tmp_path / "x").exists()
+
+
+def test_stale_staging_is_ignored_then_removed(small_town, tmp_path):
+    out = tmp_path / "out"
+    stale = out / f"{STAGING_PREFIX}dead"
+    stale.mkdir(parents=True)
+    (stale / STAGING_OWNER).write_text("999999999")  # no such process
+    (stale / "dsm.tif").write_bytes(b"half written")
+    reconstruct([v.image for v in small_town.views], small_town.aoi, out,
+                alt_range=_alt(small_town), config=PipelineConfig.from_mapping(FAST),
+                verbose=False)  # the folder counts as empty: no --overwrite needed
+    assert not stale.exists()
+    assert not [p for p in out.iterdir() if p.name.startswith(STAGING_PREFIX)]
+
+
+def test_overwrite_replaces_the_previous_run_and_keeps_other_files(small_town, tmp_path):
+    out = tmp_path / "out"
+    config = PipelineConfig.from_mapping(FAST)
+    images = [v.image for v in small_town.views]
+    reconstruct(images, small_town.aoi, out, alt_range=_alt(small_town), config=config,
+                truth=small_town.truth_dsm, verbose=False)
+    assert (out / "evaluation").is_dir()
+    (out / "notes.txt").write_text("mine")
+    reconstruct(images, small_town.aoi, out, alt_range=_alt(small_town),
+                config=config.override("reconstruct", write_ortho=False), overwrite=True,
+                verbose=False)
+    assert not (out / "evaluation").exists() and not (out / "ortho.tif").exists()
+    assert (out / "notes.txt").read_text() == "mine" and (out / "dsm.tif").is_file()
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGTERM"), reason="no SIGTERM on this platform")
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
+def test_sigterm_and_sighup_leave_no_staging(small_town, tmp_path, signame):
+    """A killed run (SIGTERM, SIGHUP) removes its staging folder and the folder it created, as
+    Ctrl-C does, and exits with 128 + the signal's number."""
+    if not hasattr(signal, signame):
+        pytest.skip(f"no {signame} on this platform")
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "satsweep", "reconstruct", *[str(v.image) for v in small_town.views],
+         "--aoi", _aoi_arg(small_town), "--alt-range", "90", "170", "--out", str(out), "--quiet"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env={**os.environ})
+    deadline = time.monotonic() + STAGING_WAIT_S
+    while time.monotonic() < deadline and proc.poll() is None:
+        if out.is_dir() and any(p.name.startswith(STAGING_PREFIX) for p in out.iterdir()):
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be signalled"
+    signum = getattr(signal, signame)
+    proc.send_signal(signum)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signum, err
+    assert f"terminated ({signame})" in err
+    assert not out.exists()
