@@ -212,18 +212,30 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
 def _add_evaluate(sub) -> None:
     p = sub.add_parser(
         "evaluate",
-        help="score a DSM against a ground-truth DSM (IARPA MVS3DM protocol), JSON on stdout",
-        description="Resample PRED onto the grid of TRUTH (same EPSG code), search the horizontal "
-        "shift (integer truth cells up to --max-shift metres) and vertical offset (median "
-        "difference) with the least median absolute error, and print the aligned and unaligned "
-        "median_abs_error_m, completeness_1m, rmse_m and shift as JSON.",
+        help="score a DSM against a ground-truth DSM (IARPA MVS3DM or DFC2019 protocol), JSON on stdout",
+        description="Resample PRED onto the grid of TRUTH (same EPSG code) and print the metrics as "
+        "JSON. --protocol mvs3dm (default): search the horizontal shift (integer truth cells up to "
+        "--max-shift metres) and vertical offset (median difference) with the least median absolute "
+        "error; report the aligned and unaligned median_abs_error_m, completeness_1m, rmse_m and "
+        "shift. --protocol dfc (DFC2019 / US3D): mask the --classification cells of --water-class "
+        "(default 9, ASPRS water), take the integer shift up to --max-shift-cells that maximises the "
+        "normalised cross-correlation, remove the mean vertical offset, and report "
+        "mean_abs_error_m, median_abs_error_m, rmse_m, completeness_1m, valid_fraction and shift.",
     )
     p.add_argument("pred", metavar="PRED.tif", help="predicted DSM (GeoTIFF, projected CRS in metres)")
     p.add_argument("truth", metavar="TRUTH.tif", help="ground-truth DSM (GeoTIFF, same EPSG code)")
     p.add_argument("--out", metavar="DIR", default=None,
                    help="also write error_map.png, error_histogram.png, error.tif, evaluation.json here")
+    p.add_argument("--protocol", choices=("mvs3dm", "dfc"), default=None,
+                   help="IARPA MVS3DM (default) or the DFC2019 / US3D protocol")
     p.add_argument("--max-shift", type=float, default=None, metavar="M",
-                   help="horizontal shift search radius in metres (default 2)")
+                   help="mvs3dm: horizontal shift search radius in metres (default 2)")
+    p.add_argument("--max-shift-cells", type=int, default=None, metavar="N",
+                   help="dfc: horizontal shift search radius in truth cells (default 4)")
+    p.add_argument("--classification", metavar="CLS.tif", default=None,
+                   help="dfc: class codes on the truth grid (GeoTIFF); --water-class cells are masked")
+    p.add_argument("--water-class", type=int, action="append", default=None, metavar="CODE",
+                   help="dfc: a class code to mask, repeatable (default 9, ASPRS water)")
     p.add_argument("--threshold", type=float, default=None, metavar="M",
                    help="completeness threshold in metres (default 1)")
     p.add_argument("--resampling", choices=("nearest", "bilinear"), default=None,
@@ -232,12 +244,22 @@ def _add_evaluate(sub) -> None:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from satsweep.errors import OptionsError
     from satsweep.pipeline.report import to_json
     from satsweep.products.evaluate import EvaluateOptions, evaluate_dsm
 
-    given = {"max_shift_m": args.max_shift, "threshold_m": args.threshold, "resampling": args.resampling}
+    protocol = args.protocol or "mvs3dm"
+    wrong = ([("--max-shift-cells", args.max_shift_cells), ("--classification", args.classification),
+              ("--water-class", args.water_class)] if protocol == "mvs3dm" else [("--max-shift", args.max_shift)])
+    for flag, value in wrong:
+        if value is not None:
+            other = "dfc" if protocol == "mvs3dm" else "mvs3dm"
+            raise OptionsError(f"{flag} is an option of --protocol {other}, not of --protocol {protocol}")
+    given = {"max_shift_m": args.max_shift, "threshold_m": args.threshold, "resampling": args.resampling,
+             "protocol": args.protocol, "dfc_max_shift_cells": args.max_shift_cells,
+             "water_classes": None if args.water_class is None else tuple(args.water_class)}
     options = EvaluateOptions(**{k: v for k, v in given.items() if v is not None})
-    report = evaluate_dsm(args.pred, args.truth, options, out_dir=args.out)
+    report = evaluate_dsm(args.pred, args.truth, options, out_dir=args.out, classification=args.classification)
     print(to_json(report))
     return 0
 

@@ -346,3 +346,198 @@ def test_s2p_dsm_moved_by_rasterio_is_realigned(shared_data, tmp_path):
     assert al["median_abs_error_m"] <= FLOAT32_TOL_M
     assert al["completeness_1m"] == 1.0
     assert r["unaligned"]["completeness_1m"] < 1.0
+
+
+# -- DFC2019 / US3D protocol ----------------------------------------------------------------------
+WATER = 9  # ASPRS LAS water, as the DFC2019 / US3D CLS rasters label it
+LAND = 6  # ASPRS building, any other class
+
+
+def _moved(truth: np.ndarray, a: int, b: int) -> np.ndarray:
+    """The truth's content moved a rows south and b columns east (NaN where nothing moved in)."""
+    out = np.full_like(truth, np.nan)
+    out[a:, b:] = truth[:-a, :-b]
+    return out
+
+
+def _aligned_back(pred: np.ndarray, a: int, b: int) -> np.ndarray:
+    """The prediction moved back a rows north and b columns west: aligned[i, j] = pred[i + a, j + b]."""
+    out = np.full_like(pred, np.nan)
+    out[:-a, :-b] = pred[a:, b:]
+    return out
+
+
+def _dfc_reference(aligned: np.ndarray, truth: np.ndarray, keep: np.ndarray, threshold: float = 1.0):
+    """The DFC figures at a known shift, in plain numpy: mean offset, then errors over cells valid in both."""
+    both = keep & np.isfinite(truth) & np.isfinite(aligned)
+    dz = np.mean(truth[both] - aligned[both])
+    e = aligned[both] + dz - truth[both]
+    n_truth = np.count_nonzero(keep & np.isfinite(truth))
+    return {"dz": dz, "mae": np.mean(np.abs(e)), "median": np.median(np.abs(e)), "rmse": np.sqrt(np.mean(e ** 2)),
+            "completeness": np.count_nonzero(np.abs(e) < threshold) / n_truth,
+            "within": np.count_nonzero(np.abs(e) < threshold) / both.sum(), "valid": both.sum() / n_truth,
+            "compared": int(both.sum()), "truth_cells": int(n_truth)}
+
+
+def test_dfc_recovers_shift_offset_and_mae_with_holes_and_water():
+    rng = np.random.default_rng(7)
+    truth = _scene(60, 70, seed=7)
+    classes = np.full(truth.shape, LAND, np.uint8)
+    classes[35:55, 5:30] = WATER
+    truth[35:55, 5:30] = 2335.0  # a flat water surface
+    a, b, off, noise = 2, 3, 1.75, 0.2  # content moved 2 rows south, 3 columns east, 1.75 m up
+    pred = _moved(truth, a, b) + off + rng.normal(0, noise, truth.shape)
+    pred[_moved(classes == WATER, a, b) == 1] = rng.uniform(2300, 2400, np.count_nonzero(
+        _moved(classes == WATER, a, b) == 1))  # garbage on the water, where the mask must hide it
+    pred[rng.random(truth.shape) < 0.15] = np.nan  # holes
+    pred[5:15, 40:60] = np.nan
+    opts = ev.EvaluateOptions(protocol="dfc")
+    r = ev.evaluate_arrays(pred, truth, 0.5, opts, classification=classes)
+    assert r["protocol"] == ev.DFC_PROTOCOL
+    assert r["shift"]["dx_cells"] == -b and r["shift"]["dy_cells"] == a
+    assert (r["shift"]["dx_m"], r["shift"]["dy_m"]) == (-b * 0.5, a * 0.5)
+    ref = _dfc_reference(_aligned_back(pred, a, b), truth, classes != WATER)
+    assert math.isclose(r["shift"]["dz_m"], ref["dz"], abs_tol=EXACT_TOL_M)
+    # The offset is the injected one, up to the mean of the noise over the compared cells.
+    assert abs(r["shift"]["dz_m"] + off) <= 5 * noise / math.sqrt(ref["compared"])
+    assert math.isclose(r["mean_abs_error_m"], ref["mae"], rel_tol=1e-12)
+    assert math.isclose(r["median_abs_error_m"], ref["median"], rel_tol=1e-12)
+    assert math.isclose(r["rmse_m"], ref["rmse"], rel_tol=1e-12)
+    assert math.isclose(r["completeness_1m"], ref["completeness"], rel_tol=1e-12)
+    assert math.isclose(r["compared_within_1m"], ref["within"], rel_tol=1e-12)
+    assert math.isclose(r["valid_fraction"], ref["valid"], rel_tol=1e-12)
+    assert r["compared_cells"] == ref["compared"] and r["truth_cells"] == ref["truth_cells"]
+    assert r["masked_cells"] == np.count_nonzero(classes == WATER) and r["water_classes"] == [WATER]
+    assert r["shifts_searched"] == 81 and r["max_shift_cells"] == 4 and 0.99 < r["ncc"] <= 1.0
+    # The noise alone: the mean |N(0, s)| is s * sqrt(2 / pi).
+    assert abs(r["mean_abs_error_m"] - noise * math.sqrt(2 / math.pi)) < 0.1 * noise
+    # Without the mask the water's garbage is compared too.
+    unmasked = ev.evaluate_arrays(pred, truth, 0.5, opts)
+    assert unmasked["masked_cells"] == 0 and unmasked["mean_abs_error_m"] > 10 * r["mean_abs_error_m"]
+
+
+def _naive_ncc_shift(pred, truth, radius):
+    """NCC with the holes filled by zeros, over the whole overlap: what the masked NCC must not do."""
+    h, w = truth.shape
+    t0 = np.nan_to_num(truth, nan=0.0)
+    best = None
+    for sy in range(-radius, radius + 1):
+        for sx in range(-radius, radius + 1):
+            rows = slice(max(0, -sy), min(h, h - sy))
+            cols = slice(max(0, sx), min(w, w + sx))
+            a = np.nan_to_num(pred[rows.start + sy:rows.stop + sy, cols.start - sx:cols.stop - sx], nan=0.0)
+            c = np.corrcoef(t0[rows, cols].ravel(), a.ravel())[0, 1]
+            if best is None or c > best[0]:
+                best = (c, sx, sy)
+    return best[1], best[2]
+
+
+def test_dfc_ncc_is_not_fooled_by_holes():
+    rng = np.random.default_rng(3)
+    truth = _scene(60, 70, seed=3)
+    a, b = 1, 2  # true shift: dx = -2 cells, dy = +1 cell
+    pred = _moved(truth, a, b) + 0.5 + rng.normal(0, 0.1, truth.shape)
+    pred[np.isnan(pred)] = 2340.0  # the edge the move left empty: plausible heights, not holes
+    truth[20:40, 25:45] = np.nan  # a hole in the truth...
+    wrong_sx, wrong_sy = 3, -3  # ... and one in the prediction where this wrong shift lays it on it
+    pred[20 + wrong_sy:40 + wrong_sy, 25 - wrong_sx:45 - wrong_sx] = np.nan
+    assert _naive_ncc_shift(pred, truth, 4) == (wrong_sx, wrong_sy)  # zero-filled holes do fool NCC
+    r = ev.evaluate_arrays(pred, truth, 0.5, ev.EvaluateOptions(protocol="dfc"))
+    assert (r["shift"]["dx_cells"], r["shift"]["dy_cells"]) == (-b, a)
+
+
+def test_dfc_options_and_arrays_are_checked():
+    with pytest.raises(OptionsError, match="dfc_max_shift_cells"):
+        ev.EvaluateOptions(protocol="dfc", dfc_max_shift_cells=-1)
+    with pytest.raises(OptionsError, match="protocol"):
+        ev.EvaluateOptions(protocol="us3d")
+    truth = _scene(10, 10)
+    with pytest.raises(OptionsError, match="dfc protocol only"):
+        ev.evaluate_arrays(truth, truth, 0.5, ev.EvaluateOptions(), classification=np.zeros((10, 10)))
+    with pytest.raises(ValueError, match="classification"):
+        ev.evaluate_arrays(truth, truth, 0.5, ev.EvaluateOptions(protocol="dfc"), classification=np.zeros((9, 10)))
+
+
+def test_mvs3dm_report_keys_are_unchanged():
+    r = ev.evaluate_arrays(_scene(10, 10), _scene(10, 10), 0.5)
+    assert set(r) == {"protocol", "resampling", "max_shift_m", "threshold_m", "cell_size_m", "shifts_searched",
+                      "truth_cells", "aligned", "unaligned"}
+    assert set(r["aligned"]) == {"median_abs_error_m", "completeness_1m", "rmse_m", "mean_error_m", "shift",
+                                 "compared_cells", "prediction_coverage"}
+
+
+def _write_rgb_geotiff(path):
+    from satsweep.io import geotiff
+    from satsweep.io.geotiff import write_tiff
+
+    tags = [(geotiff.TAG_MODEL_PIXEL_SCALE, "d", 3, (0.5, 0.5, 0.0), True),
+            (geotiff.TAG_MODEL_TIEPOINT, "d", 6, (0.0, 0.0, 0.0, X0, Y1, 0.0), True),
+            (geotiff.TAG_GEO_KEY_DIRECTORY, "H", 16, tuple(geotiff._geokeys(EPSG)), True)]
+    write_tiff(path, np.zeros((10, 10, 3), np.uint8), extratags=tags)
+    return path
+
+
+def test_dfc_files_input_errors(tmp_path):
+    truth = _scene(20, 20)
+    t_path = _write(tmp_path / "t.tif", truth)
+    classes = np.full(truth.shape, LAND, np.uint8)
+    dfc = ev.EvaluateOptions(protocol="dfc")
+    off_grid = tmp_path / "cls_moved.tif"
+    write_geotiff(off_grid, classes, epsg=EPSG, x_min=X0 + 0.5, y_max=Y1, resolution=0.5, dtype=np.uint8, nodata=None)
+    with pytest.raises(InputError, match=r"cls_moved.tif: its grid .* is not the truth's"):
+        ev.evaluate_dsm(t_path, t_path, dfc, classification=off_grid)
+    small = tmp_path / "cls_small.tif"
+    write_geotiff(small, classes[:19], epsg=EPSG, x_min=X0, y_max=Y1, resolution=0.5, dtype=np.uint8, nodata=None)
+    with pytest.raises(InputError, match=r"cls_small.tif: its grid"):
+        ev.evaluate_dsm(t_path, t_path, dfc, classification=small)
+    all_water = tmp_path / "cls_water.tif"
+    write_geotiff(all_water, np.full(truth.shape, WATER, np.uint8), epsg=EPSG, x_min=X0, y_max=Y1, resolution=0.5,
+                  dtype=np.uint8, nodata=None)
+    with pytest.raises(InputError, match=r"cls_water.tif: masks every valid cell"):
+        ev.evaluate_dsm(t_path, t_path, dfc, classification=all_water)
+    rgb = _write_rgb_geotiff(tmp_path / "rgb.tif")
+    for options in (dfc, ev.EvaluateOptions()):
+        with pytest.raises(InputError, match=r"rgb.tif: has 3 bands per pixel"):
+            ev.evaluate_dsm(rgb, t_path, options)
+    with pytest.raises(InputError, match=r"rgb.tif: has 3 bands per pixel"):
+        ev.evaluate_dsm(t_path, t_path, dfc, classification=rgb)
+    with pytest.raises(OptionsError, match="dfc protocol only"):
+        ev.evaluate_dsm(t_path, t_path, ev.EvaluateOptions(), classification=all_water)
+
+
+def test_dfc_files_report_and_cli(tmp_path, capsys):
+    truth = _scene(40, 50, seed=4)
+    classes = np.full(truth.shape, LAND, np.uint8)
+    classes[:10, :10] = WATER
+    pred = _moved(truth, 1, 1) + 0.25
+    pred[:11, :11] = 0.0  # nonsense over the water (rows and columns 0-9 once moved back)
+    t_path = _write(tmp_path / "t.tif", truth)
+    p_path = _write(tmp_path / "p.tif", pred)
+    c_path = tmp_path / "cls.tif"
+    write_geotiff(c_path, classes, epsg=EPSG, x_min=X0, y_max=Y1, resolution=0.5, dtype=np.uint8, nodata=None)
+    out = tmp_path / "out"
+    code = main(["evaluate", str(p_path), str(t_path), "--protocol", "dfc", "--classification", str(c_path),
+                 "--out", str(out)])
+    assert code == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report == json.loads(json.dumps(ev.evaluate_dsm(p_path, t_path, ev.EvaluateOptions(protocol="dfc"),
+                                                           classification=c_path)))
+    assert report["classification"] == str(c_path) and report["epsg"] == EPSG
+    assert report["shift"] == {"dx_cells": -1, "dy_cells": 1, "dx_m": -0.5, "dy_m": 0.5, "dz_m": -0.25}
+    assert report["mean_abs_error_m"] <= FLOAT32_TOL_M and report["completeness_1m"] == report["valid_fraction"]
+    ref = _dfc_reference(_aligned_back(pred.astype(np.float32).astype(np.float64), 1, 1),
+                         truth.astype(np.float32).astype(np.float64), classes != WATER)
+    assert report["compared_cells"] == ref["compared"] and math.isclose(report["valid_fraction"], ref["valid"])
+    assert (out / ev.ERROR_MAP_PNG).is_file() and (out / ev.ERROR_TIF).is_file()
+    assert json.loads((out / ev.REPORT_JSON).read_text()) == report
+    # Another water code, and a smaller search: the flags reach the options.
+    code = main(["evaluate", str(p_path), str(t_path), "--protocol", "dfc", "--classification", str(c_path),
+                 "--water-class", "6", "--max-shift-cells", "2"])
+    report = json.loads(capsys.readouterr().out)
+    assert code == 0 and report["water_classes"] == [LAND] and report["shifts_searched"] == 25
+    # Flags of the other protocol are refused with one line.
+    for argv in (["--protocol", "dfc", "--max-shift", "1"], ["--classification", str(c_path)],
+                 ["--max-shift-cells", "2"]):
+        code = main(["evaluate", str(p_path), str(t_path), *argv])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and "is an option of --protocol" in err[0]
