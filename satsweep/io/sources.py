@@ -19,6 +19,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from satsweep.geometry.altitude import AltitudeRange
     from satsweep.geometry.aoi import AOI
     from satsweep.geometry.rpc import RPCModel
+    from satsweep.io.metadata import AcquisitionMetadata
 
 # Fewest images stereo needs.
 MIN_IMAGES = 2
@@ -31,6 +32,8 @@ class ImageSource:
     path: str  # the image file, as given
     rpc: "RPCModel"  # projects ground points to pixels of the whole image
     shape: tuple[int, int]  # (rows, columns) of the whole image
+    acquisition: "AcquisitionMetadata | None" = None  # date, sun and view angles, when the
+    # delivery gives them (satsweep.io.metadata)
 
     @property
     def name(self) -> str:
@@ -63,14 +66,17 @@ class ImageSource:
 
 
 def open_source(path: str | os.PathLike) -> ImageSource:
-    """Read an image's header and RPC (tag or sidecar); ImageFormatError / RPCError naming it."""
+    """Read an image's header, RPC (tag or sidecar) and acquisition metadata (when there is
+    some); ImageFormatError / RPCError naming it."""
     from satsweep.geometry.rpc import RPCModel
     from satsweep.io.images import image_shape
+    from satsweep.io.metadata import read_acquisition_metadata
 
     path = os.fspath(path)
     shape = image_shape(path)
-    return ImageSource(path=path, rpc=RPCModel.from_image(path), shape=(int(shape[0]),
-                                                                        int(shape[1])))
+    return ImageSource(path=path, rpc=RPCModel.from_image(path),
+                       shape=(int(shape[0]), int(shape[1])),
+                       acquisition=read_acquisition_metadata(path))
 
 
 def open_sources(paths: Sequence[str | os.PathLike | ImageSource]) -> list[ImageSource]:

@@ -77,6 +77,7 @@ class AreaRecord:
 
     altitude: AltitudeChoice
     crops: list[tuple[str, tuple[int, int, int, int]]]  # (image, (x0, y0, width, height))
+    acquisitions: list[dict | None]  # per view, its acquisition metadata (None: none given)
     cameras: "CameraSet"
     adjustment: Adjustment
     selection: "Selection"
@@ -92,7 +93,8 @@ class AreaRecord:
         names = [name for name, _ in self.crops]
         return {
             "altitude_range": self.altitude.to_report(),
-            "views": [{"image": path, "crop": list(box)} for path, box in self.crops],
+            "views": [{"image": path, "crop": list(box), "acquisition": acquisition}
+                      for (path, box), acquisition in zip(self.crops, self.acquisitions)],
             "cameras": {"approx_error_px": {os.path.basename(n): v.camera.error.to_dict()
                                             for n, v in zip(names, self.cameras.views)},
                         "warnings": list(self.cameras.warnings)},
@@ -180,6 +182,8 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     record = AreaRecord(altitude=altitude,
                         crops=[(v.path, (int(v.x0), int(v.y0), int(v.width), int(v.height)))
                                for v in views],
+                        acquisitions=[None if s.acquisition is None else s.acquisition.to_dict()
+                                      for s in job.sources],
                         cameras=cameras, adjustment=adjustment, selection=selection,
                         sweeps=sweeps, rasters=rasters)
     return AreaResult(rasters=rasters, cameras=cameras, shifts=adjustment.own_shifts,

@@ -93,6 +93,9 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     rep["device"] = device.info.as_dict()
     rep.log(f"device: {device.info.label}")
     sources = open_sources(paths)
+    for source in sources:
+        for problem in (source.acquisition.warnings if source.acquisition is not None else ()):
+            rep.warn(problem)
 
     # The DSM grid: the UTM zone of the AOI centre (every tile's, too), cells of --resolution.
     lon_c, lat_c = aoi.center

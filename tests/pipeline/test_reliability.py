@@ -232,3 +232,24 @@ def test_sigterm_and_sighup_leave_no_staging(small_town, tmp_path, signame):
     assert proc.returncode == 128 + signum, err
     assert f"terminated ({signame})" in err
     assert not out.exists()
+
+
+def test_each_views_acquisition_metadata_is_reported(small_town, tmp_path):
+    """A view with a Maxar-style .IMD sidecar has its date and sun angles in report.json; a
+    view without metadata has none, which is no error."""
+    images = []
+    for v in small_town.views:
+        src = Path(v.image)
+        shutil.copy(src, tmp_path / src.name)
+        shutil.copy(src.with_name(src.stem + "_RPC.TXT"), tmp_path / (src.stem + "_RPC.TXT"))
+        images.append(tmp_path / src.name)
+    (tmp_path / (images[0].stem + ".IMD")).write_text(
+        'satId = "SYNTH";\nfirstLineTime = 2019-06-01T10:31:12.000000Z;\n'
+        "BEGIN_GROUP = IMAGE_1\n\tmeanSunAz = 135.2;\n\tmeanSunEl = 61.0;\nEND_GROUP = IMAGE_1\n"
+        "END;\n")
+    result = reconstruct(images, small_town.aoi, tmp_path / "out", alt_range=_alt(small_town),
+                         config=PipelineConfig.from_mapping(FAST), verbose=False)
+    first, second = result.report["views"]
+    assert first["acquisition"]["acquisition_time_utc"] == "2019-06-01T10:31:12Z"
+    assert first["acquisition"]["sun_elevation_deg"] == 61.0
+    assert second["acquisition"] is None
