@@ -40,6 +40,8 @@ class ReconstructOptions(Options):
     # at most this side, each with its own cameras; 0: never
     warn_filled_below: float = 0.2  # a DSM with a smaller fraction of its cells filled gets a
     # warning that its result is doubtful
+    max_aoi_km2: float = 2500.0  # an AOI larger than this (km2) is refused before any work
+    max_dsm_cells: float = 4e9  # a DSM grid of more cells than this is refused before any work
     skew_correct: bool = True  # shear the images so that K has no skew before the sweep
     crop_margin_px: int = 32  # margin (px) kept around the AOI footprint in each image's crop
     tie_altitude_quantile: float = 0.01  # without --alt-range or --dem, the tie points'
@@ -49,7 +51,7 @@ class ReconstructOptions(Options):
     tile_max_error_px: float = 0.1  # an area whose cameras are further than this (px) from
     # their RPCs is cut again in 2 x 2, down to tiles of 50 m; 0: never
 
-    ADVANCED = ("warn_filled_below", "skew_correct", "crop_margin_px", "tie_altitude_quantile",
+    ADVANCED = ("warn_filled_below", "max_aoi_km2", "max_dsm_cells", "skew_correct", "crop_margin_px", "tie_altitude_quantile",
                 "tie_altitude_margin_m", "tile_overlap_m", "tile_max_error_px")
 
     def check(self) -> None:
@@ -68,6 +70,10 @@ class ReconstructOptions(Options):
                       "tile_overlap_m", "must be a number of metres in [0, tile_m]")
         self._require(0.0 <= self.warn_filled_below <= 1.0, "warn_filled_below",
                       "must be a fraction in [0, 1]")
+        self._require(math.isfinite(self.max_aoi_km2) and self.max_aoi_km2 > 0.0, "max_aoi_km2",
+                      "must be a positive number of square kilometres")
+        self._require(math.isfinite(self.max_dsm_cells) and self.max_dsm_cells >= 1.0,
+                      "max_dsm_cells", "must be a number of cells >= 1")
         self._require(math.isfinite(self.tile_max_error_px) and self.tile_max_error_px >= 0.0,
                       "tile_max_error_px", "must be a number of pixels >= 0 (0: off)")
 

@@ -1,7 +1,9 @@
 #!/usr/bin/env python3
 """SHA-256 of the products of reconstructions (DSM, confidence, orthophoto, cloud), to show that a
 change leaves results bit for bit the same: run it on the output folders before and after, then
-compare the two JSON files (``--compare``).
+compare the two JSON files (``--compare``). A GeoTIFF's digest is that of its decoded pixels
+(shape, type and values of its first page), so that a change of file layout or compression
+alone leaves it the same; a cloud's is that of its bytes.
 
     python tools/digest_outputs.py /tmp/before -o before.json   # every run folder under it
     python tools/digest_outputs.py /tmp/after -o after.json --compare before.json
@@ -18,11 +20,23 @@ from pathlib import Path
 PRODUCTS = ("dsm.tif", "confidence.tif", "ortho.tif", "count.tif", "cloud.ply")
 
 
+def _digest(path: Path) -> str:
+    if path.suffix != ".tif":
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    import numpy as np
+    import tifffile
+
+    pixels = np.ascontiguousarray(tifffile.imread(path, key=0))
+    h = hashlib.sha256(f"{pixels.shape} {pixels.dtype.str}".encode())
+    h.update(pixels.tobytes())
+    return h.hexdigest()
+
+
 def digests(root: Path) -> dict[str, str]:
     out = {}
     for name in PRODUCTS:
         for path in sorted(root.rglob(name)):
-            out[str(path.relative_to(root))] = hashlib.sha256(path.read_bytes()).hexdigest()
+            out[str(path.relative_to(root))] = _digest(path)
     return out
 
 

@@ -115,6 +115,16 @@ class AreaResult:
     shifts: list[list[float]] | None
     record: AreaRecord
 
+    def without_arrays(self) -> "AreaResult":
+        """A copy without the rasters, height maps and clouds (kept on disk or written by
+        then): what a run holds of a finished area."""
+        rasters = dataclasses.replace(self.rasters, dsm=None, confidence=None, ortho=None,
+                                      clouds=[])
+        sweeps = [dataclasses.replace(s, height=None, valid=None, confidence=None)
+                  for s in self.record.sweeps]
+        record = dataclasses.replace(self.record, sweeps=sweeps, rasters=rasters)
+        return dataclasses.replace(self, rasters=rasters, record=record)
+
 
 @dataclasses.dataclass(frozen=True)
 class Split:

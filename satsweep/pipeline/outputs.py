@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import shutil
 import tempfile
 from pathlib import Path
-
-import numpy as np
 
 from satsweep.pipeline.report import RunReport, to_json
 
@@ -29,6 +28,10 @@ class ReconstructResult:
 PRODUCTS = ("dsm.tif", "confidence.tif", "ortho.tif", "count.tif", "interpolated.tif",
             "cloud.ply", "dsm.png", "cameras.json", "config.toml", "report.json", "evaluation",
             "tiles", "images")
+
+
+# The intermediate files' folder inside the staging folder (OutputFolder.work).
+WORK_DIR = ".work"
 
 
 class OutputFolder:
@@ -81,11 +84,20 @@ class OutputFolder:
         p.parent.mkdir(parents=True, exist_ok=True)
         return p
 
+    @property
+    def work(self) -> Path:
+        """A folder for the run's intermediate files (the areas' pieces, the bands on disk):
+        inside the staging folder, never moved into ``out_dir``."""
+        p = self.staging / WORK_DIR
+        p.mkdir(exist_ok=True)
+        return p
+
     def commit(self) -> list[Path]:
         """Move the staged outputs into ``out_dir``; return their final paths."""
         from satsweep.io.atomic import STAGING_OWNER
 
         (self.staging / STAGING_OWNER).unlink(missing_ok=True)
+        shutil.rmtree(self.staging / WORK_DIR, ignore_errors=True)
         written = {p.relative_to(self.staging).parts[0] for p in self.staging.rglob("*")}
         if self.overwrite:  # an earlier run's outputs that this run does not replace
             for name in PRODUCTS:
@@ -116,24 +128,42 @@ class OutputFolder:
             shutil.rmtree(self.created_root, ignore_errors=True)
 
 
-def write_products(fused, conf, ortho, cloud, grid, out: OutputFolder) -> Path:
-    """The rasters (``ortho`` None: none), the quick look and the cloud (a ``PLYWriter`` holding
+# What each raster of the outputs holds: (file, description, unit, GDAL_NODATA, overviews'
+# resampling). Heights are above the WGS84 ellipsoid (EPSG:4979), in metres.
+RASTERS = {
+    "dsm": ("dsm.tif", "height above the WGS84 ellipsoid (EPSG:4979)", "m", math.nan, "average"),
+    "confidence": ("confidence.tif", "matching confidence in [0, 1] (NaN: no measured height)",
+                   None, math.nan, "average"),
+    "ortho": ("ortho.tif", "true orthophoto: the images' value at each cell's highest point",
+              None, math.nan, "average"),
+    "interpolated": ("interpolated.tif", "0: measured height, 1: interpolated (a small hole "
+                     "filled), 255: no height", None, 255, "nearest"),
+}
+# The longest side (pixels) of the quick look's map.
+QUICKLOOK_MAX_PX = 2048
+
+
+def write_products(bands: dict, cloud, grid, out: OutputFolder) -> Path:
+    """The rasters of ``bands`` (name -> ``RawBand`` on ``grid``; see ``RASTERS``) as tiled,
+    compressed GeoTIFFs with overviews, the quick look and the cloud (a ``PLYWriter`` holding
     the points, or None) into the staging folder. Returns the DSM's staged path."""
-    from satsweep.io.geotiff import write_geotiff
-    from satsweep.products.grid import write_dsm_geotiff
+    from satsweep.io.cog import write_cog
+    from satsweep.pipeline.mosaic import decimated
     from satsweep.products.quicklook import height_png
 
-    dsm_path = out.path("dsm.tif")
-    write_dsm_geotiff(dsm_path, fused.astype(np.float32), grid)
-    write_geotiff(out.path("confidence.tif"), conf.astype(np.float32), epsg=grid.epsg,
-                  x_min=grid.x_min, y_max=grid.y_max, resolution=grid.resolution)
-    if ortho is not None:
-        write_geotiff(out.path("ortho.tif"), ortho.astype(np.float32), epsg=grid.epsg,
-                      x_min=grid.x_min, y_max=grid.y_max, resolution=grid.resolution)
-    height_png(out.path("dsm.png"), fused, title="satsweep DSM (m above WGS84 ellipsoid)")
+    items = {"VERTICAL_REFERENCE": "WGS84 ellipsoid (EPSG:4979), metres",
+             "SOFTWARE": "satsweep"}
+    for name, band in bands.items():
+        filename, description, units, nodata, resampling = RASTERS[name]
+        write_cog(out.path(filename), band, epsg=grid.epsg, x_min=grid.x_min, y_max=grid.y_max,
+                  resolution=grid.resolution, nodata=nodata, resampling=resampling,
+                  description=description, units=units,
+                  items=items if name == "dsm" else {"SOFTWARE": "satsweep"}, work_dir=out.work)
+    height_png(out.path("dsm.png"), decimated(bands["dsm"], QUICKLOOK_MAX_PX),
+               title="satsweep DSM (m above WGS84 ellipsoid)")
     if cloud is not None:
         cloud.commit()
-    return dsm_path
+    return out.path("dsm.tif")
 
 
 def evaluate_products(dsm_path: Path, truth, out: OutputFolder, rep: RunReport) -> dict:

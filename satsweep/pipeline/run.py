@@ -32,8 +32,6 @@ import os
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
-
 from satsweep.config import PipelineConfig
 from satsweep.errors import InputError, OptionsError
 from satsweep.geometry.altitude import AltitudeRange
@@ -61,6 +59,7 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
     ``AltitudeRange`` or a (min, max) pair. Every bad argument is a ``SatsweepError``."""
     # Everything that can be checked cheaply is checked before anything is written.
     paths, aoi, alt_range = _checked_arguments(images, aoi, alt_range, config)
+    check_run_size(aoi, config)
     if truth is not None:
         check_truth_dsm(truth, aoi)
     out = OutputFolder(out_dir, overwrite=overwrite)
@@ -112,7 +111,7 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     try:
         ctx = RunContext(device=device, config=config, report=rep, alt_range=alt_range, dem=dem)
         with rep.capturing_warnings():
-            mosaic = reconstruct_areas(sources, aoi, grid, tiles, cloud, ctx)
+            mosaic = reconstruct_areas(sources, aoi, grid, tiles, cloud, ctx, out.work)
             return _finish(mosaic, cloud, ctx, out, truth)
     except BaseException:
         if cloud is not None:
@@ -124,7 +123,7 @@ def _finish(mosaic: Mosaic, cloud, ctx: RunContext, out: OutputFolder,
             truth) -> ReconstructResult:
     """The mosaic's holes filled, the report's figures, the outputs."""
     from satsweep.geometry.camera import write_cameras
-    from satsweep.products.fusion import fill_small_holes
+    from satsweep.pipeline.mosaic import assemble, fill_holes
 
     config, rep, grid = ctx.config, ctx.report, mosaic.grid
     r, d = config.reconstruct, config.dsm
@@ -146,22 +145,22 @@ def _finish(mosaic: Mosaic, cloud, ctx: RunContext, out: OutputFolder,
             if key not in ("core_cells", "window_cells", "level", "aoi"):
                 rep[key] = value
 
-    fused = mosaic.dsm
+    bands = ["dsm", "confidence"] + (["ortho"] if r.write_ortho else [])
     with rep.stage("fill"):
-        filled = 0
-        if d.fill_max_hole_cells > 0:
-            fused, filled = fill_small_holes(fused, max_hole_cells=d.fill_max_hole_cells,
-                                             method=d.fill_method)
+        rasters = assemble(grid, mosaic.pieces, out.work, bands)
+        filled = fill_holes(rasters["dsm"], out.work, max_hole_cells=d.fill_max_hole_cells,
+                            method=d.fill_method)
         rep["dsm"] = {
             "epsg": grid.epsg, "resolution_m": grid.resolution, "width": grid.width,
             "height": grid.height, "x_min": grid.x_min, "y_max": grid.y_max,
-            "filled_fraction": float(np.isfinite(fused).mean()),
-            "holes_filled_cells": int(filled),
+            "filled_fraction": filled.valid_cells / float(grid.width * grid.height),
+            "holes_filled_cells": filled.filled_cells,
             **({} if mosaic.tiled else entries[0]["dsm"]),  # a tile's are in its entry
         }
     _check_filled(rep["dsm"]["filled_fraction"], mosaic, ctx)
     with rep.stage("outputs"):
-        dsm_path = write_products(fused, mosaic.confidence, mosaic.ortho, cloud, grid, out)
+        rasters["dsm"], rasters["interpolated"] = filled.dsm, filled.interpolated
+        dsm_path = write_products(rasters, cloud, grid, out)
         if not mosaic.tiled:
             write_cameras(out.staging, mosaic.done[0][1].cameras)
         for entry, (_, area) in zip(entries if mosaic.tiled else [], mosaic.done):
@@ -237,3 +236,27 @@ def check_truth_dsm(path, aoi: AOI) -> None:
         raise InputError(path, f"truth DSM in EPSG:{info.epsg}, not in the UTM zone of the AOI "
                                f"(EPSG:{epsg}) where the DSM is made: reproject it (gdalwarp "
                                f"-t_srs EPSG:{epsg})")
+
+
+def check_run_size(aoi: AOI, config: PipelineConfig) -> None:
+    """Refuse, before anything is written, an AOI larger than ``[reconstruct] max_aoi_km2`` or
+    a DSM grid of more than ``max_dsm_cells`` cells (a whole-world AOI, a resolution in
+    millimetres): OptionsError giving the size and the option."""
+    from satsweep.geometry.geodesy import utm_epsg
+    from satsweep.products.grid import dsm_grid_for_aoi
+
+    r = config.reconstruct
+    lon, lat = aoi.center
+    grid = dsm_grid_for_aoi(aoi, config.dsm.resolution, epsg=utm_epsg(lon=lon, lat=lat))
+    width_m, height_m = grid.width * grid.resolution, grid.height * grid.resolution
+    km2 = width_m * height_m / 1e6
+    if km2 > r.max_aoi_km2:
+        raise OptionsError(f"the AOI is {width_m / 1e3:.1f} km x {height_m / 1e3:.1f} km "
+                           f"({km2:.0f} km2), more than [reconstruct] max_aoi_km2 = "
+                           f"{r.max_aoi_km2:g}: give a smaller AOI (or raise the limit)")
+    cells = float(grid.width) * float(grid.height)
+    if cells > r.max_dsm_cells:
+        raise OptionsError(f"the DSM grid would have {cells:.3g} cells ({grid.width} x "
+                           f"{grid.height} of {grid.resolution:g} m), more than [reconstruct] "
+                           f"max_dsm_cells = {r.max_dsm_cells:.3g}: use a coarser --resolution "
+                           "(or raise the limit)")

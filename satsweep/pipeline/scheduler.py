@@ -12,10 +12,10 @@ the mosaic and appends its points to the cloud.
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
-
-import numpy as np
 
 from satsweep.errors import InputError
 from satsweep.pipeline.altitude import prior_altitude_range
@@ -29,6 +29,7 @@ from satsweep.pipeline.area import (
     run_area,
     sources_seeing,
 )
+from satsweep.pipeline.mosaic import AreaPiece, save_piece
 
 if TYPE_CHECKING:  # pragma: no cover
     from satsweep.geometry.aoi import AOI
@@ -40,13 +41,12 @@ if TYPE_CHECKING:  # pragma: no cover
 
 @dataclasses.dataclass(eq=False)
 class Mosaic:
-    """The run's rasters on its DSM grid (before hole filling) and what made them."""
+    """What the areas of a run made: their pieces on disk (each area's core cells of the DSM,
+    confidence and orthophoto rasters, see ``satsweep.pipeline.mosaic``) and their figures."""
 
     grid: "DSMGrid"
-    dsm: np.ndarray  # float32, NaN where no area gave a height
-    confidence: np.ndarray  # float32
-    ortho: np.ndarray | None  # float32 (None: no orthophoto)
-    done: list[tuple["Tile", AreaResult]]  # in the order they finished
+    pieces: list[AreaPiece]  # in the order the areas finished
+    done: list[tuple["Tile", AreaResult]]  # the same areas, without their arrays
     splits: list[dict[str, Any]]  # the areas cut again: cells, camera error, parts
     unseen: list[dict[str, Any]]  # the tiles seen by fewer than two images
 
@@ -65,17 +65,14 @@ def _cloud_in(cloud, grid) -> tuple:
 
 
 def reconstruct_areas(sources: Sequence["ImageSource"], aoi: "AOI", grid: "DSMGrid",
-                      tiles: list["Tile"], cloud: "PLYWriter | None",
-                      ctx: RunContext) -> Mosaic:
+                      tiles: list["Tile"], cloud: "PLYWriter | None", ctx: RunContext,
+                      work: str | os.PathLike) -> Mosaic:
     """Every area of ``tiles`` (cut again where their cameras need it) into a ``Mosaic`` on
-    ``grid``; their points go to ``cloud``."""
+    ``grid``, its pieces saved in ``work``; their points go to ``cloud``."""
     from satsweep.pipeline.tiling import MIN_TILE_M, can_split, split_tile, sub_grid
 
     r, rep = ctx.config.reconstruct, ctx.report
-    mosaic = Mosaic(grid=grid, dsm=np.full(grid.shape, np.nan, np.float32),
-                    confidence=np.full(grid.shape, np.nan, np.float32),
-                    ortho=np.full(grid.shape, np.nan, np.float32) if r.write_ortho else None,
-                    done=[], splits=[], unseen=[])
+    mosaic = Mosaic(grid=grid, pieces=[], done=[], splits=[], unseen=[])
     shifts: dict[str, list] = {s.path: [] for s in sources}  # per image, its tiles' corrections
     deferred = set()  # tiles put back once, for want of matches
     pending = list(tiles)
@@ -121,17 +118,17 @@ def reconstruct_areas(sources: Sequence["ImageSource"], aoi: "AOI", grid: "DSMGr
             pending[:0] = parts
             continue
         rows, cols = tile.core_in_window
-        r0, r1, c0, c1 = tile.core
         area = outcome.rasters
-        mosaic.dsm[r0:r1, c0:c1] = area.dsm[rows, cols]
-        mosaic.confidence[r0:r1, c0:c1] = area.confidence[rows, cols]
-        if mosaic.ortho is not None:
-            mosaic.ortho[r0:r1, c0:c1] = area.ortho[rows, cols]
+        core = {"dsm": area.dsm[rows, cols], "confidence": area.confidence[rows, cols]}
+        if area.ortho is not None:
+            core["ortho"] = area.ortho[rows, cols]
+        mosaic.pieces.append(save_piece(Path(work) / f"area_{len(mosaic.pieces):04d}",
+                                        tile.core, core))
         for piece in area.clouds:  # the whole AOI's area kept the grid's points already
             x, y, z, colours = (piece if tile.core == whole
                                 else _cloud_in(piece, sub_grid(grid, *tile.core)))
             cloud.append(x, y, z, colors=colours)
-        mosaic.done.append((tile, outcome))
+        mosaic.done.append((tile, outcome.without_arrays()))
         for s, shift in zip(tile_sources, outcome.shifts or []):
             shifts[s.path].append(shift)
     if not mosaic.done:

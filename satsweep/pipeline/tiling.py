@@ -88,7 +88,8 @@ def _check_overlap(overlap_m: float) -> None:
 
 def _tiles_of(aoi: AOI, grid: DSMGrid, region: tuple[int, int, int, int], n_rows: int,
               n_cols: int, overlap_m: float, level: int) -> list[Tile]:
-    """``region`` of the AOI's ``grid`` cut into n_rows x n_cols tiles, row by row."""
+    """``region`` of the AOI's ``grid`` cut into n_rows x n_cols tiles, row by row (those outside
+    the AOI's lon/lat box left out)."""
     r0, r1, c0, c1 = region
     rows = [r0 + e for e in _edges(r1 - r0, n_rows)]
     cols = [c0 + e for e in _edges(c1 - c0, n_cols)]
@@ -101,8 +102,13 @@ def _tiles_of(aoi: AOI, grid: DSMGrid, region: tuple[int, int, int, int], n_rows
                       max(0, core[2] - grow), min(grid.width, core[3] + grow))
             tile_grid = sub_grid(grid, *window)
             lon0, lat0, lon1, lat1 = grid_lonlat_box(tile_grid)
-            tile_aoi = AOI(max(lon0, aoi.lon_min), max(lat0, aoi.lat_min),
-                           min(lon1, aoi.lon_max), min(lat1, aoi.lat_max))
+            box = (max(lon0, aoi.lon_min), max(lat0, aoi.lat_min), min(lon1, aoi.lon_max),
+                   min(lat1, aoi.lat_max))
+            if not (box[0] < box[2] and box[1] < box[3]):
+                # A corner of a large AOI's UTM grid can lie wholly outside its lon/lat box (the
+                # grid's lines are not meridians): nothing of the AOI to reconstruct there.
+                continue
+            tile_aoi = AOI(*box)
             tiles.append(Tile(core=core, window=window, grid=tile_grid, aoi=tile_aoi, level=level))
     return tiles
 

@@ -94,6 +94,26 @@ def test_dsm_georeferencing_read_by_gdal(reconstruction, scene):
     assert np.isfinite(data).mean() > MIN_COMPLETENESS_1M
 
 
+def test_rasters_are_tiled_compressed_with_overviews_and_say_what_they_hold(reconstruction):
+    """Every raster streams as GDAL expects (tiles, deflate, internal overviews); the DSM says
+    it holds heights above the ellipsoid in metres; interpolated.tif marks the filled cells."""
+    from satsweep.io.cog import TILE_PX, overview_shapes
+
+    out = reconstruction.out_dir
+    for name in ("dsm.tif", "confidence.tif", "ortho.tif", "interpolated.tif"):
+        with rasterio.open(out / name) as src:
+            levels = overview_shapes(src.shape, TILE_PX)  # none when the grid fits one tile
+            assert src.block_shapes == [(TILE_PX, TILE_PX)], name
+            assert src.compression.name == "deflate", name
+            assert src.overviews(1) == [2 ** (k + 1) for k in range(len(levels))], name
+    with rasterio.open(out / "dsm.tif") as dsm, rasterio.open(out / "interpolated.tif") as mask:
+        assert dsm.units == ("m",) and "ellipsoid" in dsm.tags()["VERTICAL_REFERENCE"]
+        heights, flags = dsm.read(1), mask.read(1)
+    assert mask.nodata == 255 and set(np.unique(flags)) <= {0, 1, 255}
+    np.testing.assert_array_equal(flags == 255, np.isnan(heights))
+    assert int((flags == 1).sum()) == reconstruction.report["dsm"]["holes_filled_cells"]
+
+
 def test_accuracy_against_the_exact_truth(reconstruction):
     ev = reconstruction.evaluation
     a = ev["aligned"]

@@ -253,3 +253,18 @@ def test_each_views_acquisition_metadata_is_reported(small_town, tmp_path):
     assert first["acquisition"]["acquisition_time_utc"] == "2019-06-01T10:31:12Z"
     assert first["acquisition"]["sun_elevation_deg"] == 61.0
     assert second["acquisition"] is None
+
+
+@pytest.mark.parametrize("aoi, extra, needle", [
+    ("0,40,1,41", [], "more than [reconstruct] max_aoi_km2"),
+    ("-180,-80,180,80", [], "more than [reconstruct] max_aoi_km2"),
+    ("2.3484,48.8531,2.3492,48.8537", ["--resolution", "0.0005"],
+     "more than [reconstruct] max_dsm_cells"),
+])
+def test_absurd_sizes_are_refused_before_any_work(tmp_path, capsys, aoi, extra, needle):
+    out = tmp_path / "out"
+    t = time.perf_counter()
+    line = _one_error_line(capsys, ["reconstruct", "a.tif", "b.tif", "--aoi", aoi, "--out",
+                                    str(out), "--quiet", *extra])
+    assert needle in line and time.perf_counter() - t < 5.0
+    assert not out.exists()

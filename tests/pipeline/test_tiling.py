@@ -102,3 +102,20 @@ def test_split_tile_cuts_the_long_sides_in_two(grid, core, parts):
         assert p.window[0] == max(0, r0 - 40) and p.window[2] == max(0, c0 - 40)
     r0, r1, c0, c1 = core
     assert np.all(cover[r0:r1, c0:c1] == 1) and cover.sum() == (r1 - r0) * (c1 - c0)
+
+
+def test_a_one_degree_aoi_plans_tiles_inside_its_box():
+    """The UTM grid of a large AOI reaches beyond its lon/lat box at the corners: the tiles
+    there hold nothing of the AOI and are left out instead of failing."""
+    from satsweep.products.grid import dsm_grid_for_aoi
+
+    aoi = AOI(0.0, 40.0, 1.0, 41.0)
+    grid = dsm_grid_for_aoi(aoi, 5.0)  # 5 m cells keep the plan small
+    tiles = plan_tiles(aoi, grid, tile_m=2000.0, overlap_m=0.0)
+    assert len(tiles) > 50
+    for t in tiles:
+        a = t.aoi
+        assert aoi.lon_min <= a.lon_min < a.lon_max <= aoi.lon_max
+        assert aoi.lat_min <= a.lat_min < a.lat_max <= aoi.lat_max
+    cells = sum((t.core[1] - t.core[0]) * (t.core[3] - t.core[2]) for t in tiles)
+    assert cells < grid.width * grid.height  # the corners outside the box are not planned

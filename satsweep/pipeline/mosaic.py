@@ -1,0 +1,149 @@
+"""The run's rasters on its DSM grid, assembled on disk from the areas' pieces.
+
+Each finished area (the AOI, or one tile of it) saves its core cells as one ``.npy`` file per
+raster in the run's work folder (``save_piece``: an ``AreaPiece``), so that what is held in
+memory is one area's rasters at a time, whatever the AOI's size (and so that another process
+could have made the piece). At the end ``assemble`` copies the pieces into one band per raster
+on disk (``satsweep.io.bands.RawBand``), ``fill_holes`` fills the DSM's small holes block by
+block (exactly as ``satsweep.products.fusion.fill_small_holes`` does on the whole grid: each
+block is filled within a margin as wide as the largest hole, which holds every hole that
+reaches the block, with its rim) and marks the interpolated cells, and the outputs are written
+from the bands (``satsweep.io.cog``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal, Mapping, Sequence
+
+import numpy as np
+
+from satsweep.io.bands import RawBand
+
+if TYPE_CHECKING:  # pragma: no cover
+    from satsweep.products.grid import DSMGrid
+
+# The float32 rasters an area gives, with NaN where it has no value.
+FLOAT_BANDS = ("dsm", "confidence", "ortho")
+# Values of the interpolated-cells mask.
+MEASURED, INTERPOLATED, NO_HEIGHT = 0, 1, 255
+# Side (cells) of the blocks the holes are filled in (each read with its margin).
+FILL_BLOCK_CELLS = 1024
+# Rows of cells copied or scanned at once when a band is read whole, block by block.
+SCAN_ROWS = 1024
+
+
+@dataclasses.dataclass(frozen=True)
+class AreaPiece:
+    """One finished area's rasters over its core cells, on disk."""
+
+    folder: Path
+    core: tuple[int, int, int, int]  # (r0, r1, c0, c1) of the run's grid, ends excluded
+    bands: tuple[str, ...]
+
+    def path(self, band: str) -> Path:
+        return self.folder / f"{band}.npy"
+
+    def load(self, band: str) -> np.ndarray:
+        return np.load(self.path(band))
+
+
+def save_piece(folder: str | os.PathLike, core: tuple[int, int, int, int],
+               rasters: Mapping[str, np.ndarray]) -> AreaPiece:
+    """Save an area's core-cell rasters (each of the core's shape) in ``folder``; each file is
+    written under a temporary name and renamed, and ``piece.json`` last, so a piece whose
+    ``piece.json`` exists is whole."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    r0, r1, c0, c1 = core
+    for name, array in rasters.items():
+        array = np.asarray(array)
+        if array.shape != (r1 - r0, c1 - c0):
+            raise ValueError(f"{name}: shape {array.shape} is not the core's {(r1 - r0, c1 - c0)}")
+        tmp = folder / f".{name}.tmp.npy"
+        np.save(tmp, array)
+        os.replace(tmp, folder / f"{name}.npy")
+    meta = {"core": list(core), "bands": list(rasters)}
+    tmp = folder / ".piece.json.tmp"
+    tmp.write_text(json.dumps(meta), encoding="utf-8")
+    os.replace(tmp, folder / "piece.json")
+    return AreaPiece(folder=folder, core=tuple(core), bands=tuple(rasters))
+
+
+def load_piece(folder: str | os.PathLike) -> AreaPiece:
+    """The piece saved in ``folder`` (``save_piece``)."""
+    folder = Path(folder)
+    meta = json.loads((folder / "piece.json").read_text(encoding="utf-8"))
+    return AreaPiece(folder=folder, core=tuple(meta["core"]), bands=tuple(meta["bands"]))
+
+
+def assemble(grid: "DSMGrid", pieces: Sequence[AreaPiece], work: str | os.PathLike,
+             bands: Sequence[str]) -> dict[str, RawBand]:
+    """One float32 band per name of ``bands`` on ``grid`` (NaN where no piece has a value),
+    from the pieces, in ``work``."""
+    work = Path(work)
+    out = {name: RawBand.create(work / f"{name}.raw", grid.shape, np.float32, np.nan)
+           for name in bands}
+    for piece in pieces:
+        r0, _, c0, _ = piece.core
+        for name in bands:
+            if name in piece.bands:
+                out[name].write(r0, c0, piece.load(name))
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Filled:
+    """The DSM with its small holes filled, the mask of its interpolated cells, and counts."""
+
+    dsm: RawBand  # float32, NaN where no height
+    interpolated: RawBand  # uint8: MEASURED, INTERPOLATED or NO_HEIGHT
+    filled_cells: int  # cells given a height by the filling
+    valid_cells: int  # cells with a height, filled ones included
+
+
+def fill_holes(dsm: RawBand, work: str | os.PathLike, *, max_hole_cells: int,
+               method: Literal["min", "median"], block: int = FILL_BLOCK_CELLS) -> Filled:
+    """``fill_small_holes`` of the whole band, block by block (see the module docstring)."""
+    from satsweep.products.fusion import fill_small_holes
+
+    work = Path(work)
+    h, w = dsm.shape
+    out = RawBand.create(work / "dsm_filled.raw", dsm.shape, np.float32, np.nan)
+    mask = RawBand.create(work / "interpolated.raw", dsm.shape, np.uint8, NO_HEIGHT)
+    margin = max(int(max_hole_cells), 0) + 1  # a hole of max_hole_cells and its rim
+    filled = valid = 0
+    for r0 in range(0, h, block):
+        for c0 in range(0, w, block):
+            r1, c1 = min(r0 + block, h), min(c0 + block, w)
+            inner_values = dsm.read(r0, r1, c0, c1)
+            before = np.isfinite(inner_values)
+            if before.all() or not before.any() or max_hole_cells <= 0:
+                # No hole here, or one of the whole block (larger than any hole that is filled).
+                result = inner_values
+            else:
+                wr0, wr1 = max(r0 - margin, 0), min(r1 + margin, h)
+                wc0, wc1 = max(c0 - margin, 0), min(c1 + margin, w)
+                window = dsm.read(wr0, wr1, wc0, wc1)
+                done, _ = fill_small_holes(window, max_hole_cells=max_hole_cells, method=method)
+                result = done[r0 - wr0:r1 - wr0, c0 - wc0:c1 - wc0]
+            after = np.isfinite(result)
+            out.write(r0, c0, result)
+            mask.write(r0, c0, np.where(before, MEASURED, np.where(after, INTERPOLATED, NO_HEIGHT))
+                       .astype(np.uint8))
+            filled += int(np.count_nonzero(after & ~before))
+            valid += int(np.count_nonzero(after))
+    return Filled(dsm=out, interpolated=mask, filled_cells=filled, valid_cells=valid)
+
+
+def decimated(band: RawBand, max_side: int) -> np.ndarray:
+    """The band's cells every ``ceil(max(shape) / max_side)`` rows and columns (a small copy for
+    a quick look), read by blocks of rows."""
+    h, w = band.shape
+    step = max(1, -(-max(h, w) // max_side))
+    chunk = max(step, SCAN_ROWS // step * step)  # a multiple of step: every block starts on one
+    rows = [band.read(r0, min(r0 + chunk, h), 0, w)[::step, ::step] for r0 in range(0, h, chunk)]
+    return np.concatenate(rows) if rows else np.zeros((0, 0), band.dtype)
