@@ -197,7 +197,7 @@ def _aoi_from_geojson(path: str) -> AOI:
 
 def _is_box(ring: np.ndarray) -> bool:
     """Whether a polygon ring is its own lon/lat bounding box: its area (shoelace) is the box's."""
-    x, y = ring[:, 0], ring[:, 1]
+    x, y = ring[:, 0] - ring[:, 0].mean(), ring[:, 1] - ring[:, 1].mean()  # no cancellation
     area = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
     box = float(np.ptp(x) * np.ptp(y))
     return box > 0.0 and abs(area - box) <= 1e-9 * box

@@ -29,7 +29,8 @@ DEFAULT_HIGH_PERCENTILE = 99.0
 # -- reading -----------------------------------------------------------------------------------
 # What tifffile raises on files that are not TIFFs or are cut short (struct.error for a file cut
 # inside its header, for instance): each becomes an ImageFormatError naming the file.
-_TIFF_READ_ERRORS = (ValueError, OSError, EOFError, IndexError, KeyError, struct.error)
+_TIFF_READ_ERRORS = (ValueError, OSError, EOFError, IndexError, KeyError, struct.error,
+                     TypeError, OverflowError, ZeroDivisionError)
 
 
 @contextlib.contextmanager
@@ -73,7 +74,9 @@ def _not_a_tiff(path: str, exc: Exception) -> str:
 
 @contextlib.contextmanager
 def _open_tiff(path: str | os.PathLike):
-    """Open a TIFF and yield (TiffFile, first page); every failure is an ImageFormatError."""
+    """Open a TIFF and yield (TiffFile, first page); every failure to read it, in here or in the
+    caller's block, is an ImageFormatError naming the file (tifffile's own log lines are
+    silenced meanwhile)."""
     import tifffile
 
     path = os.fspath(path)
@@ -86,18 +89,23 @@ def _open_tiff(path: str | os.PathLike):
             tif = tifffile.TiffFile(path)
     except _TIFF_READ_ERRORS as exc:
         raise ImageFormatError(path, _not_a_tiff(path, exc)) from None
-    with tif:
+    with tif, _quiet_tifffile():
         try:
-            with _quiet_tifffile():
-                pages = tif.pages
-                page = pages.first if len(pages) else None
+            pages = tif.pages
+            page = pages.first if len(pages) else None
         except _TIFF_READ_ERRORS as exc:
             raise ImageFormatError(path, f"corrupt TIFF image directory ({exc})") from None
         if page is None:
             raise ImageFormatError(
                 path, f"truncated or empty TIFF: no image directory within its {tif.filehandle.size} bytes"
             )
-        yield tif, page
+        try:
+            yield tif, page
+        except _TIFF_READ_ERRORS as exc:
+            # A tag read lazily (the size, a GeoTIFF key) holding the wrong type or count: the
+            # file is corrupt, whatever the caller was reading.
+            raise ImageFormatError(path, f"corrupt TIFF tags ({type(exc).__name__}: "
+                                         f"{str(exc)[:200]})") from None
 
 
 def _check_layout(path: str, page) -> None:
