@@ -17,8 +17,14 @@ Rules (documented in the report):
 - when no view lies in the useful range, the pair closest to it is used and a warning is recorded;
 - footprint overlap (fraction of the reference crop that the source crop sees on the AOI's mid
   plane) must be at least ``min_overlap``;
-- acquisition dates: when the metadata gives them, sources acquired closer in time rank first
-  among equally good B/H (RPC files alone carry no date; satsweep's inputs then rank without it).
+- appearance: sources are ranked by their distance to ``target_b_over_h`` (relative to it)
+  plus ``similarity_weight`` times (1 - their appearance similarity with the reference, from the
+  acquisition metadata or measured from the images: ``satsweep.dense.similarity``); sources
+  less similar than ``min_similarity`` are left out when the reference keeps a better one;
+- references are taken by incidence plus ``REFERENCE_DISSIMILARITY_DEG`` times (1 - the mean
+  similarity of its best sources): a view that sees the AOI steeply but only from other dates
+  comes after one that has sources of its own date.
+Without similarity (all 1), the rules reduce to B/H and incidence alone.
 """
 
 from __future__ import annotations
@@ -34,6 +40,10 @@ from satsweep.options import Options
 # Below this base-to-height ratio a pair has no usable parallax (a metre of height moves a pixel
 # of 0.5 m by less than 0.02 px): two images of one viewpoint, or a copy of one image.
 MIN_STEREO_B_OVER_H = 0.01
+# Degrees of incidence that a reference's dissimilarity to its sources (1 - mean similarity)
+# weighs when the references are ordered: a reference whose sources are all of other dates
+# counts as 30 degrees more oblique.
+REFERENCE_DISSIMILARITY_DEG = 30.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,8 +56,13 @@ class ViewSelectionOptions(Options):
     max_b_over_h: float = 0.5  # largest base-to-height ratio of a reference-source pair
     target_b_over_h: float = 0.25  # base-to-height ratio preferred when ranking sources
     min_overlap: float = 0.3  # least fraction of a reference crop that a source must see
+    similarity_weight: float = 2.0  # weight of a source's dissimilarity (1 - similarity) against
+    # its relative distance to target_b_over_h when sources are ranked
+    min_similarity: float = 0.2  # sources less similar than this are left out when the
+    # reference keeps another
 
-    ADVANCED = ("min_b_over_h", "max_b_over_h", "target_b_over_h", "min_overlap")
+    ADVANCED = ("min_b_over_h", "max_b_over_h", "target_b_over_h", "min_overlap",
+                "similarity_weight", "min_similarity")
 
     def check(self) -> None:
         self._require(0 <= self.min_b_over_h < self.max_b_over_h, "min_b_over_h",
@@ -56,6 +71,9 @@ class ViewSelectionOptions(Options):
         self._require(self.max_sources >= 1, "max_sources", "must be >= 1")
         self._require(self.max_references >= 1, "max_references", "must be >= 1")
         self._require(0 <= self.min_overlap <= 1, "min_overlap", "must be in [0, 1]")
+        self._require(0 <= self.similarity_weight <= 100, "similarity_weight",
+                      "must be in [0, 100]")
+        self._require(0 <= self.min_similarity <= 1, "min_similarity", "must be in [0, 1]")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,6 +83,20 @@ class ViewGeometry:
     direction: np.ndarray  # unit ENU vector from the AOI centre towards the camera
     incidence_deg: float  # angle between that direction and the vertical
     azimuth_deg: float  # clockwise from north, of the direction towards the camera
+
+
+# The rules of ``select_views``, as report.json states them.
+RULES = [
+    "references: lowest incidence plus 30 degrees x (1 - mean similarity of their best sources) "
+    "first, at most max_references",
+    "sources: overlap >= min_overlap and B/H in [min_b_over_h, max_b_over_h] (else the closest "
+    "pair, with a warning), no pair under B/H 0.01",
+    "sources ranked by |B/H - target_b_over_h| / target_b_over_h + similarity_weight x "
+    "(1 - similarity), then incidence; those under min_similarity dropped if a better one "
+    "remains; at most max_sources",
+    "similarity: from the acquisition metadata when both views have it (1 within one pass, else "
+    "sun-direction and season terms), else measured (gradient ZNCC on the AOI's mid plane)",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,6 +109,8 @@ class Selection:
     overlap: np.ndarray  # (n, n) fraction of view i's crop seen by view j
     geometry: tuple[ViewGeometry, ...]
     warnings: tuple[str, ...] = ()
+    similarity: np.ndarray | None = None  # (n, n) appearance similarity; None: not known
+    similarity_from_metadata: np.ndarray | None = None  # (n, n) bool: pairs the metadata decided
 
     def to_dict(self, names: Sequence[str] | None = None) -> dict:
         n = len(self.geometry)
@@ -95,6 +129,12 @@ class Selection:
                 {"reference": names[r], "sources": [names[s] for s in self.sources[r]]}
                 for r in self.references
             ],
+            "similarity": (None if self.similarity is None else [
+                {"a": names[i], "b": names[j], "similarity": float(self.similarity[i, j]),
+                 "from": ("metadata" if self.similarity_from_metadata is not None
+                          and self.similarity_from_metadata[i, j] else "images")}
+                for i in range(n) for j in range(i + 1, n)]),
+            "rules": RULES,
             "warnings": list(self.warnings),
         }
 
@@ -139,16 +179,19 @@ def crop_overlap(cam_i, cam_j, mid_height: float, samples: int = 21) -> float:
 
 def select_views(cameras: Sequence, *, mid_height: float,
                  options: ViewSelectionOptions = ViewSelectionOptions(),
-                 names: Sequence[str] | None = None) -> Selection:
+                 names: Sequence[str] | None = None, similarity: np.ndarray | None = None,
+                 similarity_from_metadata: np.ndarray | None = None) -> Selection:
     """Choose references and their sources from the approximated cameras (see module doc).
 
     ``cameras`` are objects with ``center`` (ENU, m), ``P``, ``width`` and ``height``;
-    ``mid_height`` is the ENU height of the middle of the altitude range.
+    ``mid_height`` is the ENU height of the middle of the altitude range; ``similarity`` the
+    (n, n) appearance similarity of the views (``satsweep.dense.similarity``; None: all alike).
     """
     n = len(cameras)
     names = list(names) if names is not None else [f"view {i}" for i in range(n)]
     if n < 2:
         raise CameraError(f"view selection needs at least two views, got {n}")
+    sim = np.ones((n, n)) if similarity is None else np.asarray(similarity, float)
     target = np.array([0.0, 0.0, mid_height])
     geometry = tuple(view_geometry(c.center, target) for c in cameras)
     bh = np.zeros((n, n))
@@ -159,8 +202,22 @@ def select_views(cameras: Sequence, *, mid_height: float,
                 bh[i, j] = b_over_h(geometry[i], geometry[j])
                 ov[i, j] = crop_overlap(cameras[i], cameras[j], mid_height)
     o = options
+
+    def in_range(r: int, j: int) -> bool:
+        return (j != r and ov[r, j] >= o.min_overlap
+                and o.min_b_over_h <= bh[r, j] <= o.max_b_over_h)
+
+    def source_cost(r: int, j: int) -> tuple[float, float]:
+        return (abs(bh[r, j] - o.target_b_over_h) / o.target_b_over_h
+                + o.similarity_weight * (1.0 - sim[r, j]), geometry[j].incidence_deg)
+
+    def reference_cost(r: int) -> float:
+        cands = sorted((sim[r, j] for j in range(n) if in_range(r, j)), reverse=True)
+        best = cands[:o.max_sources] or [1.0]
+        return geometry[r].incidence_deg + REFERENCE_DISSIMILARITY_DEG * (1.0 - float(np.mean(best)))
+
     warnings: list[str] = []
-    order = sorted(range(n), key=lambda i: geometry[i].incidence_deg)
+    order = sorted(range(n), key=lambda r: (reference_cost(r), geometry[r].incidence_deg))
     references: list[int] = []
     sources: dict[int, tuple[int, ...]] = {}
     for r in order:
@@ -183,7 +240,9 @@ def select_views(cameras: Sequence, *, mid_height: float,
             warnings.append(f"{names[r]}: no other view overlaps it by {o.min_overlap:.0%}; "
                             "not used as a reference")
             continue
-        good.sort(key=lambda j: (abs(bh[r, j] - o.target_b_over_h), geometry[j].incidence_deg))
+        good.sort(key=lambda j: source_cost(r, j))
+        similar = [j for j in good if sim[r, j] >= o.min_similarity]
+        good = similar or good[:1]
         sources[r] = tuple(good[: o.max_sources])
         references.append(r)
         if len(references) == o.max_references:
@@ -191,7 +250,9 @@ def select_views(cameras: Sequence, *, mid_height: float,
     if not references:
         raise CameraError("no stereo pair among the views (" + "; ".join(warnings) + ")")
     return Selection(references=tuple(references), sources=sources, b_over_h=bh, overlap=ov,
-                     geometry=geometry, warnings=tuple(warnings))
+                     geometry=geometry, warnings=tuple(warnings),
+                     similarity=None if similarity is None else sim,
+                     similarity_from_metadata=similarity_from_metadata)
 
 
 def _range_distance(value: float, o: ViewSelectionOptions) -> float:

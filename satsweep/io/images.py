@@ -220,28 +220,46 @@ def read_image(path: str | os.PathLike, *, window: Sequence[int] | None = None) 
     path = os.fspath(path)
     with _open_tiff(path) as (tif, page):
         _check_layout(path, page)
-        rows, cols = _window_slices(window, int(page.imagewidth), int(page.imagelength))
-        dtype = page.dtype.newbyteorder(tif.byteorder)
-        mappable = (
-            window is not None
-            and page.is_contiguous
-            and int(page.compression) == 1
-            and int(page.predictor) == 1
-            and int(page.fillorder) == 1
-            and page.bitspersample == 8 * dtype.itemsize
-        )
-        try:
-            if mappable:
-                data = np.memmap(path, dtype=dtype, mode="r", offset=page.dataoffsets[0], shape=page.shape)
-                out = np.array(_first_band(data, page.axes)[rows, cols])
-                del data
-            elif window is not None and _segmented(page):
-                out = _read_segments(tif, page, rows, cols)
-            else:
-                out = np.array(_first_band(page.asarray(), page.axes)[rows, cols])
-        except Exception as exc:  # noqa: BLE001 - any decoder failure on this file is a format error
-            raise ImageFormatError(path, _decode_problem(page, exc)) from None
+        size = int(page.imagewidth), int(page.imagelength)
+        if not _window_inside(window, *size):
+            out = None  # the caller's error, raised below (not the file's)
+        else:
+            out = _read_window(path, tif, page, window, *_window_slices(window, *size))
+    if out is None:
+        raise ValueError(f"window {window} is not inside the {size[0]}x{size[1]} image")
     return out.astype(out.dtype.newbyteorder("="), copy=False)
+
+
+def _window_inside(window, width: int, height: int) -> bool:
+    if window is None:
+        return True
+    x0, y0, x1, y1 = (int(v) for v in window)
+    return 0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height
+
+
+def _read_window(path: str, tif, page, window, rows: slice, cols: slice) -> np.ndarray:
+    """The pixels of ``rows``, ``cols`` of the first band (see ``read_image``)."""
+    dtype = page.dtype.newbyteorder(tif.byteorder)
+    mappable = (
+        window is not None
+        and page.is_contiguous
+        and int(page.compression) == 1
+        and int(page.predictor) == 1
+        and int(page.fillorder) == 1
+        and page.bitspersample == 8 * dtype.itemsize
+    )
+    try:
+        if mappable:
+            data = np.memmap(path, dtype=dtype, mode="r", offset=page.dataoffsets[0], shape=page.shape)
+            out = np.array(_first_band(data, page.axes)[rows, cols])
+            del data
+        elif window is not None and _segmented(page):
+            out = _read_segments(tif, page, rows, cols)
+        else:
+            out = np.array(_first_band(page.asarray(), page.axes)[rows, cols])
+    except Exception as exc:  # noqa: BLE001 - any decoder failure on this file is a format error
+        raise ImageFormatError(path, _decode_problem(page, exc)) from None
+    return out
 
 
 def tonemap(

@@ -43,6 +43,10 @@ if TYPE_CHECKING:  # pragma: no cover
     from satsweep.products.grid import DSMGrid
 
 
+# With two views each is the other's only source: the appearance similarity decides nothing.
+MIN_VIEWS_FOR_SIMILARITY = 3
+
+
 @dataclasses.dataclass(frozen=True)
 class RunContext:
     """What every area of a run shares: the device, the options, the user's altitude inputs and
@@ -119,7 +123,7 @@ class AreaResult:
         """A copy without the rasters, height maps and clouds (kept on disk or written by
         then): what a run holds of a finished area."""
         rasters = dataclasses.replace(self.rasters, dsm=None, confidence=None, ortho=None,
-                                      clouds=[])
+                                      count=None, clouds=[])
         sweeps = [dataclasses.replace(s, height=None, valid=None, confidence=None)
                   for s in self.record.sweeps]
         record = dataclasses.replace(self.record, sweeps=sweeps, rasters=rasters)
@@ -178,10 +182,17 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     from satsweep.dense.selection import select_views
 
     u_range = enu_height_range(cameras.frame, job.aoi, alt)
+    mid = 0.5 * (u_range[0] + u_range[1])
     with rep.stage("select"):
-        selection = select_views([v.camera for v in cameras.views],
-                                 mid_height=0.5 * (u_range[0] + u_range[1]),
-                                 options=config.views, names=names)
+        similarity = known = None
+        if len(cameras.views) >= MIN_VIEWS_FOR_SIMILARITY:
+            from satsweep.dense.similarity import appearance_similarity
+
+            similarity, known = appearance_similarity([s.acquisition for s in job.sources],
+                                                      images, cameras, job.aoi, mid)
+        selection = select_views([v.camera for v in cameras.views], mid_height=mid,
+                                 options=config.views, names=names, similarity=similarity,
+                                 similarity_from_metadata=known)
         for w in selection.warnings:
             rep.warn(w)
     sweeps = sweep_references(ctx.device, cameras, images, selection, u_range, config, rep,

@@ -26,8 +26,9 @@ from satsweep.io.bands import RawBand
 if TYPE_CHECKING:  # pragma: no cover
     from satsweep.products.grid import DSMGrid
 
-# The float32 rasters an area gives, with NaN where it has no value.
-FLOAT_BANDS = ("dsm", "confidence", "ortho")
+# The rasters an area gives: (type, value where no area gives one).
+BANDS = {"dsm": (np.float32, np.nan), "confidence": (np.float32, np.nan),
+         "ortho": (np.float32, np.nan), "count": (np.uint8, 0)}
 # Values of the interpolated-cells mask.
 MEASURED, INTERPOLATED, NO_HEIGHT = 0, 1, 255
 # Side (cells) of the blocks the holes are filled in (each read with its margin).
@@ -82,11 +83,10 @@ def load_piece(folder: str | os.PathLike) -> AreaPiece:
 
 def assemble(grid: "DSMGrid", pieces: Sequence[AreaPiece], work: str | os.PathLike,
              bands: Sequence[str]) -> dict[str, RawBand]:
-    """One float32 band per name of ``bands`` on ``grid`` (NaN where no piece has a value),
-    from the pieces, in ``work``."""
+    """One band per name of ``bands`` on ``grid`` (of the type ``BANDS`` gives it, and its
+    value where no piece has one), from the pieces, in ``work``."""
     work = Path(work)
-    out = {name: RawBand.create(work / f"{name}.raw", grid.shape, np.float32, np.nan)
-           for name in bands}
+    out = {name: RawBand.create(work / f"{name}.raw", grid.shape, *BANDS[name]) for name in bands}
     for piece in pieces:
         r0, _, c0, _ = piece.core
         for name in bands:

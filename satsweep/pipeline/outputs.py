@@ -132,12 +132,15 @@ class OutputFolder:
 # resampling). Heights are above the WGS84 ellipsoid (EPSG:4979), in metres.
 RASTERS = {
     "dsm": ("dsm.tif", "height above the WGS84 ellipsoid (EPSG:4979)", "m", math.nan, "average"),
-    "confidence": ("confidence.tif", "matching confidence in [0, 1] (NaN: no measured height)",
+    "confidence": ("confidence.tif", "matching confidence in [0, 1] of the views that made the "
+                   "cell's height (NaN: no measured height)",
                    None, math.nan, "average"),
     "ortho": ("ortho.tif", "true orthophoto: the images' value at each cell's highest point",
               None, math.nan, "average"),
     "interpolated": ("interpolated.tif", "0: measured height, 1: interpolated (a small hole "
                      "filled), 255: no height", None, 255, "nearest"),
+    "count": ("count.tif", "reference views whose heights agree on the cell's (0: none)", None,
+              None, "nearest"),
 }
 # The longest side (pixels) of the quick look's map.
 QUICKLOOK_MAX_PX = 2048

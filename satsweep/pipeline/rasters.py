@@ -50,13 +50,15 @@ class AreaRasters:
     dsm: np.ndarray  # float32 heights above the ellipsoid, NaN where none
     confidence: np.ndarray  # float32, NaN where no view has a value
     ortho: np.ndarray | None  # the orthophoto (None: not asked for)
+    count: np.ndarray  # uint8: reference views whose heights made each cell's (0: none)
     clouds: list  # per reference view: (x, y, z, colours) of its points on the grid
+    fusion: str  # "median" or "consensus"
     cross_check: dict | None  # tolerance, views and kept fraction per view; None: no check
     per_view_filled_fraction: list[float]
     enu_to_map: dict  # whether the polynomial ENU -> map fit was used, and its error
 
     def to_report(self) -> dict:
-        return {"cross_check": self.cross_check,
+        return {"fusion": self.fusion, "cross_check": self.cross_check,
                 "per_view_filled_fraction": self.per_view_filled_fraction,
                 "enu_to_map": self.enu_to_map}
 
@@ -69,6 +71,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
     ``ortho_images``' values (the views' in the cameras' pixels; None: no orthophoto) and one
     cloud (x, y, z, grey colours) per reference view."""
     from satsweep.products.fusion import (
+        consensus_dsms,
         cross_check_heights,
         flat_cells,
         fuse_dsms,
@@ -87,7 +90,9 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         centres = [height_map_to_enu(height, np.isfinite(height), P)
                    for height, P in zip(heights, projections)]
         checked = [np.isfinite(h) for h in heights]
-        cross_check = d.cross_check_m > 0 and len(per_view) >= 2
+        fusion = d.fusion_for(len(per_view))
+        # The consensus compares the views cell by cell: no pixel-level check before it.
+        cross_check = d.cross_check_m > 0 and len(per_view) >= 2 and fusion == "median"
         if cross_check:
             checked = cross_check_heights(heights, projections, tolerance_m=d.cross_check_m,
                                           min_agreeing=d.cross_check_views, points=centres)
@@ -115,15 +120,22 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                     & (y <= grid.y_max) & (y >= grid.y_max - grid.height * grid.resolution))
             clouds.append((x[keep], y[keep], z[keep],
                            np.repeat(gray.ravel()[pixel[keep]][:, None], 3, axis=1)))
-        fused, _count = fuse_dsms(rasters, outlier_m=d.outlier_m, min_views=d.min_views)
-        conf = _nanmean_stack(conf_rasters, grid.shape)
-        # Each cell's grey level: the mean over the views whose height there is the fused one's
-        # (within outlier_m, the fusion's own rule), so that no view shows a wall or a lower roof.
+        if fusion == "consensus":
+            fused, count, members = consensus_dsms(rasters, tolerance_m=d.consensus_tolerance_m,
+                                                   min_views=d.consensus_min_views)
+            # The confidence of the views that agree on the cell's height.
+            conf = _nanmean_stack([np.where(m, c, np.nan) for m, c in zip(members, conf_rasters)],
+                                  grid.shape)
+        else:
+            fused, count = fuse_dsms(rasters, outlier_m=d.outlier_m, min_views=d.min_views)
+            conf = _nanmean_stack(conf_rasters, grid.shape)
+            with np.errstate(invalid="ignore"):  # the fusion's own rule: within outlier_m
+                members = [np.abs(h - fused) <= d.outlier_m for h in rasters]
+        # Each cell's grey level: the mean over the views whose height there is the fused one's,
+        # so that no view shows a wall or a lower roof.
         ortho = None
         if ortho_images is not None:
-            with np.errstate(invalid="ignore"):
-                kept = [np.where(np.abs(h - fused) <= d.outlier_m, o, np.nan)
-                        for h, o in zip(rasters, orthos)]
+            kept = [np.where(m, o, np.nan) for m, o in zip(members, orthos)]
             # Views of other dates or sensors differ in gain and offset: each is brought to the
             # radiometry of the first image given (of those swept as references) before the
             # mean, so that cells seen by one view and cells seen by two look alike.
@@ -135,7 +147,9 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                   "kept_fraction": [float(k.sum() / max(1, np.isfinite(h).sum()))
                                     for k, h in zip(checked, heights)]}
                  if cross_check else None)
-    return AreaRasters(dsm=fused, confidence=conf, ortho=ortho, clouds=clouds, cross_check=cross,
+    return AreaRasters(dsm=fused, confidence=conf, ortho=ortho,
+                       count=np.minimum(count, 255).astype(np.uint8), clouds=clouds,
+                       fusion=fusion, cross_check=cross,
                        per_view_filled_fraction=[float(np.isfinite(a).mean()) for a in rasters],
                        enu_to_map={"polynomial": to_map.accurate,
                                    "max_error_m": to_map.max_error_m})

@@ -145,7 +145,7 @@ def _finish(mosaic: Mosaic, cloud, ctx: RunContext, out: OutputFolder,
             if key not in ("core_cells", "window_cells", "level", "aoi"):
                 rep[key] = value
 
-    bands = ["dsm", "confidence"] + (["ortho"] if r.write_ortho else [])
+    bands = ["dsm", "confidence", "count"] + (["ortho"] if r.write_ortho else [])
     with rep.stage("fill"):
         rasters = assemble(grid, mosaic.pieces, out.work, bands)
         filled = fill_holes(rasters["dsm"], out.work, max_hole_cells=d.fill_max_hole_cells,

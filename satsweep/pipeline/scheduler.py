@@ -119,7 +119,8 @@ def reconstruct_areas(sources: Sequence["ImageSource"], aoi: "AOI", grid: "DSMGr
             continue
         rows, cols = tile.core_in_window
         area = outcome.rasters
-        core = {"dsm": area.dsm[rows, cols], "confidence": area.confidence[rows, cols]}
+        core = {"dsm": area.dsm[rows, cols], "confidence": area.confidence[rows, cols],
+                "count": area.count[rows, cols]}
         if area.ortho is not None:
             core["ortho"] = area.ortho[rows, cols]
         mosaic.pieces.append(save_piece(Path(work) / f"area_{len(mosaic.pieces):04d}",

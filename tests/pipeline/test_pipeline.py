@@ -671,3 +671,16 @@ def test_preloading_imports_the_listed_modules():
     thread.join(timeout=120)
     assert not thread.is_alive() and thread.daemon
     assert all(name in sys.modules for name in PRELOADED_MODULES)
+
+
+def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
+    """With the consensus, every measured cell is the agreement of at least consensus_min_views
+    reference views, as count.tif says; the others have no height or an interpolated one."""
+    result = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "dsm": {"fusion": "consensus"}})
+    assert result.report["dsm"]["fusion"] == "consensus"
+    out = result.out_dir
+    with rasterio.open(out / "count.tif") as c, rasterio.open(out / "interpolated.tif") as m:
+        count, flags = c.read(1), m.read(1)
+    assert set(np.unique(count)) <= {0, 1, 2}
+    np.testing.assert_array_equal(flags == 0, count >= 2)  # measured = two views agreeing
+    _check_accuracy(result)

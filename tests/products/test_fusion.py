@@ -522,3 +522,56 @@ def test_match_radiometry_fits_gain_and_offset_robustly():
     few = np.full_like(ref, np.nan)
     few.flat[:RADIOMETRY_MIN_CELLS - 1] = 1.0
     assert match_radiometry(ref, few) is few
+
+
+def _consensus_reference(values: list[float], tolerance: float, min_views: int):
+    """Plain-Python consensus of one cell: the largest group within a window of 2 * tolerance
+    (the highest on a tie), its median and size."""
+    v = sorted(x for x in values if np.isfinite(x))
+    best = (0, None)
+    for i, lo in enumerate(v):
+        group = [x for x in v if lo <= x <= lo + 2 * tolerance]
+        if len(group) >= best[0]:
+            best = (len(group), group)
+    size, group = best
+    if size < min_views or group is None:
+        return np.nan, 0
+    return float(np.median(group)), size
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_consensus_matches_a_plain_reference(seed):
+    from satsweep.products.fusion import consensus_dsms
+
+    rng = np.random.default_rng(seed)
+    n, shape = 6, (7, 9)
+    truth = rng.normal(100.0, 10.0, shape)
+    dsms = []
+    for _ in range(n):
+        d = truth + rng.normal(0.0, 0.3, shape)
+        blunders = rng.random(shape) < 0.25
+        d[blunders] += rng.choice([-30.0, 15.0, 40.0], blunders.sum())
+        d[rng.random(shape) < 0.2] = np.nan
+        dsms.append(d.astype(np.float32))
+    fused, count, members = consensus_dsms(dsms, tolerance_m=1.0, min_views=2)
+    for i in range(shape[0]):
+        for j in range(shape[1]):
+            values = [float(d[i, j]) for d in dsms]
+            expected, size = _consensus_reference(values, 1.0, 2)
+            assert count[i, j] == size, (i, j, values)
+            if size:
+                assert fused[i, j] == pytest.approx(expected, abs=1e-4)
+                in_group = [k for k, x in enumerate(values) if members[k, i, j]]
+                assert len(in_group) == size
+            else:
+                assert np.isnan(fused[i, j])
+
+
+def test_consensus_never_keeps_a_lone_view():
+    from satsweep.products.fusion import consensus_dsms
+
+    a = np.array([[10.0, 10.0], [np.nan, 50.0]], np.float32)
+    b = np.array([[10.4, 30.0], [np.nan, np.nan]], np.float32)
+    fused, count, _ = consensus_dsms([a, b], tolerance_m=1.0, min_views=2)
+    assert fused[0, 0] == pytest.approx(10.2) and count[0, 0] == 2
+    assert np.isnan(fused[0, 1]) and np.isnan(fused[1, 1]) and count[1, 1] == 0

@@ -1,0 +1,153 @@
+"""How alike two views look: the appearance similarity that ranks a reference's sources.
+
+Views of one place taken on different dates differ where the sun moved the shadows, where
+vegetation changed with the season, where cars and other transients moved, and in radiometry;
+matching a reference against such a source fails exactly there. So, beside the base-to-height
+ratio, sources are ranked by a similarity in [0, 1] (1: alike):
+
+- from the acquisition metadata when both views have it (``metadata_similarity``): 1 within one
+  pass (acquired less than ``SAME_PASS_S`` apart), else a Gaussian of the angle between the two
+  sun directions (shadows) times one of the days between them within a year (season);
+- otherwise measured from the images (``image_similarity``): both views are projected onto the
+  plane at the middle of the altitude range over the AOI, on a coarse grid (``GRID_CELL_M``),
+  and compared by zero-mean normalised cross-correlation of their gradient magnitudes
+  (insensitive to gain and offset; shadow edges, vegetation and transients lower it).
+
+``appearance_similarity`` takes the metadata where both views have it and measures the rest.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from satsweep.geometry.aoi import AOI
+    from satsweep.geometry.camera import CameraSet
+    from satsweep.io.metadata import AcquisitionMetadata
+
+# Two acquisitions less than this far apart (seconds) are one pass: same sun, same scene.
+SAME_PASS_S = 600.0
+# Sun directions this far apart (degrees) lower the similarity to exp(-1/2): shadows cast from
+# directions 15 degrees apart move by a quarter of a building's height.
+SUN_SCALE_DEG = 15.0
+# Dates this many days apart within a year (the shorter way round) lower it to exp(-1/2): the
+# vegetation of mid-latitude cities changes over a season.
+SEASON_SCALE_DAYS = 45.0
+# Side (m) of the cells of the grid the images are compared on: coarse enough that the
+# parallax of a few metres of height between two views stays within about a cell.
+GRID_CELL_M = 2.0
+# Fewer common grid cells than this leave the measured similarity unknown (then 1: no
+# preference).
+MIN_COMMON_CELLS = 64
+
+
+def _sun_vector(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
+
+
+def metadata_similarity(a: "AcquisitionMetadata | None",
+                        b: "AcquisitionMetadata | None") -> float | None:
+    """The similarity of two acquisitions from their metadata (see the module docstring), or
+    None when either lacks the date or the sun angles."""
+    if a is None or b is None:
+        return None
+    ta, tb = a.acquisition_datetime, b.acquisition_datetime
+    if ta is None or tb is None:
+        return None
+    if abs((ta - tb).total_seconds()) < SAME_PASS_S:
+        return 1.0
+    if None in (a.sun_azimuth_deg, a.sun_elevation_deg, b.sun_azimuth_deg, b.sun_elevation_deg):
+        return None
+    cos = float(np.dot(_sun_vector(a.sun_azimuth_deg, a.sun_elevation_deg),
+                       _sun_vector(b.sun_azimuth_deg, b.sun_elevation_deg)))
+    sun = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+    days = abs((ta - tb).total_seconds()) / 86400.0 % 365.25
+    season = min(days, 365.25 - days)
+    return math.exp(-0.5 * (sun / SUN_SCALE_DEG) ** 2 - 0.5 * (season / SEASON_SCALE_DAYS) ** 2)
+
+
+def _ground_grid(cameras: "CameraSet", aoi: "AOI", height: float) -> tuple[np.ndarray, ...]:
+    """ENU (e, n) of a GRID_CELL_M grid over the AOI box, on the plane u = height."""
+    frame = cameras.frame
+    lon = np.array([aoi.lon_min, aoi.lon_max, aoi.lon_min, aoi.lon_max])
+    lat = np.array([aoi.lat_min, aoi.lat_min, aoi.lat_max, aoi.lat_max])
+    e, n, _ = frame.from_geodetic(lon=lon, lat=lat, alt=np.full(4, frame.alt0))
+    es = np.arange(e.min(), e.max() + GRID_CELL_M, GRID_CELL_M)
+    ns = np.arange(n.min(), n.max() + GRID_CELL_M, GRID_CELL_M)
+    ee, nn = np.meshgrid(es, ns)
+    return ee, nn, np.full(ee.shape, float(height))
+
+
+def _projected_gradients(image: np.ndarray, P: np.ndarray, ground) -> np.ndarray:
+    """Gradient magnitude of ``image`` (blurred to the grid's cell) sampled at the ground grid's
+    projection by ``P``; NaN where it falls outside the image."""
+    import cv2
+
+    ee, nn, uu = ground
+    X = np.stack([ee.ravel(), nn.ravel(), uu.ravel(), np.ones(ee.size)])
+    x = P @ X
+    col, row = x[0] / x[2], x[1] / x[2]
+    img = np.nan_to_num(np.asarray(image, np.float32))
+    # The image's pixels per grid cell, from the projection of one cell step.
+    step = np.hypot(*(P[:2, :2] @ np.array([GRID_CELL_M, 0.0]) / np.median(x[2])))
+    sigma = max(0.5, 0.5 * float(step))
+    blurred = cv2.GaussianBlur(img, (0, 0), sigma)
+    gx = cv2.Sobel(blurred, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3)
+    magnitude = np.hypot(gx, gy)
+    h, w = img.shape
+    inside = (col >= 0) & (col <= w - 1) & (row >= 0) & (row <= h - 1)
+    sampled = cv2.remap(magnitude, col.astype(np.float32).reshape(ee.shape),
+                        row.astype(np.float32).reshape(ee.shape), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    return np.where(inside.reshape(ee.shape), sampled, np.nan)
+
+
+def _zncc(a: np.ndarray, b: np.ndarray) -> float | None:
+    both = np.isfinite(a) & np.isfinite(b)
+    if both.sum() < MIN_COMMON_CELLS:
+        return None
+    x, y = a[both] - a[both].mean(), b[both] - b[both].mean()
+    denom = math.sqrt(float(np.dot(x, x)) * float(np.dot(y, y)))
+    return None if denom == 0.0 else float(np.dot(x, y)) / denom
+
+
+def image_similarity(images: Sequence[np.ndarray], cameras: "CameraSet", aoi: "AOI",
+                     height: float) -> np.ndarray:
+    """(n, n) similarity measured from the images (see the module docstring), in [0, 1]; NaN
+    where two views share too little of the grid to say."""
+    ground = _ground_grid(cameras, aoi, height)
+    grads = [_projected_gradients(im, v.camera.P, ground) for im, v in zip(images, cameras.views)]
+    n = len(grads)
+    out = np.eye(n)
+    for i in range(n):
+        for j in range(i + 1, n):
+            z = _zncc(grads[i], grads[j])
+            out[i, j] = out[j, i] = np.nan if z is None else max(0.0, z)
+    return out
+
+
+def appearance_similarity(acquisitions: Sequence["AcquisitionMetadata | None"],
+                          images: Sequence[np.ndarray], cameras: "CameraSet", aoi: "AOI",
+                          height: float) -> tuple[np.ndarray, np.ndarray]:
+    """(similarity, from_metadata): the (n, n) similarity of every pair of views, from their
+    metadata where both have it, else measured from the images (1 where neither can say), and
+    which pairs the metadata decided."""
+    n = len(images)
+    sim = np.eye(n)
+    known = np.eye(n, dtype=bool)
+    for i in range(n):
+        for j in range(i + 1, n):
+            s = metadata_similarity(acquisitions[i], acquisitions[j])
+            if s is not None:
+                sim[i, j] = sim[j, i] = s
+                known[i, j] = known[j, i] = True
+    if not known.all():
+        measured = image_similarity(images, cameras, aoi, height)
+        fill = np.where(np.isfinite(measured), measured, 1.0)
+        sim = np.where(known, sim, fill)
+    return sim, known
