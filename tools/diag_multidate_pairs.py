@@ -80,7 +80,8 @@ def parse_effects(text: str) -> tuple[str, ...]:
     names = tuple(t for t in text.split(",") if t)
     unknown = [n for n in names if n not in DATE_EFFECTS]
     if unknown:
-        raise OptionsError(f"--effects {text}: unknown {', '.join(unknown)} (known: {', '.join(DATE_EFFECTS)}, all, none)")
+        raise OptionsError(f"--effects {text}: unknown {', '.join(unknown)} "
+                           f"(known: {', '.join(DATE_EFFECTS)}, all, none)")
     return names
 
 

@@ -321,7 +321,8 @@ def _draw_days(options, rng: np.random.Generator) -> list[tuple[dt.date, float, 
     # Days on which the latest overpass time sees the sun high enough (elevation rises towards
     # noon over the whole window, so any such day has a valid time).
     days = [start + dt.timedelta(days=k) for k in range(options.date_span_days)]
-    usable = [d for d in days if solar_position(lon=lon, lat=lat, when=utc(d, hi_h))[0] >= options.min_sun_elevation_deg]
+    usable = [d for d in days
+              if solar_position(lon=lon, lat=lat, when=utc(d, hi_h))[0] >= options.min_sun_elevation_deg]
     if len(usable) < options.acquisitions:
         raise OptionsError(
             f"SynthOptions.min_sun_elevation_deg = {options.min_sun_elevation_deg!r}: only {len(usable)} "
@@ -402,7 +403,9 @@ def plan_acquisitions(options) -> MultiDatePlan:
             density, leaf = 1.0, 1.0
         ground = float(rrng.uniform(*GROUND_FACTOR_RANGE)) if "ground" in effects else 1.0
         if "radiometry" in effects:
-            gain0, offset0, gamma0 = rrng.uniform(*GAIN_RANGE), rrng.uniform(*OFFSET_RANGE_DN), rrng.uniform(*GAMMA_RANGE)
+            gain0 = rrng.uniform(*GAIN_RANGE)
+            offset0 = rrng.uniform(*OFFSET_RANGE_DN)
+            gamma0 = rrng.uniform(*GAMMA_RANGE)
         for k, (th, saz) in enumerate(angles):
             if "radiometry" in effects:
                 gain = float(gain0 * (1.0 + rrng.uniform(-VIEW_GAIN_SPREAD, VIEW_GAIN_SPREAD)))
@@ -667,7 +670,8 @@ def gdal_metadata_xml(*, date_time: str, sun_azimuth_deg: float, sun_elevation_d
     """GDAL's ``GDALMetadata`` XML of a view's IMAGERY domain (date-time, sun angles, satellite)."""
     items = (("ACQUISITIONDATETIME", date_time), ("SUN_AZIMUTH", f"{sun_azimuth_deg:.1f}"),
              ("SUN_ELEVATION", f"{sun_elevation_deg:.1f}"), ("SATELLITEID", satellite))
-    return "<GDALMetadata>" + "".join(f'<Item name="{k}" domain="IMAGERY">{v}</Item>' for k, v in items) + "</GDALMetadata>"
+    body = "".join(f'<Item name="{k}" domain="IMAGERY">{v}</Item>' for k, v in items)
+    return f"<GDALMetadata>{body}</GDALMetadata>"
 
 
 def gdal_metadata_extratag(xml: str) -> tuple:

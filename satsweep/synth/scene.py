@@ -146,11 +146,11 @@ class SynthOptions(Options):
     location: tuple[float, float] = (2.3488, 48.8534)  # (lon, lat) of the scene centre
     ground_alt_m: float = 100.0  # height of the ground at the centre above the WGS84 ellipsoid
     orbit_height_m: float = 694000.0  # height of the orbit line above the scene
-    orbit_azimuth_deg: float = 192.0  # heading of the satellite's motion (descending orbit)
-    off_nadir_deg: tuple[float, ...] = ()  # per view; () = built-in DEFAULT_VIEW_ANGLES
-    azimuth_deg: tuple[float, ...] = ()  # satellite azimuth per view; () = built-in
-    sun_elevation_deg: float = 55.0  # sun height above the horizon
-    sun_azimuth_deg: float = 155.0  # sun azimuth, clockwise from north
+    orbit_azimuth_deg: float = 192.0  # heading of the satellite's motion (descending orbit); multi-date: the mean
+    off_nadir_deg: tuple[float, ...] = ()  # per view; () = built-in DEFAULT_VIEW_ANGLES (multi-date: drawn)
+    azimuth_deg: tuple[float, ...] = ()  # satellite azimuth per view; () = built-in (multi-date: drawn)
+    sun_elevation_deg: float = 55.0  # sun height above the horizon (multi-date: only without the "sun" effect)
+    sun_azimuth_deg: float = 155.0  # sun azimuth, clockwise from north (likewise)
     supersampling: int = 2  # rays per pixel side (2 -> 2x2 rays averaged per pixel)
     noise_dn: float = 6.0  # standard deviation of the Gaussian image noise (DN)
     cell_m: float = 0.25  # cell size of the true surface grid
@@ -722,7 +722,8 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
             surface, transients = acquisition_surface(grid, acq, seed=options.seed, effects=options.date_effects)
             acq = dataclasses.replace(acq, transients=tuple(transients))
             acquisitions.append(acq)
-            shadows = ShadowMap(surface, sun_vector(elevation_deg=acq.sun_elevation_deg, azimuth_deg=acq.sun_azimuth_deg))
+            sun = sun_vector(elevation_deg=acq.sun_elevation_deg, azimuth_deg=acq.sun_azimuth_deg)
+            shadows = ShadowMap(surface, sun)
             say(f"acquisition {acq.index}: {acq.date_time}, sun elevation {acq.sun_elevation_deg:g} deg, "
                 f"azimuth {acq.sun_azimuth_deg:g} deg, leaves {acq.leaf_density:.2f}, {len(transients)} "
                 f"transients ({time.perf_counter() - t1:.1f} s)")
