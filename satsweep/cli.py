@@ -272,7 +272,10 @@ def _add_synth(sub) -> None:
         description="Render a seeded synthetic town seen by linear pushbroom satellites: uint16 "
         "TIFF views with their RPC (tag 50844 and _RPC.TXT sidecars), truth_dsm.tif (UTM, 0.5 m) "
         "and scene.json (AOI, altitude range, views' angles, pointing biases and base-to-height "
-        "ratios). A view with bias b shows ground point X at RPC(X) + b.",
+        "ratios). A view with bias b shows ground point X at RPC(X) + b. With --acquisitions the "
+        "views are taken on several dates (sun, shadows, trees, cars and radiometry change; the "
+        "truth does not), with a .IMD sidecar and a GDAL_METADATA tag giving each view's date "
+        "and sun angles.",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
@@ -283,6 +286,17 @@ def _add_synth(sub) -> None:
                    help="max pointing bias per axis in pixels; view 0 has none (default 0)")
     p.add_argument("--location", default=None, metavar="LON,LAT", help="scene centre in degrees (default 2.3488,48.8534; "
                    "write --location=-70.5,-33.4 when the longitude is negative)")
+    p.add_argument("--acquisitions", type=int, default=None, metavar="N",
+                   help="multi-date scene: the views grouped into N acquisitions (passes of 1-3 views) on N "
+                   "dates, each with its own sun, shadows, trees, grass, cars, radiometry and pass geometry "
+                   "(default 0: one date); --views then defaults to 2N")
+    p.add_argument("--large-bias", type=float, default=None, metavar="PX",
+                   help="largest extra pointing error (pixels, any direction) of a quarter of the views after "
+                   "view 0, on top of --bias (default 0)")
+    p.add_argument("--start-date", default=None, metavar="YYYY-MM-DD",
+                   help="multi-date: first day of the 13 months the dates are drawn in (default 2019-01-01)")
+    p.add_argument("--no-metadata", action="store_true",
+                   help="multi-date: write no .IMD sidecars nor GDAL_METADATA tags (dates and sun angles)")
     p.add_argument("--overwrite", action="store_true", help="replace the scene in a non-empty --out folder")
     p.set_defaults(handler=_cmd_synth)
 
@@ -291,8 +305,12 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     from satsweep.errors import OptionsError
     from satsweep.synth.scene import SynthOptions, generate_scene
 
-    given = {"seed": args.seed, "n_views": args.views, "size_px": args.size, "gsd_m": args.gsd,
-             "bias_px": args.bias}
+    views = args.views
+    if views is None and args.acquisitions:
+        views = min(2 * args.acquisitions, 64)
+    given = {"seed": args.seed, "n_views": views, "size_px": args.size, "gsd_m": args.gsd,
+             "bias_px": args.bias, "acquisitions": args.acquisitions, "large_bias_px": args.large_bias,
+             "start_date": args.start_date, "write_metadata": False if args.no_metadata else None}
     if args.location is not None:
         try:
             lon, lat = (float(v) for v in args.location.split(","))
@@ -304,8 +322,16 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     a = scene.aoi
     print(f"AOI {a.lon_min:.7f},{a.lat_min:.7f},{a.lon_max:.7f},{a.lat_max:.7f} "
           f"({2 * scene.aoi_half_m:.1f} m square); altitudes {scene.alt_range[0]:.2f} .. {scene.alt_range[1]:.2f} m")
-    for i, j, bh in scene.pairs:
-        print(f"pair {i}-{j}: base-to-height {bh:.3f}")
+    if scene.acquisitions:
+        for acq in scene.acquisitions:
+            print(f"acquisition {acq.index} ({acq.date_time}, sun {acq.sun_elevation_deg:g}/{acq.sun_azimuth_deg:g} "
+                  f"deg): views {', '.join(str(k) for k in acq.views)}")
+        same = [bh for i, j, bh in scene.pairs if scene.views[i].acquisition == scene.views[j].acquisition]
+        print(f"{len(scene.pairs)} pairs, base-to-height {min(bh for *_, bh in scene.pairs):.3f} .. "
+              f"{max(bh for *_, bh in scene.pairs):.3f}; {len(same)} within an acquisition")
+    else:
+        for i, j, bh in scene.pairs:
+            print(f"pair {i}-{j}: base-to-height {bh:.3f}")
     print(f"wrote {scene.scene_file}")
     return 0
 

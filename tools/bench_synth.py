@@ -2,9 +2,11 @@
 around it, and a whole default scene.
 
     python tools/bench_synth.py [--size 512] [--views 3] [--supersampling 2] [--scene]
+    python tools/bench_synth.py --scene --views 20 --acquisitions 10   # a multi-date scene
 
 Prints seconds per step; ``--scene`` also times ``generate_scene`` end to end (into a temporary
-folder that is removed afterwards).
+folder that is removed afterwards), with ``--acquisitions N`` a multi-date scene of N dates
+(each date's surface, shadows and views are timed in its progress lines).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ def main(argv=None) -> int:
     p.add_argument("--supersampling", type=int, default=2, help="rays per pixel side")
     p.add_argument("--view", type=int, default=2, help="which view to time (2 = most oblique of the defaults)")
     p.add_argument("--scene", action="store_true", help="also time generate_scene end to end")
+    p.add_argument("--acquisitions", type=int, default=0, help="dates of the --scene run (0: one date)")
     args = p.parse_args(argv)
 
     opts = SynthOptions(size_px=args.size, n_views=max(args.views, args.view + 1), supersampling=args.supersampling)
@@ -73,9 +76,11 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             t = time.perf_counter()
             generate_scene(os.path.join(tmp, "scene"), SynthOptions(size_px=args.size, n_views=args.views,
-                                                                     supersampling=args.supersampling),
+                                                                     supersampling=args.supersampling,
+                                                                     acquisitions=args.acquisitions),
                            log=lambda m: print("  " + m))
-            print(f"generate_scene ({args.views} views): {time.perf_counter() - t:.2f} s")
+            dates = f", {args.acquisitions} dates" if args.acquisitions else ""
+            print(f"generate_scene ({args.views} views{dates}): {time.perf_counter() - t:.2f} s")
     return 0
 
 

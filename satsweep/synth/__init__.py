@@ -2,5 +2,6 @@
 see it, images rendered by ray casting, RPCs fitted to the cameras, and the truth DSM.
 
 - ``scene``: ``generate_scene`` and its options; ``town``: the surface, rays and shadows;
-  ``pushbroom``: the satellite cameras; ``rpcfit``: RPCs fitted to them.
+  ``pushbroom``: the satellite cameras; ``rpcfit``: RPCs fitted to them; ``multidate``: scenes
+  taken on several dates (sun, seasons, transients, radiometry, acquisition metadata).
 """

@@ -22,12 +22,26 @@ beside it is the fit of the true camera *shifted by -b*: a ground point ``X`` ap
 image at ``RPC(X) + b``. The first view has no bias; the others draw theirs uniformly in
 ``[-bias_px, bias_px]^2``. A bundle adjustment should find the corrections ``+b``.
 
-Every random draw comes from ``seed``: the same options give the same files.
+Multi-date scenes (``acquisitions = N >= 1``, ``satsweep.synth.multidate``): the views are
+grouped into N acquisitions (passes of 1-3 views) on N dates; each date has its own sun (shading
+and cast shadows), trees (leaf-on to leafless), grass, cars and market stalls, radiometry (gain,
+offset, gamma per view) and pass geometry (azimuths all around, off-nadir up to
+``max_off_nadir_deg``), and ``large_bias_px`` adds pointing errors of tens of pixels to some
+views. The truth surface and ``truth_dsm.tif`` are those of the single-date scene of the same
+town: the transients and the seasons are in the images only. Beside each view go
+``view_NN.IMD`` (DigitalGlobe/Maxar style: date-time, sun and satellite angles) and, in the TIFF,
+the GDAL_METADATA tag (date-time, sun angles, satellite), unless ``write_metadata`` is False;
+``scene.json`` records each view's acquisition, date-time, sun and satellite angles, radiometry
+and bias either way, and each acquisition's date, sun, season and transients.
+
+Every random draw comes from ``seed``: the same options give the same files. The default
+options (one date) give the same files as before the multi-date scenes existed.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 import json
 import math
 import os
@@ -47,6 +61,19 @@ from satsweep.io.atomic import atomic_output, check_output_dir
 from satsweep.io.geotiff import write_geotiff, write_tiff
 from satsweep.options import Options
 from satsweep.products.grid import DSMGrid, dsm_grid_for_aoi
+from satsweep.synth.multidate import (
+    DATE_EFFECTS,
+    Acquisition,
+    MultiDatePlan,
+    acquisition_surface,
+    gdal_metadata_extratag,
+    gdal_metadata_xml,
+    imd_text,
+    plan_acquisitions,
+    radiometric_dn,
+    track_angles,
+    write_imd,
+)
 from satsweep.synth.pushbroom import PushbroomCamera, base_to_height
 from satsweep.synth.rpcfit import RPCFitResidual, cube_grid, fit_rpc, rpc_residual
 from satsweep.synth.town import (
@@ -92,6 +119,15 @@ DSM_SUBSAMPLES = 5
 # Rays cast at once while rendering (bounds memory to a few hundred MB).
 RENDER_CHUNK_RAYS = 1 << 17
 
+RADIOMETRY_MODEL = (
+    "DN = clip(round(gain * DN_MAX * (x / DN_MAX) ** gamma + offset_dn + noise), 0, DN_MAX) with "
+    "x = radiance * DN_PER_RADIANCE (the single-date scene's noise-free DN), DN_MAX = 4095"
+)
+ACQUISITIONS_NOTE = (
+    "each acquisition's surface is the truth surface with that date's roof and facade brightness, "
+    "trees, grass and transients (vehicles, stalls: footprint and top in ENU metres, height above "
+    "the road); the truth DSM has none of them"
+)
 BIAS_CONVENTION = (
     "image content of ground point X is at RPC(X) + bias_px (col, row): the image was rendered "
     "with the true camera and the RPC is the fit of the true camera shifted by -bias_px"
@@ -110,15 +146,33 @@ class SynthOptions(Options):
     location: tuple[float, float] = (2.3488, 48.8534)  # (lon, lat) of the scene centre
     ground_alt_m: float = 100.0  # height of the ground at the centre above the WGS84 ellipsoid
     orbit_height_m: float = 694000.0  # height of the orbit line above the scene
-    orbit_azimuth_deg: float = 192.0  # heading of the satellite's motion (descending orbit)
-    off_nadir_deg: tuple[float, ...] = ()  # per view; () = built-in DEFAULT_VIEW_ANGLES
-    azimuth_deg: tuple[float, ...] = ()  # satellite azimuth per view; () = built-in
-    sun_elevation_deg: float = 55.0  # sun height above the horizon
-    sun_azimuth_deg: float = 155.0  # sun azimuth, clockwise from north
+    orbit_azimuth_deg: float = 192.0  # heading of the satellite's motion (descending orbit); multi-date: the mean
+    off_nadir_deg: tuple[float, ...] = ()  # per view; () = built-in DEFAULT_VIEW_ANGLES (multi-date: drawn)
+    azimuth_deg: tuple[float, ...] = ()  # satellite azimuth per view; () = built-in (multi-date: drawn)
+    sun_elevation_deg: float = 55.0  # sun height above the horizon (multi-date: only without the "sun" effect)
+    sun_azimuth_deg: float = 155.0  # sun azimuth, clockwise from north (likewise)
     supersampling: int = 2  # rays per pixel side (2 -> 2x2 rays averaged per pixel)
     noise_dn: float = 6.0  # standard deviation of the Gaussian image noise (DN)
     cell_m: float = 0.25  # cell size of the true surface grid
     dsm_resolution_m: float = 0.5  # cell size of truth_dsm.tif (UTM metres)
+    # Multi-date scenes (satsweep.synth.multidate). 0: one date, every view under the same sun,
+    # season, cars and radiometry (the scenes of the benchmarks); N >= 1: the views grouped into
+    # N acquisitions (passes of 1-3 views) on N different dates, each with its own sun, trees,
+    # grass, cars, radiometry and pass geometry (angles drawn unless off_nadir_deg is given).
+    acquisitions: int = 0
+    views_per_acquisition: tuple[int, ...] = ()  # views of each acquisition (1-3 each, summing to n_views); () = drawn
+    start_date: str = "2019-01-01"  # multi-date: first day (ISO) of the period the dates are drawn in
+    date_span_days: int = 395  # multi-date: length of that period in days (13 months)
+    min_sun_elevation_deg: float = 25.0  # multi-date: days whose sun stays lower at the overpass are not drawn
+    max_off_nadir_deg: float = 30.0  # multi-date: largest drawn off-nadir angle (azimuths all around)
+    # multi-date: what changes from one date to another (any of multidate.DATE_EFFECTS); the
+    # others stay as on a single-date scene
+    date_effects: tuple[str, ...] = ("sun", "materials", "vegetation", "ground", "transients", "radiometry")
+    large_bias_px: float = 0.0  # largest extra pointing error (px, any direction) of some views, added to bias_px
+    large_bias_fraction: float = 0.25  # share of the views after view 0 given a large error (at least one)
+    # .IMD sidecar and GDAL_METADATA tag with each view's date, sun and satellite angles: None =
+    # in multi-date scenes (single-date scenes have no dates; True is refused there)
+    write_metadata: bool | None = None
 
     def check(self) -> None:
         self._require(self.n_views >= 1, "n_views", "need at least one view")
@@ -153,9 +207,63 @@ class SynthOptions(Options):
         self._require(self.cell_m <= self.gsd_m / 2.0 + 1e-12, "cell_m",
                       f"must be at most half the GSD ({self.gsd_m / 2:g} m)")
         self._require(0.1 <= self.dsm_resolution_m <= 10.0, "dsm_resolution_m", "must lie in 0.1 .. 10 m")
+        self._check_multidate()
+
+    def _check_multidate(self) -> None:
+        n = self.acquisitions
+        self._require(0 <= n <= 64, "acquisitions", "must lie in 0 .. 64 (0: a single-date scene)")
+        if n:
+            self._require(n <= self.n_views <= 3 * n, "acquisitions",
+                          f"{n} acquisitions of 1 to 3 views need n_views in {n} .. {3 * n} (n_views = {self.n_views})")
+        self._require(not self.views_per_acquisition or len(self.views_per_acquisition) == n,
+                      "views_per_acquisition", f"give one count per acquisition ({n}) or none")
+        self._require(all(1 <= v <= 3 for v in self.views_per_acquisition), "views_per_acquisition",
+                      "each acquisition has 1 to 3 views")
+        self._require(not self.views_per_acquisition or sum(self.views_per_acquisition) == self.n_views,
+                      "views_per_acquisition", f"the counts must add up to n_views ({self.n_views})")
+        try:
+            dt.date.fromisoformat(self.start_date)
+            ok = len(self.start_date) == 10
+        except ValueError:
+            ok = False
+        self._require(ok, "start_date", "expected an ISO date YYYY-MM-DD")
+        self._require(1 <= self.date_span_days <= 3660, "date_span_days", "must lie in 1 .. 3660 days")
+        self._require(self.date_span_days >= n, "date_span_days",
+                      f"each of the {n} acquisitions needs a day of its own")
+        self._require(math.isfinite(self.min_sun_elevation_deg) and 5.0 <= self.min_sun_elevation_deg <= 80.0,
+                      "min_sun_elevation_deg", "must lie in 5 .. 80 degrees")
+        self._require(math.isfinite(self.max_off_nadir_deg) and 5.0 <= self.max_off_nadir_deg <= 40.0,
+                      "max_off_nadir_deg", "must lie in 5 .. 40 degrees")
+        unknown = sorted(set(self.date_effects) - set(DATE_EFFECTS))
+        self._require(not unknown, "date_effects", f"unknown {', '.join(unknown)} (known: {', '.join(DATE_EFFECTS)})")
+        self._require(len(set(self.date_effects)) == len(self.date_effects), "date_effects", "names repeated")
+        self._require(math.isfinite(self.large_bias_px) and 0.0 <= self.large_bias_px <= 100.0, "large_bias_px",
+                      "must lie in 0 .. 100 pixels")
+        self._require(math.isfinite(self.large_bias_fraction) and 0.0 < self.large_bias_fraction <= 1.0,
+                      "large_bias_fraction", "must lie in (0, 1]")
+        self._require(not (self.write_metadata and n == 0), "write_metadata",
+                      "single-date scenes have no acquisition dates: set acquisitions >= 1")
+
+    @property
+    def multidate(self) -> bool:
+        """Whether the views are grouped into acquisitions on different dates."""
+        return self.acquisitions > 0
+
+    def plan(self) -> MultiDatePlan | None:
+        """The multi-date plan (dates, sun, passes, radiometry); None for a single-date scene."""
+        return plan_acquisitions(self) if self.multidate else None
+
+    def view_geometry(self) -> list[tuple[float, float, float]]:
+        """(off-nadir, satellite azimuth, orbit heading) in degrees of every view."""
+        plan = self.plan()
+        if plan is not None:
+            return [(v.off_nadir_deg, v.azimuth_deg, v.orbit_azimuth_deg) for v in plan.views]
+        return [(th, az, self.orbit_azimuth_deg) for th, az in self.view_angles()]
 
     def view_angles(self) -> list[tuple[float, float]]:
         """(off-nadir, azimuth) in degrees of every view."""
+        if self.multidate:
+            return [(th, az) for th, az, _ in self.view_geometry()]
         if self.off_nadir_deg:
             return list(zip(self.off_nadir_deg, self.azimuth_deg))
         out = []
@@ -170,7 +278,34 @@ class SynthOptions(Options):
         rng = np.random.default_rng([self.seed, 7])
         draws = rng.uniform(-self.bias_px, self.bias_px, size=(self.n_views, 2))
         draws[0] = 0.0
+        if self.large_bias_px > 0.0 and self.n_views > 1:
+            # Large errors on a share of the views after view 0: a magnitude between half and
+            # all of large_bias_px, in any direction (as one real view was off by 36 px).
+            big = np.random.default_rng([self.seed, 8])
+            count = max(1, int(round(self.large_bias_fraction * (self.n_views - 1))))
+            which = big.choice(np.arange(1, self.n_views), size=count, replace=False)
+            size = big.uniform(0.5 * self.large_bias_px, self.large_bias_px, size=count)
+            angle = big.uniform(0.0, 2.0 * math.pi, size=count)
+            draws[which, 0] += size * np.cos(angle)
+            draws[which, 1] += size * np.sin(angle)
         return [(float(a), float(b)) for a, b in draws]
+
+    def scene_dict(self) -> dict:
+        """The options as scene.json records them: every field, except that a single-date
+        scene leaves out the multi-date fields at their defaults (so that its scene.json is the
+        same as before they existed)."""
+        d = self.to_dict()
+        if not self.multidate:
+            for f in dataclasses.fields(self):
+                if f.name in MULTIDATE_FIELDS and getattr(self, f.name) == f.default:
+                    del d[f.name]
+        return d
+
+
+# The SynthOptions fields that came with the multi-date scenes.
+MULTIDATE_FIELDS = ("acquisitions", "views_per_acquisition", "start_date", "date_span_days",
+                    "min_sun_elevation_deg", "max_off_nadir_deg", "date_effects", "large_bias_px",
+                    "large_bias_fraction", "write_metadata")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -193,11 +328,11 @@ def design_scene(options: SynthOptions) -> SceneDesign:
     frame = ENUFrame(float(lon), float(lat), float(options.ground_alt_m))
     cams = tuple(
         PushbroomCamera.from_angles(
-            off_nadir_deg=th, azimuth_deg=az, orbit_azimuth_deg=options.orbit_azimuth_deg,
+            off_nadir_deg=th, azimuth_deg=az, orbit_azimuth_deg=heading,
             orbit_height_m=options.orbit_height_m, gsd_m=options.gsd_m,
             width=options.size_px, height=options.size_px,
         )
-        for th, az in options.view_angles()
+        for th, az, heading in options.view_geometry()
     )
     z_lo, z_hi = NOMINAL_Z_RANGE
     w = options.size_px
@@ -211,7 +346,13 @@ def design_scene(options: SynthOptions) -> SceneDesign:
     n_min = math.floor((pts[:, 1].min() - WORLD_MARGIN_M) / c) * c
     e_max = math.ceil((pts[:, 0].max() + WORLD_MARGIN_M) / c) * c
     n_max = math.ceil((pts[:, 1].max() + WORLD_MARGIN_M) / c) * c
-    aoi_half = _aoi_half_size(cams, z_range=(z_lo, z_hi), size_px=w)
+    if options.multidate or options.large_bias_px > 0.0:
+        # The AOI must also lie inside each image where its RPC (the camera shifted by the
+        # pointing error) puts it, as real crops leave room for their pointing errors.
+        margins = [AOI_MARGIN_PX + max(abs(bx), abs(by)) for bx, by in options.view_biases()]
+    else:
+        margins = None
+    aoi_half = _aoi_half_size(cams, z_range=(z_lo, z_hi), size_px=w, margins_px=margins)
     if aoi_half < 4.0 * options.gsd_m:
         raise OptionsError(
             f"SynthOptions.size_px = {w}: too small for the views' relief displacement "
@@ -222,8 +363,10 @@ def design_scene(options: SynthOptions) -> SceneDesign:
                        aoi_half_m=aoi_half, z_range=(z_lo, z_hi))
 
 
-def _aoi_half_size(cams: Sequence[PushbroomCamera], *, z_range: tuple[float, float], size_px: int) -> float:
-    """Largest a such that the square [-a, a]^2 at every height in z_range is inside every view."""
+def _aoi_half_size(cams: Sequence[PushbroomCamera], *, z_range: tuple[float, float], size_px: int,
+                   margins_px: Sequence[float] | None = None) -> float:
+    """Largest a such that the square [-a, a]^2 at every height in z_range is inside every view,
+    AOI_MARGIN_PX (or each view's ``margins_px``) from its edges."""
     zs = np.array([z_range[0], 0.5 * (z_range[0] + z_range[1]), z_range[1]])
 
     def fits(a: float) -> bool:
@@ -233,9 +376,10 @@ def _aoi_half_size(cams: Sequence[PushbroomCamera], *, z_range: tuple[float, flo
         e = np.repeat(edge_e[None], zs.size, 0)
         n = np.repeat(edge_n[None], zs.size, 0)
         u = np.repeat(zs[:, None], edge_e.size, 1)
-        for cam in cams:
+        for k, cam in enumerate(cams):
             col, row = cam.project(e=e, n=n, u=u)
-            lo, hi = AOI_MARGIN_PX, size_px - 1 - AOI_MARGIN_PX
+            margin = AOI_MARGIN_PX if margins_px is None else margins_px[k]
+            lo, hi = margin, size_px - 1 - margin
             if not (np.all((col >= lo) & (col <= hi)) and np.all((row >= lo) & (row <= hi))):
                 return False
         return True
@@ -289,6 +433,15 @@ def render_radiance(grid: SurfaceGrid, shadows: ShadowMap, camera: PushbroomCame
 def to_dn(radiance: np.ndarray, *, noise_dn: float, rng: np.random.Generator) -> np.ndarray:
     """Radiance -> uint16 digital numbers (12-bit range) with Gaussian noise of ``noise_dn``."""
     dn = radiance * DN_PER_RADIANCE + rng.standard_normal(radiance.shape) * noise_dn
+    return np.clip(np.rint(dn), 0, DN_MAX).astype(np.uint16)
+
+
+def to_dn_radiometric(radiance: np.ndarray, *, gain: float, offset_dn: float, gamma: float, noise_dn: float,
+                      rng: np.random.Generator) -> np.ndarray:
+    """Radiance -> uint16 DN of a multi-date view: ``RADIOMETRY_MODEL`` plus Gaussian noise."""
+    dn = radiometric_dn(radiance, gain=gain, offset_dn=offset_dn, gamma=gamma, dn_per_radiance=DN_PER_RADIANCE,
+                        dn_max=DN_MAX)
+    dn = dn + rng.standard_normal(radiance.shape) * noise_dn
     return np.clip(np.rint(dn), 0, DN_MAX).astype(np.uint16)
 
 
@@ -396,6 +549,13 @@ class SceneView:
     bias_px: tuple[float, float]  # (col, row): content of X is at RPC(X) + bias
     rpc_fit_max_px: float  # max RPC residual over the fit grid
     rpc_check_max_px: float  # max RPC residual at random points of the cube
+    # Multi-date scenes only (None / identity otherwise):
+    acquisition: int | None = None  # index of the view's acquisition in Scene.acquisitions
+    date_time: str | None = None  # UTC time of the view (its first line), ISO 8601
+    gain: float = 1.0  # radiometry: DN = gain * DN_MAX * (x / DN_MAX) ** gamma + offset_dn + noise
+    offset_dn: float = 0.0
+    gamma: float = 1.0
+    metadata_file: Path | None = None  # the .IMD sidecar, when metadata were written
 
     def rpc(self) -> RPCModel:
         """The RPC written with the image (tag 50844)."""
@@ -417,10 +577,22 @@ class Scene:
     dsm_grid: DSMGrid
     views: tuple[SceneView, ...]
     pairs: tuple[tuple[int, int, float], ...]  # (view a, view b, base-to-height ratio)
+    acquisitions: tuple[Acquisition, ...] = ()  # multi-date scenes: dates, sun, season, transients
 
     @property
     def scene_file(self) -> Path:
         return self.directory / SCENE_FILE
+
+    def acquisition_surface(self, index: int, grid: SurfaceGrid | None = None) -> SurfaceGrid:
+        """The surface as acquisition ``index`` of a multi-date scene saw it (rebuilt from the
+        seed; identical to the one rendered): the truth with that date's trees, grass and
+        transients. ``grid``: the truth surface, when already at hand."""
+        if not self.acquisitions:
+            raise ValueError("a single-date scene has no acquisitions")
+        truth = grid if grid is not None else self.surface()
+        acq = self.acquisitions[index]
+        surface, _ = acquisition_surface(truth, acq, seed=self.options.seed, effects=self.options.date_effects)
+        return surface
 
     def surface(self) -> SurfaceGrid:
         """The true surface grid (rebuilt from the seed; identical to the one rendered)."""
@@ -464,6 +636,7 @@ def _scene_from_doc(directory: Path, doc: dict) -> Scene:
             camera=PushbroomCamera.from_dict(v["camera"]), off_nadir_deg=float(v["off_nadir_deg"]),
             azimuth_deg=float(v["azimuth_deg"]), bias_px=(float(v["bias_px"][0]), float(v["bias_px"][1])),
             rpc_fit_max_px=float(v["rpc_fit"]["max_px"]), rpc_check_max_px=float(v["rpc_check"]["max_px"]),
+            **_view_multidate_fields(directory, v),
         )
         for k, v in enumerate(doc["views"])
     )
@@ -479,7 +652,19 @@ def _scene_from_doc(directory: Path, doc: dict) -> Scene:
                          resolution=float(g["resolution"]), width=int(g["width"]), height=int(g["height"])),
         views=views,
         pairs=tuple((int(p["views"][0]), int(p["views"][1]), float(p["base_to_height"])) for p in doc["pairs"]),
+        acquisitions=tuple(Acquisition.from_dict(a) for a in doc.get("acquisitions", ())),
     )
+
+
+def _view_multidate_fields(directory: Path, v: dict) -> dict:
+    """SceneView's multi-date fields from a view's scene.json entry (none on single-date ones)."""
+    if "acquisition" not in v:
+        return {}
+    r = v["radiometry"]
+    meta = v["metadata"]
+    return {"acquisition": int(v["acquisition"]), "date_time": str(v["date_time"]), "gain": float(r["gain"]),
+            "offset_dn": float(r["offset_dn"]), "gamma": float(r["gamma"]),
+            "metadata_file": directory / meta["imd"] if meta else None}
 
 
 def view_name(index: int) -> str:
@@ -499,14 +684,13 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
     out_dir = Path(out_dir)
     check_output_dir(out_dir, overwrite=overwrite)
     say = log if log is not None else (lambda _msg: None)
+    plan = options.plan()
     design = design_scene(options)
     frame = design.frame
     e_min, n_min, e_max, n_max = design.world
     t0 = time.perf_counter()
     grid = build_surface(seed=options.seed, e_min=e_min, n_min=n_min, e_max=e_max, n_max=n_max,
                          cell_m=options.cell_m, aoi_half_m=design.aoi_half_m)
-    sun = sun_vector(elevation_deg=options.sun_elevation_deg, azimuth_deg=options.sun_azimuth_deg)
-    shadows = ShadowMap(grid, sun)
     say(f"surface: {grid.shape[1]}x{grid.shape[0]} cells of {options.cell_m:g} m, "
         f"{len(grid.buildings)} buildings ({time.perf_counter() - t0:.1f} s)")
 
@@ -520,33 +704,90 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
 
     out_dir.mkdir(parents=True, exist_ok=True)
     biases = options.view_biases()
-    views_doc = []
-    views = []
-    for k, (cam, (th, az), bias) in enumerate(zip(design.cameras, options.view_angles(), biases)):
-        t1 = time.perf_counter()
-        radiance = render_radiance(grid, shadows, cam, supersampling=options.supersampling)
-        image = to_dn(radiance, noise_dn=options.noise_dn, rng=np.random.default_rng([options.seed, 2000 + k]))
-        rpc, fit_res, check = fit_view_rpc(cam, frame, lon_range=lon_range, lat_range=lat_range,
-                                           alt_range=alt_cube, bias_px=bias, seed=options.seed + k)
-        name = view_name(k)
-        image_path = out_dir / f"{name}.tif"
-        rpc_path = out_dir / f"{name}_RPC.TXT"
-        write_tiff(image_path, image, extratags=[rpc_tiff_extratag(rpc)])
-        write_rpc_txt(rpc_path, rpc)
-        incidence, sat_az = cam.viewing_angles()
-        views.append(SceneView(index=k, image=image_path, rpc_file=rpc_path, camera=cam,
-                               off_nadir_deg=float(th), azimuth_deg=float(az), bias_px=bias,
-                               rpc_fit_max_px=fit_res.max_px, rpc_check_max_px=check.max_px))
-        views_doc.append({
-            "image": image_path.name, "rpc_file": rpc_path.name, "width": cam.width, "height": cam.height,
-            "off_nadir_deg": float(th), "azimuth_deg": float(az), "incidence_deg": incidence,
-            "orbit_azimuth_deg": options.orbit_azimuth_deg, "gsd_m": options.gsd_m,
-            "bias_px": list(bias), "rpc_fit": fit_res.to_dict(), "rpc_check": check.to_dict(),
-            "camera": cam.to_dict(),
-        })
-        say(f"{image_path.name}: off-nadir {th:g} deg, azimuth {az:g} deg, bias ({bias[0]:+.3f}, "
-            f"{bias[1]:+.3f}) px, RPC residual {max(fit_res.max_px, check.max_px):.2e} px "
-            f"({time.perf_counter() - t1:.1f} s)")
+    angles = options.view_angles()
+    views_doc: list[dict] = [{} for _ in design.cameras]
+    views: list[SceneView | None] = [None] * len(design.cameras)
+    write_meta = options.multidate if options.write_metadata is None else options.write_metadata
+    # One date (single-date scenes) or one per acquisition: the surface as seen that day, its
+    # sun and shadows, and the views taken then.
+    if plan is None:
+        sun = sun_vector(elevation_deg=options.sun_elevation_deg, azimuth_deg=options.sun_azimuth_deg)
+        dates = [(None, grid, ShadowMap(grid, sun), range(len(design.cameras)))]
+    else:
+        dates = ((acq, None, None, acq.views) for acq in plan.acquisitions)
+    acquisitions = []
+    for acq, surface, shadows, indices in dates:
+        if acq is not None:
+            t1 = time.perf_counter()
+            surface, transients = acquisition_surface(grid, acq, seed=options.seed, effects=options.date_effects)
+            acq = dataclasses.replace(acq, transients=tuple(transients))
+            acquisitions.append(acq)
+            sun = sun_vector(elevation_deg=acq.sun_elevation_deg, azimuth_deg=acq.sun_azimuth_deg)
+            shadows = ShadowMap(surface, sun)
+            say(f"acquisition {acq.index}: {acq.date_time}, sun elevation {acq.sun_elevation_deg:g} deg, "
+                f"azimuth {acq.sun_azimuth_deg:g} deg, leaves {acq.leaf_density:.2f}, {len(transients)} "
+                f"transients ({time.perf_counter() - t1:.1f} s)")
+        for k in indices:
+            cam, (th, az), bias = design.cameras[k], angles[k], biases[k]
+            t1 = time.perf_counter()
+            radiance = render_radiance(surface, shadows, cam, supersampling=options.supersampling)
+            rng = np.random.default_rng([options.seed, 2000 + k])
+            if acq is None:
+                image = to_dn(radiance, noise_dn=options.noise_dn, rng=rng)
+            else:
+                vp = plan.views[k]
+                image = to_dn_radiometric(radiance, gain=vp.gain, offset_dn=vp.offset_dn, gamma=vp.gamma,
+                                          noise_dn=options.noise_dn, rng=rng)
+            rpc, fit_res, check = fit_view_rpc(cam, frame, lon_range=lon_range, lat_range=lat_range,
+                                               alt_range=alt_cube, bias_px=bias, seed=options.seed + k)
+            name = view_name(k)
+            image_path = out_dir / f"{name}.tif"
+            rpc_path = out_dir / f"{name}_RPC.TXT"
+            incidence, sat_az = cam.viewing_angles()
+            tags = [rpc_tiff_extratag(rpc)]
+            imd_path = None
+            if acq is not None and write_meta:
+                imd_path = out_dir / f"{name}.IMD"
+                tags.append(gdal_metadata_extratag(gdal_metadata_xml(
+                    date_time=vp.date_time, sun_azimuth_deg=acq.sun_azimuth_deg,
+                    sun_elevation_deg=acq.sun_elevation_deg)))
+            write_tiff(image_path, image, extratags=tags)
+            write_rpc_txt(rpc_path, rpc)
+            doc = {
+                "image": image_path.name, "rpc_file": rpc_path.name, "width": cam.width, "height": cam.height,
+                "off_nadir_deg": float(th), "azimuth_deg": float(az), "incidence_deg": incidence,
+                "orbit_azimuth_deg": options.orbit_azimuth_deg if acq is None else acq.orbit_azimuth_deg,
+                "gsd_m": options.gsd_m, "bias_px": list(bias), "rpc_fit": fit_res.to_dict(),
+                "rpc_check": check.to_dict(), "camera": cam.to_dict(),
+            }
+            view = SceneView(index=k, image=image_path, rpc_file=rpc_path, camera=cam,
+                             off_nadir_deg=float(th), azimuth_deg=float(az), bias_px=bias,
+                             rpc_fit_max_px=fit_res.max_px, rpc_check_max_px=check.max_px)
+            if acq is not None:
+                in_track, cross_track = track_angles(cam)
+                if imd_path is not None:
+                    write_imd(imd_path, imd_text(
+                        date_time=vp.date_time, rows=cam.height, cols=cam.width,
+                        sun_azimuth_deg=acq.sun_azimuth_deg, sun_elevation_deg=acq.sun_elevation_deg,
+                        sat_azimuth_deg=sat_az, sat_elevation_deg=90.0 - incidence, off_nadir_deg=incidence,
+                        in_track_deg=in_track, cross_track_deg=cross_track, gsd_m=options.gsd_m,
+                        catalog_id=f"SYNTH{options.seed:04d}A{acq.index:02d}V{k:02d}"))
+                doc.update({
+                    "acquisition": acq.index, "date_time": vp.date_time,
+                    "sun_elevation_deg": acq.sun_elevation_deg, "sun_azimuth_deg": acq.sun_azimuth_deg,
+                    "satellite_azimuth_deg": sat_az, "satellite_elevation_deg": 90.0 - incidence,
+                    "in_track_deg": in_track, "cross_track_deg": cross_track,
+                    "radiometry": {"gain": vp.gain, "offset_dn": vp.offset_dn, "gamma": vp.gamma,
+                                   "model": RADIOMETRY_MODEL},
+                    "metadata": {"imd": imd_path.name, "tiff_tag": "GDAL_METADATA (42112)"} if imd_path else None,
+                })
+                view = dataclasses.replace(view, acquisition=acq.index, date_time=vp.date_time, gain=vp.gain,
+                                           offset_dn=vp.offset_dn, gamma=vp.gamma, metadata_file=imd_path)
+            views[k] = view
+            views_doc[k] = doc
+            say(f"{image_path.name}: off-nadir {th:g} deg, azimuth {az:g} deg, bias ({bias[0]:+.3f}, "
+                f"{bias[1]:+.3f}) px, RPC residual {max(fit_res.max_px, check.max_px):.2e} px "
+                f"({time.perf_counter() - t1:.1f} s)")
 
     t1 = time.perf_counter()
     dsm_grid = dsm_grid_for_aoi(aoi, options.dsm_resolution_m)
@@ -563,7 +804,7 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
         "format": SCENE_FORMAT,
         "version": SCENE_VERSION,
         "generator": f"satsweep {__version__}",
-        "options": options.to_dict(),
+        "options": options.scene_dict(),
         "origin": {"lon": frame.lon0, "lat": frame.lat0, "alt": frame.alt0,
                    "note": "origin of the ENU frame (metres) of the cameras and the surface"},
         "aoi": {"lon_min": aoi.lon_min, "lat_min": aoi.lat_min, "lon_max": aoi.lon_max,
@@ -572,7 +813,10 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
         "altitude_range": list(alt_range),
         "rpc_cube": {"lon": list(lon_range), "lat": list(lat_range), "alt": list(alt_cube)},
         "bias_convention": BIAS_CONVENTION,
-        "sun": {"elevation_deg": options.sun_elevation_deg, "azimuth_deg": options.sun_azimuth_deg},
+    }
+    if plan is None:
+        doc["sun"] = {"elevation_deg": options.sun_elevation_deg, "azimuth_deg": options.sun_azimuth_deg}
+    doc.update({
         "world": {"e_min": e_min, "n_min": n_min, "e_max": e_max, "n_max": n_max, "cell_m": options.cell_m},
         "truth_dsm": {"file": TRUTH_DSM_FILE, "epsg": dsm_grid.epsg, "x_min": dsm_grid.x_min,
                       "y_max": dsm_grid.y_max, "resolution": dsm_grid.resolution,
@@ -580,15 +824,26 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
                       "values": "max ellipsoidal altitude over each cell (5x5 points incl. the centre)"},
         "views": views_doc,
         "pairs": [{"views": [a, b], "base_to_height": r} for a, b, r in pairs],
+    })
+    if plan is not None:
+        doc["acquisitions_note"] = ACQUISITIONS_NOTE
+        # The transients (hundreds per date) one a line, not one number a line: placeholders
+        # here, replaced in the text below.
+        doc["acquisitions"] = [{**a.to_dict(), "transients": f"@@transients{a.index}@@"} for a in acquisitions]
+    doc.update({
         "ground": grid.ground.to_dict(),
         "buildings": [b.to_dict() for b in grid.buildings],
-    }
+    })
+    text = json.dumps(doc, indent=1)
+    for a in acquisitions:
+        rows = ",\n   ".join(json.dumps(t, separators=(",", ":")) for t in a.transients)
+        text = text.replace(f'"@@transients{a.index}@@"', f"[\n   {rows}\n  ]" if rows else "[]")
     with atomic_output(out_dir / SCENE_FILE) as tmp:
-        Path(tmp).write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        Path(tmp).write_text(text + "\n", encoding="utf-8")
     return Scene(
         directory=out_dir, options=options, frame=frame, aoi=aoi, aoi_half_m=design.aoi_half_m,
         alt_range=alt_range, world=design.world, truth_dsm=out_dir / TRUTH_DSM_FILE,
-        dsm_grid=dsm_grid, views=tuple(views), pairs=tuple(pairs),
+        dsm_grid=dsm_grid, views=tuple(views), pairs=tuple(pairs), acquisitions=tuple(acquisitions),
     )
 
 

@@ -30,7 +30,12 @@ ROOF = 4  # flat roof: mostly plain (weakly textured), some gravel
 ROOF_GABLE = 5  # tiled gabled roof
 ROOF_BOX = 6  # small structure on a flat roof (stair house, air conditioning)
 TREE = 7  # tree crown
-MATERIAL_NAMES = ("ground", "road", "sidewalk", "plaza", "roof", "gable_roof", "roof_box", "tree")
+# Materials that only the images of a multi-date scene show (``satsweep.synth.multidate``), never
+# the truth surface: transients and the ground seen through a leafless crown.
+VEHICLE = 8  # car, van or truck parked or driving on a road
+STALL = 9  # market stall or tent on a plaza
+MATERIAL_NAMES = ("ground", "road", "sidewalk", "plaza", "roof", "gable_roof", "roof_box", "tree",
+                  "vehicle", "stall")
 
 # Heights of buildings (walls to the top of the roof), metres, as the issue specifies.
 MIN_BUILDING_M = 4.0
@@ -82,6 +87,15 @@ class SurfaceGrid:
     wall_albedo: np.ndarray  # (ny, nx) float32: reflectance of this cell's walls (facades)
     ground: "GroundShape"  # analytic bare ground, for heights above ground on facades
     buildings: tuple[Building, ...] = ()
+    # The street grid: (north-south road eastings, their widths, east-west road northings, their
+    # widths), metres; where the multi-date scenes park their cars.
+    roads: tuple = ((), (), (), ())
+    # The trees: (e, n, crown radius, total height, crown depth, leaf albedo) each, metres.
+    trees: tuple[tuple[float, ...], ...] = ()
+    # What lies under the tree crowns: the cells (j, i) that a crown covers and their top, slopes,
+    # material, albedo and wall albedo before the crowns were drawn (what a leafless crown lets
+    # through). None when the grid was not drawn by build_surface.
+    under_trees: "UnderTrees | None" = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -134,6 +148,20 @@ class SurfaceGrid:
         ec = self.e_min + (i + 0.5) * c
         nc = self.n_min + (j + 0.5) * c
         return self.top[j, i] + self.slope_e[j, i] * (e - ec) + self.slope_n[j, i] * (n - nc)
+
+
+@dataclasses.dataclass(frozen=True)
+class UnderTrees:
+    """The cells a tree crown covers and what they held before the crowns were drawn."""
+
+    j: np.ndarray  # (K,) int64 cell rows
+    i: np.ndarray  # (K,) int64 cell columns
+    top: np.ndarray  # (K,) float64
+    slope_e: np.ndarray  # (K,) float64
+    slope_n: np.ndarray  # (K,) float64
+    material: np.ndarray  # (K,) uint8
+    albedo: np.ndarray  # (K,) float32
+    wall_albedo: np.ndarray  # (K,) float32
 
 
 # ---------------------------------------------------------------------------------------------
@@ -605,8 +633,16 @@ def build_surface(*, seed: int, e_min: float, n_min: float, e_max: float, n_max:
     blocks = town.draw_roads()
     town.draw_blocks(blocks)
     town.draw_street_trees()
+    before = (grid.top.copy(), grid.slope_e.copy(), grid.slope_n.copy(), grid.material.copy(),
+              grid.albedo.copy(), grid.wall_albedo.copy())
     town.draw_trees()
     grid.buildings = tuple(town.buildings)
+    grid.roads = tuple(tuple(float(v) for v in part) for part in town.road_lines)
+    grid.trees = tuple(town.trees)
+    j, i = np.nonzero(grid.material == TREE)
+    grid.under_trees = UnderTrees(j=j, i=i, top=before[0][j, i], slope_e=before[1][j, i],
+                                  slope_n=before[2][j, i], material=before[3][j, i],
+                                  albedo=before[4][j, i], wall_albedo=before[5][j, i])
     return grid
 
 
