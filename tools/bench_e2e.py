@@ -15,8 +15,9 @@ each stage; the issue's targets are a median of at most 0.10 m and a completenes
 Real part. The Pleiades pair of the shared data (``../shared/data/pleiades_pair``): the AOI is the
 lon/lat box of the region x = 150..850, y = 150..850 of img_01 localised at the ground height
 (2340 m), the altitude range 2260..2390 m (S2P's DSM spans 2270..2376 m), ``--adjust auto``; the run's wall time is compared
-with S2P's on the same pair (about 18 s on a 2-core machine: the figure of the shared data's
-README, not re-measured here; the target is at most a fifth of it), and the DSM with S2P's
+with S2P's on the same pair (42-45 s on a 2-core machine, its current version and test
+configuration measured side by side with satsweep: the figure of the shared data's README, not
+re-measured here, whose older 18 s did not reproduce; the target is at most a fifth of it), and the DSM with S2P's
 ``s2p_dsm.tif`` (a peer, not the truth): median |satsweep - S2P| over the cells both have (target
 below 0.5 m), before and after the MVS3DM alignment. The target is on the command, so the process
 runs under the ``satsweep`` command's memory policy (``satsweep.heap``: freed memory is kept
@@ -67,9 +68,10 @@ from satsweep.pipeline.run import reconstruct  # noqa: E402
 # The accuracy targets on the synthetic scenes.
 TARGET_MEDIAN_M = 0.10
 TARGET_COMPLETENESS = 0.93
-# S2P's wall time on the Pleiades pair (shared data README; measured there, not here) and the
-# speed and agreement targets.
-S2P_SECONDS = 18.0
+# S2P's wall time on the Pleiades pair (shared data README: 42-45 s on a 2-core machine, side by
+# side with satsweep; the lower figure, to err on S2P's side) and the speed and agreement
+# targets.
+S2P_SECONDS = 42.0
 TARGET_SPEED_FRACTION = 0.2
 TARGET_S2P_MEDIAN_M = 0.5
 # The Pleiades region (pixels of img_01, ends included) and the heights used to place it.
@@ -91,7 +93,8 @@ FLAT_WINDOW_CELLS = 7
 # The altitude range given to the pipeline: the scene's truth range widened by this (m).
 ALT_MARGIN_M = 5.0
 # Stages shown in the timing columns (satsweep.pipeline's report names), in order.
-STAGES = ("views", "cameras", "adjust", "skew", "select", "sweep", "mrf", "dsm", "outputs")
+STAGES = ("altitude", "views", "cameras", "adjust", "skew", "select", "sweep", "mrf", "dsm", "fill",
+          "outputs")
 
 
 def parse_set(items: list[str]) -> dict[str, dict[str, object]]:
