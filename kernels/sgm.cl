@@ -58,7 +58,8 @@
  *
  * Compile-time constants: SGM_NL number of labels (1..SGM_MAX_LABELS), SGM_WG work-items per
  *   scanline (a power of two, default 1), SGM_LINES the most scanlines per work-item when
- *   SGM_WG == 1 (default 1; sizes the private arrays).
+ *   SGM_WG == 1 (default 1; sizes the private arrays); shared with the host (common.h):
+ *   SGM_MAX_LABELS, SGM_SCAN_GUARD (sgm_scan's +inf guards, below), SATSWEEP_INVALID.
  *
  * Floating point: contraction into fused multiply-adds is disabled, so that each device rounds
  *   the documented sequence of float32 operations (the numpy reference in tests/reference_sgm.py
@@ -79,7 +80,6 @@
 #if SGM_LINES < 1 || (SGM_WG > 1 && SGM_LINES != 1)
 #error "SGM_LINES must be >= 1, and 1 with SGM_WG > 1"
 #endif
-#define SGM_MAX_LABELS 1024
 #if SGM_NL < 1 || SGM_NL > SGM_MAX_LABELS
 #error "SGM_NL out of range"
 #endif
@@ -277,7 +277,6 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
  *   per core. A scan visits the image in order, so it does not use more cores; GPUs use
  *   sgm_path with a work-group per scanline.
  */
-#define SGM_SCAN_GUARD 8
 #define SGM_SCAN_STEP (SGM_NL + 2 * SGM_SCAN_GUARD)
 #define SGM_SCAN_SCRATCH(w) ((size_t)(6 * (w) + 2) * SGM_SCAN_STEP + (size_t)6 * (w))
 

@@ -29,8 +29,9 @@
  * Compile-time constants: CENSUS_RX, CENSUS_RY, NSRC (number of sources, 1..32), NBEST (1..NSRC),
  *   WG_X, WG_Y (work-group size of sweep_census_cost), AD_WEIGHT (float, census bits, default 0:
  *   census alone; not used by sweep_code_cost) and AD_TRUNC (float, intensity units, > 0),
- *   GRAD_WEIGHT (float, census bits, default 0; needs CENSUS_RX, CENSUS_RY >= 1) and GRAD_TRUNC,
- *   SWEEP_VEC (positions per work-item of sweep_warp and sweep_warped_cost: 8).
+ *   GRAD_WEIGHT (float, census bits, default 0; needs CENSUS_RX, CENSUS_RY >= 1) and GRAD_TRUNC;
+ *   shared with the host (common.h): SWEEP_VEC (positions per work-item of sweep_warp and
+ *   sweep_warped_cost: 8).
  */
 /* No contraction into fused multiply-adds: the staged kernel, the split kernels' vector paths and
  * their one-position forms then round the same sequence of float32 operations on every device,
@@ -43,9 +44,7 @@
 #endif
 
 /* Positions per work-item of the split kernels (sweep_warp, sweep_warped_cost): float8 there. */
-#ifndef SWEEP_VEC
-#error "SWEEP_VEC must be defined (the host's satsweep.sweep.SWEEP_VEC)"
-#elif SWEEP_VEC != 8
+#if SWEEP_VEC != 8
 #error "SWEEP_VEC must be 8 (the split kernels use float8)"
 #endif
 

@@ -54,12 +54,9 @@ from typing import Literal
 import numpy as np
 
 from satsweep.errors import DeviceError, InputError
+from satsweep.opencl.constants import SATSWEEP_INVALID
 from satsweep.opencl.device import Device
 from satsweep.options import Options
-
-# The device-side invalid marker (kernels/common.h SATSWEEP_INVALID); costs at or below half of
-# it are missing.
-SATSWEEP_INVALID = -1.0e30
 
 
 @dataclasses.dataclass(frozen=True)

@@ -24,16 +24,14 @@ from satsweep.dense.mrf import (
     _finish,
     _parabola_offset,
 )
-from satsweep.dense.sweep import WTA_VEC
 from satsweep.errors import DeviceError, InputError
+from satsweep.opencl.constants import SGM_MAX_LABELS, SGM_SCAN_GUARD, WTA_NSTATE, WTA_SLOT, WTA_VEC
 from satsweep.opencl.device import Device
 
 # Scanline directions (dx, dy) of SGM, in the order their path costs are added; 4 paths use the
 # first four (horizontal and vertical), 8 paths all of them.
 SGM_DIRECTIONS: tuple[tuple[int, int], ...] = (
     (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1))
-# Most labels sgm.cl accepts (SGM_MAX_LABELS there): local memory holds one float per label.
-SGM_MAX_LABELS = 1024
 # Work-items per scanline on GPUs when sgm_work_group = 0 (a warp/wavefront shares a scanline).
 _SGM_GPU_WORK_GROUP = 32
 # One-work-item SGM (CPUs): scanlines per work-item of the vertical and diagonal directions, which
@@ -44,13 +42,6 @@ _SGM_GPU_WORK_GROUP = 32
 # scanline, capped at SGM_PRIVATE_BYTES per work-item (fewer scanlines for many labels).
 SGM_CPU_LINES = 8
 SGM_PRIVATE_BYTES = 64 * 1024
-# sgm.cl's SGM_SCAN_GUARD: +inf entries on each side of a step in sgm_scan's scratch.
-_SGM_SCAN_GUARD = 8
-# Floats of per-pixel state of wta.cl (WTA_NSTATE) and their order there.
-_WTA_NSTATE = 8
-_S_M1, _S_I1, _S_M1P, _S_M1N, _S_M2, _S_PREV, _S_PREV2, _S_MAX = range(_WTA_NSTATE)
-# wta.cl's "infinite" cost (WTA_BIG).
-_WTA_BIG = float(np.float32(3.0e38))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -82,9 +73,9 @@ def sgm_program_requests(device: Device, options: MRFOptions,
             ("wta", _WTA_PIXEL_MAJOR_DEFINES)]
 
 
-# wta.cl's defines for wta_pixel_major: NSRC and the census radii matter only to wta_finalize,
-# which SGM does not use.
-_WTA_PIXEL_MAJOR_DEFINES = {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1, "WTA_VEC": WTA_VEC}
+# wta.cl's defines for wta_pixel_major and wta_close: NSRC and the census radii matter only to
+# wta_finalize, which SGM does not use.
+_WTA_PIXEL_MAJOR_DEFINES = {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1}
 
 
 def sgm_lines_per_item(work_group: int, n_labels: int) -> int:
@@ -198,7 +189,7 @@ def _ragged_dims(device: Device, cost_volume, label_count, label_offset,
 
 def sgm_scan_scratch_floats(width: int, n_labels: int) -> int:
     """Floats of sgm_scan's scratch for both scans (sgm.cl's 2 x SGM_SCAN_SCRATCH(w))."""
-    return 2 * ((6 * width + 2) * (n_labels + 2 * _SGM_SCAN_GUARD) + 6 * width)
+    return 2 * ((6 * width + 2) * (n_labels + 2 * SGM_SCAN_GUARD) + 6 * width)
 
 
 def _check_sgm_size(device: Device, dims: tuple[int, int, int]) -> None:
@@ -346,25 +337,32 @@ def _sgm_scans(device: Device, prg, cost_pm, guide_d, agg_pm, dims: tuple[int, i
         scratch.data.release()
 
 
-def _wta_state(device: Device, agg_pm, dims: tuple[int, int, int], bands=None) -> np.ndarray:
-    """wta.cl's winner-take-all state (8, H, W) of a whole PIXEL-MAJOR device volume of dims
-    (H, W, L), in one pass (``wta_pixel_major``: the same state as streaming the planes through
-    ``wta_update``, without turning the volume plane-major first); with ``bands`` (the (count,
-    offset) device arrays of ``_sgm_aggregate_pixel_major``), each pixel's state after its
-    count planes from its offset on."""
+def _closed_wta_state(device: Device, agg_pm, dims: tuple[int, int, int],
+                      bands=None) -> np.ndarray:
+    """wta.cl's CLOSED winner-take-all state (WTA_NSTATE, H, W) of a whole PIXEL-MAJOR device
+    volume of dims (H, W, L): ``wta_pixel_major`` (the same state as streaming the planes through
+    ``wta_update``, without turning the volume plane-major first), then ``wta_close`` (each
+    pixel's last plane tested, M2 the second local minimum or else MAX, as ``wta_finalize``
+    closes a state). With ``bands`` (the (count, offset) device arrays of
+    ``_sgm_aggregate_pixel_major``), each pixel's state after its count planes from its offset
+    on."""
     import pyopencl.array as cla  # noqa: PLC0415
 
     h, w, n_labels = dims
     prg = device.build("wta", _WTA_PIXEL_MAJOR_DEFINES)
     queue = device.queue
-    state = cla.empty(queue, (_WTA_NSTATE, h, w), np.float32)
+    n_pix = h * w
+    state = cla.empty(queue, (WTA_NSTATE, h, w), np.float32)
     counted = bands is not None
     count_d, offset_d = bands if counted else (cla.to_device(queue, np.zeros(1, np.int32)),
                                                cla.to_device(queue, np.zeros(1, np.uint64)))
-    device.kernel(prg, "wta_pixel_major")(queue, (-(-h * w // WTA_VEC),), None, agg_pm.data,
-                                          np.int32(h * w), np.int32(n_labels), count_d.data,
+    device.kernel(prg, "wta_pixel_major")(queue, (-(-n_pix // WTA_VEC),), None, agg_pm.data,
+                                          np.int32(n_pix), np.int32(n_labels), count_d.data,
                                           offset_d.data, np.int32(1 if counted else 0),
                                           state.data)
+    device.kernel(prg, "wta_close")(queue, (n_pix,), None, state.data, np.int32(n_pix),
+                                    np.int32(n_labels), count_d.data,
+                                    np.int32(1 if counted else 0))
     return state.get()
 
 
@@ -404,23 +402,17 @@ def sgm_refine(device: Device, cost_volume, guide, heights, options: MRFOptions,
                                                   label_count=count, label_offset=label_offset,
                                                   label_capacity=capacity)
     try:
-        s = _wta_state(device, agg_pm, (dims[1], dims[2], n_labels), bands).astype(np.float64)
+        s = _closed_wta_state(device, agg_pm, (dims[1], dims[2], n_labels),
+                              bands).astype(np.float64)
     finally:
         agg_pm.data.release()
-    # Finish as wta_finalize does: the last plane is tested as a local minimum against +inf.
+    # The winner-take-all of the sums is wta.cl's (its closed state); the sub-plane fit through
+    # the best label's sums and the confidence's scale are the MRF's own (mrf.py).
     n_last = n_labels if count is None else count  # labels per pixel
-    m1, i1, m1p, m1n, m2 = s[_S_M1], s[_S_I1], s[_S_M1P], s[_S_M1N], s[_S_M2]
-    last, before = s[_S_PREV], s[_S_PREV2]
-    is_min = (last < before) & (last <= _WTA_BIG)
-    better = is_min & (last < m1)
-    m2 = np.where(better, m1, np.where(is_min & (last < m2), last, m2))
-    m1 = np.where(better, last, m1)
-    m1p = np.where(better, before, m1p)
-    m1n = np.where(better, _WTA_BIG, m1n)
-    i1 = np.where(better, n_last - 1, i1).astype(np.int64)
+    m1, m1p, m1n, c2 = (s[WTA_SLOT[f]] for f in ("M1", "M1P", "M1N", "M2"))
+    i1 = s[WTA_SLOT["I1"]].astype(np.int64)
     fit = _equiangular_offset if options.sgm_subplane == "equiangular" else _parabola_offset
     offset = fit(m1p, m1, m1n, (i1 > 0) & (i1 < n_last - 1))
-    c2 = np.where(m2 < _WTA_BIG, m2, s[_S_MAX])
     conf = (c2 - m1) / (options.sgm_paths * _check_scale(cost_scale))
     return _finish(i1, offset, conf, m1, hts, vis, reject_range_edges,
                    time.perf_counter() - t0, label_base=base, n_labels=n_last)

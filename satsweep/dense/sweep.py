@@ -40,23 +40,15 @@ import numpy as np
 
 from satsweep.dense.planes import ellipsoid_heights, plane_heights, view_homographies
 from satsweep.errors import DeviceError, InputError
+from satsweep.opencl.constants import GF_COLS_VEC, SWEEP_VEC, WTA_NSTATE, WTA_VEC
 from satsweep.opencl.device import Device
 from satsweep.options import Options
 
-# Number of floats of per-pixel winner-take-all state (kernels/wta.cl WTA_NSTATE).
-_WTA_NSTATE = 8
 # Bytes per interior pixel of the per-tile outputs: plane index, confidence, best cost (float32)
 # and validity (uint8).
 _OUT_BYTES_PER_PX = 4 + 4 + 4 + 1
 # Smallest tile interior side (pixels) worth processing before the plane batch is reduced instead.
 _MIN_TILE_SIDE = 64
-# Columns per work-item of guided_filter.cl's column kernels (its COLS_VEC; float8 there).
-GF_COLS_VEC = 8
-# Positions per work-item of sweep.cl's split kernels, sweep_warp and sweep_warped_cost (its
-# SWEEP_VEC; float8 there).
-SWEEP_VEC = 8
-# Pixels per work-item of wta.cl's wta_update and wta_pixel_major (its WTA_VEC; float8 there).
-WTA_VEC = 8
 # Planes warped per launch by the split census kernels (their warped-source buffer holds this
 # many planes of every source over the tile plus the census margin), at least; a small tile
 # (a coarse-to-fine block) warps more planes per launch, up to _WARP_CHUNK_POSITIONS positions
@@ -343,7 +335,7 @@ def _tile_bytes(options: SweepOptions, tile_dims: tuple[int, int], interior: int
     guide = 3 * 4 * area if options.cost_filter == "guided" else 0
     return (8 * area + guide + 4 * _volume_planes(options, nb) * area
             + _warped_bytes(options, tile_dims, nb, n_src)
-            + (4 * _WTA_NSTATE + _OUT_BYTES_PER_PX) * interior
+            + (4 * WTA_NSTATE + _OUT_BYTES_PER_PX) * interior
             + 36 * n_planes * n_src + _SMALL_BUFFERS_BYTES)
 
 
@@ -572,12 +564,11 @@ class PlaneSweep:
         rx, ry = o.census_radii
         sweep_defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": o.best_k(n_src),
                       "AD_WEIGHT": float(o.ad_weight), "AD_TRUNC": float(o.ad_truncation),
-                      "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation),
-                      "SWEEP_VEC": SWEEP_VEC}
+                      "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation)}
         if o.cost_mode == "warped_census" and o.census_kernel == "staged":
             sweep_defs.update({"WG_X": o.work_group[0], "WG_Y": o.work_group[1]})
         wta_defs = {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry, "AD_WEIGHT": float(o.ad_weight),
-                    "GRAD_WEIGHT": float(o.grad_weight), "WTA_VEC": WTA_VEC}
+                    "GRAD_WEIGHT": float(o.grad_weight)}
         return [("census", {"CENSUS_RX": rx, "CENSUS_RY": ry}), ("sweep", sweep_defs),
                 self._filter_request(), ("wta", wta_defs) if wta else None]
 
@@ -592,7 +583,7 @@ class PlaneSweep:
         if o.cost_filter == "none":
             return None
         r = o.filter_radius
-        defs = {"BOX_R": r, "BOX_CHUNK": box_chunk(r), "COLS_VEC": GF_COLS_VEC}
+        defs = {"BOX_R": r, "BOX_CHUNK": box_chunk(r)}
         if o.cost_filter == "guided":
             defs["GF_EPS"] = float(o.gf_eps)
         return "guided_filter", defs
@@ -884,7 +875,7 @@ class PlaneSweep:
         wta = outs is not None
         state = None
         if wta:
-            state = bufs.alloc(4 * _WTA_NSTATE * iw * ih)
+            state = bufs.alloc(4 * WTA_NSTATE * iw * ih)
             wta_update = self.device.kernel(wta_prg, "wta_update")
             _launch(self.device.kernel(wta_prg, "wta_init"), queue, (iw, ih), state, i32(iw),
                     i32(ih))

@@ -15,6 +15,7 @@ import pytest
 from satsweep.dense import graphcut, mrf, sgm
 from satsweep.dense.planes import translation_homographies
 from satsweep.errors import InputError, OptionsError
+from satsweep.opencl.constants import SATSWEEP_INVALID
 from tests import reference_sweep, synthetic_volumes
 from tests.reference_sgm import aggregate as reference_aggregate
 
@@ -58,8 +59,8 @@ def _random_volume(seed: int, shape=SMALL, scale: float = 24.0):
     rng = np.random.default_rng(seed)
     n_labels, h, w = shape
     cost = rng.uniform(0.0, scale, shape).astype(np.float32)
-    cost[:, 3, 4] = mrf.SATSWEEP_INVALID        # a pixel no source sees: filled by smoothness
-    cost[n_labels // 2, h - 2, w - 3] = mrf.SATSWEEP_INVALID  # one missing plane
+    cost[:, 3, 4] = SATSWEEP_INVALID        # a pixel no source sees: filled by smoothness
+    cost[n_labels // 2, h - 2, w - 3] = SATSWEEP_INVALID  # one missing plane
     cost[1, h - 1, 0] = np.nan                  # NaN reads as missing too
     guide = rng.uniform(0.0, 1.0, (h, w)).astype(np.float32)
     guide[:, w // 2:] += 0.5                    # a strong edge where P2 drops
@@ -352,7 +353,7 @@ def test_sgm_accepts_device_arrays_and_buffers(cl_device):
         sgm.sgm_aggregate(cl_device, arr.data, guide, opts)
     # Pixel-major (H, W, L), the layout the sweep keeps on the device, taken as it is: with the
     # invalid entries already replaced by the missing cost (cost_scale), the same sums.
-    replaced = np.where(np.isnan(cost) | (cost <= mrf.SATSWEEP_INVALID / 2), 24.0, cost)
+    replaced = np.where(np.isnan(cost) | (cost <= SATSWEEP_INVALID / 2), 24.0, cost)
     pixel_major = cla.to_device(cl_device.queue,
                                 np.ascontiguousarray(replaced.transpose(1, 2, 0), np.float32))
     from_pm = sgm.sgm_aggregate(cl_device, pixel_major, guide, opts, cost_scale=24.0,
