@@ -15,7 +15,8 @@
  *                     number of fields and the slot of each (wta.cl);
  *   SWEEP_VEC, WTA_VEC, GF_COLS_VEC  pixels per work-item of the vector kernels (sweep.cl, wta.cl,
  *                     guided_filter.cl);
- *   SGM_MAX_LABELS, SGM_SCAN_GUARD  most labels of an SGM volume, +inf guards of sgm_scan (sgm.cl). */
+ *   SGM_MAX_LABELS, SGM_SCAN_GUARD  most labels of an SGM volume, +inf guards of sgm_scan
+ *                     (sgm.cl). */
 #if !defined(SATSWEEP_INVALID) || !defined(WTA_BIG) || !defined(WTA_NSTATE)
 #error "SATSWEEP_INVALID, WTA_BIG and WTA_NSTATE must be defined (satsweep/opencl/constants.py)"
 #endif

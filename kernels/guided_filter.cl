@@ -146,18 +146,19 @@ __kernel void box_rows_mean(__global const float *in, __global float *out, const
 }
 
 #ifdef GF_EPS
-/* guide_i[y][x] = I, guide_sq[0][y][x] = I and guide_sq[1][y][x] = I^2 for the tile whose origin
- * is (tx0, ty0) in the reference image ref (ref_w wide). */
+/* guide_i[y][x] = I, guide_mean[0][y][x] = I and guide_mean[1][y][x] = I^2 for the tile whose
+ * origin is (tx0, ty0) in the reference image ref (ref_w wide); box_cols_sum and box_rows_mean
+ * then turn guide_mean into [mean I | mean I^2], which gf_rows_ab reads. */
 __kernel void gf_guide_fields(__global const float *ref, const int ref_w, const int tx0,
                               const int ty0, const int tw, const int th,
-                              __global float *guide_i, __global float *guide_sq)
+                              __global float *guide_i, __global float *guide_mean)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= tw || y >= th) return;
     const float v = ref[(size_t)(ty0 + y) * ref_w + tx0 + x];
     guide_i[IDX2(x, y, tw)] = v;
-    guide_sq[IDX2(x, y, tw)] = v;
-    guide_sq[(size_t)tw * th + IDX2(x, y, tw)] = v * v;
+    guide_mean[IDX2(x, y, tw)] = v;
+    guide_mean[(size_t)tw * th + IDX2(x, y, tw)] = v * v;
 }
 
 /* sums[b] = column sums of p[b], sums[nb + b] = column sums of I p[b] (GF_COLS_VEC columns per
@@ -356,7 +357,7 @@ __kernel void gf_rows_q(__global const float *sums, __global const float *guide_
 /* gf_rows_q_pixel_major: gf_rows_q's q of the tile interior (origin (mx, my) in the tile, size
  * iw x ih) written straight into the PIXEL-MAJOR volume of the whole reference that SGM
  * aggregates (the layout of sweep.cl's volume_pixel_major):
- *   out[out_offset + ((oy + y) out_w + ox + x) n_planes + plane0 + b] = q[b][my + y][mx + x],
+ *   volume[out_offset + ((oy + y) out_w + ox + x) n_planes + plane0 + b] = q[b][my + y][mx + x],
  * with the same float32 operations per column as gf_rows_q (the same chunks of the tile's rows),
  * so the same values, without the plane-major q and the copy. Each work-item writes all nb labels
  * of its pixels, so each pixel's run of nb floats is written whole.
@@ -366,7 +367,7 @@ __kernel void gf_rows_q(__global const float *sums, __global const float *guide_
 __kernel void gf_rows_q_pixel_major(__global const float *sums, __global const float *guide_i,
                                     const int tw, const int th, const int nb, const int mx,
                                     const int my, const int iw, const int ih,
-                                    __global float *out, const int out_w, const int ox,
+                                    __global float *volume, const int out_w, const int ox,
                                     const int oy, const int n_planes, const int plane0,
                                     const ulong out_offset)
 {
@@ -380,7 +381,8 @@ __kernel void gf_rows_q_pixel_major(__global const float *sums, __global const f
     const size_t row = (size_t)y * tw;
     __global const float *ri = guide_i + row;
     /* o[(x - mx) n_planes] is label plane0 + b of tile column x of this row, x in [mx, mx + iw) */
-    __global float *o = out + out_offset + ((size_t)(oy + yi) * out_w + ox) * n_planes + plane0;
+    __global float *o = volume + out_offset + ((size_t)(oy + yi) * out_w + ox) * n_planes
+                        + plane0;
     const int ny = window_count(y, th);
     for (int b = 0; b < nb; ++b, ++o) {
         __global const float *ra = sums + b * plane + row;

@@ -32,8 +32,8 @@
  *                  label counts of sgm.cl's bands), from cost[offset[i]] on (a ragged volume):
  *                  its state is that after those planes.
  *   wta_close    : closes the states of n_pix pixels in place, pixel i after its plane
- *                  n_planes - 1 (with counted != 0, after its plane count[i] - 1): wta_pixel_major's
- *                  states, closed as wta_finalize closes them. Work size: global = (n_pix),
+ *                  n_planes - 1 (with counted != 0, after its plane count[i] - 1):
+ *                  wta_pixel_major's states, closed as wta_finalize closes them. Work size: global = (n_pix),
  *                  rounded up to any multiple; local = any; work-item i closes pixel i.
  *   wta_finalize : closes the state after the last of n_planes planes, then: fractional plane
  *                  index (parabola through the best plane and its neighbours, offset clamped to

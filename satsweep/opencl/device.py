@@ -12,8 +12,9 @@ builds kernels.
   sizes and switches, plus the constants that the host and every kernel share
   (``satsweep.opencl.constants.SHARED_DEFINES``, which a build may not redefine). pyopencl's
   binary cache is used, so a second build of the same source and options is fast (though not
-  free: 40-100 ms per program on PoCL). ``Device.prebuild`` builds programs that a run will need in a background
-  thread while the host does other work; ``Device.build`` then waits for them.
+  free: 40-100 ms per program on PoCL). ``Device.prebuild`` builds programs that a run will
+  need in a background thread while the host does other work; ``Device.build`` then waits for
+  them.
 """
 
 from __future__ import annotations

@@ -147,6 +147,28 @@ def test_10000_square_reference_fits_4gb(cl_device):
             assert plan.n_tiles > 1 and plan.tile_w >= 256 and plan.planes_per_batch >= 8
 
 
+def test_the_plan_counts_the_buffers_the_sweep_allocates(cl_device):
+    """plan_tiles sums the buffer table that the sweep allocates (run_buffers, tile_buffers): a
+    sweep in one tile holds at its peak exactly the plan's bytes less the driver's allowances
+    (one for the run, one for the tile); with its cost volume kept on the device too."""
+    from satsweep.dense import sweep as sw
+
+    ref_img, srcs, truth, hom, heights = _scene((48, 56), shifts=((PX_PER_M, 0.0), (-0.2, 0.3)))
+    shapes = [s.shape for s in srcs]
+    for o in (SweepOptions(), SweepOptions(cost_filter="box", census_kernel="staged")):
+        engine = PlaneSweep(cl_device, o)
+        for on_device in (False, True):
+            floats = heights.size * ref_img.size if on_device else 0
+            plan = plan_tiles(o, ref_img.shape, shapes, heights.size, engine.budget_bytes(),
+                              cl_device.max_alloc_bytes, volume_floats=floats)
+            res = engine.run(ref_img, srcs, hom, heights, keep_volume=on_device,
+                             volume_on_device=on_device)
+            if on_device:
+                res.volume.data.release()
+            assert res.n_tiles == plan.n_tiles == 1
+            assert res.peak_device_bytes == plan.total_bytes - 2 * sw._SMALL_BUFFERS_BYTES
+
+
 def test_budget_smaller_than_the_images_is_a_device_error():
     o = SweepOptions()
     with pytest.raises(DeviceError, match="memory budget"):
