@@ -22,13 +22,19 @@ Pipeline per reference tile (kernels/*.cl, one file per stage):
 4. ``wta.cl``: streaming argmin over the planes with a parabola through the best plane and its
    neighbours, a confidence (margin to the second-best local minimum) and a validity mask.
 
-The cost volume never leaves the device and never exists whole: planes are processed in batches,
-and the reference image in tiles (with the filter's margin), so that a memory budget holds.
-Images are uploaded once per run; the source census codes (``sampled_codes`` mode) are computed
-once on the device. The device buffers of a run and of a tile are listed once, each under the
-name of the kernel argument it is passed as (``run_buffers``, ``tile_buffers``): ``plan_tiles``
-sums that table to fit the budget, and the sweep allocates it for each tile, releasing every
-buffer when the tile (or the run) ends, normally or by an error (``satsweep.opencl.buffers``).
+``PlaneSweep`` has one method per operation: ``height_map`` (the winner-take-all ``HeightMap``;
+the cost volume never leaves the device and never exists whole), ``cost_volume`` and
+``cost_volume_on_device`` (the filtered cost of every plane as a ``CostVolume``, which the MRF
+refinements take: on the host, plane-major, or on the device in SGM's layout), and
+``height_map_with_cost_volume`` (both from one sweep); the volume methods may sweep each block
+of the reference over its own window of planes (``PlaneWindows``, coarse-to-fine). Planes are
+processed in batches, and the reference image in tiles (with the filter's margin), so that a
+memory budget holds. Images are uploaded once per run; the source census codes
+(``sampled_codes`` mode) are computed once on the device. The device buffers of a run and of a
+tile are listed once, each under the name of the kernel argument it is passed as
+(``run_buffers``, ``tile_buffers``): ``plan_tiles`` sums that table to fit the budget, and the
+sweep allocates it for each tile, releasing every buffer when the tile (or the run) ends,
+normally or by an error (``satsweep.opencl.buffers``).
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ from typing import Callable, Literal, Sequence
 import numpy as np
 
 from satsweep.dense.planes import ellipsoid_heights, plane_heights, view_homographies
+from satsweep.dense.volume import CostVolume
 from satsweep.errors import DeviceError, InputError
 from satsweep.opencl.buffers import BufferSpec, DeviceMemory, largest_bytes, total_bytes
 from satsweep.opencl.constants import GF_COLS_VEC, SWEEP_VEC, WTA_NSTATE, WTA_VEC
@@ -207,9 +214,20 @@ class SweepOptions(Options):
         return max(1, min(k, n_sources))
 
 
+@dataclasses.dataclass(frozen=True)
+class WorkSplit:
+    """How a sweep (or a sweep with its MRF, ``satsweep.dense.tiled``) split its work."""
+
+    n_tiles: int = 1  # tiles of the reference swept one after the other
+    n_batches: int = 1  # batches of planes, over all tiles
+    peak_device_bytes: int = 0  # the most device memory its buffers held at once
+    window_planes: int | None = None  # planes per window of a coarse-to-fine sweep (else None)
+
+
 @dataclasses.dataclass
-class SweepResult:
-    """Per-pixel outputs of a sweep, arrays of the reference image's shape.
+class HeightMap:
+    """A height map of the reference view, arrays of the reference image's shape: the sweep's
+    winner-take-all (``PlaneSweep.height_map``), or its MRF refinement (``sweep_refine_tiled``).
 
     height: plane parameter (metres, the ``h`` of the planes, float64) of the best plane with
         sub-plane refinement; NaN where invalid.
@@ -219,10 +237,9 @@ class SweepResult:
     valid: True where the pixel is seen by a source at its best plane, the best plane is not at
         an end of the range (``reject_range_edges``) and, with ``lr_check``, where the check passed.
     cost_min: the best (filtered) cost, in census bits (plus the AD and gradient terms; float32).
-    n_tiles, n_batches: how the work was split; peak_device_bytes: the most device memory held
-        by this run's buffers at once.
-    A run with ``winner_take_all=False`` (the volume only) has None for height, plane_index,
-    confidence, valid and cost_min.
+    split: how the work was split (tiles, plane batches, device memory, plane windows).
+    altitude: the heights above the WGS84 ellipsoid, where the sweep knew the scene's frame
+        (``sweep_views`` with ``frame``); else None.
     """
 
     height: np.ndarray
@@ -230,23 +247,8 @@ class SweepResult:
     confidence: np.ndarray
     valid: np.ndarray
     cost_min: np.ndarray
-    n_tiles: int = 1
-    n_batches: int = 1
-    peak_device_bytes: int = 0
-    # The filtered cost volume (n_planes, H, W) float32 in census bits, only when the sweep was
-    # asked for it (``keep_volume``: an MRF refinement needs every plane's cost); None otherwise.
-    volume: np.ndarray | None = None
-    altitude: np.ndarray | None = None  # heights above the WGS84 ellipsoid (sweep_views + frame)
-    # With plane windows: (H, W) int32, the plane of the volume's first label at each pixel
-    # (label d of pixel p is plane plane_base[p] + d); None when every pixel has every plane.
-    plane_base: np.ndarray | None = None
-    # With plane windows: (H, W) int32, the labels of each pixel's window (a kept host volume's
-    # labels past it hold the worst cost; a kept device volume is then ragged, see plane_offset).
-    plane_count: np.ndarray | None = None
-    # With plane windows of their own counts and the volume on the device: the volume is ragged
-    # (1-D), pixel p's plane_count[p] labels starting at float plane_offset[p] ((H, W) uint64).
-    plane_offset: np.ndarray | None = None
-    window_planes: int | None = None  # planes per window of a coarse-to-fine sweep (else None)
+    split: WorkSplit = WorkSplit()
+    altitude: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -272,9 +274,10 @@ class PlaneWindows:
     window of consecutive planes (``satsweep.dense.coarse`` derives them from a coarse height map).
     Block (i, j) covers reference rows [i block, (i + 1) block) and columns [j block, (j + 1)
     block); it sweeps the ``count[i, j]`` planes from first[i, j] (``n_planes`` when count is
-    None), which become its labels 0 .. count - 1. A kept volume holds ``n_planes`` labels per
-    pixel (the most of any block): a block on gentle terrain sweeps fewer planes than one across
-    a cliff, and SGM refines each pixel over its own count (``mrf.sgm_refine``'s label_count).
+    None), which become its labels 0 .. count - 1. A cost volume of these windows holds
+    ``n_planes`` labels per pixel (the most of any block; its ``label_base`` and
+    ``label_count`` come from here): a block on gentle terrain sweeps fewer planes than one
+    across a cliff, and SGM refines each pixel over its own count.
     """
 
     block: int  # block side (pixels); the blocks start at the reference's pixel (0, 0)
@@ -586,8 +589,10 @@ def prefilter(image: np.ndarray, sigma_px: float) -> np.ndarray:
 class PlaneSweep:
     """The plane-sweep engine on one device: builds the kernels once, sweeps reference views.
 
-    ``run`` takes float32 images (tonemapped, about [0, 1]), homographies (n_planes, n_src, 3, 3)
-    float64 mapping reference pixels to source pixels for each plane, and the plane heights.
+    Its entry points (``height_map``, ``cost_volume``, ``cost_volume_on_device``,
+    ``height_map_with_cost_volume``) take float32 images (tonemapped, about [0, 1]),
+    homographies (n_planes, n_src, 3, 3) float64 mapping reference pixels to source pixels for
+    each plane, and the plane heights.
     """
 
     def __init__(self, device: Device, options: SweepOptions | None = None, *,
@@ -598,6 +603,8 @@ class PlaneSweep:
         # into stage_seconds ("census", "sweep", "filter", "wta"); slower, for benchmarks.
         self.profile = profile
         self.stage_seconds: dict[str, float] = {}
+        # How the last sweep split its work (None before the first).
+        self.last_split: WorkSplit | None = None
 
     @contextlib.contextmanager
     def _stage(self, name: str):
@@ -613,9 +620,9 @@ class PlaneSweep:
 
     # -- programs -------------------------------------------------------------------------------
     def program_requests(self, n_src: int, *, wta: bool = True) -> list[tuple[str, dict | None]]:
-        """The (source, defines) of the programs that ``run`` builds for ``n_src`` sources: census,
-        sweep, the cost filter (None for cost_filter = "none") and, with ``wta``, the
-        winner-take-all (else None: a volume-only sweep, SGM's, never launches it)."""
+        """The (source, defines) of the programs that a sweep of ``n_src`` sources builds:
+        census, sweep, the cost filter (None for cost_filter = "none") and, with ``wta``, the
+        winner-take-all (else None: a volume-only sweep, ``cost_volume``, never launches it)."""
         o = self.options
         rx, ry = o.census_radii
         sweep_defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": o.best_k(n_src),
@@ -656,34 +663,67 @@ class PlaneSweep:
             return int(o.memory_budget_bytes)
         return int(o.memory_fraction * self.device.global_mem_bytes)
 
-    # -- public entry point ---------------------------------------------------------------------
-    def run(self, ref_image, src_images: Sequence, homographies, heights, *,
-            keep_volume: bool = False, volume_on_device: bool = False,
-            plane_windows: PlaneWindows | None = None,
-            winner_take_all: bool = True) -> SweepResult:
-        """Sweep ``ref_image`` against ``src_images`` over the planes ``heights``.
+    # -- public entry points --------------------------------------------------------------------
+    # Each sweeps ``ref_image`` against ``src_images`` (float32, tonemapped to about [0, 1]) over
+    # the planes ``heights`` ((n_planes,) strictly monotonic, metres) with ``homographies``
+    # ((n_planes, n_src, 3, 3) float64, plane p and source s mapping homogeneous reference
+    # pixels to source pixels). ``windows``: sweep each block of the reference over its own
+    # window of the planes only (coarse-to-fine): the volume's label d of pixel p then stands
+    # for plane ``label_base[p] + d``, d < ``label_count[p]``, and a height map's plane indices
+    # and heights are still absolute, a best plane at either end of its window invalid with
+    # ``reject_range_edges``. The options' ``lr_check`` is a check of height maps: the volume
+    # methods have none to check. After each, ``last_split`` tells how the work was split.
+    def height_map(self, ref_image, src_images: Sequence, homographies, heights) -> HeightMap:
+        """The winner-take-all height map (and, with ``lr_check``, the left-right check); the
+        cost volume never exists whole."""
+        ref, srcs, hom, hts = self._inputs(ref_image, src_images, homographies, heights, None)
+        result, _ = self._sweep(ref, srcs, hom, hts, wta=True)
+        if self.options.lr_check:
+            self._lr_check(result, ref, srcs, hom, hts)
+        return result
 
-        homographies: (n_planes, n_src, 3, 3), plane p and source s mapping homogeneous reference
-        pixels to source pixels; heights: (n_planes,) strictly monotonic plane heights (metres).
-        keep_volume: also keep the filtered cost of every plane (``SweepResult.volume``) for an
-        MRF refinement; off in the plain WTA path, where the cost volume never exists whole.
-        volume_on_device: with keep_volume, the volume stays on the device, PIXEL-MAJOR (the
-        layout SGM aggregates in, so that it needs no copy of its own): a
-        ``pyopencl.array.Array`` (H, W, n_planes) float32 that the caller releases, counted in
-        the memory budget; else it is copied to the host (numpy, (n_planes, H, W)).
-        plane_windows: sweep each block of the reference over its own window of the planes only
-        (coarse-to-fine); the volume then holds ``plane_windows.n_planes`` labels per pixel,
-        label d < ``SweepResult.plane_count[p]`` of pixel p standing for plane
-        ``SweepResult.plane_base[p] + d`` (a host volume's other labels hold the worst cost;
-        with windows of their own counts a device volume is ragged instead: 1-D, each pixel's
-        labels from ``SweepResult.plane_offset[p]`` on); the results' plane indices and heights
-        are absolute, and a best plane at either end of a window is invalid with
-        ``reject_range_edges``. Not with ``lr_check``.
-        winner_take_all: False skips the per-pixel winner-take-all (for a caller that refines
-        the kept volume and needs nothing else, as SGM does): the result then has ``volume``
-        (keep_volume is required), ``plane_base`` and the counts, and None for the per-pixel
-        maps (``visible_at`` gives the visibility of any plane choice). Not with ``lr_check``.
-        """
+    def cost_volume(self, ref_image, src_images: Sequence, homographies, heights, *,
+                    windows: PlaneWindows | None = None) -> CostVolume:
+        """The filtered cost of every plane, on the host: a plane-major ``CostVolume`` (L, H, W)
+        float32 in census bits (with ``windows``, L = ``windows.n_planes``; a pixel's labels past
+        its window's count hold the worst cost, ``SweepOptions.max_cost``)."""
+        ref, srcs, hom, hts = self._inputs(ref_image, src_images, homographies, heights, windows)
+        return self._sweep(ref, srcs, hom, hts, keep="host", windows=windows, wta=False)[1]
+
+    def cost_volume_on_device(self, ref_image, src_images: Sequence, homographies, heights, *,
+                              windows: PlaneWindows | None = None) -> CostVolume:
+        """The filtered cost of every plane, kept on the device (counted in the memory budget)
+        in SGM's layout, so that SGM needs no copy of its own: a pixel-major ``CostVolume`` (H,
+        W, L), or with windows of their own counts a ragged one (each pixel just its window's
+        labels). The caller releases it (``CostVolume.release`` or a ``with`` block)."""
+        ref, srcs, hom, hts = self._inputs(ref_image, src_images, homographies, heights, windows)
+        return self._sweep(ref, srcs, hom, hts, keep="device", windows=windows, wta=False)[1]
+
+    def height_map_with_cost_volume(self, ref_image, src_images: Sequence, homographies, heights,
+                                    *, windows: PlaneWindows | None = None,
+                                    on_device: bool = False) -> tuple[HeightMap, CostVolume]:
+        """Both, from one sweep: the winner-take-all height map (with ``lr_check``, checked;
+        not with ``windows`` then) and the cost volume (``cost_volume_on_device``'s with
+        ``on_device``, else ``cost_volume``'s). For an MRF that starts from the winner-take-all
+        or a left-right check of it."""
+        ref, srcs, hom, hts = self._inputs(ref_image, src_images, homographies, heights, windows)
+        if windows is not None and self.options.lr_check:
+            raise InputError(None, "plane_windows: the left-right check sweeps every plane; "
+                                   "set lr_check = false for a coarse-to-fine sweep")
+        result, volume = self._sweep(ref, srcs, hom, hts, keep="device" if on_device else "host",
+                                     windows=windows, wta=True)
+        if self.options.lr_check:
+            try:
+                self._lr_check(result, ref, srcs, hom, hts)
+            except BaseException:
+                volume.release()  # the caller never gets it
+                raise
+        return result, volume
+
+    def _inputs(self, ref_image, src_images, homographies, heights,
+                windows: PlaneWindows | None):
+        """The checked inputs as the sweep takes them (prefiltered when the options say so):
+        (ref, srcs, hom, hts); InputError naming the bad one."""
         ref = _check_image("ref_image", ref_image)
         srcs = [_check_image(f"src_images[{i}]", s) for i, s in enumerate(src_images)]
         if not srcs:
@@ -701,26 +741,12 @@ class PlaneSweep:
             d = np.diff(hts)
             if not ((d > 0).all() or (d < 0).all()):
                 raise InputError(None, "heights: must be strictly monotonic")
-        if not winner_take_all and not keep_volume:
-            raise InputError(None, "winner_take_all = False leaves nothing to return without "
-                                   "keep_volume")
-        if not winner_take_all and self.options.lr_check:
-            raise InputError(None, "winner_take_all = False: the left-right check needs the "
-                                   "winner-take-all map; set lr_check = false")
-        if plane_windows is not None:
-            plane_windows.check(ref.shape, hts.size)
-            if self.options.lr_check:
-                raise InputError(None, "plane_windows: the left-right check sweeps every plane; "
-                                       "set lr_check = false for a coarse-to-fine sweep")
+        if windows is not None:
+            windows.check(ref.shape, hts.size)
         if self.options.prefilter_sigma_px > 0:
             ref = prefilter(ref, self.options.prefilter_sigma_px)
             srcs = [prefilter(s, self.options.prefilter_sigma_px) for s in srcs]
-        result = self._sweep(ref, srcs, hom, hts, keep_volume=keep_volume,
-                             volume_on_device=volume_on_device, windows=plane_windows,
-                             wta=winner_take_all)
-        if self.options.lr_check:
-            self._lr_check(result, ref, srcs, hom, hts)
-        return result
+        return ref, srcs, hom, hts
 
     def filter_volume(self, cost, guide) -> np.ndarray:
         """The configured cost filter applied to host slices (n, h, w) with a 2-D guide.
@@ -759,9 +785,12 @@ class PlaneSweep:
 
     # -- implementation -------------------------------------------------------------------------
     def _sweep(self, ref: np.ndarray, srcs: list[np.ndarray], hom: np.ndarray,
-               hts: np.ndarray, *, keep_volume: bool = False,
-               volume_on_device: bool = False,
-               windows: PlaneWindows | None = None, wta: bool = True) -> SweepResult:
+               hts: np.ndarray, *, keep: Literal["host", "device"] | None = None,
+               windows: PlaneWindows | None = None,
+               wta: bool = True) -> tuple[HeightMap | None, CostVolume | None]:
+        """The sweep behind the entry points, of checked inputs: (the winner-take-all height map
+        if ``wta``, else None; the cost volume kept on the host or the device as ``keep`` says,
+        else None); sets ``last_split``."""
         import pyopencl as cl  # noqa: PLC0415
         import pyopencl.array as cla  # noqa: PLC0415
 
@@ -772,7 +801,7 @@ class PlaneSweep:
         n_planes = n_total if windows is None else windows.n_planes
         h_img, w_img = ref.shape
         census_prg, sweep_prg, filt_prg, wta_prg = self._programs(n_src, wta=wta)
-        on_device = keep_volume and volume_on_device
+        keep_volume, on_device = keep is not None, keep == "device"
         # A device volume of windows with their own counts is RAGGED: each block's pixels hold
         # just their window's labels, block after block (label_offset: where each pixel's start).
         ragged = on_device and windows is not None and windows.count is not None
@@ -871,13 +900,17 @@ class PlaneSweep:
             if on_device:
                 volume = cla.Array(queue, (volume_floats,) if ragged else (h_img, w_img, n_planes),
                                    np.float32, data=res.detach("volume"))
-        plane_base = None if windows is None else windows.per_pixel(ref.shape)
-        plane_count = None if windows is None else windows.counts(ref.shape)
+        self.last_split = WorkSplit(n_tiles=n_tiles, n_batches=n_batches,
+                                    peak_device_bytes=mem.peak)
+        kept = None
+        if keep_volume:
+            base = None if windows is None else windows.per_pixel(ref.shape)
+            count = None if windows is None else windows.counts(ref.shape)
+            kept = CostVolume(volume, "ragged" if ragged else "pixel_major" if on_device
+                              else "plane_major", label_base=base, label_count=count,
+                              label_offset=label_offset)
         if not wta:
-            return SweepResult(height=None, plane_index=None, confidence=None, valid=None,
-                               cost_min=None, n_tiles=n_tiles, n_batches=n_batches,
-                               peak_device_bytes=mem.peak, volume=volume, plane_base=plane_base,
-                               plane_count=plane_count, plane_offset=label_offset)
+            return None, kept
         index, out_conf, out_cost, out_valid = outs
         if not o.subplane:
             index = np.rint(index).astype(np.float32)
@@ -885,10 +918,8 @@ class PlaneSweep:
         height = np.interp(index.astype(np.float64), np.arange(n_total), hts) if n_total > 1 \
             else np.full(index.shape, hts[0])
         height[~valid] = np.nan
-        return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
-                           cost_min=out_cost, n_tiles=n_tiles, n_batches=n_batches,
-                           peak_device_bytes=mem.peak, volume=volume, plane_base=plane_base,
-                           plane_count=plane_count, plane_offset=label_offset)
+        return HeightMap(height=height, plane_index=index, confidence=out_conf, valid=valid,
+                         cost_min=out_cost, split=self.last_split), kept
 
     def _sweep_tile(self, tile, nb_max, hom, n_planes, mem, res, src_buf, census_k, sweep_k,
                     filt_prg, wta_prg, ref_size, outs, interior_origin, volume=None,
@@ -1066,7 +1097,7 @@ class PlaneSweep:
                 i32(tile.ih), volume, i32(out_w),
                 i32(ox), i32(oy), i32(n_planes), i32(plane0), np.uint64(start))
 
-    def _lr_check(self, result: SweepResult, ref: np.ndarray, srcs: list[np.ndarray],
+    def _lr_check(self, result: HeightMap, ref: np.ndarray, srcs: list[np.ndarray],
                   hom: np.ndarray, hts: np.ndarray) -> None:
         """Sweep again with the first source as reference and keep pixels that agree.
 
@@ -1089,7 +1120,7 @@ class PlaneSweep:
         inv0 = np.linalg.inv(hom[:, 0])
         swapped = [inv0] + [hom[:, j] @ inv0 for j in range(1, len(srcs))]
         back = PlaneSweep(self.device, self.options.replace(lr_check=False))
-        other = back._sweep(srcs[0], [ref] + list(srcs[1:]), np.stack(swapped, axis=1), hts)
+        other, _ = back._sweep(srcs[0], [ref] + list(srcs[1:]), np.stack(swapped, axis=1), hts)
         return lr_consistent(plane_index, valid, other.plane_index, other.valid, hom[:, 0],
                              self.options.lr_tolerance_planes)
 
@@ -1188,13 +1219,15 @@ def lr_consistent(index_ref: np.ndarray, valid_ref: np.ndarray, index_src: np.nd
 
 def sweep_views(device: Device, ref_image, src_images: Sequence, ref_proj, src_projs: Sequence, *,
                 heights=None, alt_range: tuple[float, float] | None = None,
-                options: SweepOptions | None = None, keep_volume: bool = False,
-                frame=None) -> tuple[SweepResult, np.ndarray]:
-    """Sweep with projections from ``satsweep.geometry.camera`` (homographies by ``plane_homography``).
+                options: SweepOptions | None = None,
+                frame=None) -> tuple[HeightMap, np.ndarray]:
+    """The winner-take-all height map of a sweep with projections from
+    ``satsweep.geometry.camera`` (homographies by ``view_homographies``).
 
     Either ``heights`` (ENU up, metres) or ``alt_range`` (then spaced by ``plane_heights``) is
-    given. With ``frame`` (the ``ENUFrame`` of the projections) ``SweepResult.altitude`` holds the
-    heights above the ellipsoid (``ellipsoid_heights``). Returns the result and the plane heights.
+    given. With ``frame`` (the ``ENUFrame`` of the projections) ``HeightMap.altitude`` holds the
+    heights above the ellipsoid (``ellipsoid_heights``). Returns the height map and the plane
+    heights.
     """
     opts = options if options is not None else SweepOptions()
     if len(src_projs) != len(src_images):
@@ -1207,8 +1240,7 @@ def sweep_views(device: Device, ref_image, src_images: Sequence, ref_proj, src_p
                                 ref_shape=np.asarray(ref_image).shape)
     heights = np.asarray(heights, dtype=np.float64)
     hom = view_homographies(ref_proj, src_projs, heights)
-    result = PlaneSweep(device, opts).run(ref_image, src_images, hom, heights,
-                                          keep_volume=keep_volume)
+    result = PlaneSweep(device, opts).height_map(ref_image, src_images, hom, heights)
     if frame is not None:
         result.altitude = ellipsoid_heights(result.height, ref_proj, frame)
     return result, heights

@@ -109,11 +109,12 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
                     device, ref_image, src_images, hom, heights, config.sweep, config.mrf,
                     progress=rep.progress("sweep tiles", 1).callback(names[r]))
             else:
-                result = PlaneSweep(device, config.sweep).run(ref_image, src_images, hom, heights)
+                result = PlaneSweep(device, config.sweep).height_map(ref_image, src_images, hom,
+                                                                      heights)
         if with_mrf:
             rep.move_time("sweep", "mrf", seconds)
             mrf_info = {"method": config.mrf.method, "seconds": seconds,
-                        "tiles": int(result.n_tiles),
+                        "tiles": int(result.split.n_tiles),
                         "valid_fraction": float(np.mean(result.valid))}
         progress.update(k + 1, names[r])
         height, valid, confidence = _placed(result, window, shape)
@@ -122,8 +123,8 @@ def _sweep_references(device, cameras, images, selection, u_range, config: Pipel
             "planes": int(len(heights)),
             "plane_step_m": float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
             "window": [int(v) for v in window],
-            "valid_fraction": float(np.mean(result.valid)), "tiles": int(result.n_tiles),
-            "window_planes": result.window_planes,
+            "valid_fraction": float(np.mean(result.valid)), "tiles": int(result.split.n_tiles),
+            "window_planes": result.split.window_planes,
             "mrf": mrf_info,
         })
         per_view.append({"index": r, "height": height, "valid": valid,
