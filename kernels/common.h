@@ -6,9 +6,30 @@
 #ifndef SATSWEEP_COMMON_H
 #define SATSWEEP_COMMON_H
 
-/* Marker value for invalid float results (height, cost); NaN is avoided on purpose so that
- * comparisons behave the same on every device, including PoCL with fast-math. */
-#define SATSWEEP_INVALID (-1.0e30f)
+/* Constants shared with the host. Their one source is satsweep/opencl/constants.py, whose
+ * SHARED_DEFINES Device.build passes to every build as -D definitions; no kernel defines them
+ * itself, and a build without them stops here:
+ *   SATSWEEP_INVALID  marker of invalid float results (height, cost), -1e30 (not NaN, so that
+ *                     comparisons behave the same on every device, PoCL with fast-math included);
+ *   WTA_BIG, WTA_NSTATE, WTA_S_M1 .. WTA_S_MAX  the winner-take-all state's "infinite" cost, its
+ *                     number of fields and the slot of each (wta.cl);
+ *   SWEEP_VEC, WTA_VEC, GF_COLS_VEC  pixels per work-item of the vector kernels (sweep.cl, wta.cl,
+ *                     guided_filter.cl);
+ *   SGM_MAX_LABELS, SGM_SCAN_GUARD  most labels of an SGM volume, +inf guards of sgm_scan
+ *                     (sgm.cl). */
+#if !defined(SATSWEEP_INVALID) || !defined(WTA_BIG) || !defined(WTA_NSTATE)
+#error "SATSWEEP_INVALID, WTA_BIG and WTA_NSTATE must be defined (satsweep/opencl/constants.py)"
+#endif
+#if !defined(WTA_S_M1) || !defined(WTA_S_I1) || !defined(WTA_S_M1P) || !defined(WTA_S_M1N) \
+    || !defined(WTA_S_M2) || !defined(WTA_S_PREV) || !defined(WTA_S_PREV2) || !defined(WTA_S_MAX)
+#error "the slots WTA_S_M1 .. WTA_S_MAX must be defined (satsweep/opencl/constants.py)"
+#endif
+#if !defined(SWEEP_VEC) || !defined(WTA_VEC) || !defined(GF_COLS_VEC)
+#error "SWEEP_VEC, WTA_VEC and GF_COLS_VEC must be defined (satsweep/opencl/constants.py)"
+#endif
+#if !defined(SGM_MAX_LABELS) || !defined(SGM_SCAN_GUARD)
+#error "SGM_MAX_LABELS and SGM_SCAN_GUARD must be defined (satsweep/opencl/constants.py)"
+#endif
 
 /* 2D index helpers for row-major images of width w. */
 #define IDX2(x, y, w) ((y) * (w) + (x))

@@ -12,9 +12,9 @@
  *
  * Work sizes (ncy = ceil(th / BOX_CHUNK), ncx = ceil(tw / BOX_CHUNK), each rounded up to any
  * multiple of any local size; local = any):
- *   box_cols_sum, gf_cols_p : global (ceil(tw / COLS_VEC), ncy, planes); work-item (g, c, p)
+ *   box_cols_sum, gf_cols_p : global (ceil(tw / GF_COLS_VEC), ncy, planes); work-item (g, c, p)
  *                             handles rows [c BOX_CHUNK, (c + 1) BOX_CHUNK) of the columns
- *                             [g COLS_VEC, (g + 1) COLS_VEC) (clipped to tw) of plane p;
+ *                             [g GF_COLS_VEC, (g + 1) GF_COLS_VEC) (clipped to tw) of plane p;
  *   box_rows_mean, gf_rows_ab, gf_rows_q : global (ncx, th, planes); work-item (c, y, p) handles
  *                             columns [c BOX_CHUNK, (c + 1) BOX_CHUNK) of row y of plane p;
  *   gf_rows_q_pixel_major    : global (ncx, ih); work-item (c, y) handles columns
@@ -28,8 +28,9 @@
  * tile); per batch of nb planes: gf_cols_p (p -> [colsum p | colsum I p], 2 nb planes),
  * gf_rows_ab (-> [a | b]), box_cols_sum on the 2 nb planes, gf_rows_q (-> q, nb planes), or,
  * when the filtered interior goes straight to SGM's pixel-major volume, gf_rows_q_pixel_major.
- * Compile-time constants: BOX_R (radius, pixels), BOX_CHUNK, COLS_VEC (columns per work-item of
- * the column kernels: 8), GF_EPS (float, guide units squared).
+ * Compile-time constants: BOX_R (radius, pixels), BOX_CHUNK, GF_EPS (float, guide units
+ * squared); shared with the host (common.h): GF_COLS_VEC (columns per work-item of the column
+ * kernels: 8).
  */
 #include "common.h"
 
@@ -43,27 +44,25 @@ inline int window_count(const int i, const int n)
     return min(i + BOX_R, n - 1) - max(i - BOX_R, 0) + 1;
 }
 
-/* Column kernels: each work-item runs the sliding sums of COLS_VEC adjacent columns at once, so
- * that every step down the rows reads and writes COLS_VEC contiguous floats (vload/vstore): a
+/* Column kernels: each work-item runs the sliding sums of GF_COLS_VEC adjacent columns at once, so
+ * that every step down the rows reads and writes GF_COLS_VEC contiguous floats (vload/vstore): a
  * CPU executing the work-items of a group one after the other would otherwise stride through
  * memory one float per row. The last group of a row may be narrower (scalar tail). */
-#ifndef COLS_VEC
-#error "COLS_VEC must be defined (the host's satsweep.sweep.GF_COLS_VEC)"
-#elif COLS_VEC != 8
-#error "COLS_VEC must be 8 (the column kernels use float8)"
+#if GF_COLS_VEC != 8
+#error "GF_COLS_VEC must be 8 (the column kernels use float8)"
 #endif
 
 __kernel void box_cols_sum(__global const float *in, __global float *out, const int tw,
                            const int th)
 {
-    const int x0 = get_global_id(0) * COLS_VEC, c = get_global_id(1);
+    const int x0 = get_global_id(0) * GF_COLS_VEC, c = get_global_id(1);
     const size_t base = (size_t)get_global_id(2) * tw * th;
     const int y0 = c * BOX_CHUNK;
     if (x0 >= tw || y0 >= th) return;
     const int y1 = min(y0 + BOX_CHUNK, th);
     __global const float *col = in + base + x0;
     __global float *dst = out + base + x0;
-    if (x0 + COLS_VEC <= tw) {
+    if (x0 + GF_COLS_VEC <= tw) {
         float8 s = (float8)(0.0f);
         for (int j = max(y0 - BOX_R, 0); j <= min(y0 + BOX_R, th - 1); ++j)
             s += vload8(0, col + (size_t)j * tw);
@@ -147,26 +146,27 @@ __kernel void box_rows_mean(__global const float *in, __global float *out, const
 }
 
 #ifdef GF_EPS
-/* guide_i[y][x] = I, guide_sq[0][y][x] = I and guide_sq[1][y][x] = I^2 for the tile whose origin
- * is (tx0, ty0) in the reference image ref (ref_w wide). */
+/* guide_i[y][x] = I, guide_mean[0][y][x] = I and guide_mean[1][y][x] = I^2 for the tile whose
+ * origin is (tx0, ty0) in the reference image ref (ref_w wide); box_cols_sum and box_rows_mean
+ * then turn guide_mean into [mean I | mean I^2], which gf_rows_ab reads. */
 __kernel void gf_guide_fields(__global const float *ref, const int ref_w, const int tx0,
                               const int ty0, const int tw, const int th,
-                              __global float *guide_i, __global float *guide_sq)
+                              __global float *guide_i, __global float *guide_mean)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= tw || y >= th) return;
     const float v = ref[(size_t)(ty0 + y) * ref_w + tx0 + x];
     guide_i[IDX2(x, y, tw)] = v;
-    guide_sq[IDX2(x, y, tw)] = v;
-    guide_sq[(size_t)tw * th + IDX2(x, y, tw)] = v * v;
+    guide_mean[IDX2(x, y, tw)] = v;
+    guide_mean[(size_t)tw * th + IDX2(x, y, tw)] = v * v;
 }
 
-/* sums[b] = column sums of p[b], sums[nb + b] = column sums of I p[b] (COLS_VEC columns per
+/* sums[b] = column sums of p[b], sums[nb + b] = column sums of I p[b] (GF_COLS_VEC columns per
  * work-item, as box_cols_sum). */
 __kernel void gf_cols_p(__global const float *p, __global const float *guide_i,
                         __global float *sums, const int tw, const int th, const int nb)
 {
-    const int x0 = get_global_id(0) * COLS_VEC, c = get_global_id(1), b = get_global_id(2);
+    const int x0 = get_global_id(0) * GF_COLS_VEC, c = get_global_id(1), b = get_global_id(2);
     const int y0 = c * BOX_CHUNK;
     if (x0 >= tw || y0 >= th) return;
     const int y1 = min(y0 + BOX_CHUNK, th);
@@ -175,7 +175,7 @@ __kernel void gf_cols_p(__global const float *p, __global const float *guide_i,
     __global const float *gcol = guide_i + x0;
     __global float *out_s = sums + b * plane + x0;
     __global float *out_si = sums + (nb + b) * plane + x0;
-    if (x0 + COLS_VEC <= tw) {
+    if (x0 + GF_COLS_VEC <= tw) {
         float8 s = (float8)(0.0f), si = (float8)(0.0f);
         for (int j = max(y0 - BOX_R, 0); j <= min(y0 + BOX_R, th - 1); ++j) {
             const float8 v = vload8(0, col + (size_t)j * tw);
@@ -357,7 +357,7 @@ __kernel void gf_rows_q(__global const float *sums, __global const float *guide_
 /* gf_rows_q_pixel_major: gf_rows_q's q of the tile interior (origin (mx, my) in the tile, size
  * iw x ih) written straight into the PIXEL-MAJOR volume of the whole reference that SGM
  * aggregates (the layout of sweep.cl's volume_pixel_major):
- *   out[out_offset + ((oy + y) out_w + ox + x) n_planes + plane0 + b] = q[b][my + y][mx + x],
+ *   volume[out_offset + ((oy + y) out_w + ox + x) n_planes + plane0 + b] = q[b][my + y][mx + x],
  * with the same float32 operations per column as gf_rows_q (the same chunks of the tile's rows),
  * so the same values, without the plane-major q and the copy. Each work-item writes all nb labels
  * of its pixels, so each pixel's run of nb floats is written whole.
@@ -367,7 +367,7 @@ __kernel void gf_rows_q(__global const float *sums, __global const float *guide_
 __kernel void gf_rows_q_pixel_major(__global const float *sums, __global const float *guide_i,
                                     const int tw, const int th, const int nb, const int mx,
                                     const int my, const int iw, const int ih,
-                                    __global float *out, const int out_w, const int ox,
+                                    __global float *volume, const int out_w, const int ox,
                                     const int oy, const int n_planes, const int plane0,
                                     const ulong out_offset)
 {
@@ -381,7 +381,8 @@ __kernel void gf_rows_q_pixel_major(__global const float *sums, __global const f
     const size_t row = (size_t)y * tw;
     __global const float *ri = guide_i + row;
     /* o[(x - mx) n_planes] is label plane0 + b of tile column x of this row, x in [mx, mx + iw) */
-    __global float *o = out + out_offset + ((size_t)(oy + yi) * out_w + ox) * n_planes + plane0;
+    __global float *o = volume + out_offset + ((size_t)(oy + yi) * out_w + ox) * n_planes
+                        + plane0;
     const int ny = window_count(y, th);
     for (int b = 0; b < nb; ++b, ++o) {
         __global const float *ra = sums + b * plane + row;

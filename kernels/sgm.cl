@@ -1,17 +1,19 @@
 /* sgm.cl: semi-global matching (Hirschmueller 2008) over a plane-sweep cost volume.
  *
- * The sweep's volumes are plane-major, cost[d][H][W] for label (plane index) d, row y, column x,
- * d in [0, SGM_NL). SGM reads all labels of one pixel per step, so the volume is first turned
- * pixel-major, [H][W][SGM_NL] (the labels of a pixel contiguous: one cache line serves 16 labels on
- * a CPU, and consecutive work-items read consecutive labels on a GPU), aggregated in that layout,
- * and the sum turned back plane-major for the sweep's winner-take-all (wta.cl). The label is the
- * plane index of the sweep; neighbouring labels are neighbouring heights.
+ * A plane-major volume, volume[d][H][W] for label (plane index) d, row y, column x, d in
+ * [0, SGM_NL), is first turned pixel-major, [H][W][SGM_NL] (the labels of a pixel contiguous: SGM
+ * reads all labels of one pixel per step; one cache line serves 16 labels on a CPU, and
+ * consecutive work-items read consecutive labels on a GPU); the sweep can also leave its volume
+ * in that layout on the device (sweep.cl's volume_pixel_major). It is aggregated in that layout,
+ * and wta.cl's wta_pixel_major reads the sums so; sgm_to_plane_major turns them plane-major for a
+ * caller that wants them. The label is the plane index of the sweep; neighbouring labels are
+ * neighbouring heights.
  *
- * sgm_to_pixel_major: out[(y W + x) NL + d] = cost[d H W + y W + x], with entries at or below
+ * sgm_to_pixel_major: cost[(y W + x) NL + d] = volume[d H W + y W + x], with entries at or below
  *   SATSWEEP_INVALID / 2 (no valid source for that plane) replaced by missing_cost: a pixel with
  *   every plane missing thus has a constant cost and is filled by the smoothness terms alone.
  *   Work size: global = (H W), local = any; work-item i handles pixel i (all labels).
- * sgm_to_plane_major: out[d H W + i] = in[i NL + d]. Work size as above.
+ * sgm_to_plane_major: sums[d H W + i] = agg[i NL + d]. Work size as above.
  *
  * sgm_path: aggregates the (pixel-major) costs along every scanline of ONE direction
  *   r = (dx, dy), dx, dy in {-1, 0, 1}, not both 0, and adds the path cost Lr into agg (pixel-major;
@@ -58,7 +60,8 @@
  *
  * Compile-time constants: SGM_NL number of labels (1..SGM_MAX_LABELS), SGM_WG work-items per
  *   scanline (a power of two, default 1), SGM_LINES the most scanlines per work-item when
- *   SGM_WG == 1 (default 1; sizes the private arrays).
+ *   SGM_WG == 1 (default 1; sizes the private arrays); shared with the host (common.h):
+ *   SGM_MAX_LABELS, SGM_SCAN_GUARD (sgm_scan's +inf guards, below), SATSWEEP_INVALID.
  *
  * Floating point: contraction into fused multiply-adds is disabled, so that each device rounds
  *   the documented sequence of float32 operations (the numpy reference in tests/reference_sgm.py
@@ -79,7 +82,6 @@
 #if SGM_LINES < 1 || (SGM_WG > 1 && SGM_LINES != 1)
 #error "SGM_LINES must be >= 1, and 1 with SGM_WG > 1"
 #endif
-#define SGM_MAX_LABELS 1024
 #if SGM_NL < 1 || SGM_NL > SGM_MAX_LABELS
 #error "SGM_NL out of range"
 #endif
@@ -277,7 +279,6 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
  *   per core. A scan visits the image in order, so it does not use more cores; GPUs use
  *   sgm_path with a work-group per scanline.
  */
-#define SGM_SCAN_GUARD 8
 #define SGM_SCAN_STEP (SGM_NL + 2 * SGM_SCAN_GUARD)
 #define SGM_SCAN_SCRATCH(w) ((size_t)(6 * (w) + 2) * SGM_SCAN_STEP + (size_t)6 * (w))
 
@@ -545,20 +546,20 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
 }
 #endif
 
-__kernel void sgm_to_pixel_major(__global const float *cost, __global float *out, const int n_pix,
-                                 const float missing_cost)
+__kernel void sgm_to_pixel_major(__global const float *volume, __global float *cost,
+                                 const int n_pix, const float missing_cost)
 {
     const int i = get_global_id(0);
     if (i >= n_pix) return;
     for (int d = 0; d < SGM_NL; ++d) {
-        const float c = cost[(size_t)d * n_pix + i];
-        out[(size_t)i * SGM_NL + d] = c > SGM_INVALID_BELOW ? c : missing_cost;
+        const float c = volume[(size_t)d * n_pix + i];
+        cost[(size_t)i * SGM_NL + d] = c > SGM_INVALID_BELOW ? c : missing_cost;
     }
 }
 
-__kernel void sgm_to_plane_major(__global const float *in, __global float *out, const int n_pix)
+__kernel void sgm_to_plane_major(__global const float *agg, __global float *sums, const int n_pix)
 {
     const int i = get_global_id(0);
     if (i >= n_pix) return;
-    for (int d = 0; d < SGM_NL; ++d) out[(size_t)d * n_pix + i] = in[(size_t)i * SGM_NL + d];
+    for (int d = 0; d < SGM_NL; ++d) sums[(size_t)d * n_pix + i] = agg[(size_t)i * SGM_NL + d];
 }

@@ -29,8 +29,9 @@
  * Compile-time constants: CENSUS_RX, CENSUS_RY, NSRC (number of sources, 1..32), NBEST (1..NSRC),
  *   WG_X, WG_Y (work-group size of sweep_census_cost), AD_WEIGHT (float, census bits, default 0:
  *   census alone; not used by sweep_code_cost) and AD_TRUNC (float, intensity units, > 0),
- *   GRAD_WEIGHT (float, census bits, default 0; needs CENSUS_RX, CENSUS_RY >= 1) and GRAD_TRUNC,
- *   SWEEP_VEC (positions per work-item of sweep_warp and sweep_warped_cost: 8).
+ *   GRAD_WEIGHT (float, census bits, default 0; needs CENSUS_RX, CENSUS_RY >= 1) and GRAD_TRUNC;
+ *   shared with the host (common.h): SWEEP_VEC (positions per work-item of sweep_warp and
+ *   sweep_warped_cost: 8).
  */
 /* No contraction into fused multiply-adds: the staged kernel, the split kernels' vector paths and
  * their one-position forms then round the same sequence of float32 operations on every device,
@@ -43,9 +44,7 @@
 #endif
 
 /* Positions per work-item of the split kernels (sweep_warp, sweep_warped_cost): float8 there. */
-#ifndef SWEEP_VEC
-#error "SWEEP_VEC must be defined (the host's satsweep.sweep.SWEEP_VEC)"
-#elif SWEEP_VEC != 8
+#if SWEEP_VEC != 8
 #error "SWEEP_VEC must be 8 (the split kernels use float8)"
 #endif
 
@@ -454,25 +453,25 @@ __kernel void sweep_code_cost(__global const ulong *src_code, __global const lon
     cost[(size_t)b * tw * th + IDX2(x, y, tw)] = aggregate_best(cst, valid);
 }
 
-/* volume_pixel_major: the interior of a batch of nb filtered cost planes, cost[nb][th][tw] (interior
- * origin (mx, my) in the tile, size iw x ih), into a cost volume of the whole reference kept in
- * the PIXEL-MAJOR layout that SGM aggregates in (sgm.cl): out[out_offset + ((oy + y) out_w + ox
- * + x) n_planes + plane0 + b] = cost[b][my + y][mx + x], where (ox, oy) is the interior's origin
- * in the reference and n_planes the volume's label count (a ragged volume, whose blocks hold
- * their own label counts, gives each block's start as out_offset, its width as out_w and its
- * own count as n_planes, with ox = oy = 0).
+/* volume_pixel_major: the interior of a batch of nb filtered cost planes, cost[nb][th][tw]
+ * (interior origin (mx, my) in the tile, size iw x ih), into a cost volume of the whole reference
+ * kept in the PIXEL-MAJOR layout that SGM aggregates in (sgm.cl): volume[out_offset + ((oy + y)
+ * out_w + ox + x) n_planes + plane0 + b] = cost[b][my + y][mx + x], where (ox, oy) is the
+ * interior's origin in the reference and n_planes the volume's label count (a ragged volume,
+ * whose blocks hold their own label counts, gives each block's start as out_offset, its width as
+ * out_w and its own count as n_planes, with ox = oy = 0).
  * Work size: global = (iw, ih), each rounded up to any multiple; local = any. Work-item (x, y)
  *   writes the nb labels of one pixel. */
 __kernel void volume_pixel_major(__global const float *cost, const int tw, const int th,
                                  const int mx, const int my, const int iw, const int ih,
-                                 const int nb, __global float *out, const int out_w, const int ox,
-                                 const int oy, const int n_planes, const int plane0,
-                                 const ulong out_offset)
+                                 const int nb, __global float *volume, const int out_w,
+                                 const int ox, const int oy, const int n_planes,
+                                 const int plane0, const ulong out_offset)
 {
     const int x = get_global_id(0), y = get_global_id(1);
     if (x >= iw || y >= ih) return;
     __global const float *c = cost + IDX2(mx + x, my + y, tw);
-    __global float *o = out + out_offset + (size_t)IDX2(ox + x, oy + y, out_w) * n_planes
+    __global float *o = volume + out_offset + (size_t)IDX2(ox + x, oy + y, out_w) * n_planes
                         + plane0;
     const size_t plane = (size_t)tw * th;
     for (int b = 0; b < nb; ++b) o[b] = c[b * plane];

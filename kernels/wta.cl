@@ -1,13 +1,19 @@
 /* wta.cl: streaming winner-take-all over the planes of a (filtered) cost volume.
  *
  * Planes arrive in batches, in increasing plane order; a per-pixel state of WTA_NSTATE floats
- * (layout [field][iw * ih]) holds what is needed to finish without keeping the volume:
+ * (layout [field][iw * ih]: field f of pixel k at state[f n + k], the slots WTA_S_<FIELD>) holds
+ * what is needed to finish without keeping the volume:
  *   M1 best local-minimum cost, I1 its plane (first one on ties), M1P / M1N the costs of the planes
  *   before / after it, M2 the second-lowest local minimum, PREV / PREV2 the costs of the last two
  *   planes seen, MAX the largest cost seen.
  * Plane j with cost c_j is a local minimum when c_j < c_{j-1} and c_j <= c_{j+1}, where the
  * missing neighbours of the first and last planes count as +infinity (a plateau counts once, at
  * its first plane). The global argmin (first one) is always such a minimum.
+ * CLOSING a state, after the last plane n - 1 of its pixel: that plane is tested as a local
+ * minimum against +infinity (WTA_BIG), then M2 becomes MAX where no second local minimum was
+ * found. A closed state's M1, I1, M1P, M1N and M2 are what the outputs are computed from: here
+ * by wta_finalize, for SGM's sums by satsweep.dense.sgm (its own sub-plane fit and confidence
+ * scale, on the host).
  *
  * Work sizes: wta_init and wta_finalize have global = (iw, ih), each rounded up to any multiple
  * of the local size; local = any. Work-item (x, y) handles interior pixel (x, y), i.e. tile pixel
@@ -25,15 +31,20 @@
  *                  counted != 0, pixel i has only its first count[i] planes (1 .. n_planes; the
  *                  label counts of sgm.cl's bands), from cost[offset[i]] on (a ragged volume):
  *                  its state is that after those planes.
- *   wta_finalize : after the last of n_planes planes: fractional plane index (parabola through the
- *                  best plane and its neighbours, offset clamped to [-0.5, 0.5], none at the first
- *                  and last planes), confidence = (c2 - M1) / COST_MAX clamped to [0, 1]
- *                  where c2 is the second-lowest local minimum (MAX when there is none), the best
- *                  cost, and validity: the pixel maps into at least one source at the best plane
- *                  (same rule as sweep.cl) and, when reject_edges != 0, the best plane is neither
- *                  the first nor the last.
+ *   wta_close    : closes the states of n_pix pixels in place, pixel i after its plane
+ *                  n_planes - 1 (with counted != 0, after its plane count[i] - 1):
+ *                  wta_pixel_major's states, closed as wta_finalize closes them. Work size: global = (n_pix),
+ *                  rounded up to any multiple; local = any; work-item i closes pixel i.
+ *   wta_finalize : closes the state after the last of n_planes planes, then: fractional plane
+ *                  index (parabola through the best plane and its neighbours, offset clamped to
+ *                  [-0.5, 0.5], none at the first and last planes), confidence = (M2 - M1) /
+ *                  COST_MAX clamped to [0, 1] (M2 of the closed state: the second-lowest local
+ *                  minimum, MAX when there is none), the best cost, and validity: the pixel maps
+ *                  into at least one source at the best plane (same rule as sweep.cl) and, when
+ *                  reject_edges != 0, the best plane is neither the first nor the last.
  * Compile-time constants: NSRC, CENSUS_RX, CENSUS_RY, AD_WEIGHT and GRAD_WEIGHT (default 0) for
- * COST_MAX; WTA_VEC (pixels per work-item of wta_update and wta_pixel_major: 8).
+ * COST_MAX; shared with the host (common.h): WTA_BIG, WTA_NSTATE and the slots WTA_S_M1 ..
+ * WTA_S_MAX, WTA_VEC (pixels per work-item of wta_update and wta_pixel_major: 8).
  */
 #include "common.h"
 
@@ -41,16 +52,10 @@
 #error "NSRC, CENSUS_RX and CENSUS_RY must be defined"
 #endif
 
-#define WTA_BIG 3.0e38f
-#define S_M1 0
-#define S_I1 1
-#define S_M1P 2
-#define S_M1N 3
-#define S_M2 4
-#define S_PREV 5
-#define S_PREV2 6
-#define S_MAX 7
-#define WTA_NSTATE 8
+/* The state's fields are the members of wta_state, one each. */
+#if WTA_NSTATE != 8
+#error "WTA_NSTATE must be 8 (the fields of wta_state)"
+#endif
 
 /* The state of one pixel in private memory, and its moves. */
 typedef struct {
@@ -66,22 +71,22 @@ inline wta_state state_fresh(void)
 /* Field f of pixel k lives at state[f n + k] (n pixels). */
 inline wta_state state_load(__global const float *state, const size_t n, const size_t k)
 {
-    wta_state st = {state[S_M1 * n + k], state[S_I1 * n + k], state[S_M1P * n + k],
-                    state[S_M1N * n + k], state[S_M2 * n + k], state[S_PREV * n + k],
-                    state[S_PREV2 * n + k], state[S_MAX * n + k]};
+    wta_state st = {state[WTA_S_M1 * n + k], state[WTA_S_I1 * n + k], state[WTA_S_M1P * n + k],
+                    state[WTA_S_M1N * n + k], state[WTA_S_M2 * n + k], state[WTA_S_PREV * n + k],
+                    state[WTA_S_PREV2 * n + k], state[WTA_S_MAX * n + k]};
     return st;
 }
 
 inline void state_store(__global float *state, const size_t n, const size_t k, const wta_state st)
 {
-    state[S_M1 * n + k] = st.m1;
-    state[S_I1 * n + k] = st.i1;
-    state[S_M1P * n + k] = st.m1p;
-    state[S_M1N * n + k] = st.m1n;
-    state[S_M2 * n + k] = st.m2;
-    state[S_PREV * n + k] = st.prev;
-    state[S_PREV2 * n + k] = st.prev2;
-    state[S_MAX * n + k] = st.cmax;
+    state[WTA_S_M1 * n + k] = st.m1;
+    state[WTA_S_I1 * n + k] = st.i1;
+    state[WTA_S_M1P * n + k] = st.m1p;
+    state[WTA_S_M1N * n + k] = st.m1n;
+    state[WTA_S_M2 * n + k] = st.m2;
+    state[WTA_S_PREV * n + k] = st.prev;
+    state[WTA_S_PREV2 * n + k] = st.prev2;
+    state[WTA_S_MAX * n + k] = st.cmax;
 }
 
 /* Plane j (cost cj, neighbours cjm, cjp) is tested as a local minimum and merged in the state. */
@@ -108,6 +113,14 @@ inline void state_push(wta_state *st, const int p, const float c)
     st->cmax = fmax(st->cmax, c);
 }
 
+/* Close the state after the last plane n - 1 of its pixel (see the header): that plane tested as
+ * a local minimum against +infinity, then M2 = MAX where there is no second local minimum. */
+inline void state_close(wta_state *st, const int n)
+{
+    consider(n - 1, st->prev2, st->prev, WTA_BIG, st);
+    if (!(st->m2 < WTA_BIG)) st->m2 = st->cmax;
+}
+
 __kernel void wta_init(__global float *state, const int iw, const int ih)
 {
     const int x = get_global_id(0), y = get_global_id(1);
@@ -119,9 +132,7 @@ __kernel void wta_init(__global float *state, const int iw, const int ih)
  * float8 and the branches of consider() as selects (PoCL leaves the one-pixel form scalar); the
  * comparisons are the same, so the states are the same bit for bit. The last, narrower group
  * runs the one-pixel form. */
-#ifndef WTA_VEC
-#error "WTA_VEC must be defined (the host's satsweep.sweep.WTA_VEC)"
-#elif WTA_VEC != 8
+#if WTA_VEC != 8
 #error "WTA_VEC must be 8 (the vector kernels use float8)"
 #endif
 
@@ -131,24 +142,24 @@ typedef struct {
 
 inline wta_state8 state_load8(__global const float *state, const size_t n, const size_t k)
 {
-    wta_state8 st = {vload8(0, state + S_M1 * n + k), vload8(0, state + S_I1 * n + k),
-                     vload8(0, state + S_M1P * n + k), vload8(0, state + S_M1N * n + k),
-                     vload8(0, state + S_M2 * n + k), vload8(0, state + S_PREV * n + k),
-                     vload8(0, state + S_PREV2 * n + k), vload8(0, state + S_MAX * n + k)};
+    wta_state8 st = {vload8(0, state + WTA_S_M1 * n + k), vload8(0, state + WTA_S_I1 * n + k),
+                     vload8(0, state + WTA_S_M1P * n + k), vload8(0, state + WTA_S_M1N * n + k),
+                     vload8(0, state + WTA_S_M2 * n + k), vload8(0, state + WTA_S_PREV * n + k),
+                     vload8(0, state + WTA_S_PREV2 * n + k), vload8(0, state + WTA_S_MAX * n + k)};
     return st;
 }
 
 inline void state_store8(__global float *state, const size_t n, const size_t k,
                          const wta_state8 st)
 {
-    vstore8(st.m1, 0, state + S_M1 * n + k);
-    vstore8(st.i1, 0, state + S_I1 * n + k);
-    vstore8(st.m1p, 0, state + S_M1P * n + k);
-    vstore8(st.m1n, 0, state + S_M1N * n + k);
-    vstore8(st.m2, 0, state + S_M2 * n + k);
-    vstore8(st.prev, 0, state + S_PREV * n + k);
-    vstore8(st.prev2, 0, state + S_PREV2 * n + k);
-    vstore8(st.cmax, 0, state + S_MAX * n + k);
+    vstore8(st.m1, 0, state + WTA_S_M1 * n + k);
+    vstore8(st.i1, 0, state + WTA_S_I1 * n + k);
+    vstore8(st.m1p, 0, state + WTA_S_M1P * n + k);
+    vstore8(st.m1n, 0, state + WTA_S_M1N * n + k);
+    vstore8(st.m2, 0, state + WTA_S_M2 * n + k);
+    vstore8(st.prev, 0, state + WTA_S_PREV * n + k);
+    vstore8(st.prev2, 0, state + WTA_S_PREV2 * n + k);
+    vstore8(st.cmax, 0, state + WTA_S_MAX * n + k);
 }
 
 /* consider() and state_push(), lane by lane. */
@@ -257,6 +268,16 @@ __kernel void wta_pixel_major(__global const float *cost, const int n_pix, const
     state_store8(state, (size_t)n_pix, i0, st);
 }
 
+__kernel void wta_close(__global float *state, const int n_pix, const int n_planes,
+                        __global const int *count, const int counted)
+{
+    const int i = get_global_id(0);
+    if (i >= n_pix) return;
+    wta_state st = state_load(state, (size_t)n_pix, i);
+    state_close(&st, counted ? count[i] : n_planes);
+    state_store(state, (size_t)n_pix, i, st);
+}
+
 __kernel void wta_finalize(__global const float *state, const int iw, const int ih,
                            const int n_planes, const int mx, const int my,
                            __global const float *homography, __global const int *src_size,
@@ -268,15 +289,14 @@ __kernel void wta_finalize(__global const float *state, const int iw, const int 
     if (x >= iw || y >= ih) return;
     const size_t n = (size_t)iw * ih, k = IDX2(x, y, iw);
     wta_state st = state_load(state, n, k);
-    consider(n_planes - 1, st.prev2, st.prev, WTA_BIG, &st);
-    const float m1 = st.m1, m1p = st.m1p, m1n = st.m1n, m2 = st.m2, cmax = st.cmax;
+    state_close(&st, n_planes);
+    const float m1 = st.m1, m1p = st.m1p, m1n = st.m1n, c2 = st.m2;
     const int ib = (int)st.i1;
     float offset = 0.0f;
     if (ib > 0 && ib < n_planes - 1) {
         const float denom = m1p - 2.0f * m1 + m1n;
         if (denom > 0.0f) offset = fmin(fmax(0.5f * (m1p - m1n) / denom, -0.5f), 0.5f);
     }
-    const float c2 = m2 < WTA_BIG ? m2 : cmax;
     int ok = 0;
     for (int s = 0; s < NSRC; ++s) {
         float u, v;

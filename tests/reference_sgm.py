@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from satsweep.dense.mrf import SATSWEEP_INVALID
 from satsweep.dense.sgm import SGM_DIRECTIONS
+from satsweep.opencl.constants import SATSWEEP_INVALID
 
 F32 = np.float32
 

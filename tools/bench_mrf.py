@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from satsweep.dense import graphcut, mrf  # noqa: E402
 from satsweep.dense import sgm as sgm_mod  # noqa: E402
+from satsweep.dense.volume import CostVolume  # noqa: E402
 from satsweep.opencl.device import open_device  # noqa: E402
 from tests import synthetic_volumes  # noqa: E402
 
@@ -95,18 +96,19 @@ def main(argv=None) -> int:
           f"device {device.info.label}")
     print(f"options: {opts.to_dict()}")
 
+    volume, crop = CostVolume(scene.cost), CostVolume(scene.cost[:, :8, :8])
     # Build the SGM and WTA programs outside the timing.
-    sgm_mod.sgm_refine(device, scene.cost[:, :8, :8], scene.guide[:8, :8], scene.heights, opts,
-                   cost_scale=scene.cost_scale)
+    sgm_mod.sgm_refine(device, crop, scene.guide[:8, :8], scene.heights, opts,
+                       cost_scale=scene.cost_scale)
 
     rows_out = []
-    t_wta, wta = _best_time(lambda: mrf.wta_labels(scene.cost), args.repeats)
+    t_wta, wta = _best_time(lambda: mrf.wta_labels(volume), args.repeats)
     everywhere = np.ones(scene.roof.shape, bool)
     rows_out.append(("wta (host argmin)", t_wta,
                      _accuracy(scene.heights[wta], everywhere, scene, scene.roof),
                      _accuracy(scene.heights[wta], everywhere, scene, ~scene.roof)))
-    t_sgm, sgm = _best_time(lambda: sgm_mod.sgm_refine(device, scene.cost, scene.guide, scene.heights,
-                                                   opts, cost_scale=scene.cost_scale),
+    t_sgm, sgm = _best_time(lambda: sgm_mod.sgm_refine(device, volume, scene.guide, scene.heights,
+                                                       opts, cost_scale=scene.cost_scale),
                             args.repeats)
     form = "two raster scans" if opts.sgm_scan else "a launch per direction"
     rows_out.append((f"sgm ({opts.sgm_paths} paths, {form})", t_sgm,
@@ -116,18 +118,18 @@ def main(argv=None) -> int:
     # GPUs run one work-group per scanline, which has no scan form).
     if sgm_mod.sgm_work_group(device, opts, args.planes) == 1:
         other = opts.replace(sgm_scan=not opts.sgm_scan)
-        sgm_mod.sgm_refine(device, scene.cost[:, :8, :8], scene.guide[:8, :8], scene.heights, other,
-                       cost_scale=scene.cost_scale)
-        t_other, res = _best_time(lambda: sgm_mod.sgm_refine(device, scene.cost, scene.guide,
-                                                         scene.heights, other,
-                                                         cost_scale=scene.cost_scale),
+        sgm_mod.sgm_refine(device, crop, scene.guide[:8, :8], scene.heights, other,
+                           cost_scale=scene.cost_scale)
+        t_other, res = _best_time(lambda: sgm_mod.sgm_refine(device, volume, scene.guide,
+                                                             scene.heights, other,
+                                                             cost_scale=scene.cost_scale),
                                   args.repeats)
         form = "two raster scans" if other.sgm_scan else "a launch per direction"
         rows_out.append((f"sgm ({other.sgm_paths} paths, {form})", t_other,
                          _accuracy(res.height, res.valid, scene, scene.roof),
                          _accuracy(res.height, res.valid, scene, ~scene.roof)))
-    t_gc, gc = _best_time(lambda: graphcut.graphcut_refine(scene.cost, scene.guide, scene.heights,
-                                                      opts, cost_scale=scene.cost_scale),
+    t_gc, gc = _best_time(lambda: graphcut.graphcut_refine(volume, scene.guide, scene.heights,
+                                                           opts, cost_scale=scene.cost_scale),
                           args.repeats)
     rows_out.append((f"graphcut (levels {opts.gc_levels}, window {opts.gc_label_window})", t_gc,
                      _accuracy(gc.height, gc.valid, scene, scene.roof),

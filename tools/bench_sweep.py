@@ -68,17 +68,19 @@ def _time_engine(device, options: SweepOptions, ref_img, srcs, hom, heights, vox
                  repeat: int) -> dict:
     """Best-of-``repeat`` engine seconds and one profiled run's stage seconds."""
     # Warm-up on a crop: builds (or loads from the cache) every program.
-    PlaneSweep(device, options).run(ref_img[:64, :64], [s[:64, :64] for s in srcs], hom[:4], heights[:4])
+    crop = (ref_img[:64, :64], [s[:64, :64] for s in srcs], hom[:4], heights[:4])
+    PlaneSweep(device, options).height_map(*crop)
     best = np.inf
     for _ in range(repeat):
         t0 = time.perf_counter()
-        res = PlaneSweep(device, options).run(ref_img, srcs, hom, heights)
+        res = PlaneSweep(device, options).height_map(ref_img, srcs, hom, heights)
         best = min(best, time.perf_counter() - t0)
     prof = PlaneSweep(device, options, profile=True)
-    prof.run(ref_img, srcs, hom, heights)
+    prof.height_map(ref_img, srcs, hom, heights)
     stages = dict(sorted(prof.stage_seconds.items()))
-    return {"census_kernel": options.census_kernel, "tiles": res.n_tiles, "batches": res.n_batches,
-            "peak_device_bytes": res.peak_device_bytes, "engine_seconds": best,
+    return {"census_kernel": options.census_kernel, "tiles": res.split.n_tiles,
+            "batches": res.split.n_batches, "peak_device_bytes": res.split.peak_device_bytes,
+            "engine_seconds": best,
             "engine_gvoxel_per_s": voxels / best / 1e9, "stage_seconds": stages,
             "stage_gvoxel_per_s": {k: voxels / v / 1e9 for k, v in stages.items() if v > 0}}
 

@@ -78,7 +78,7 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
     known pixel). Each block sweeps floor(min) - margin .. ceil(max) + margin (within the
     planes) of the indices in the block grown by ``halo`` pixels; ``n_planes`` of the result is
     the widest of these windows (SGM is built for every plane whatever the windows,
-    ``mrf.sgm_refine``, so that the pipeline builds its program ahead). Returns None (sweep
+    ``sgm.sgm_refine``, so that the pipeline builds its program ahead). Returns None (sweep
     every plane) when nothing is known or when the blocks would sweep more than
     ``max_fraction`` of the planes on average.
     """

@@ -20,13 +20,14 @@ from satsweep.dense.mrf import (
     _check_heights,
     _check_scale,
     _check_visible,
-    _check_volume,
+    _energy,
     _finish,
+    _host_volume,
     _parabola_offset,
     _sanitised,
     edge_weights,
-    mrf_energy,
 )
+from satsweep.dense.volume import CostVolume
 from satsweep.errors import InputError
 
 
@@ -273,10 +274,11 @@ def _graphcut_confidence(data: np.ndarray, labels: np.ndarray, wh: np.ndarray, w
     return (c2 - at_label) / cost_scale
 
 
-def graphcut_refine(cost_volume, guide, heights, options: MRFOptions, *,
+def graphcut_refine(volume: CostVolume, guide, heights, options: MRFOptions, *,
                     cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
                     initial_labels=None) -> MRFResult:
-    """Alpha-expansion graph cut of the energy in the module docstring, bounded in cost.
+    """Alpha-expansion graph cut of the energy in the module docstring, bounded in cost, over a
+    host, plane-major ``volume`` of every plane (InputError for any other).
 
     With ``gc_levels`` > 0 the volume is solved coarse-to-fine: halved ``gc_levels`` times (2x2
     means of the costs, smoothness weights from the full-resolution ones by ``_coarse_weights``
@@ -284,7 +286,7 @@ def graphcut_refine(cost_volume, guide, heights, options: MRFOptions, *,
     level over all labels starting from its winner-take-all,
     each finer level starting from the upsampled coarser labels within the windows of
     ``_coarse_windows``. With ``gc_levels`` = 0 one level is solved within +-gc_label_window of
-    ``initial_labels`` (e.g. the sweep's WTA planes; by default the WTA of ``cost_volume``).
+    ``initial_labels`` (e.g. the sweep's WTA planes; by default the WTA of ``volume``).
     ``initial_labels`` is not used when ``gc_levels`` > 0: where the WTA fails (weak texture) a
     window around it misses the true plane, which is why coarse-to-fine is the default.
     Each level is solved in tiles of ``gc_tile`` pixels (scaled with the level) extended by
@@ -293,7 +295,7 @@ def graphcut_refine(cost_volume, guide, heights, options: MRFOptions, *,
     """
     t0 = time.perf_counter()
     scale = _check_scale(cost_scale)
-    c = _sanitised(_check_volume(cost_volume), scale)
+    c = _sanitised(_host_volume(volume, "the graph cut"), scale)
     n_labels, h, w = c.shape
     hts = _check_heights(heights, n_labels)
     g = _check_guide(guide, (h, w)).astype(np.float64)
@@ -335,6 +337,6 @@ def graphcut_refine(cost_volume, guide, heights, options: MRFOptions, *,
     cp = np.take_along_axis(c, np.minimum(lab + 1, n_labels - 1)[None], axis=0)[0]
     offset = _parabola_offset(cm, c0, cp, (lab > 0) & (lab < n_labels - 1))
     conf = _graphcut_confidence(c, labels, wh, wv, options.gc_truncation_labels, scale)
-    energy = mrf_energy(c, g, labels, options, cost_scale=scale)
+    energy = _energy(c, g, labels, options, scale)
     return _finish(labels, offset, conf, c0, hts, vis, reject_range_edges,
                    time.perf_counter() - t0, energy)

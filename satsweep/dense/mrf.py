@@ -12,9 +12,13 @@ smoothness prior in the plane index (the label) and trade speed for accuracy:
   coarse-to-fine and restricting each pixel to a window of labels around the coarser solution,
   and by tiling with overlap.
 
+Both take the cost volume as a ``CostVolume`` (:mod:`satsweep.dense.volume`), the one type the
+sweep makes: SGM any of them (on the host or the device, plane-major, pixel-major or ragged, with
+or without plane windows), the graph cut a host, plane-major one over every plane.
+
 Conventions (shared by both; they are those of ``satsweep.dense.sweep``):
 
-- The cost volume is (L, H, W) float32, plane-major: ``cost[d, y, x]`` is the (filtered) matching
+- The cost volume: ``cost[d, y, x]`` (plane-major) is the (filtered) matching
   cost of reference pixel (x, y) on plane d, lower is better, mostly in [0, cost_scale]. For the
   sweep's costs ``cost_scale`` is the number of census bits (``SweepOptions.census_bits``): the
   penalties are fractions of it. The sweep's AD and gradient terms can add up to ``ad_weight +
@@ -23,7 +27,9 @@ Conventions (shared by both; they are those of ``satsweep.dense.sweep``):
   ``SATSWEEP_INVALID / 2`` (the device-side invalid marker, -1e30) and NaN are read as
   ``cost_scale``.
 - The label of a pixel is a plane index; the planes are at the equally spaced heights
-  ``heights[L]`` (metres, ENU up), so a one-label change is one plane spacing.
+  ``heights[L]`` (metres, ENU up), so a one-label change is one plane spacing. With plane
+  windows (``CostVolume.label_base``), label d of pixel p is plane label_base[p] + d and
+  ``heights`` holds every plane.
 - Penalties are given as fractions of ``cost_scale``, so that they do not depend on the census
   window size.
 - ``guide`` is the reference image (H, W), tonemapped to about [0, 1]: smoothness is weaker across
@@ -32,7 +38,7 @@ Conventions (shared by both; they are those of ``satsweep.dense.sweep``):
   per plane. A result pixel is valid when it is visible at its chosen plane and, with
   ``reject_range_edges``, its plane is neither the first nor the last, as in the sweep's WTA.
 
-Results (``MRFResult``) carry the fields of ``sweep.SweepResult`` that describe pixels (height
+Results (``MRFResult``) carry the fields of ``sweep.HeightMap`` that describe pixels (height
 with NaN where invalid, fractional plane index, confidence in [0, 1], validity) plus the integer
 labels, so a pipeline can take either.
 
@@ -53,13 +59,11 @@ from typing import Literal
 
 import numpy as np
 
+from satsweep.dense.volume import CostVolume
 from satsweep.errors import DeviceError, InputError
+from satsweep.opencl.constants import SATSWEEP_INVALID
 from satsweep.opencl.device import Device
 from satsweep.options import Options
-
-# The device-side invalid marker (kernels/common.h SATSWEEP_INVALID); costs at or below half of
-# it are missing.
-SATSWEEP_INVALID = -1.0e30
 
 
 @dataclasses.dataclass(frozen=True)
@@ -200,13 +204,17 @@ def _check_guide(guide, shape: tuple[int, int]) -> np.ndarray:
     return g
 
 
-def _check_volume(cost_volume) -> np.ndarray:
-    c = np.asarray(cost_volume)
-    if c.ndim != 3 or min(c.shape) < 1:
-        raise InputError(None, f"cost_volume: expected (planes, H, W), got shape {c.shape}")
-    if not np.issubdtype(c.dtype, np.floating):
-        raise InputError(None, f"cost_volume: expected floats, got dtype {c.dtype}")
-    return c
+def _host_volume(volume: CostVolume, method: str) -> np.ndarray:
+    """The (L, H, W) array of a host, plane-major volume over every plane, which ``method``
+    requires (InputError for any other)."""
+    if not isinstance(volume, CostVolume):
+        raise InputError(None, f"cost_volume: expected a CostVolume, got {type(volume).__name__}")
+    if volume.on_device or volume.layout != "plane_major":
+        raise InputError(None, f"cost_volume: {method} takes a plane-major host volume, not a "
+                               f"{volume.layout} {'device' if volume.on_device else 'host'} one")
+    if volume.label_base is not None:
+        raise InputError(None, f"label_base: {method} takes no label bands (SGM does)")
+    return volume.data
 
 
 def _check_visible(visible, shape: tuple[int, int, int]) -> np.ndarray | None:
@@ -218,35 +226,18 @@ def _check_visible(visible, shape: tuple[int, int, int]) -> np.ndarray | None:
     return v
 
 
-def _check_label_base(label_base, shape: tuple[int, int], n_labels: int,
-                      n_planes: int | None, label_count=None) -> tuple[np.ndarray | None,
-                                                                       np.ndarray | None]:
-    """The (H, W) int32 first plane of each pixel's label window and its (H, W) int32 label
-    count (None, None: no bands; a count of None: n_labels everywhere): label d < count[p] of
-    pixel p stands for plane label_base[p] + d, which must lie in [0, n_planes)."""
-    if label_base is None:
-        if label_count is not None:
-            raise InputError(None, "label_count: needs label_base (the windows' first planes)")
+def _check_windows(volume: CostVolume, n_planes: int) -> tuple[np.ndarray | None,
+                                                                 np.ndarray | None]:
+    """The volume's (label_base, label_count) (None, None: no bands; a count of None: all its
+    labels), each pixel's window inside the ``n_planes`` planes (InputError otherwise)."""
+    b, n = volume.label_base, volume.label_count
+    if b is None:
         return None, None
-    b = np.asarray(label_base)
-    if b.shape != shape or not np.issubdtype(b.dtype, np.integer):
-        raise InputError(None, f"label_base: expected integers of shape {shape}, got "
-                               f"{b.dtype} {b.shape}")
-    if label_count is None:
-        n = np.full(shape, n_labels, np.int32)
-    else:
-        n = np.asarray(label_count)
-        if n.shape != shape or not np.issubdtype(n.dtype, np.integer):
-            raise InputError(None, f"label_count: expected integers of shape {shape}, got "
-                                   f"{n.dtype} {n.shape}")
-        if n.size and (n.min() < 1 or n.max() > n_labels):
-            raise InputError(None, f"label_count: counts {n.min()}..{n.max()} outside 1.."
-                                   f"{n_labels} (the volume's labels per pixel)")
-    if b.size and (b.min() < 0 or (n_planes is not None and (b + n).max() > n_planes)):
-        raise InputError(None, f"label_base: windows of {n.min()}..{n.max()} labels from planes "
-                               f"{b.min()}..{b.max()} leave the {n_planes} planes")
-    return (np.ascontiguousarray(b, dtype=np.int32),
-            None if label_count is None else np.ascontiguousarray(n, dtype=np.int32))
+    count = np.full(b.shape, volume.n_labels) if n is None else n
+    if b.size and (b + count).max() > n_planes:
+        raise InputError(None, f"label_base: windows of {count.min()}..{count.max()} labels from "
+                               f"planes {b.min()}..{b.max()} leave the {n_planes} planes")
+    return b, n
 
 
 def _check_scale(cost_scale: float) -> float:
@@ -351,10 +342,17 @@ def edge_weights(guide: np.ndarray, options: MRFOptions,
     return lam * np.exp(-k * dh * dh), lam * np.exp(-k * dv * dv)
 
 
-def mrf_energy(cost_volume, guide, labels, options: MRFOptions, *,
+def mrf_energy(volume: CostVolume, guide, labels, options: MRFOptions, *,
                cost_scale: float = 1.0) -> float:
-    """The graph-cut energy E(labels) (see the module docstring), in cost units (float64)."""
-    c = _sanitised(_check_volume(cost_volume), _check_scale(cost_scale))
+    """The graph-cut energy E(labels) (see the module docstring) of a host, plane-major volume,
+    in cost units (float64)."""
+    scale = _check_scale(cost_scale)
+    return _energy(_sanitised(_host_volume(volume, "the energy"), scale), guide, labels, options,
+                   scale)
+
+
+def _energy(c: np.ndarray, guide, labels, options: MRFOptions, cost_scale: float) -> float:
+    """mrf_energy of the sanitised (L, H, W) costs ``c``."""
     lab = np.asarray(labels, dtype=np.intp)
     if lab.shape != c.shape[1:]:
         raise InputError(None, f"labels: shape {lab.shape}, expected {c.shape[1:]}")
@@ -366,19 +364,18 @@ def mrf_energy(cost_volume, guide, labels, options: MRFOptions, *,
     return float(data + (wh * sh).sum() + (wv * sv).sum())
 
 
-def wta_labels(cost_volume) -> np.ndarray:
-    """Winner-take-all labels (first argmin over planes) of a host cost volume, int32."""
-    return np.argmin(_check_volume(cost_volume), axis=0).astype(np.int32)
+def wta_labels(volume: CostVolume) -> np.ndarray:
+    """Winner-take-all labels (first argmin over planes) of a host, plane-major volume, int32."""
+    return np.argmin(_host_volume(volume, "wta_labels"), axis=0).astype(np.int32)
 
 
-def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptions, *,
+def refine(device: Device | None, volume: CostVolume, guide, heights, options: MRFOptions, *,
            cost_scale: float = 1.0, visible=None, reject_range_edges: bool = True,
-           initial_labels=None, pixel_major: bool = False,
-           label_base=None, label_count=None, label_offset=None) -> MRFResult | None:
+           initial_labels=None) -> MRFResult | None:
     """Dispatch on ``options.method``: None for ``none`` (keep the sweep's WTA), else the result.
 
-    SGM needs ``device`` (and alone takes a ``pixel_major`` device volume, see
-    ``sgm_aggregate``); the graph cut runs on the host and uses ``initial_labels`` only with
+    SGM needs ``device`` and takes any ``CostVolume``; the graph cut runs on the host over a
+    host, plane-major volume without plane windows, and uses ``initial_labels`` only with
     ``gc_levels`` = 0 (see ``graphcut_refine``).
     """
     from satsweep.dense.graphcut import graphcut_refine  # noqa: PLC0415 (they import this module)
@@ -389,16 +386,8 @@ def refine(device: Device | None, cost_volume, guide, heights, options: MRFOptio
     if options.method == "sgm":
         if device is None:
             raise DeviceError("MRF method sgm needs an OpenCL device")
-        return sgm_refine(device, cost_volume, guide, heights, options, cost_scale=cost_scale,
-                          visible=visible, reject_range_edges=reject_range_edges,
-                          pixel_major=pixel_major, label_base=label_base,
-                          label_count=label_count, label_offset=label_offset)
-    if label_base is not None or label_count is not None or label_offset is not None:
-        raise InputError(None, f"label_base: MRF method {options.method} takes no label bands "
-                               "(SGM does)")
-    if pixel_major:
-        raise InputError(None, f"cost_volume: MRF method {options.method} takes a plane-major "
-                               "host volume, not a pixel-major device volume")
-    return graphcut_refine(cost_volume, guide, heights, options, cost_scale=cost_scale,
+        return sgm_refine(device, volume, guide, heights, options, cost_scale=cost_scale,
+                          visible=visible, reject_range_edges=reject_range_edges)
+    return graphcut_refine(volume, guide, heights, options, cost_scale=cost_scale,
                            visible=visible, reject_range_edges=reject_range_edges,
                            initial_labels=initial_labels)

@@ -84,7 +84,7 @@ def ellipsoid_heights(height: np.ndarray, ref_proj, frame) -> np.ndarray:
     """Heights above the WGS84 ellipsoid (m) of the points found by a sweep.
 
     ``height`` is the ENU up coordinate ``u`` (m) of the point seen at each reference pixel (the
-    plane parameter of ``SweepResult.height``, NaN where invalid); the point is where the pixel's
+    plane parameter of ``HeightMap.height``, NaN where invalid); the point is where the pixel's
     ray crosses the plane ``u = height`` (through ``ref_proj``'s 4x4 matrix, ``satsweep.geometry.camera``),
     converted from the ENU ``frame`` (``satsweep.geo.ENUFrame``) to geodetic coordinates. The
     difference from ``u`` is the Earth curvature (a few millimetres over 300 m, 2 m at 5 km).

@@ -22,10 +22,19 @@ Pipeline per reference tile (kernels/*.cl, one file per stage):
 4. ``wta.cl``: streaming argmin over the planes with a parabola through the best plane and its
    neighbours, a confidence (margin to the second-best local minimum) and a validity mask.
 
-The cost volume never leaves the device and never exists whole: planes are processed in batches,
-and the reference image in tiles (with the filter's margin), so that a memory budget holds.
-Images are uploaded once per run; the source census codes (``sampled_codes`` mode) are computed
-once on the device.
+``PlaneSweep`` has one method per operation: ``height_map`` (the winner-take-all ``HeightMap``;
+the cost volume never leaves the device and never exists whole), ``cost_volume`` and
+``cost_volume_on_device`` (the filtered cost of every plane as a ``CostVolume``, which the MRF
+refinements take: on the host, plane-major, or on the device in SGM's layout), and
+``height_map_with_cost_volume`` (both from one sweep); the volume methods may sweep each block
+of the reference over its own window of planes (``PlaneWindows``, coarse-to-fine). Planes are
+processed in batches, and the reference image in tiles (with the filter's margin), so that a
+memory budget holds. Images are uploaded once per run; the source census codes
+(``sampled_codes`` mode) are computed once on the device. The device buffers of a run and of a
+tile are listed once, each under the name of the kernel argument it is passed as
+(``run_buffers``, ``tile_buffers``): ``plan_tiles`` sums that table to fit the budget, and the
+sweep allocates it for each tile, releasing every buffer when the tile (or the run) ends,
+normally or by an error (``satsweep.opencl.buffers``).
 """
 
 from __future__ import annotations
@@ -39,24 +48,15 @@ from typing import Callable, Literal, Sequence
 import numpy as np
 
 from satsweep.dense.planes import ellipsoid_heights, plane_heights, view_homographies
+from satsweep.dense.volume import CostVolume
 from satsweep.errors import DeviceError, InputError
+from satsweep.opencl.buffers import BufferSpec, DeviceMemory, largest_bytes, total_bytes
+from satsweep.opencl.constants import GF_COLS_VEC, SWEEP_VEC, WTA_NSTATE, WTA_VEC
 from satsweep.opencl.device import Device
 from satsweep.options import Options
 
-# Number of floats of per-pixel winner-take-all state (kernels/wta.cl WTA_NSTATE).
-_WTA_NSTATE = 8
-# Bytes per interior pixel of the per-tile outputs: plane index, confidence, best cost (float32)
-# and validity (uint8).
-_OUT_BYTES_PER_PX = 4 + 4 + 4 + 1
 # Smallest tile interior side (pixels) worth processing before the plane batch is reduced instead.
 _MIN_TILE_SIDE = 64
-# Columns per work-item of guided_filter.cl's column kernels (its COLS_VEC; float8 there).
-GF_COLS_VEC = 8
-# Positions per work-item of sweep.cl's split kernels, sweep_warp and sweep_warped_cost (its
-# SWEEP_VEC; float8 there).
-SWEEP_VEC = 8
-# Pixels per work-item of wta.cl's wta_update and wta_pixel_major (its WTA_VEC; float8 there).
-WTA_VEC = 8
 # Planes warped per launch by the split census kernels (their warped-source buffer holds this
 # many planes of every source over the tile plus the census margin), at least; a small tile
 # (a coarse-to-fine block) warps more planes per launch, up to _WARP_CHUNK_POSITIONS positions
@@ -64,7 +64,8 @@ WTA_VEC = 8
 # needs fewer launches.
 SPLIT_WARP_PLANES = 8
 _WARP_CHUNK_POSITIONS = 1 << 20
-# Fixed allowance (bytes) for small buffers and driver bookkeeping per tile.
+# Fixed allowance (bytes) for the driver's bookkeeping, added to the buffers of the run and to
+# those of each tile in the memory plan.
 _SMALL_BUFFERS_BYTES = 1 << 16
 
 
@@ -213,9 +214,20 @@ class SweepOptions(Options):
         return max(1, min(k, n_sources))
 
 
+@dataclasses.dataclass(frozen=True)
+class WorkSplit:
+    """How a sweep (or a sweep with its MRF, ``satsweep.dense.tiled``) split its work."""
+
+    n_tiles: int = 1  # tiles of the reference swept one after the other
+    n_batches: int = 1  # batches of planes, over all tiles
+    peak_device_bytes: int = 0  # the most device memory its buffers held at once
+    window_planes: int | None = None  # planes per window of a coarse-to-fine sweep (else None)
+
+
 @dataclasses.dataclass
-class SweepResult:
-    """Per-pixel outputs of a sweep, arrays of the reference image's shape.
+class HeightMap:
+    """A height map of the reference view, arrays of the reference image's shape: the sweep's
+    winner-take-all (``PlaneSweep.height_map``), or its MRF refinement (``sweep_refine_tiled``).
 
     height: plane parameter (metres, the ``h`` of the planes, float64) of the best plane with
         sub-plane refinement; NaN where invalid.
@@ -225,10 +237,9 @@ class SweepResult:
     valid: True where the pixel is seen by a source at its best plane, the best plane is not at
         an end of the range (``reject_range_edges``) and, with ``lr_check``, where the check passed.
     cost_min: the best (filtered) cost, in census bits (plus the AD and gradient terms; float32).
-    n_tiles, n_batches: how the work was split; peak_device_bytes: the most device memory held
-        by this run's buffers at once.
-    A run with ``winner_take_all=False`` (the volume only) has None for height, plane_index,
-    confidence, valid and cost_min.
+    split: how the work was split (tiles, plane batches, device memory, plane windows).
+    altitude: the heights above the WGS84 ellipsoid, where the sweep knew the scene's frame
+        (``sweep_views`` with ``frame``); else None.
     """
 
     height: np.ndarray
@@ -236,23 +247,8 @@ class SweepResult:
     confidence: np.ndarray
     valid: np.ndarray
     cost_min: np.ndarray
-    n_tiles: int = 1
-    n_batches: int = 1
-    peak_device_bytes: int = 0
-    # The filtered cost volume (n_planes, H, W) float32 in census bits, only when the sweep was
-    # asked for it (``keep_volume``: an MRF refinement needs every plane's cost); None otherwise.
-    volume: np.ndarray | None = None
-    altitude: np.ndarray | None = None  # heights above the WGS84 ellipsoid (sweep_views + frame)
-    # With plane windows: (H, W) int32, the plane of the volume's first label at each pixel
-    # (label d of pixel p is plane plane_base[p] + d); None when every pixel has every plane.
-    plane_base: np.ndarray | None = None
-    # With plane windows: (H, W) int32, the labels of each pixel's window (a kept host volume's
-    # labels past it hold the worst cost; a kept device volume is then ragged, see plane_offset).
-    plane_count: np.ndarray | None = None
-    # With plane windows of their own counts and the volume on the device: the volume is ragged
-    # (1-D), pixel p's plane_count[p] labels starting at float plane_offset[p] ((H, W) uint64).
-    plane_offset: np.ndarray | None = None
-    window_planes: int | None = None  # planes per window of a coarse-to-fine sweep (else None)
+    split: WorkSplit = WorkSplit()
+    altitude: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -278,9 +274,10 @@ class PlaneWindows:
     window of consecutive planes (``satsweep.dense.coarse`` derives them from a coarse height map).
     Block (i, j) covers reference rows [i block, (i + 1) block) and columns [j block, (j + 1)
     block); it sweeps the ``count[i, j]`` planes from first[i, j] (``n_planes`` when count is
-    None), which become its labels 0 .. count - 1. A kept volume holds ``n_planes`` labels per
-    pixel (the most of any block): a block on gentle terrain sweeps fewer planes than one across
-    a cliff, and SGM refines each pixel over its own count (``mrf.sgm_refine``'s label_count).
+    None), which become its labels 0 .. count - 1. A cost volume of these windows holds
+    ``n_planes`` labels per pixel (the most of any block; its ``label_base`` and
+    ``label_count`` come from here): a block on gentle terrain sweeps fewer planes than one
+    across a cliff, and SGM refines each pixel over its own count.
     """
 
     block: int  # block side (pixels); the blocks start at the reference's pixel (0, 0)
@@ -329,22 +326,100 @@ class PlaneWindows:
                                               axis=1)[:h, :w])
 
 
-# -- memory planning ----------------------------------------------------------------------------
-def _volume_planes(options: SweepOptions, nb: int) -> int:
-    """Cost-volume planes held on the device per batch of nb planes (see PlaneSweep._filter)."""
-    return {"guided": 4 * nb, "box": 2 * nb, "none": nb}[options.cost_filter]
+# -- device buffers and memory planning ---------------------------------------------------------
+# The sweep's device buffers, each named after the kernel argument it is passed as. One table
+# (BufferSpec: name, element type, length as a function of the sizes) serves both plan_tiles,
+# which sums it, and the sweep, which allocates it (satsweep.opencl.buffers).
+@dataclasses.dataclass(frozen=True)
+class RunSizes:
+    """The sizes of the buffers a sweep keeps for the whole run (``run_buffers``)."""
+
+    ref_px: int  # pixels of the reference image
+    src_px: int  # pixels of all the source images
+    n_src: int
+    volume_floats: int = 0  # floats of a cost volume kept on the device (0: none)
 
 
-def _tile_bytes(options: SweepOptions, tile_dims: tuple[int, int], interior: int, nb: int,
-                n_planes: int, n_src: int) -> int:
-    """Device bytes of one tile of (width, height) ``tile_dims`` (margins included): ref codes,
-    guide, cost batches, the split kernels' warped sources, WTA state, outputs."""
-    area = tile_dims[0] * tile_dims[1]
-    guide = 3 * 4 * area if options.cost_filter == "guided" else 0
-    return (8 * area + guide + 4 * _volume_planes(options, nb) * area
-            + _warped_bytes(options, tile_dims, nb, n_src)
-            + (4 * _WTA_NSTATE + _OUT_BYTES_PER_PX) * interior
-            + 36 * n_planes * n_src + _SMALL_BUFFERS_BYTES)
+@dataclasses.dataclass(frozen=True)
+class SourceSizes:
+    """The size of one source image whose census codes the sweep computes (``code_buffers``)."""
+
+    px: int
+
+
+@dataclasses.dataclass(frozen=True)
+class TileSizes:
+    """The sizes of one tile's buffers (``tile_buffers``)."""
+
+    tw: int  # tile width and height, margins included (pixels)
+    th: int
+    iw: int  # interior width and height (pixels)
+    ih: int
+    nb: int  # planes per batch
+    n_planes: int  # planes the tile sweeps (its homographies)
+    n_src: int
+
+
+def run_buffers(options: SweepOptions, *, volume: bool = False) -> tuple[BufferSpec, ...]:
+    """The buffers a sweep keeps for the whole run: the reference image, the sources' sizes and
+    offsets, every source image (``warped_census``) or every source's census codes
+    (``sampled_codes``), and with ``volume`` the cost volume it keeps on the device."""
+    srcs = BufferSpec("src_code", np.uint64, lambda r: r.src_px) \
+        if options.cost_mode == "sampled_codes" else \
+        BufferSpec("src_img", np.float32, lambda r: r.src_px)
+    specs = (BufferSpec("ref_img", np.float32, lambda r: r.ref_px),
+             BufferSpec("src_size", np.int32, lambda r: 2 * r.n_src),
+             BufferSpec("src_offset", np.int64, lambda r: r.n_src),
+             srcs)
+    if volume:
+        specs += (BufferSpec("volume", np.float32, lambda r: r.volume_floats),)
+    return specs
+
+
+def code_buffers() -> tuple[BufferSpec, ...]:
+    """The buffers of one source's census codes (``sampled_codes``), while they are computed:
+    census_transform's image and codes (the codes are then copied into ``src_code``)."""
+    return (BufferSpec("img", np.float32, lambda s: s.px),
+            BufferSpec("codes", np.uint64, lambda s: s.px))
+
+
+def tile_buffers(options: SweepOptions, *, wta: bool = True) -> tuple[BufferSpec, ...]:
+    """The buffers of one tile: its homographies, the reference codes, the cost of a batch of
+    planes with the filter's temporaries (``cost``, ``sums``: see ``PlaneSweep._filter``), the
+    guide fields (guided filter), the split census kernels' warped sources, and with ``wta`` the
+    winner-take-all's state and per-pixel outputs (over the interior)."""
+    area = lambda t: t.tw * t.th  # noqa: E731
+    interior = lambda t: t.iw * t.ih  # noqa: E731
+    specs = [BufferSpec("homography", np.float32, lambda t: 9 * t.n_planes * t.n_src),
+             BufferSpec("ref_code", np.uint64, area)]
+    if options.cost_filter == "guided":  # [p | I p] sums -> [a | b] -> q
+        specs += [BufferSpec("cost", np.float32, lambda t: 2 * t.nb * area(t)),
+                  BufferSpec("sums", np.float32, lambda t: 2 * t.nb * area(t)),
+                  BufferSpec("guide_i", np.float32, area),
+                  BufferSpec("guide_mean", np.float32, lambda t: 2 * area(t))]
+    elif options.cost_filter == "box":
+        specs += [BufferSpec("cost", np.float32, lambda t: t.nb * area(t)),
+                  BufferSpec("sums", np.float32, lambda t: t.nb * area(t))]
+    else:
+        specs += [BufferSpec("cost", np.float32, lambda t: t.nb * area(t))]
+    if _split_census(options):
+        positions = lambda t: _warped_positions(options, (t.tw, t.th), t.nb, t.n_src)  # noqa: E731
+        specs += [BufferSpec("warped", np.float32, positions),
+                  BufferSpec("seen", np.uint8, positions)]
+    if wta:
+        specs += [BufferSpec("state", np.float32, lambda t: WTA_NSTATE * interior(t)),
+                  BufferSpec("plane_index", np.float32, interior),
+                  BufferSpec("confidence", np.float32, interior),
+                  BufferSpec("best_cost", np.float32, interior),
+                  BufferSpec("valid", np.uint8, interior)]
+    return tuple(specs)
+
+
+def _tile_bytes(options: SweepOptions, sizes: TileSizes) -> int:
+    """Device bytes of one tile in the plan: its buffers WITH the winner-take-all's, whether or
+    not the sweep runs it, so that a sweep without it (SGM's) is split as the sweep with it is
+    (the tiles change the filters' float32 sums), plus the driver's allowance."""
+    return total_bytes(tile_buffers(options), sizes) + _SMALL_BUFFERS_BYTES
 
 
 def _split_census(options: SweepOptions) -> bool:
@@ -373,63 +448,69 @@ def _warped_positions(options: SweepOptions, tile_dims: tuple[int, int], nb: int
                                                                               n_src)
 
 
-def _warped_bytes(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
-    """Bytes of the split kernels' buffers for a tile: the warped sources (float32) and their
-    validity (one byte a position)."""
-    return 5 * _warped_positions(options, tile_dims, nb, n_src)
-
-
 def _resident_bytes(options: SweepOptions, ref_shape: tuple[int, int],
-                    src_shapes: Sequence[tuple[int, int]]) -> int:
-    """Device bytes kept for the whole run: the reference image and the source images, or in
-    ``sampled_codes`` mode the source codes plus one source's image and codes while converting."""
-    src_px = sum(h * w for h, w in src_shapes)
+                    src_shapes: Sequence[tuple[int, int]], volume_floats: int = 0) -> int:
+    """Device bytes kept for the whole run: ``run_buffers``, in ``sampled_codes`` mode one
+    source's ``code_buffers`` while its codes are computed (the largest source's), and the
+    driver's allowance."""
+    run = total_bytes(run_buffers(options, volume=volume_floats > 0),
+                      _run_sizes(ref_shape, src_shapes, volume_floats))
     if options.cost_mode == "sampled_codes":
-        srcs = 8 * src_px + 12 * max(h * w for h, w in src_shapes)
-    else:
-        srcs = 4 * src_px
-    return 4 * ref_shape[0] * ref_shape[1] + srcs + _SMALL_BUFFERS_BYTES
+        run += total_bytes(code_buffers(), SourceSizes(max(h * w for h, w in src_shapes)))
+    return run + _SMALL_BUFFERS_BYTES
+
+
+def _run_sizes(ref_shape: tuple[int, int], src_shapes: Sequence[tuple[int, int]],
+               volume_floats: int = 0) -> RunSizes:
+    return RunSizes(ref_px=ref_shape[0] * ref_shape[1],
+                    src_px=sum(h * w for h, w in src_shapes), n_src=len(src_shapes),
+                    volume_floats=volume_floats)
 
 
 def plan_tiles(options: SweepOptions, ref_shape: tuple[int, int],
                src_shapes: Sequence[tuple[int, int]], n_planes: int, budget_bytes: int,
-               max_alloc_bytes: int | None = None, extra_resident_bytes: int = 0) -> TilePlan:
+               max_alloc_bytes: int | None = None, volume_floats: int = 0) -> TilePlan:
     """Split a sweep into tiles and plane batches that fit ``budget_bytes`` of device memory.
 
-    Whole images stay resident; each tile holds its reference codes, guide statistics, the cost
-    of one batch of planes with the filter's temporaries, and the WTA state of its interior. The
-    plane batch is kept as large as allowed (up to ``max_planes_per_batch``) while tiles are at
-    least ``_MIN_TILE_SIDE`` pixels; then the batch shrinks. Raises DeviceError when even one
-    plane of a minimal tile does not fit.
+    The run's buffers stay resident (``run_buffers``: the images, and a cost volume of
+    ``volume_floats`` kept on the device); each tile holds ``tile_buffers``: its reference
+    codes, guide fields, the cost of one batch of planes with the filter's temporaries, and the
+    winner-take-all's state and outputs of its interior. The plane batch is kept as large as
+    allowed (up to ``max_planes_per_batch``) while tiles are at least ``_MIN_TILE_SIDE`` pixels;
+    then the batch shrinks. No buffer may exceed ``max_alloc_bytes``. Raises DeviceError when
+    even one plane of a minimal tile does not fit.
     """
     h_img, w_img = ref_shape
     m = options.tile_margin
-    resident = _resident_bytes(options, ref_shape, src_shapes) + int(extra_resident_bytes)
+    resident = _resident_bytes(options, ref_shape, src_shapes, volume_floats)
     free = budget_bytes - resident
     n_src = len(src_shapes)
     if free <= 0:
-        what = "images themselves" + (" and the kept cost volume" if extra_resident_bytes else "")
+        what = "images themselves" + (" and the kept cost volume" if volume_floats else "")
         raise DeviceError(f"memory budget of {budget_bytes / 2**20:.0f} MiB is smaller than the "
                           f"{what} ({resident / 2**20:.0f} MiB): raise "
                           "SweepOptions.memory_budget_bytes or memory_fraction")
+    if max_alloc_bytes is not None:
+        run_sizes = _run_sizes(ref_shape, src_shapes, volume_floats)
+        for spec in run_buffers(options, volume=volume_floats > 0):
+            if spec.nbytes(run_sizes) > max_alloc_bytes:
+                raise DeviceError(f"the sweep's buffer {spec.name} of "
+                                  f"{spec.nbytes(run_sizes) / 2**20:.0f} MiB ({n_src} source "
+                                  f"images) exceeds the device's largest allocation "
+                                  f"({max_alloc_bytes / 2**20:.0f} MiB): use fewer or smaller "
+                                  "images")
 
-    src_bytes = (8 if options.cost_mode == "sampled_codes" else 4) * sum(h * w for h, w in src_shapes)
-    if max_alloc_bytes is not None and src_bytes > max_alloc_bytes:
-        raise DeviceError(f"the {n_src} source images need one {src_bytes / 2**20:.0f} MiB buffer, "
-                          f"more than the device's largest allocation "
-                          f"({max_alloc_bytes / 2**20:.0f} MiB): use fewer or smaller sources")
+    def sizes(tw: int, th: int, nb: int) -> TileSizes:
+        """The tile of interior tw x th (margins added, clipped to the image), batches of nb."""
+        return TileSizes(tw=min(tw + 2 * m, w_img), th=min(th + 2 * m, h_img), iw=tw, ih=th,
+                         nb=nb, n_planes=n_planes, n_src=n_src)
 
     def fits(tw: int, th: int, nb: int) -> bool:
-        dims = (min(tw + 2 * m, w_img), min(th + 2 * m, h_img))
-        area = dims[0] * dims[1]
-        if _tile_bytes(options, dims, tw * th, nb, n_planes, n_src) > free:
+        t = sizes(tw, th, nb)
+        if _tile_bytes(options, t) > free:
             return False
-        if max_alloc_bytes is not None:
-            largest = max(4 * area * max(2 * nb if options.cost_filter == "guided" else nb, 1),
-                          4 * _warped_positions(options, dims, nb, n_src))
-            if largest > max_alloc_bytes:
-                return False
-        return True
+        return max_alloc_bytes is None \
+            or largest_bytes(tile_buffers(options), t) <= max_alloc_bytes
 
     nb = max(1, min(n_planes, options.max_planes_per_batch))
     min_side = min(_MIN_TILE_SIDE, w_img, h_img)
@@ -450,11 +531,9 @@ def plan_tiles(options: SweepOptions, ref_shape: tuple[int, int],
             tw = _largest_square(lambda s: fits(s, th, nb), w_img) if tw < w_img else tw
             break
         nb = max(1, nb // 2)
-    dims = (min(tw + 2 * m, w_img), min(th + 2 * m, h_img))
     n_tiles = math.ceil(w_img / tw) * math.ceil(h_img / th)
     return TilePlan(tile_w=tw, tile_h=th, margin=m, planes_per_batch=nb, resident_bytes=resident,
-                    tile_bytes=_tile_bytes(options, dims, tw * th, nb, n_planes, n_src),
-                    n_tiles=n_tiles)
+                    tile_bytes=_tile_bytes(options, sizes(tw, th, nb)), n_tiles=n_tiles)
 
 
 def _largest_square(ok: Callable[[int], bool], upper: int) -> int:
@@ -470,34 +549,6 @@ def _largest_square(ok: Callable[[int], bool], upper: int) -> int:
 
 
 # -- the processing class -----------------------------------------------------------------------
-class _Buffers:
-    """Device buffers of one run, with the running and peak total of their sizes."""
-
-    def __init__(self, context):
-        self.context = context
-        self.live = 0
-        self.peak = 0
-
-    def alloc(self, nbytes: int, hostbuf: np.ndarray | None = None):
-        import pyopencl as cl  # noqa: PLC0415
-
-        mf = cl.mem_flags
-        nbytes = max(int(nbytes), 4)
-        if hostbuf is not None:
-            buf = cl.Buffer(self.context, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=hostbuf)
-        else:
-            buf = cl.Buffer(self.context, mf.READ_WRITE, nbytes)
-        self.live += nbytes
-        self.peak = max(self.peak, self.live)
-        return buf
-
-    def free(self, *bufs) -> None:
-        for b in bufs:
-            if b is not None:
-                self.live -= max(int(b.size), 4)
-                b.release()
-
-
 def _round_up(n: int, m: int) -> int:
     return ((n + m - 1) // m) * m
 
@@ -538,8 +589,10 @@ def prefilter(image: np.ndarray, sigma_px: float) -> np.ndarray:
 class PlaneSweep:
     """The plane-sweep engine on one device: builds the kernels once, sweeps reference views.
 
-    ``run`` takes float32 images (tonemapped, about [0, 1]), homographies (n_planes, n_src, 3, 3)
-    float64 mapping reference pixels to source pixels for each plane, and the plane heights.
+    Its entry points (``height_map``, ``cost_volume``, ``cost_volume_on_device``,
+    ``height_map_with_cost_volume``) take float32 images (tonemapped, about [0, 1]),
+    homographies (n_planes, n_src, 3, 3) float64 mapping reference pixels to source pixels for
+    each plane, and the plane heights.
     """
 
     def __init__(self, device: Device, options: SweepOptions | None = None, *,
@@ -550,6 +603,8 @@ class PlaneSweep:
         # into stage_seconds ("census", "sweep", "filter", "wta"); slower, for benchmarks.
         self.profile = profile
         self.stage_seconds: dict[str, float] = {}
+        # How the last sweep split its work (None before the first).
+        self.last_split: WorkSplit | None = None
 
     @contextlib.contextmanager
     def _stage(self, name: str):
@@ -565,19 +620,18 @@ class PlaneSweep:
 
     # -- programs -------------------------------------------------------------------------------
     def program_requests(self, n_src: int, *, wta: bool = True) -> list[tuple[str, dict | None]]:
-        """The (source, defines) of the programs that ``run`` builds for ``n_src`` sources: census,
-        sweep, the cost filter (None for cost_filter = "none") and, with ``wta``, the
-        winner-take-all (else None: a volume-only sweep, SGM's, never launches it)."""
+        """The (source, defines) of the programs that a sweep of ``n_src`` sources builds:
+        census, sweep, the cost filter (None for cost_filter = "none") and, with ``wta``, the
+        winner-take-all (else None: a volume-only sweep, ``cost_volume``, never launches it)."""
         o = self.options
         rx, ry = o.census_radii
         sweep_defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": o.best_k(n_src),
                       "AD_WEIGHT": float(o.ad_weight), "AD_TRUNC": float(o.ad_truncation),
-                      "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation),
-                      "SWEEP_VEC": SWEEP_VEC}
+                      "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation)}
         if o.cost_mode == "warped_census" and o.census_kernel == "staged":
             sweep_defs.update({"WG_X": o.work_group[0], "WG_Y": o.work_group[1]})
         wta_defs = {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry, "AD_WEIGHT": float(o.ad_weight),
-                    "GRAD_WEIGHT": float(o.grad_weight), "WTA_VEC": WTA_VEC}
+                    "GRAD_WEIGHT": float(o.grad_weight)}
         return [("census", {"CENSUS_RX": rx, "CENSUS_RY": ry}), ("sweep", sweep_defs),
                 self._filter_request(), ("wta", wta_defs) if wta else None]
 
@@ -592,7 +646,7 @@ class PlaneSweep:
         if o.cost_filter == "none":
             return None
         r = o.filter_radius
-        defs = {"BOX_R": r, "BOX_CHUNK": box_chunk(r), "COLS_VEC": GF_COLS_VEC}
+        defs = {"BOX_R": r, "BOX_CHUNK": box_chunk(r)}
         if o.cost_filter == "guided":
             defs["GF_EPS"] = float(o.gf_eps)
         return "guided_filter", defs
@@ -609,34 +663,67 @@ class PlaneSweep:
             return int(o.memory_budget_bytes)
         return int(o.memory_fraction * self.device.global_mem_bytes)
 
-    # -- public entry point ---------------------------------------------------------------------
-    def run(self, ref_image, src_images: Sequence, homographies, heights, *,
-            keep_volume: bool = False, volume_on_device: bool = False,
-            plane_windows: PlaneWindows | None = None,
-            winner_take_all: bool = True) -> SweepResult:
-        """Sweep ``ref_image`` against ``src_images`` over the planes ``heights``.
+    # -- public entry points --------------------------------------------------------------------
+    # Each sweeps ``ref_image`` against ``src_images`` (float32, tonemapped to about [0, 1]) over
+    # the planes ``heights`` ((n_planes,) strictly monotonic, metres) with ``homographies``
+    # ((n_planes, n_src, 3, 3) float64, plane p and source s mapping homogeneous reference
+    # pixels to source pixels). ``windows``: sweep each block of the reference over its own
+    # window of the planes only (coarse-to-fine): the volume's label d of pixel p then stands
+    # for plane ``label_base[p] + d``, d < ``label_count[p]``, and a height map's plane indices
+    # and heights are still absolute, a best plane at either end of its window invalid with
+    # ``reject_range_edges``. The options' ``lr_check`` is a check of height maps: the volume
+    # methods have none to check. After each, ``last_split`` tells how the work was split.
+    def height_map(self, ref_image, src_images: Sequence, homographies, heights) -> HeightMap:
+        """The winner-take-all height map (and, with ``lr_check``, the left-right check); the
+        cost volume never exists whole."""
+        ref, srcs, hom, hts = self._inputs(ref_image, src_images, homographies, heights, None)
+        result, _ = self._sweep(ref, srcs, hom, hts, wta=True)
+        if self.options.lr_check:
+            self._lr_check(result, ref, srcs, hom, hts)
+        return result
 
-        homographies: (n_planes, n_src, 3, 3), plane p and source s mapping homogeneous reference
-        pixels to source pixels; heights: (n_planes,) strictly monotonic plane heights (metres).
-        keep_volume: also keep the filtered cost of every plane (``SweepResult.volume``) for an
-        MRF refinement; off in the plain WTA path, where the cost volume never exists whole.
-        volume_on_device: with keep_volume, the volume stays on the device, PIXEL-MAJOR (the
-        layout SGM aggregates in, so that it needs no copy of its own): a
-        ``pyopencl.array.Array`` (H, W, n_planes) float32 that the caller releases, counted in
-        the memory budget; else it is copied to the host (numpy, (n_planes, H, W)).
-        plane_windows: sweep each block of the reference over its own window of the planes only
-        (coarse-to-fine); the volume then holds ``plane_windows.n_planes`` labels per pixel,
-        label d < ``SweepResult.plane_count[p]`` of pixel p standing for plane
-        ``SweepResult.plane_base[p] + d`` (a host volume's other labels hold the worst cost;
-        with windows of their own counts a device volume is ragged instead: 1-D, each pixel's
-        labels from ``SweepResult.plane_offset[p]`` on); the results' plane indices and heights
-        are absolute, and a best plane at either end of a window is invalid with
-        ``reject_range_edges``. Not with ``lr_check``.
-        winner_take_all: False skips the per-pixel winner-take-all (for a caller that refines
-        the kept volume and needs nothing else, as SGM does): the result then has ``volume``
-        (keep_volume is required), ``plane_base`` and the counts, and None for the per-pixel
-        maps (``visible_at`` gives the visibility of any plane choice). Not with ``lr_check``.
-        """
+    def cost_volume(self, ref_image, src_images: Sequence, homographies, heights, *,
+                    windows: PlaneWindows | None = None) -> CostVolume:
+        """The filtered cost of every plane, on the host: a plane-major ``CostVolume`` (L, H, W)
+        float32 in census bits (with ``windows``, L = ``windows.n_planes``; a pixel's labels past
+        its window's count hold the worst cost, ``SweepOptions.max_cost``)."""
+        ref, srcs, hom, hts = self._inputs(ref_image, src_images, homographies, heights, windows)
+        return self._sweep(ref, srcs, hom, hts, keep="host", windows=windows, wta=False)[1]
+
+    def cost_volume_on_device(self, ref_image, src_images: Sequence, homographies, heights, *,
+                              windows: PlaneWindows | None = None) -> CostVolume:
+        """The filtered cost of every plane, kept on the device (counted in the memory budget)
+        in SGM's layout, so that SGM needs no copy of its own: a pixel-major ``CostVolume`` (H,
+        W, L), or with windows of their own counts a ragged one (each pixel just its window's
+        labels). The caller releases it (``CostVolume.release`` or a ``with`` block)."""
+        ref, srcs, hom, hts = self._inputs(ref_image, src_images, homographies, heights, windows)
+        return self._sweep(ref, srcs, hom, hts, keep="device", windows=windows, wta=False)[1]
+
+    def height_map_with_cost_volume(self, ref_image, src_images: Sequence, homographies, heights,
+                                    *, windows: PlaneWindows | None = None,
+                                    on_device: bool = False) -> tuple[HeightMap, CostVolume]:
+        """Both, from one sweep: the winner-take-all height map (with ``lr_check``, checked;
+        not with ``windows`` then) and the cost volume (``cost_volume_on_device``'s with
+        ``on_device``, else ``cost_volume``'s). For an MRF that starts from the winner-take-all
+        or a left-right check of it."""
+        ref, srcs, hom, hts = self._inputs(ref_image, src_images, homographies, heights, windows)
+        if windows is not None and self.options.lr_check:
+            raise InputError(None, "plane_windows: the left-right check sweeps every plane; "
+                                   "set lr_check = false for a coarse-to-fine sweep")
+        result, volume = self._sweep(ref, srcs, hom, hts, keep="device" if on_device else "host",
+                                     windows=windows, wta=True)
+        if self.options.lr_check:
+            try:
+                self._lr_check(result, ref, srcs, hom, hts)
+            except BaseException:
+                volume.release()  # the caller never gets it
+                raise
+        return result, volume
+
+    def _inputs(self, ref_image, src_images, homographies, heights,
+                windows: PlaneWindows | None):
+        """The checked inputs as the sweep takes them (prefiltered when the options say so):
+        (ref, srcs, hom, hts); InputError naming the bad one."""
         ref = _check_image("ref_image", ref_image)
         srcs = [_check_image(f"src_images[{i}]", s) for i, s in enumerate(src_images)]
         if not srcs:
@@ -654,26 +741,12 @@ class PlaneSweep:
             d = np.diff(hts)
             if not ((d > 0).all() or (d < 0).all()):
                 raise InputError(None, "heights: must be strictly monotonic")
-        if not winner_take_all and not keep_volume:
-            raise InputError(None, "winner_take_all = False leaves nothing to return without "
-                                   "keep_volume")
-        if not winner_take_all and self.options.lr_check:
-            raise InputError(None, "winner_take_all = False: the left-right check needs the "
-                                   "winner-take-all map; set lr_check = false")
-        if plane_windows is not None:
-            plane_windows.check(ref.shape, hts.size)
-            if self.options.lr_check:
-                raise InputError(None, "plane_windows: the left-right check sweeps every plane; "
-                                       "set lr_check = false for a coarse-to-fine sweep")
+        if windows is not None:
+            windows.check(ref.shape, hts.size)
         if self.options.prefilter_sigma_px > 0:
             ref = prefilter(ref, self.options.prefilter_sigma_px)
             srcs = [prefilter(s, self.options.prefilter_sigma_px) for s in srcs]
-        result = self._sweep(ref, srcs, hom, hts, keep_volume=keep_volume,
-                             volume_on_device=volume_on_device, windows=plane_windows,
-                             wta=winner_take_all)
-        if self.options.lr_check:
-            self._lr_check(result, ref, srcs, hom, hts)
-        return result
+        return ref, srcs, hom, hts
 
     def filter_volume(self, cost, guide) -> np.ndarray:
         """The configured cost filter applied to host slices (n, h, w) with a 2-D guide.
@@ -689,30 +762,35 @@ class PlaneSweep:
             raise InputError(None, f"cost: shape {vol.shape} does not match guide {g.shape}")
         nb, th, tw = vol.shape
         filt = self._filter_program()
-        bufs = _Buffers(self.device.context)
-        area = tw * th
         tile = _Tile(0, 0, tw, th, 0, 0, tw, th)
-        planes_a = 2 * nb if o.cost_filter == "guided" else nb
-        vol_a = bufs.alloc(4 * area * planes_a)
-        cl.enqueue_copy(self.device.queue, vol_a, vol)
-        vol_b = bufs.alloc(4 * area * planes_a) if o.cost_filter != "none" else None
-        guide_i = guide_mean = ref_buf = None
-        if o.cost_filter == "guided":
-            ref_buf = bufs.alloc(g.nbytes, g)
-            guide_i, guide_mean = bufs.alloc(4 * area), bufs.alloc(8 * area)
-            self._guide_stats(filt, tile, ref_buf, tw, guide_i, guide_mean, vol_b)
-        self._filter(filt, tile, nb, vol_a, vol_b, guide_i, guide_mean)
-        out = np.empty_like(vol)
-        cl.enqueue_copy(self.device.queue, out, vol_a)
-        self.device.queue.finish()
-        bufs.free(vol_a, vol_b, guide_i, guide_mean, ref_buf)
+        sizes = TileSizes(tw=tw, th=th, iw=tw, ih=th, nb=nb, n_planes=0, n_src=0)
+        # The filter's buffers of a tile, and the guide image in place of the reference's.
+        specs = tuple(spec for spec in tile_buffers(o, wta=False)
+                      if spec.name in ("cost", "sums", "guide_i", "guide_mean"))
+        guided = o.cost_filter == "guided"
+        if guided:
+            specs += (BufferSpec("ref_img", np.float32, lambda t: t.tw * t.th),)
+        with DeviceMemory(self.device.context).allocate(
+                specs, sizes, host={"ref_img": g} if guided else None) as b:
+            cl.enqueue_copy(self.device.queue, b["cost"], vol)
+            if guided:
+                self._guide_stats(filt, tile, b["ref_img"], tw, b["guide_i"], b["guide_mean"],
+                                  b["sums"])
+            self._filter(filt, tile, nb, b["cost"], b.get("sums"), b.get("guide_i"),
+                         b.get("guide_mean"))
+            out = np.empty_like(vol)
+            cl.enqueue_copy(self.device.queue, out, b["cost"])
+            self.device.queue.finish()
         return out
 
     # -- implementation -------------------------------------------------------------------------
     def _sweep(self, ref: np.ndarray, srcs: list[np.ndarray], hom: np.ndarray,
-               hts: np.ndarray, *, keep_volume: bool = False,
-               volume_on_device: bool = False,
-               windows: PlaneWindows | None = None, wta: bool = True) -> SweepResult:
+               hts: np.ndarray, *, keep: Literal["host", "device"] | None = None,
+               windows: PlaneWindows | None = None,
+               wta: bool = True) -> tuple[HeightMap | None, CostVolume | None]:
+        """The sweep behind the entry points, of checked inputs: (the winner-take-all height map
+        if ``wta``, else None; the cost volume kept on the host or the device as ``keep`` says,
+        else None); sets ``last_split``."""
         import pyopencl as cl  # noqa: PLC0415
         import pyopencl.array as cla  # noqa: PLC0415
 
@@ -723,24 +801,26 @@ class PlaneSweep:
         n_planes = n_total if windows is None else windows.n_planes
         h_img, w_img = ref.shape
         census_prg, sweep_prg, filt_prg, wta_prg = self._programs(n_src, wta=wta)
-        on_device = keep_volume and volume_on_device
+        keep_volume, on_device = keep is not None, keep == "device"
         # A device volume of windows with their own counts is RAGGED: each block's pixels hold
         # just their window's labels, block after block (label_offset: where each pixel's start).
         ragged = on_device and windows is not None and windows.count is not None
         label_offset = block_start = None
         if ragged:
             label_offset, block_start = _ragged_layout(windows, ref.shape)
-            volume_bytes = 4 * int(block_start[-1])
+            volume_floats = int(block_start[-1])
         else:
-            volume_bytes = 4 * n_planes * h_img * w_img
+            volume_floats = n_planes * h_img * w_img
+        run_sizes = _run_sizes(ref.shape, [s.shape for s in srcs],
+                               volume_floats if on_device else 0)
+        volume_bytes = 4 * volume_floats
         if on_device and volume_bytes > self.device.max_alloc_bytes:
             raise DeviceError(f"{self.device.info.label}: a cost volume of "
                               f"{volume_bytes / 2**20:.0f} MiB ({n_planes} planes x {h_img} x "
                               f"{w_img}) exceeds the largest allocation "
                               f"({self.device.max_alloc_bytes / 2**20:.0f} MiB): sweep smaller tiles")
         plan = plan_tiles(o, ref.shape, [s.shape for s in srcs], n_planes, self.budget_bytes(),
-                          self.device.max_alloc_bytes,
-                          extra_resident_bytes=volume_bytes if on_device else 0)
+                          self.device.max_alloc_bytes, volume_floats=run_sizes.volume_floats)
         tile_w, tile_h = plan.tile_w, plan.tile_h
         if windows is not None:
             if min(tile_w, w_img) < min(windows.block, w_img) \
@@ -749,86 +829,88 @@ class PlaneSweep:
                                   f"tiles of {tile_w} x {tile_h} px, smaller than the plane "
                                   f"windows' {windows.block} px blocks: use smaller blocks")
             tile_w = tile_h = windows.block
-        bufs = _Buffers(self.device.context)
+        mem = DeviceMemory(self.device.context)
         i32 = np.int32
-        rx, ry = o.census_radii
 
-        # Resident data: the reference image and every source, uploaded once.
-        ref_buf = bufs.alloc(ref.nbytes, ref)
+        # Resident data: the reference image and every source (or its codes), uploaded once,
+        # and the device volume; all released at the end, but for the volume handed out.
         sizes = np.array([[s.shape[1], s.shape[0]] for s in srcs], dtype=np.int32).ravel()
         offsets = np.concatenate([[0], np.cumsum([s.size for s in srcs])[:-1]]).astype(np.int64)
-        size_buf = bufs.alloc(sizes.nbytes, sizes)
-        off_buf = bufs.alloc(offsets.nbytes, offsets)
+        host = {"ref_img": ref, "src_size": sizes, "src_offset": offsets}
+        if o.cost_mode != "sampled_codes":
+            host["src_img"] = np.concatenate([s.ravel() for s in srcs])
         census_k = self.device.kernel(census_prg, "census_transform")
-        if o.cost_mode == "sampled_codes":
-            # Each source's codes computed on the device once, into one concatenated buffer.
-            src_buf = bufs.alloc(8 * sum(s.size for s in srcs))
-            for img, off in zip(srcs, offsets):
-                h_s, w_s = img.shape
-                img_buf = bufs.alloc(img.nbytes, img)
-                tmp = bufs.alloc(8 * img.size)
-                _launch(census_k, queue, (w_s, h_s), img_buf, i32(w_s), i32(h_s), i32(0),
-                        i32(0), i32(w_s), i32(h_s), tmp)
-                cl.enqueue_copy(queue, src_buf, tmp, dst_offset=8 * int(off),
-                                byte_count=8 * img.size)
-                queue.finish()
-                bufs.free(img_buf, tmp)
-            sweep_k = self.device.kernel(sweep_prg, "sweep_code_cost")
-        else:
-            src_buf = bufs.alloc(4 * sum(s.size for s in srcs),
-                                 np.concatenate([s.ravel() for s in srcs]))
-            kern = self.device.kernel
-            sweep_k = (kern(sweep_prg, "sweep_warp"), kern(sweep_prg, "sweep_warped_cost")) \
-                if _split_census(o) else kern(sweep_prg, "sweep_census_cost")
-
         # The winner-take-all's per-pixel maps (index, confidence, cost, validity), if asked for.
         outs = (np.zeros((h_img, w_img), np.float32), np.zeros((h_img, w_img), np.float32),
                 np.zeros((h_img, w_img), np.float32), np.zeros((h_img, w_img), np.uint8)) \
             if wta else None
-        volume = volume_k = None
         # A host volume's labels past a block's window get the worst cost (a device volume with
         # counts is ragged and has none).
         padded = windows is not None and windows.count is not None \
             and bool(np.any(np.asarray(windows.count) < n_planes))
-        if on_device:
-            volume = bufs.alloc(volume_bytes)
-            volume_k = self.device.kernel(sweep_prg, "volume_pixel_major")
-        elif keep_volume:
-            volume = np.full((n_planes, h_img, w_img), o.max_cost, np.float32) if padded \
-                else np.empty((n_planes, h_img, w_img), np.float32)
         n_batches = n_tiles = 0
-        m = plan.margin
-        for ix0, iy0, ix1, iy1, tx0, ty0, tx1, ty1 in tile_grid(w_img, h_img, tile_w, tile_h, m):
-            tile = _Tile(tx0, ty0, tx1 - tx0, ty1 - ty0, ix0 - tx0, iy0 - ty0, ix1 - ix0,
-                         iy1 - iy0)
-            first, count = 0, n_planes
-            # where the tile's interior goes in a device volume: (row width, origin x, origin y,
-            # labels per pixel, start)
-            place = (w_img, ix0, iy0, n_planes, 0)
-            if windows is not None:
-                bi, bj = iy0 // tile_h, ix0 // tile_w
-                first, count = windows.sweep_range(bi, bj)
-                if ragged:
-                    place = (ix1 - ix0, 0, 0, count, int(block_start[bi * windows.first.shape[1]
-                                                                     + bj]))
-            n_batches += self._sweep_tile(
-                tile, plan.planes_per_batch, hom[first:first + count], count, bufs,
-                ref_buf, src_buf, off_buf, size_buf, census_k, sweep_k, filt_prg, wta_prg,
-                (w_img, h_img), outs, (ix0, iy0), volume, volume_k, place)
-            if wta:
-                outs[0][iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
-            n_tiles += 1
-        bufs.free(ref_buf, src_buf, off_buf, size_buf)
-        plane_base = None if windows is None else windows.per_pixel(ref.shape)
-        plane_count = None if windows is None else windows.counts(ref.shape)
-        if on_device:
-            volume = cla.Array(queue, (volume_bytes // 4,) if ragged else (h_img, w_img, n_planes),
-                               np.float32, data=volume)
+        with mem.allocate(run_buffers(o, volume=on_device), run_sizes, host=host) as res:
+            if o.cost_mode == "sampled_codes":
+                # Each source's codes computed on the device once, into one concatenated buffer.
+                for img, off in zip(srcs, offsets):
+                    h_s, w_s = img.shape
+                    with mem.allocate(code_buffers(), SourceSizes(img.size),
+                                      host={"img": img}) as tmp:
+                        _launch(census_k, queue, (w_s, h_s), tmp["img"], i32(w_s), i32(h_s),
+                                i32(0), i32(0), i32(w_s), i32(h_s), tmp["codes"])
+                        cl.enqueue_copy(queue, res["src_code"], tmp["codes"],
+                                        dst_offset=8 * int(off), byte_count=8 * img.size)
+                        queue.finish()
+                src_buf = res["src_code"]
+                sweep_k = self.device.kernel(sweep_prg, "sweep_code_cost")
+            else:
+                src_buf = res["src_img"]
+                kern = self.device.kernel
+                sweep_k = (kern(sweep_prg, "sweep_warp"), kern(sweep_prg, "sweep_warped_cost")) \
+                    if _split_census(o) else kern(sweep_prg, "sweep_census_cost")
+            volume = volume_k = None
+            if on_device:
+                volume = res["volume"]
+                volume_k = self.device.kernel(sweep_prg, "volume_pixel_major")
+            elif keep_volume:
+                volume = np.full((n_planes, h_img, w_img), o.max_cost, np.float32) if padded \
+                    else np.empty((n_planes, h_img, w_img), np.float32)
+            m = plan.margin
+            for ix0, iy0, ix1, iy1, tx0, ty0, tx1, ty1 in tile_grid(w_img, h_img, tile_w, tile_h,
+                                                                    m):
+                tile = _Tile(tx0, ty0, tx1 - tx0, ty1 - ty0, ix0 - tx0, iy0 - ty0, ix1 - ix0,
+                             iy1 - iy0)
+                first, count = 0, n_planes
+                # where the tile's interior goes in a device volume: (row width, origin x,
+                # origin y, labels per pixel, start)
+                place = (w_img, ix0, iy0, n_planes, 0)
+                if windows is not None:
+                    bi, bj = iy0 // tile_h, ix0 // tile_w
+                    first, count = windows.sweep_range(bi, bj)
+                    if ragged:
+                        place = (ix1 - ix0, 0, 0, count,
+                                 int(block_start[bi * windows.first.shape[1] + bj]))
+                n_batches += self._sweep_tile(
+                    tile, plan.planes_per_batch, hom[first:first + count], count, mem, res,
+                    src_buf, census_k, sweep_k, filt_prg, wta_prg, (w_img, h_img), outs,
+                    (ix0, iy0), volume, volume_k, place)
+                if wta:
+                    outs[0][iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
+                n_tiles += 1
+            if on_device:
+                volume = cla.Array(queue, (volume_floats,) if ragged else (h_img, w_img, n_planes),
+                                   np.float32, data=res.detach("volume"))
+        self.last_split = WorkSplit(n_tiles=n_tiles, n_batches=n_batches,
+                                    peak_device_bytes=mem.peak)
+        kept = None
+        if keep_volume:
+            base = None if windows is None else windows.per_pixel(ref.shape)
+            count = None if windows is None else windows.counts(ref.shape)
+            kept = CostVolume(volume, "ragged" if ragged else "pixel_major" if on_device
+                              else "plane_major", label_base=base, label_count=count,
+                              label_offset=label_offset)
         if not wta:
-            return SweepResult(height=None, plane_index=None, confidence=None, valid=None,
-                               cost_min=None, n_tiles=n_tiles, n_batches=n_batches,
-                               peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base,
-                               plane_count=plane_count, plane_offset=label_offset)
+            return None, kept
         index, out_conf, out_cost, out_valid = outs
         if not o.subplane:
             index = np.rint(index).astype(np.float32)
@@ -836,15 +918,15 @@ class PlaneSweep:
         height = np.interp(index.astype(np.float64), np.arange(n_total), hts) if n_total > 1 \
             else np.full(index.shape, hts[0])
         height[~valid] = np.nan
-        return SweepResult(height=height, plane_index=index, confidence=out_conf, valid=valid,
-                           cost_min=out_cost, n_tiles=n_tiles, n_batches=n_batches,
-                           peak_device_bytes=bufs.peak, volume=volume, plane_base=plane_base,
-                           plane_count=plane_count, plane_offset=label_offset)
+        return HeightMap(height=height, plane_index=index, confidence=out_conf, valid=valid,
+                         cost_min=out_cost, split=self.last_split), kept
 
-    def _sweep_tile(self, tile, nb_max, hom, n_planes, bufs, ref_buf, src_buf, off_buf, size_buf,
-                    census_k, sweep_k, filt_prg, wta_prg, ref_size, outs, interior_origin,
-                    volume=None, volume_k=None, place=None) -> int:
-        """Sweep one tile over the n_planes planes of ``hom``; a kept volume receives them as
+    def _sweep_tile(self, tile, nb_max, hom, n_planes, mem, res, src_buf, census_k, sweep_k,
+                    filt_prg, wta_prg, ref_size, outs, interior_origin, volume=None,
+                    volume_k=None, place=None) -> int:
+        """Sweep one tile over the n_planes planes of ``hom``, its buffers (``tile_buffers``)
+        allocated from ``mem`` for the tile alone; ``res``: the run's buffers (``run_buffers``),
+        src_buf the sources' images or codes among them. A kept volume receives the planes as
         each pixel's labels 0 .. n_planes - 1: a host volume at the interior's origin, a device
         volume as ``place`` = (out_w, ox, oy, labels per pixel, start) says (volume_pixel_major).
         outs = None: no winner-take-all (the volume only)."""
@@ -854,8 +936,10 @@ class PlaneSweep:
         queue = self.device.queue
         i32 = np.int32
         w_img, h_img = ref_size
-        tw, th, area = tile.tw, tile.th, tile.tw * tile.th
+        tw, th = tile.tw, tile.th
         n_src = hom.shape[1]
+        iw, ih = tile.iw, tile.ih
+        wta = outs is not None
 
         # Homographies in tile-local reference coordinates: H @ T(tx0, ty0), normalised, float32.
         shift = np.eye(3)
@@ -863,114 +947,97 @@ class PlaneSweep:
         local = hom @ shift
         local = local / local[:, :, 2:3, 2:3]
         hom_f32 = np.ascontiguousarray(local.reshape(n_planes, n_src, 9), dtype=np.float32)
-        hom_buf = bufs.alloc(hom_f32.nbytes, hom_f32)
+        sizes = TileSizes(tw=tw, th=th, iw=iw, ih=ih, nb=nb_max, n_planes=n_planes, n_src=n_src)
+        with mem.allocate(tile_buffers(o, wta=wta), sizes, host={"homography": hom_f32}) as b:
+            hom_buf, code_buf, ref_buf = b["homography"], b["ref_code"], res["ref_img"]
+            off_buf, size_buf = res["src_offset"], res["src_size"]
+            with self._stage("census"):
+                _launch(census_k, queue, (tw, th), ref_buf, i32(w_img), i32(h_img),
+                        i32(tile.tx0), i32(tile.ty0), i32(tw), i32(th), code_buf)
 
-        code_buf = bufs.alloc(8 * area)
-        with self._stage("census"):
-            _launch(census_k, queue, (tw, th), ref_buf, i32(w_img), i32(h_img), i32(tile.tx0),
-                    i32(tile.ty0), i32(tw), i32(th), code_buf)
+            vol_a, vol_b = b["cost"], b.get("sums")
+            guide_i, guide_mean = b.get("guide_i"), b.get("guide_mean")
+            if o.cost_filter == "guided":
+                with self._stage("filter"):
+                    self._guide_stats(filt_prg, tile, ref_buf, w_img, guide_i, guide_mean, vol_b)
 
-        nvol = _volume_planes(o, nb_max)
-        vol_a = bufs.alloc(4 * area * (nvol // 2 if o.cost_filter != "none" else nvol))
-        vol_b = bufs.alloc(4 * area * nvol // 2) if o.cost_filter != "none" else None
-        guide_i = guide_mean = None
-        if o.cost_filter == "guided":
-            guide_i = bufs.alloc(4 * area)
-            guide_mean = bufs.alloc(8 * area)
-            with self._stage("filter"):
-                self._guide_stats(filt_prg, tile, ref_buf, w_img, guide_i, guide_mean, vol_b)
+            state = b.get("state")
+            if wta:
+                wta_update = self.device.kernel(wta_prg, "wta_update")
+                _launch(self.device.kernel(wta_prg, "wta_init"), queue, (iw, ih), state,
+                        i32(iw), i32(ih))
 
-        iw, ih = tile.iw, tile.ih
-        wta = outs is not None
-        state = None
-        if wta:
-            state = bufs.alloc(4 * _WTA_NSTATE * iw * ih)
-            wta_update = self.device.kernel(wta_prg, "wta_update")
-            _launch(self.device.kernel(wta_prg, "wta_init"), queue, (iw, ih), state, i32(iw),
-                    i32(ih))
+            warped, seen = b.get("warped"), b.get("seen")
+            if _split_census(o):
+                rx, ry = o.census_radii
+                pw, ph = tw + 2 * rx, th + 2 * ry
+                chunk = _warp_chunk(o, (tw, th), nb_max, n_src)
 
-        warped = seen = None
-        if _split_census(o):
-            rx, ry = o.census_radii
-            pw, ph = tw + 2 * rx, th + 2 * ry
-            positions = _warped_positions(o, (tw, th), nb_max, n_src)
-            chunk = _warp_chunk(o, (tw, th), nb_max, n_src)
-            warped = bufs.alloc(4 * positions)
-            seen = bufs.alloc(positions)
+            # The cost of a batch lands in vol_a (first nb planes); the filters use vol_b (and the
+            # rest of vol_a) as temporaries and leave the filtered cost in vol_a. Without
+            # winner-take-all, the guided filter's last pass writes the interior straight into the
+            # pixel-major volume instead (no plane-major q, no copy).
+            ix0, iy0 = interior_origin
+            fused = (volume is not None and not isinstance(volume, np.ndarray) and not wta
+                     and o.cost_filter == "guided")
+            wgx, wgy = o.work_group
+            n_batches = 0
+            for p0 in range(0, n_planes, nb_max):
+                nb = min(nb_max, n_planes - p0)
+                with self._stage("sweep"):
+                    if warped is not None:
+                        warp_k, cost_k = sweep_k
+                        for c0 in range(0, nb, chunk):
+                            nc = min(chunk, nb - c0)
+                            _launch(warp_k, queue, (_ceil_div(pw, SWEEP_VEC), ph, nc * n_src),
+                                    src_buf, off_buf, size_buf,
+                                    hom_buf, i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0),
+                                    i32(w_img), i32(h_img), i32(p0 + c0), warped, seen)
+                            _launch(cost_k, queue, (_ceil_div(tw, SWEEP_VEC), th, nc), warped,
+                                    seen, code_buf, ref_buf, i32(tw), i32(th), i32(tile.tx0),
+                                    i32(tile.ty0), i32(w_img), i32(h_img), i32(c0), vol_a)
+                    elif o.cost_mode == "warped_census":
+                        sweep_k(queue, (_round_up(tw, wgx), _round_up(th, wgy), nb), (wgx, wgy, 1),
+                                src_buf, off_buf, size_buf, hom_buf, code_buf, ref_buf, i32(tw),
+                                i32(th), i32(tile.tx0), i32(tile.ty0), i32(w_img), i32(h_img),
+                                i32(p0), vol_a)
+                    else:
+                        _launch(sweep_k, queue, (tw, th, nb), src_buf, off_buf, size_buf, hom_buf,
+                                code_buf, i32(tw), i32(th), i32(p0), vol_a)
+                to_volume = (volume, *place, p0) if fused else None
+                with self._stage("filter"):
+                    self._filter(filt_prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume)
+                if isinstance(volume, np.ndarray):  # MRF path: the filtered interior to the host
+                    batch = np.empty((nb, th, tw), np.float32)
+                    cl.enqueue_copy(queue, batch, vol_a)
+                    volume[p0:p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
+                        batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
+                elif volume is not None and not fused:  # MRF path: the interior, pixel-major
+                    with self._stage("copy"):
+                        out_w, ox, oy, n_labels, start = place
+                        _launch(volume_k, queue, (iw, ih), vol_a,
+                                i32(tw), i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih),
+                                i32(nb), volume, i32(out_w), i32(ox), i32(oy), i32(n_labels),
+                                i32(p0), np.uint64(start))
+                if wta:
+                    with self._stage("wta"):
+                        _launch(wta_update, queue, (_ceil_div(iw, WTA_VEC), ih), vol_a, i32(tw),
+                                i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih), i32(nb),
+                                i32(p0), state)
+                n_batches += 1
 
-        # The cost of a batch lands in vol_a (first nb planes); the filters use vol_b (and the
-        # rest of vol_a) as temporaries and leave the filtered cost in vol_a. Without
-        # winner-take-all, the guided filter's last pass writes the interior straight into the
-        # pixel-major volume instead (no plane-major q, no copy).
-        ix0, iy0 = interior_origin
-        fused = (volume is not None and not isinstance(volume, np.ndarray) and not wta
-                 and o.cost_filter == "guided")
-        wgx, wgy = o.work_group
-        n_batches = 0
-        for p0 in range(0, n_planes, nb_max):
-            nb = min(nb_max, n_planes - p0)
-            with self._stage("sweep"):
-                if warped is not None:
-                    warp_k, cost_k = sweep_k
-                    for c0 in range(0, nb, chunk):
-                        nc = min(chunk, nb - c0)
-                        _launch(warp_k, queue, (_ceil_div(pw, SWEEP_VEC), ph, nc * n_src),
-                                src_buf, off_buf, size_buf,
-                                hom_buf, i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0),
-                                i32(w_img), i32(h_img), i32(p0 + c0), warped, seen)
-                        _launch(cost_k, queue, (_ceil_div(tw, SWEEP_VEC), th, nc), warped,
-                                seen, code_buf, ref_buf, i32(tw), i32(th), i32(tile.tx0),
-                                i32(tile.ty0), i32(w_img), i32(h_img), i32(c0), vol_a)
-                elif o.cost_mode == "warped_census":
-                    sweep_k(queue, (_round_up(tw, wgx), _round_up(th, wgy), nb), (wgx, wgy, 1),
-                            src_buf, off_buf, size_buf, hom_buf, code_buf, ref_buf, i32(tw),
-                            i32(th), i32(tile.tx0), i32(tile.ty0), i32(w_img), i32(h_img),
-                            i32(p0), vol_a)
-                else:
-                    _launch(sweep_k, queue, (tw, th, nb), src_buf, off_buf, size_buf, hom_buf,
-                            code_buf, i32(tw), i32(th), i32(p0), vol_a)
-            to_volume = (volume, *place, p0) if fused else None
-            with self._stage("filter"):
-                self._filter(filt_prg, tile, nb, vol_a, vol_b, guide_i, guide_mean, to_volume)
-            if isinstance(volume, np.ndarray):  # MRF path: the filtered interior to the host
-                batch = np.empty((nb, th, tw), np.float32)
-                cl.enqueue_copy(queue, batch, vol_a)
-                volume[p0:p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
-                    batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
-            elif volume is not None and not fused:  # MRF path: the interior, pixel-major
-                with self._stage("copy"):
-                    out_w, ox, oy, n_labels, start = place
-                    _launch(volume_k, queue, (iw, ih), vol_a,
-                            i32(tw), i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih),
-                            i32(nb), volume, i32(out_w), i32(ox), i32(oy), i32(n_labels),
-                            i32(p0), np.uint64(start))
             if wta:
                 with self._stage("wta"):
-                    _launch(wta_update, queue, (_ceil_div(iw, WTA_VEC), ih), vol_a, i32(tw),
-                            i32(th), i32(tile.mx), i32(tile.my), i32(iw), i32(ih), i32(nb),
-                            i32(p0), state)
-            n_batches += 1
-
-        if not wta:
+                    _launch(self.device.kernel(wta_prg, "wta_finalize"), queue, (iw, ih), state,
+                            i32(iw), i32(ih), i32(n_planes), i32(tile.mx), i32(tile.my),
+                            hom_buf, size_buf, i32(1 if o.reject_range_edges else 0),
+                            b["plane_index"], b["confidence"], b["best_cost"], b["valid"])
+                for name, host, dtype in zip(("plane_index", "confidence", "best_cost", "valid"),
+                                             outs, (np.float32, np.float32, np.float32, np.uint8)):
+                    tmp = np.empty((ih, iw), dtype)
+                    cl.enqueue_copy(queue, tmp, b[name])
+                    host[iy0:iy0 + ih, ix0:ix0 + iw] = tmp
             queue.finish()
-            bufs.free(hom_buf, code_buf, vol_a, vol_b, guide_i, guide_mean, warped, seen)
-            return n_batches
-        index = bufs.alloc(4 * iw * ih)
-        conf = bufs.alloc(4 * iw * ih)
-        best = bufs.alloc(4 * iw * ih)
-        valid = bufs.alloc(iw * ih)
-        with self._stage("wta"):
-            _launch(self.device.kernel(wta_prg, "wta_finalize"), queue, (iw, ih), state, i32(iw),
-                    i32(ih), i32(n_planes), i32(tile.mx), i32(tile.my), hom_buf, size_buf,
-                    i32(1 if o.reject_range_edges else 0), index, conf, best, valid)
-        for dev_buf, host, dtype in zip((index, conf, best, valid), outs,
-                                        (np.float32, np.float32, np.float32, np.uint8)):
-            tmp = np.empty((ih, iw), dtype)
-            cl.enqueue_copy(queue, tmp, dev_buf)
-            host[iy0:iy0 + ih, ix0:ix0 + iw] = tmp
-        queue.finish()
-        bufs.free(hom_buf, code_buf, vol_a, vol_b, guide_i, guide_mean, state, index, conf, best,
-                  valid, warped, seen)
         return n_batches
 
     def _guide_stats(self, prg, tile, ref_buf, w_img, guide_i, guide_mean, scratch) -> None:
@@ -1030,7 +1097,7 @@ class PlaneSweep:
                 i32(tile.ih), volume, i32(out_w),
                 i32(ox), i32(oy), i32(n_planes), i32(plane0), np.uint64(start))
 
-    def _lr_check(self, result: SweepResult, ref: np.ndarray, srcs: list[np.ndarray],
+    def _lr_check(self, result: HeightMap, ref: np.ndarray, srcs: list[np.ndarray],
                   hom: np.ndarray, hts: np.ndarray) -> None:
         """Sweep again with the first source as reference and keep pixels that agree.
 
@@ -1053,7 +1120,7 @@ class PlaneSweep:
         inv0 = np.linalg.inv(hom[:, 0])
         swapped = [inv0] + [hom[:, j] @ inv0 for j in range(1, len(srcs))]
         back = PlaneSweep(self.device, self.options.replace(lr_check=False))
-        other = back._sweep(srcs[0], [ref] + list(srcs[1:]), np.stack(swapped, axis=1), hts)
+        other, _ = back._sweep(srcs[0], [ref] + list(srcs[1:]), np.stack(swapped, axis=1), hts)
         return lr_consistent(plane_index, valid, other.plane_index, other.valid, hom[:, 0],
                              self.options.lr_tolerance_planes)
 
@@ -1152,13 +1219,15 @@ def lr_consistent(index_ref: np.ndarray, valid_ref: np.ndarray, index_src: np.nd
 
 def sweep_views(device: Device, ref_image, src_images: Sequence, ref_proj, src_projs: Sequence, *,
                 heights=None, alt_range: tuple[float, float] | None = None,
-                options: SweepOptions | None = None, keep_volume: bool = False,
-                frame=None) -> tuple[SweepResult, np.ndarray]:
-    """Sweep with projections from ``satsweep.geometry.camera`` (homographies by ``plane_homography``).
+                options: SweepOptions | None = None,
+                frame=None) -> tuple[HeightMap, np.ndarray]:
+    """The winner-take-all height map of a sweep with projections from
+    ``satsweep.geometry.camera`` (homographies by ``view_homographies``).
 
     Either ``heights`` (ENU up, metres) or ``alt_range`` (then spaced by ``plane_heights``) is
-    given. With ``frame`` (the ``ENUFrame`` of the projections) ``SweepResult.altitude`` holds the
-    heights above the ellipsoid (``ellipsoid_heights``). Returns the result and the plane heights.
+    given. With ``frame`` (the ``ENUFrame`` of the projections) ``HeightMap.altitude`` holds the
+    heights above the ellipsoid (``ellipsoid_heights``). Returns the height map and the plane
+    heights.
     """
     opts = options if options is not None else SweepOptions()
     if len(src_projs) != len(src_images):
@@ -1171,8 +1240,7 @@ def sweep_views(device: Device, ref_image, src_images: Sequence, ref_proj, src_p
                                 ref_shape=np.asarray(ref_image).shape)
     heights = np.asarray(heights, dtype=np.float64)
     hom = view_homographies(ref_proj, src_projs, heights)
-    result = PlaneSweep(device, opts).run(ref_image, src_images, hom, heights,
-                                          keep_volume=keep_volume)
+    result = PlaneSweep(device, opts).height_map(ref_image, src_images, hom, heights)
     if frame is not None:
         result.altitude = ellipsoid_heights(result.height, ref_proj, frame)
     return result, heights

@@ -22,8 +22,12 @@ if TYPE_CHECKING:
 
 # Smallest interior side (pixels) of an MRF tile (below it, overlaps dominate the work).
 MIN_MRF_TILE_PX = 64
-# Cost volumes SGM holds on the device at once (sgm_aggregate: pixel-major costs and sums, and
-# the input volume while it is converted).
+# Cost volumes budgeted per MRF tile on the device. SGM's buffer tables (satsweep.dense.sgm) hold
+# two volume-sized buffers at a time (the pixel-major costs, kept by the sweep or copied, and the
+# sums; or, while a host volume is converted, it and its copy), plus per-pixel arrays (guide,
+# windows, the WTA state) and the scan's scratch (about 12 / H of a volume): the third volume is
+# room for those. A bound rather than a sum of the tables, kept as it was: the MRF tiles, and so
+# the results, depend on it.
 SGM_DEVICE_VOLUMES = 3
 
 
@@ -108,13 +112,13 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
     does. The sweep runs with ``mrf_sweep_options(sweep, mrf)``. With ``sweep.search =
     "coarse_to_fine"`` and SGM, the reference is first swept and refined at half resolution
     (``coarse_plane_index``) and each tile then sweeps plane windows (``satsweep.dense.coarse``).
-    ``progress(done, total)`` is called after each tile. Returns (SweepResult with
-    n_tiles = the MRF tiles, MRF seconds).
+    ``progress(done, total)`` is called after each tile. Returns (HeightMap whose split counts
+    the MRF tiles, MRF seconds).
     """
     from satsweep.dense.coarse import plane_windows  # noqa: PLC0415
     from satsweep.dense.mrf import refine  # noqa: PLC0415
     from satsweep.dense.planes import visible_at
-    from satsweep.dense.sweep import PlaneSweep, SweepResult, prefilter, tile_grid
+    from satsweep.dense.sweep import HeightMap, PlaneSweep, WorkSplit, prefilter, tile_grid
 
     ref = guide = np.ascontiguousarray(ref_image, dtype=np.float32)
     srcs = raw_srcs = [np.ascontiguousarray(s, dtype=np.float32) for s in src_images]
@@ -159,21 +163,22 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
                                    block=sweep.window_block_px, halo=sweep.window_halo_px,
                                    margin=sweep.window_margin_planes,
                                    max_fraction=sweep.window_max_fraction)
-        r = engine.run(ref[ty0:ty1, tx0:tx1], tile_srcs, tile_hom, hts, keep_volume=True,
-                       volume_on_device=on_device, plane_windows=planes,
-                       winner_take_all=with_wta)
+        tile_ref, r = ref[ty0:ty1, tx0:tx1], None
+        if with_wta:
+            r, volume = engine.height_map_with_cost_volume(tile_ref, tile_srcs, tile_hom, hts,
+                                                           windows=planes, on_device=on_device)
+        elif on_device:
+            volume = engine.cost_volume_on_device(tile_ref, tile_srcs, tile_hom, hts,
+                                                  windows=planes)
+        else:
+            volume = engine.cost_volume(tile_ref, tile_srcs, tile_hom, hts, windows=planes)
         window_planes = max(window_planes, hts.size if planes is None else planes.n_planes)
         initial = None if not with_wta else \
             np.clip(np.rint(r.plane_index), 0, hts.size - 1).astype(np.int32)
-        try:
-            m = refine(device, r.volume, guide[ty0:ty1, tx0:tx1], hts, mrf,
+        with volume:  # a device volume is freed here
+            m = refine(device, volume, guide[ty0:ty1, tx0:tx1], hts, mrf,
                        cost_scale=float(sweep.census_bits),
-                       reject_range_edges=sweep.reject_range_edges, initial_labels=initial,
-                       pixel_major=on_device, label_base=r.plane_base,
-                       label_count=r.plane_count, label_offset=r.plane_offset)
-        finally:
-            if on_device:
-                r.volume.data.release()
+                       reject_range_edges=sweep.reject_range_edges, initial_labels=initial)
         keep = (slice(y0 - ty0, y1 - ty0), slice(x0 - tx0, x1 - tx0))
         out = (slice(y0, y1), slice(x0, x1))
         # Pixels that no source sees at the chosen plane are invalid.
@@ -186,16 +191,17 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
         confidence[out] = m.confidence[keep]
         cost_min[out] = m.cost_min[keep]
         n_tiles += 1
-        peak = max(peak, r.peak_device_bytes)
+        peak = max(peak, engine.last_split.peak_device_bytes)
         seconds += m.seconds
         if progress is not None:
             progress(n_tiles, len(tiles))
     if sweep.lr_check:
         valid &= engine.lr_mask(wta_index, wta_valid, ref, srcs, hom, hts)
     height[~valid] = np.nan
-    return SweepResult(height=height, plane_index=plane_index, confidence=confidence, valid=valid,
-                       cost_min=cost_min, n_tiles=n_tiles, peak_device_bytes=peak,
-                       window_planes=window_planes if coarse is not None else None), seconds
+    split = WorkSplit(n_tiles=n_tiles, peak_device_bytes=peak,
+                      window_planes=window_planes if coarse is not None else None)
+    return HeightMap(height=height, plane_index=plane_index, confidence=confidence, valid=valid,
+                     cost_min=cost_min, split=split), seconds
 
 
 def coarse_pass_planes(sweep: SweepOptions, mrf: MRFOptions, shape: tuple[int, int],

@@ -8,10 +8,13 @@ builds kernels.
   ``auto`` prefers a GPU. A requested device that is missing is a ``DeviceError`` listing what
   exists: there is never a silent fallback to another device.
 - ``Device`` holds a context and an in-order queue and builds programs from ``kernels/`` with the
-  folder on the include path and compile-time constants as ``-D`` options. pyopencl's binary cache
-  is used, so a second build of the same source and options is fast (though not free: 40-100 ms
-  per program on PoCL). ``Device.prebuild`` builds programs that a run will need in a background
-  thread while the host does other work; ``Device.build`` then waits for them.
+  folder on the include path and compile-time constants as ``-D`` options: each build's own
+  sizes and switches, plus the constants that the host and every kernel share
+  (``satsweep.opencl.constants.SHARED_DEFINES``, which a build may not redefine). pyopencl's
+  binary cache is used, so a second build of the same source and options is fast (though not
+  free: 40-100 ms per program on PoCL). ``Device.prebuild`` builds programs that a run will
+  need in a background thread while the host does other work; ``Device.build`` then waits for
+  them.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from satsweep.errors import DeviceError, KernelBuildError
+from satsweep.opencl.constants import SHARED_DEFINES
 
 ENV_VAR = "SATSWEEP_DEVICE"
 
@@ -201,18 +205,29 @@ def select_device(spec: str | None = None) -> DeviceInfo:
 
 
 def _define_value(value) -> str:
+    """The text of a -D value: integers as they are, floats as float32 literals (``1.5f``), a
+    negative number in parentheses (a macro that expands safely in any expression)."""
     if isinstance(value, bool):
         return "1" if value else "0"
     if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    if isinstance(value, (float, np.floating)):
-        return repr(float(value)) + "f"
-    return str(value)
+        text = str(int(value))
+    elif isinstance(value, (float, np.floating)):
+        text = repr(float(value)) + "f"
+    else:
+        return str(value)
+    return f"({text})" if text.startswith("-") else text
 
 
 def _options(defines: Mapping[str, object] | None) -> list[str]:
+    """Build options: the kernel folder on the include path, the shared constants and
+    ``defines`` as -D definitions. ValueError when ``defines`` redefines a shared constant."""
+    defines = dict(defines or {})
+    clash = sorted(set(defines) & set(SHARED_DEFINES))
+    if clash:
+        raise ValueError(f"{', '.join(clash)}: shared constant(s) of satsweep/opencl/constants.py, "
+                         "passed to every build; a build's defines may not set them")
     opts = ["-I", str(kernel_dir())]
-    for name, value in sorted((defines or {}).items()):
+    for name, value in sorted({**SHARED_DEFINES, **defines}.items()):
         opts.append(f"-D{name}={_define_value(value)}")
     return opts
 
@@ -246,8 +261,10 @@ class Device:
         return source, tuple(sorted((defines or {}).items()))
 
     def build(self, source: str, defines: Mapping[str, object] | None = None):
-        """Build ``kernels/<source>.cl`` with ``-D`` constants; cached per (source, defines).
-        A program that ``prebuild`` is building is waited for (its build error raised here)."""
+        """Build ``kernels/<source>.cl`` with ``-D`` constants: ``defines`` and the shared
+        constants (``SHARED_DEFINES``, which ``defines`` may not set: KernelBuildError); cached
+        per (source, defines). A program that ``prebuild`` is building is waited for (its build
+        error raised here)."""
         key = self._key(source, defines)
         with self._lock:
             prg = self._programs.get(key)
@@ -301,7 +318,11 @@ class Device:
         except FileNotFoundError:
             raise KernelBuildError(f"{path}: kernel source does not exist") from None
         try:
-            return cl.Program(self.context, text).build(options=_options(defines))
+            options = _options(defines)
+        except ValueError as exc:
+            raise KernelBuildError(f"{path}: {exc}") from None
+        try:
+            return cl.Program(self.context, text).build(options=options)
         except cl.Error as exc:
             raise KernelBuildError(
                 f"{path}: build failed on {self.info.label}: {str(exc).strip()[:2000]}"

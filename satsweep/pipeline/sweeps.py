@@ -144,11 +144,12 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
                     device, ref_image, src_images, hom, heights, config.sweep, config.mrf,
                     progress=rep.progress("sweep tiles", 1).callback(names[r]))
             else:
-                result = PlaneSweep(device, config.sweep).run(ref_image, src_images, hom, heights)
+                result = PlaneSweep(device, config.sweep).height_map(ref_image, src_images, hom,
+                                                                      heights)
         if with_mrf:
             rep.move_time("sweep", "mrf", seconds)
             mrf_info = {"method": config.mrf.method, "seconds": seconds,
-                        "tiles": int(result.n_tiles),
+                        "tiles": int(result.split.n_tiles),
                         "valid_fraction": float(np.mean(result.valid))}
         progress.update(k + 1, names[r])
         height, valid, confidence = _placed(result, window, shape)
@@ -160,7 +161,8 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             sources=tuple(names[s] for s in srcs), planes=int(len(heights)),
             plane_step_m=float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
             window=tuple(int(v) for v in window), valid_fraction=float(np.mean(result.valid)),
-            tiles=int(result.n_tiles), window_planes=result.window_planes, mrf=mrf_info,
+            tiles=int(result.split.n_tiles), window_planes=result.split.window_planes,
+            mrf=mrf_info,
             at_range_ends=ends))
     return out
 

@@ -13,7 +13,8 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from satsweep.dense.sweep import SWEEP_VEC, WTA_VEC, PlaneSweep, SweepOptions, box_chunk
+from satsweep.dense.sweep import PlaneSweep, SweepOptions, box_chunk
+from satsweep.opencl.constants import SWEEP_VEC, WTA_BIG, WTA_NSTATE, WTA_SLOT, WTA_VEC
 from tests import reference_sweep as ref
 
 F32_EPS = float(np.finfo(np.float32).eps)
@@ -80,7 +81,7 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
     h, w = ref_img.shape
     tx0, ty0, tw, th = tile if tile is not None else (0, 0, w, h)
     n_planes, n_src = hom.shape[:2]
-    defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": k, "SWEEP_VEC": SWEEP_VEC}
+    defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": k}
     if ad is not None:
         defs.update({"AD_WEIGHT": float(ad[0]), "AD_TRUNC": float(ad[1])})
     if grad is not None:
@@ -212,8 +213,7 @@ def test_warped_census_cost_on_a_tile_equals_the_whole_image(cl_device, form):
 def test_warp_image_matches_bilinear_reference(cl_device):
     rng = np.random.default_rng(5)
     src = rng.random((50, 60)).astype(np.float32)
-    prg = cl_device.build("sweep", {"CENSUS_RX": 1, "CENSUS_RY": 1, "NSRC": 1, "NBEST": 1,
-                                    "SWEEP_VEC": SWEEP_VEC})
+    prg = cl_device.build("sweep", {"CENSUS_RX": 1, "CENSUS_RY": 1, "NSRC": 1, "NBEST": 1})
     # A perspective homography (rotation, scale, shear, mild projective terms).
     hom = np.array([[0.93, 0.21, 4.3], [-0.17, 1.08, -2.6], [2.1e-4, -1.3e-4, 1.0]])
     out_h, out_w = 44, 57
@@ -397,10 +397,10 @@ def _wta_dev(dev, vol, hom, src_shapes, nb, reject_edges, rx=4, ry=3):
     """Stream vol (n_planes, h, w) through wta_update in batches of nb, then finalize."""
     n_planes, h, w = vol.shape
     n_src = len(src_shapes)
-    prg = dev.build("wta", {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry, "WTA_VEC": WTA_VEC})
+    prg = dev.build("wta", {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry})
     i32 = np.int32
     q = dev.queue
-    state = _empty(dev, 4 * 8 * h * w)
+    state = _empty(dev, 4 * WTA_NSTATE * h * w)
     cl.Kernel(prg, "wta_init")(q, (w, h), None, state, i32(w), i32(h))
     upd = cl.Kernel(prg, "wta_update")
     for p0 in range(0, n_planes, nb):
@@ -431,29 +431,75 @@ def test_wta_pixel_major_equals_streaming_state(cl_device, counted):
     vol[:, 5, :] = np.arange(n_planes, dtype=np.float32)[:, None]
     count = rng.integers(1, n_planes + 1, (h, w)).astype(np.int32)
     count[10:, :] = 6  # whole work-items of one count
-    prg = cl_device.build("wta", {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1, "WTA_VEC": WTA_VEC})
+    prg = cl_device.build("wta", {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1})
     i32, q = np.int32, cl_device.queue
-    want = np.empty((8, h, w), np.float32)
+    want = np.empty((WTA_NSTATE, h, w), np.float32)
     for n in (np.unique(count) if counted else [n_planes]):
-        streamed = _empty(cl_device, 4 * 8 * h * w)
+        streamed = _empty(cl_device, 4 * WTA_NSTATE * h * w)
         cl.Kernel(prg, "wta_init")(q, (w, h), None, streamed, i32(w), i32(h))
         cl.Kernel(prg, "wta_update")(q, (-(-w // WTA_VEC), h), None,
                                      _buf(cl_device, np.ascontiguousarray(vol[:n])), i32(w),
                                      i32(h), i32(0), i32(0), i32(w), i32(h), i32(n), i32(0),
                                      streamed)
-        state = _read(cl_device, streamed, (8, h, w), np.float32)
+        state = _read(cl_device, streamed, (WTA_NSTATE, h, w), np.float32)
         mine = (count == n) if counted else np.ones((h, w), bool)
         want[:, mine] = state[:, mine]
-    one_pass = _empty(cl_device, 4 * 8 * h * w)
+    one_pass = _empty(cl_device, 4 * WTA_NSTATE * h * w)
     pixel_major = np.ascontiguousarray(vol.transpose(1, 2, 0))
     cl.Kernel(prg, "wta_pixel_major")(q, (-(-h * w // WTA_VEC),), None, _buf(cl_device, pixel_major),
                                       i32(h * w), i32(n_planes), _buf(cl_device, count),
                                       _buf(cl_device, np.arange(h * w, dtype=np.uint64) * n_planes),
                                       i32(1 if counted else 0), one_pass)
-    got = _read(cl_device, one_pass, (8, h, w), np.float32)
+    got = _read(cl_device, one_pass, (WTA_NSTATE, h, w), np.float32)
     np.testing.assert_array_equal(got, want)
     if not counted:  # (a truncated pixel's minimum may be its last plane, tested at the finish)
-        assert (want[1] >= 0).all()  # every pixel found a minimum (field I1)
+        assert (want[WTA_SLOT["I1"]] >= 0).all()  # every pixel found a minimum
+
+
+@pytest.mark.parametrize("counted", [False, True])
+def test_wta_close_leaves_the_reference_minima(cl_device, counted):
+    """wta_pixel_major then wta_close (SGM's winner-take-all): each pixel's closed state holds,
+    over its planes (its first count planes with counts), the first argmin (I1), its cost (M1),
+    the costs of the planes around it (M1P, M1N: WTA_BIG past the pixel's first or last plane)
+    and the second-lowest local minimum, or the largest cost where there is none (M2), as the
+    numpy reference finds them. Costs on a 1/4 grid are exact in float32: equal, bit for bit."""
+    rng = np.random.default_rng(43)
+    n_planes, h, w = 12, 15, 21
+    vol = (rng.integers(0, 40, (n_planes, h, w)) / 4).astype(np.float32)
+    vol[:, :3, :3] = 5.0  # constant: one minimum, at the first plane, and no second one
+    vol[:, 5, :] = -np.arange(n_planes, dtype=np.float32)[:, None]  # the minimum at the last
+    count = rng.integers(1, n_planes + 1, (h, w)).astype(np.int32) if counted \
+        else np.full((h, w), n_planes, np.int32)
+    prg = cl_device.build("wta", {"NSRC": 1, "CENSUS_RX": 1, "CENSUS_RY": 1})
+    i32, q = np.int32, cl_device.queue
+    state = _empty(cl_device, 4 * WTA_NSTATE * h * w)
+    count_buf = _buf(cl_device, count)
+    cl.Kernel(prg, "wta_pixel_major")(q, (-(-h * w // WTA_VEC),), None,
+                                      _buf(cl_device, np.ascontiguousarray(vol.transpose(1, 2, 0))),
+                                      i32(h * w), i32(n_planes), count_buf,
+                                      _buf(cl_device, np.arange(h * w, dtype=np.uint64) * n_planes),
+                                      i32(1 if counted else 0), state)
+    cl.Kernel(prg, "wta_close")(q, (h * w,), None, state, i32(h * w), i32(n_planes), count_buf,
+                                i32(1 if counted else 0))
+    got = _read(cl_device, state, (WTA_NSTATE, h, w), np.float32)
+    big = np.float32(WTA_BIG)
+    for n in np.unique(count):
+        mine = count == n
+        part = vol[:n].astype(np.float64)
+        i1, _, _, m1 = ref.wta(part, 1.0)
+        edge = np.full((1, h, w), np.inf)
+        prev, nxt = np.concatenate([edge, part[:-1]]), np.concatenate([part[1:], edge])
+        before = np.take_along_axis(prev, i1[None], 0)[0]
+        after = np.take_along_axis(nxt, i1[None], 0)[0]
+        others = np.where((part < prev) & (part <= nxt), part, np.inf)  # the local minima
+        np.put_along_axis(others, i1[None], np.inf, 0)
+        m2 = np.where(np.isfinite(others.min(0)), others.min(0), part.max(0))
+        want = {"I1": i1, "M1": m1, "M1P": np.where(np.isinf(before), big, before),
+                "M1N": np.where(np.isinf(after), big, after), "M2": m2}
+        for field, value in want.items():
+            np.testing.assert_array_equal(got[WTA_SLOT[field]][mine],
+                                          value.astype(np.float32)[mine], err_msg=field)
+    assert (got[WTA_SLOT["I1"]][5] == count[5] - 1).all()  # the last plane, tested on closing
 
 
 @pytest.mark.parametrize("nb", [1, 3, 16])

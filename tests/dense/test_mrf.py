@@ -14,7 +14,9 @@ import pytest
 
 from satsweep.dense import graphcut, mrf, sgm
 from satsweep.dense.planes import translation_homographies
+from satsweep.dense.volume import CostVolume
 from satsweep.errors import InputError, OptionsError
+from satsweep.opencl.constants import SATSWEEP_INVALID
 from tests import reference_sweep, synthetic_volumes
 from tests.reference_sgm import aggregate as reference_aggregate
 
@@ -58,12 +60,19 @@ def _random_volume(seed: int, shape=SMALL, scale: float = 24.0):
     rng = np.random.default_rng(seed)
     n_labels, h, w = shape
     cost = rng.uniform(0.0, scale, shape).astype(np.float32)
-    cost[:, 3, 4] = mrf.SATSWEEP_INVALID        # a pixel no source sees: filled by smoothness
-    cost[n_labels // 2, h - 2, w - 3] = mrf.SATSWEEP_INVALID  # one missing plane
+    cost[:, 3, 4] = SATSWEEP_INVALID        # a pixel no source sees: filled by smoothness
+    cost[n_labels // 2, h - 2, w - 3] = SATSWEEP_INVALID  # one missing plane
     cost[1, h - 1, 0] = np.nan                  # NaN reads as missing too
     guide = rng.uniform(0.0, 1.0, (h, w)).astype(np.float32)
     guide[:, w // 2:] += 0.5                    # a strong edge where P2 drops
     return cost, guide
+
+
+def _sums(device, volume: CostVolume, guide, opts, **kw) -> np.ndarray:
+    """sgm_aggregate's plane-major sums, on the host (the device copy released)."""
+    with sgm.sgm_aggregate(device, volume, guide, opts, **kw) as sums:
+        assert sums.on_device and sums.layout == "plane_major"
+        return sums.data.get()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -76,7 +85,7 @@ def test_sgm_aggregate_matches_reference(cl_device, paths, work_group, scan):
     cost, guide = _random_volume(1, scale=scale)
     opts = mrf.MRFOptions(sgm_paths=paths, sgm_work_group=work_group, sgm_p1=0.08,
                           sgm_p2=0.6, sgm_p2_sigma=0.2, sgm_scan=scan)
-    got = sgm.sgm_aggregate(cl_device, cost, guide, opts, cost_scale=scale).get()
+    got = _sums(cl_device, CostVolume(cost), guide, opts, cost_scale=scale)
     want = reference_aggregate(cost, guide, n_paths=paths, p1=0.08 * scale, p2=0.6 * scale,
                                inv_sigma=1.0 / 0.2, missing_cost=scale)
     assert got.shape == want.shape
@@ -109,7 +118,7 @@ def test_sgm_label_counts_off_the_vector_width_match_reference(cl_device, n_labe
     scale = 24.0
     cost, guide = _random_volume(3, shape=(n_labels, 11, 9), scale=scale)
     opts = mrf.MRFOptions(sgm_paths=8, sgm_work_group=1, sgm_p1=0.08, sgm_p2=0.6, sgm_p2_sigma=0.2)
-    got = sgm.sgm_aggregate(cl_device, cost, guide, opts, cost_scale=scale).get()
+    got = _sums(cl_device, CostVolume(cost), guide, opts, cost_scale=scale)
     want = reference_aggregate(cost, guide, n_paths=8, p1=0.08 * scale, p2=0.6 * scale,
                                inv_sigma=1.0 / 0.2, missing_cost=scale)
     np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
@@ -148,8 +157,8 @@ def test_sgm_label_bands_match_reference(cl_device, work_group, scan, n_labels, 
     count = _block_counts(8, cost.shape[1:], 4, n_labels) if counted else None
     opts = mrf.MRFOptions(sgm_paths=8, sgm_work_group=work_group, sgm_p1=0.08, sgm_p2=0.6,
                           sgm_p2_sigma=0.2, sgm_scan=scan)
-    got = sgm.sgm_aggregate(cl_device, cost, guide, opts, cost_scale=scale,
-                            label_base=base, label_count=count).get()
+    got = _sums(cl_device, CostVolume(cost, label_base=base, label_count=count), guide, opts,
+                cost_scale=scale)
     want = reference_aggregate(cost, guide, n_paths=8, p1=0.08 * scale, p2=0.6 * scale,
                                inv_sigma=1.0 / 0.2, missing_cost=scale, label_base=base,
                                label_count=count)
@@ -187,19 +196,18 @@ def test_sgm_refine_with_label_counts_stays_in_each_window(cl_device, roof_scene
     window = np.take_along_axis(vol.cost, planes, axis=0)
     window[d >= count[None]] = np.float32(1e30)  # never read: a huge value would show if it were
     opts = mrf.MRFOptions()
-    got = sgm.sgm_refine(cl_device, window, vol.guide, vol.heights, opts, label_base=first,
-                         label_count=count, cost_scale=vol.cost_scale)
+    got = sgm.sgm_refine(cl_device, CostVolume(window, label_base=first, label_count=count),
+                         vol.guide, vol.heights, opts, cost_scale=vol.cost_scale)
     rel = got.labels - first
     assert (rel >= 0).all() and (rel < count).all()
     assert not got.valid[(rel == 0) | (rel == count - 1)].any()
-    full = sgm.sgm_refine(cl_device, vol.cost, vol.guide, vol.heights, opts,
+    full = sgm.sgm_refine(cl_device, CostVolume(vol.cost), vol.guide, vol.heights, opts,
                           cost_scale=vol.cost_scale)
     holds = (vol.truth_labels >= first + 1) & (vol.truth_labels < first + count - 1) & ~vol.roof
     same = np.abs(got.labels[holds] - full.labels[holds]) <= 1
     assert holds.sum() > 500 and same.mean() > WINDOWED_AGREEMENT
     with pytest.raises(InputError, match="label_count"):
-        sgm.sgm_refine(cl_device, window, vol.guide, vol.heights, opts, label_base=first,
-                       label_count=count + stride)
+        CostVolume(window, label_base=first, label_count=count + stride)
     # The same windows in a ragged device volume (each pixel just its labels, packed in reverse
     # pixel order so that the offsets matter): the same result.
     import pyopencl.array as cla
@@ -208,13 +216,13 @@ def test_sgm_refine_with_label_counts_stays_in_each_window(cl_device, roof_scene
     offset = (np.cumsum(sizes) - sizes)[::-1].reshape(h, w)
     packed = np.concatenate([window[:n, i, j] for (i, j), n in
                              sorted(np.ndenumerate(count), key=lambda t: -(t[0][0] * w + t[0][1]))])
-    ragged = cla.to_device(cl_device.queue, packed.astype(np.float32))
-    try:
+    ragged = CostVolume(cla.to_device(cl_device.queue, packed.astype(np.float32)), "ragged",
+                        label_base=first, label_count=count, label_offset=offset)
+    with ragged:
         same_windows = sgm.sgm_refine(cl_device, ragged, vol.guide, vol.heights, opts,
-                                      label_base=first, label_count=count, label_offset=offset,
-                                      pixel_major=True, cost_scale=vol.cost_scale)
-    finally:
-        ragged.data.release()
+                                      cost_scale=vol.cost_scale)
+        with pytest.raises(InputError, match="ragged"):
+            sgm.sgm_aggregate(cl_device, ragged, vol.guide, opts)
     np.testing.assert_array_equal(same_windows.labels, got.labels)
     np.testing.assert_array_equal(same_windows.plane_index, got.plane_index)
     np.testing.assert_array_equal(same_windows.valid, got.valid)
@@ -228,17 +236,17 @@ def test_sgm_bands_of_one_window_are_plain_sgm_on_it(cl_device, roof_scene):
     window = np.ascontiguousarray(vol.cost[b:b + n_win])
     base = np.full(window.shape[1:], b, np.int32)
     opts = mrf.MRFOptions()
-    banded = sgm.sgm_refine(cl_device, window, vol.guide, vol.heights, opts, label_base=base,
-                            cost_scale=vol.cost_scale)
-    plain = sgm.sgm_refine(cl_device, window, vol.guide, vol.heights[b:b + n_win], opts,
-                           cost_scale=vol.cost_scale)
+    banded = sgm.sgm_refine(cl_device, CostVolume(window, label_base=base), vol.guide,
+                            vol.heights, opts, cost_scale=vol.cost_scale)
+    plain = sgm.sgm_refine(cl_device, CostVolume(window), vol.guide, vol.heights[b:b + n_win],
+                           opts, cost_scale=vol.cost_scale)
     np.testing.assert_array_equal(banded.labels, plain.labels + b)
     np.testing.assert_allclose(banded.plane_index, plain.plane_index + b, atol=INDEX_TOL)
     np.testing.assert_array_equal(banded.valid, plain.valid)
     np.testing.assert_allclose(banded.height[banded.valid], plain.height[plain.valid], atol=1e-9)
     with pytest.raises(InputError, match="label_base"):
-        sgm.sgm_refine(cl_device, window, vol.guide, vol.heights, opts,
-                       label_base=base + vol.heights.size)
+        sgm.sgm_refine(cl_device, CostVolume(window, label_base=base + vol.heights.size),
+                       vol.guide, vol.heights, opts)
 
 
 @pytest.mark.parametrize("banded", [False, True])
@@ -330,39 +338,72 @@ def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape, banded):
 def test_sgm_without_p2_adaptation_matches_reference(cl_device):
     cost, guide = _random_volume(2, shape=(5, 9, 7), scale=1.0)
     opts = mrf.MRFOptions(sgm_p2_sigma=0.0, sgm_p1=0.2, sgm_p2=0.7)
-    got = sgm.sgm_aggregate(cl_device, cost, guide, opts).get()
+    got = _sums(cl_device, CostVolume(cost), guide, opts)
     want = reference_aggregate(cost, guide, n_paths=8, p1=0.2, p2=0.7, inv_sigma=0.0,
                                missing_cost=1.0)
     np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
 
 
-def test_sgm_accepts_device_arrays_and_buffers(cl_device):
+def test_sgm_takes_every_layout_of_cost_volume(cl_device):
+    """A host volume, a plane-major device array (also one wrapping a bare buffer) and a
+    pixel-major device array, the layout the sweep keeps on the device: the same sums."""
     import pyopencl.array as cla
 
     cost, guide = _random_volume(3)
     opts = mrf.MRFOptions()
-    from_host = sgm.sgm_aggregate(cl_device, cost, guide, opts, cost_scale=24.0).get()
+    from_host = _sums(cl_device, CostVolume(cost), guide, opts, cost_scale=24.0)
     arr = cla.to_device(cl_device.queue, cost)
-    from_array = sgm.sgm_aggregate(cl_device, arr, guide, opts, cost_scale=24.0).get()
-    from_buffer = sgm.sgm_aggregate(cl_device, arr.data, guide, opts, cost_scale=24.0,
-                                    shape=cost.shape).get()
+    from_array = _sums(cl_device, CostVolume(arr), guide, opts, cost_scale=24.0)
+    wrapped = cla.Array(cl_device.queue, cost.shape, np.float32, data=arr.data)
+    from_buffer = _sums(cl_device, CostVolume(wrapped), guide, opts, cost_scale=24.0)
     np.testing.assert_array_equal(from_array, from_host)
     np.testing.assert_array_equal(from_buffer, from_host)
-    with pytest.raises(InputError, match="shape"):
-        sgm.sgm_aggregate(cl_device, arr.data, guide, opts)
-    # Pixel-major (H, W, L), the layout the sweep keeps on the device, taken as it is: with the
-    # invalid entries already replaced by the missing cost (cost_scale), the same sums.
-    replaced = np.where(np.isnan(cost) | (cost <= mrf.SATSWEEP_INVALID / 2), 24.0, cost)
-    pixel_major = cla.to_device(cl_device.queue,
-                                np.ascontiguousarray(replaced.transpose(1, 2, 0), np.float32))
-    from_pm = sgm.sgm_aggregate(cl_device, pixel_major, guide, opts, cost_scale=24.0,
-                                pixel_major=True).get()
+    # Pixel-major (H, W, L), taken as it is: with the invalid entries already replaced by the
+    # missing cost (cost_scale), the same sums.
+    replaced = np.where(np.isnan(cost) | (cost <= SATSWEEP_INVALID / 2), 24.0, cost)
+    pixel_major = CostVolume(cla.to_device(
+        cl_device.queue, np.ascontiguousarray(replaced.transpose(1, 2, 0), np.float32)),
+        "pixel_major")
+    assert pixel_major.dims == cost.shape and pixel_major.on_device
+    from_pm = _sums(cl_device, pixel_major, guide, opts, cost_scale=24.0)
     np.testing.assert_array_equal(from_pm, from_host)
-    with pytest.raises(InputError, match="pixel-major"):
-        sgm.sgm_aggregate(cl_device, cost, guide, opts, pixel_major=True)
+    with pytest.raises(InputError, match="host volume is plane-major"):
+        CostVolume(cost, "pixel_major")
     with pytest.raises(InputError, match="plane-major host volume"):
         mrf.refine(cl_device, pixel_major, guide, np.arange(cost.shape[0], dtype=float),
-                   mrf.MRFOptions(method="graphcut"), pixel_major=True)
+                   mrf.MRFOptions(method="graphcut"))
+    with pytest.raises(InputError, match="view"):
+        CostVolume(arr[1:])
+    with pytest.raises(InputError, match="CostVolume"):
+        sgm.sgm_refine(cl_device, cost, guide, np.arange(cost.shape[0], dtype=float), opts)
+
+
+def test_a_failing_sgm_releases_its_device_buffers(cl_device, monkeypatch):
+    """A launch that fails after the aggregation (the winner-take-all of the sums) leaves no
+    device buffer of SGM's held."""
+    memories = []
+
+    class Recorded(sgm.DeviceMemory):
+        def __init__(self, context):
+            super().__init__(context)
+            memories.append(self)
+
+    real = cl_device.kernel
+
+    def kernel(program, name):
+        if name == "wta_close":
+            def fail(*args):
+                raise RuntimeError("launch failed")
+            return fail
+        return real(program, name)
+
+    monkeypatch.setattr(sgm, "DeviceMemory", Recorded)
+    monkeypatch.setattr(cl_device, "kernel", kernel)
+    cost, guide = _random_volume(2)
+    with pytest.raises(RuntimeError, match="launch failed"):
+        sgm.sgm_refine(cl_device, CostVolume(cost), guide, np.arange(cost.shape[0], dtype=float),
+                       mrf.MRFOptions(), cost_scale=24.0)
+    assert memories[-1].peak > 4 * cost.size and memories[-1].live == 0
 
 
 def _numpy_wta(vol: np.ndarray, subplane: str = "parabola"):
@@ -403,7 +444,7 @@ def test_sgm_refine_matches_numpy_wta(cl_device, subplane):
     rng = np.random.default_rng(5)
     visible = rng.uniform(size=cost.shape) > 0.2           # per-plane visibility
     opts = mrf.MRFOptions(sgm_paths=8, sgm_subplane=subplane)
-    res = sgm.sgm_refine(cl_device, cost, guide, heights, opts, cost_scale=scale,
+    res = sgm.sgm_refine(cl_device, CostVolume(cost), guide, heights, opts, cost_scale=scale,
                          visible=visible, reject_range_edges=True)
     agg = reference_aggregate(cost, guide, n_paths=8, p1=opts.sgm_p1 * scale,
                               p2=opts.sgm_p2 * scale, inv_sigma=1.0 / opts.sgm_p2_sigma,
@@ -447,7 +488,7 @@ def test_energy_matches_naive_sum():
     guide = rng.uniform(0, 1, (5, 6)).astype(np.float32)
     labels = rng.integers(0, 7, (5, 6))
     opts = mrf.MRFOptions(gc_smoothness=0.3, gc_edge_sigma=0.2, gc_truncation_labels=2)
-    got = mrf.mrf_energy(cost, guide, labels, opts, cost_scale=10.0)
+    got = mrf.mrf_energy(CostVolume(cost), guide, labels, opts, cost_scale=10.0)
     want = _naive_energy(cost, guide, labels, 3.0, 0.2, 2)
     assert got == pytest.approx(want, rel=ENERGY_TOL)
 
@@ -491,11 +532,12 @@ def test_graphcut_lowers_the_energy_of_its_start_within_windows():
     guide = rng.uniform(0, 1, (h, w)).astype(np.float32)
     start = rng.integers(0, n_labels, (h, w)).astype(np.int32)
     opts = mrf.MRFOptions(gc_levels=0, gc_label_window=2, gc_tile=16, gc_tile_overlap=4)
-    res = graphcut.graphcut_refine(cost, guide, np.arange(n_labels) * 0.5, opts,
-                              initial_labels=start)
+    volume = CostVolume(cost)
+    res = graphcut.graphcut_refine(volume, guide, np.arange(n_labels) * 0.5, opts,
+                                   initial_labels=start)
     assert np.abs(res.labels - start).max() <= opts.gc_label_window
-    e_start = mrf.mrf_energy(cost, guide, start, opts)
-    assert res.energy == pytest.approx(mrf.mrf_energy(cost, guide, res.labels, opts))
+    e_start = mrf.mrf_energy(volume, guide, start, opts)
+    assert res.energy == pytest.approx(mrf.mrf_energy(volume, guide, res.labels, opts))
     assert res.energy < e_start
 
 
@@ -510,14 +552,14 @@ def test_graphcut_validity_and_range_edges():
     visible[2, 3] = False
     opts = mrf.MRFOptions(gc_smoothness=0.0)                 # pure data: labels = truth
     heights = np.arange(n_labels) * 2.0
-    res = graphcut.graphcut_refine(cost, guide, heights, opts, visible=visible)
+    res = graphcut.graphcut_refine(CostVolume(cost), guide, heights, opts, visible=visible)
     np.testing.assert_array_equal(res.labels, truth)
     want = visible & (truth > 0)
     np.testing.assert_array_equal(res.valid, want)
     np.testing.assert_allclose(res.height[want], heights[truth[want]])
     assert np.isnan(res.height[~want]).all()
-    kept = graphcut.graphcut_refine(cost, guide, heights, opts, visible=visible,
-                               reject_range_edges=False)
+    kept = graphcut.graphcut_refine(CostVolume(cost), guide, heights, opts, visible=visible,
+                                    reject_range_edges=False)
     np.testing.assert_array_equal(kept.valid, visible)
 
 
@@ -530,7 +572,7 @@ def _errors(height, valid, scene, mask):
 
 
 def _check_beats_wta(res, scene):
-    wta = scene.heights[mrf.wta_labels(scene.cost)]
+    wta = scene.heights[mrf.wta_labels(CostVolume(scene.cost))]
     everywhere = np.ones(scene.roof.shape, bool)
     wta_median, wta_complete = _errors(wta, everywhere, scene, scene.roof)
     median, complete = _errors(res.height, res.valid, scene, scene.roof)
@@ -547,7 +589,7 @@ def roof_scene():
 
 def test_sgm_beats_wta_on_weak_texture(cl_device, roof_scene):
     s = roof_scene
-    res = sgm.sgm_refine(cl_device, s.cost, s.guide, s.heights, mrf.MRFOptions(),
+    res = sgm.sgm_refine(cl_device, CostVolume(s.cost), s.guide, s.heights, mrf.MRFOptions(),
                          cost_scale=s.cost_scale)
     _check_beats_wta(res, s)
 
@@ -556,22 +598,27 @@ def test_sgm_beats_wta_on_weak_texture(cl_device, roof_scene):
 def test_graphcut_beats_wta_on_weak_texture(roof_scene, tile):
     s = roof_scene
     opts = mrf.MRFOptions(gc_tile=tile, gc_tile_overlap=min(16, tile // 2))
-    res = graphcut.graphcut_refine(s.cost, s.guide, s.heights, opts, cost_scale=s.cost_scale)
+    volume = CostVolume(s.cost)
+    res = graphcut.graphcut_refine(volume, s.guide, s.heights, opts, cost_scale=s.cost_scale)
     _check_beats_wta(res, s)
-    assert res.energy < mrf.mrf_energy(s.cost, s.guide, mrf.wta_labels(s.cost), opts,
+    assert res.energy < mrf.mrf_energy(volume, s.guide, mrf.wta_labels(volume), opts,
                                        cost_scale=s.cost_scale)
 
 
 def test_refine_dispatch(cl_device, roof_scene):
     s = roof_scene
-    assert mrf.refine(cl_device, s.cost, s.guide, s.heights, mrf.MRFOptions(method="none")) is None
-    small = s.cost[:, :16, :20]
+    assert mrf.refine(cl_device, CostVolume(s.cost), s.guide, s.heights,
+                      mrf.MRFOptions(method="none")) is None
+    small = CostVolume(s.cost[:, :16, :20])
     res = mrf.refine(None, small, s.guide[:16, :20], s.heights,
                      mrf.MRFOptions(method="graphcut"), cost_scale=s.cost_scale)
     assert res.labels.shape == (16, 20)
     from satsweep.errors import DeviceError
     with pytest.raises(DeviceError):
         mrf.refine(None, small, s.guide[:16, :20], s.heights, mrf.MRFOptions(method="sgm"))
+    with pytest.raises(InputError, match="label_base: the graph cut takes no label bands"):
+        mrf.refine(None, CostVolume(small.data, label_base=np.zeros((16, 20), np.int32)),
+                   s.guide[:16, :20], s.heights, mrf.MRFOptions(method="graphcut"))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -652,14 +699,15 @@ def _plaza(seed: int) -> _Plaza:
 @pytest.mark.parametrize("seed", [0, 1])
 def test_sgm_beats_wta_on_census_costs_of_a_plain_plaza(cl_device, seed):
     p = _plaza(seed)
-    p.check(sgm.sgm_refine(cl_device, p.cost, p.ref, p.HEIGHTS, mrf.MRFOptions(),
+    p.check(sgm.sgm_refine(cl_device, CostVolume(p.cost), p.ref, p.HEIGHTS, mrf.MRFOptions(),
                            cost_scale=62.0))
 
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_graphcut_beats_wta_on_census_costs_of_a_plain_plaza(seed):
     p = _plaza(seed)
-    p.check(graphcut.graphcut_refine(p.cost, p.ref, p.HEIGHTS, mrf.MRFOptions(), cost_scale=62.0))
+    p.check(graphcut.graphcut_refine(CostVolume(p.cost), p.ref, p.HEIGHTS, mrf.MRFOptions(),
+                                     cost_scale=62.0))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -684,7 +732,7 @@ def test_options_from_mapping():
 
 
 def test_bad_inputs_are_input_errors():
-    cost = np.zeros((4, 5, 6), np.float32)
+    cost = CostVolume(np.zeros((4, 5, 6), np.float32))
     guide = np.zeros((5, 6), np.float32)
     opts = mrf.MRFOptions()
     with pytest.raises(InputError, match="heights"):
@@ -693,8 +741,12 @@ def test_bad_inputs_are_input_errors():
         graphcut.graphcut_refine(cost, guide, [0.0, 1.0, 2.0, 4.0], opts)
     with pytest.raises(InputError, match="guide"):
         graphcut.graphcut_refine(cost, guide[:4], [0.0, 1.0, 2.0, 3.0], opts)
-    with pytest.raises(InputError, match="cost_volume"):
-        graphcut.graphcut_refine(cost[0], guide, [0.0], opts)
+    with pytest.raises(InputError, match="cost volume"):
+        graphcut.graphcut_refine(CostVolume(cost.data[0]), guide, [0.0], opts)
+    with pytest.raises(InputError, match="cost_volume: expected a CostVolume"):
+        graphcut.graphcut_refine(cost.data, guide, [0.0, 1.0, 2.0, 3.0], opts)
+    with pytest.raises(InputError, match="floats"):
+        CostVolume(np.zeros((4, 5, 6), np.int32))
     with pytest.raises(InputError, match="visible"):
         graphcut.graphcut_refine(cost, guide, [0.0, 1.0, 2.0, 3.0], opts, visible=np.ones((3, 3)))
     with pytest.raises(InputError, match="cost_scale"):

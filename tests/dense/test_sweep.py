@@ -105,13 +105,13 @@ def test_bad_inputs_are_input_errors(cl_device):
     img = np.zeros((16, 16), np.float32)
     hom = translation_homographies([[1.0, 0.0]], [0.0, 1.0])
     with pytest.raises(InputError, match="homographies"):
-        sweep.run(img, [img], hom[:1], [0.0, 1.0])
+        sweep.height_map(img, [img], hom[:1], [0.0, 1.0])
     with pytest.raises(InputError, match="monotonic"):
-        sweep.run(img, [img], hom, [1.0, 1.0])
+        sweep.height_map(img, [img], hom, [1.0, 1.0])
     with pytest.raises(InputError, match=r"src_images\[0\]"):
-        sweep.run(img, [np.full((16, 16), np.nan)], hom, [0.0, 1.0])
+        sweep.height_map(img, [np.full((16, 16), np.nan)], hom, [0.0, 1.0])
     with pytest.raises(InputError, match="ref_image"):
-        sweep.run(np.zeros(16), [img], hom, [0.0, 1.0])
+        sweep.height_map(np.zeros(16), [img], hom, [0.0, 1.0])
 
 
 # -- plane spacing ---------------------------------------------------------------------------------
@@ -147,6 +147,61 @@ def test_10000_square_reference_fits_4gb(cl_device):
             assert plan.n_tiles > 1 and plan.tile_w >= 256 and plan.planes_per_batch >= 8
 
 
+def test_the_plan_counts_the_buffers_the_sweep_allocates(cl_device):
+    """plan_tiles sums the buffer table that the sweep allocates (run_buffers, tile_buffers): a
+    sweep in one tile holds at its peak exactly the plan's bytes less the driver's allowances
+    (one for the run, one for the tile); with its cost volume kept on the device too."""
+    from satsweep.dense import sweep as sw
+
+    ref_img, srcs, truth, hom, heights = _scene((48, 56), shifts=((PX_PER_M, 0.0), (-0.2, 0.3)))
+    shapes = [s.shape for s in srcs]
+    for o in (SweepOptions(), SweepOptions(cost_filter="box", census_kernel="staged")):
+        engine = PlaneSweep(cl_device, o)
+        for on_device in (False, True):
+            floats = heights.size * ref_img.size if on_device else 0
+            plan = plan_tiles(o, ref_img.shape, shapes, heights.size, engine.budget_bytes(),
+                              cl_device.max_alloc_bytes, volume_floats=floats)
+            if on_device:
+                res, volume = engine.height_map_with_cost_volume(ref_img, srcs, hom, heights,
+                                                                 on_device=True)
+                volume.release()
+            else:
+                res = engine.height_map(ref_img, srcs, hom, heights)
+            assert res.split == engine.last_split and res.split.n_tiles == plan.n_tiles == 1
+            assert res.split.peak_device_bytes == plan.total_bytes - 2 * sw._SMALL_BUFFERS_BYTES
+
+
+def test_a_failing_sweep_releases_its_device_buffers(cl_device, monkeypatch):
+    """A launch that fails in the middle of a tile (here the winner-take-all's, after the
+    sweep's) leaves no device buffer held: the tile's, the run's and a kept volume's are all
+    released on the way out."""
+    from satsweep.dense import sweep as sw
+
+    memories = []
+
+    class Recorded(sw.DeviceMemory):
+        def __init__(self, context):
+            super().__init__(context)
+            memories.append(self)
+
+    real = sw._launch
+
+    def failing(kernel, queue, gsize, *args):
+        if kernel.function_name == "wta_update":
+            raise RuntimeError("launch failed")
+        return real(kernel, queue, gsize, *args)
+
+    monkeypatch.setattr(sw, "DeviceMemory", Recorded)
+    monkeypatch.setattr(sw, "_launch", failing)
+    ref_img, srcs, truth, hom, heights = _scene((40, 48))
+    engine = PlaneSweep(cl_device)
+    for sweep in (engine.height_map,
+                  lambda *a: engine.height_map_with_cost_volume(*a, on_device=True)):
+        with pytest.raises(RuntimeError, match="launch failed"):
+            sweep(ref_img, srcs, hom, heights)
+        assert memories[-1].peak > 0 and memories[-1].live == 0
+
+
 def test_budget_smaller_than_the_images_is_a_device_error():
     o = SweepOptions()
     with pytest.raises(DeviceError, match="memory budget"):
@@ -157,11 +212,11 @@ def test_budget_smaller_than_the_images_is_a_device_error():
 def test_tiny_budget_tiles_give_the_single_tile_result(cl_device, cost_filter):
     ref_img, srcs, truth, hom, heights = _scene((56, 64), shifts=((PX_PER_M, 0.0), (-0.2, 0.3)))
     o = SweepOptions(cost_filter=cost_filter, max_planes_per_batch=8)
-    whole = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights)
+    whole = PlaneSweep(cl_device, o).height_map(ref_img, srcs, hom, heights)
     budget = 4 * 3 * ref_img.size + 300_000  # the images plus room for about 40x40-pixel tiles
-    tiled = PlaneSweep(cl_device, o.replace(memory_budget_bytes=budget)).run(ref_img, srcs, hom, heights)
-    assert whole.n_tiles == 1 and tiled.n_tiles >= 4
-    assert tiled.peak_device_bytes <= budget
+    tiled = PlaneSweep(cl_device, o.replace(memory_budget_bytes=budget)).height_map(ref_img, srcs, hom, heights)
+    assert whole.split.n_tiles == 1 and tiled.split.n_tiles >= 4
+    assert tiled.split.peak_device_bytes <= budget
     np.testing.assert_allclose(tiled.plane_index, whole.plane_index, atol=TILE_INDEX_ATOL, rtol=0)
     np.testing.assert_array_equal(tiled.valid, whole.valid)
     np.testing.assert_allclose(tiled.confidence, whole.confidence, atol=TILE_INDEX_ATOL, rtol=0)
@@ -169,9 +224,9 @@ def test_tiny_budget_tiles_give_the_single_tile_result(cl_device, cost_filter):
 
 def test_plane_batches_do_not_change_the_result(cl_device):
     ref_img, srcs, truth, hom, heights = _scene((48, 56))
-    a = PlaneSweep(cl_device, SweepOptions(max_planes_per_batch=64)).run(ref_img, srcs, hom, heights)
-    b = PlaneSweep(cl_device, SweepOptions(max_planes_per_batch=5)).run(ref_img, srcs, hom, heights)
-    assert a.n_batches == 1 and b.n_batches == -(-heights.size // 5)
+    a = PlaneSweep(cl_device, SweepOptions(max_planes_per_batch=64)).height_map(ref_img, srcs, hom, heights)
+    b = PlaneSweep(cl_device, SweepOptions(max_planes_per_batch=5)).height_map(ref_img, srcs, hom, heights)
+    assert a.split.n_batches == 1 and b.split.n_batches == -(-heights.size // 5)
     np.testing.assert_array_equal(a.plane_index, b.plane_index)
     np.testing.assert_array_equal(a.valid, b.valid)
 
@@ -185,12 +240,12 @@ def test_warp_chunks_do_not_change_the_costs(cl_device, monkeypatch):
     o = SweepOptions(max_planes_per_batch=20)
     dims = (56 + 2 * o.tile_margin, 48 + 2 * o.tile_margin)
     assert sw._warp_chunk(o, dims, 20, len(srcs)) == 20 and heights.size > 20
-    one = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights, keep_volume=True)
+    one = PlaneSweep(cl_device, o).height_map_with_cost_volume(ref_img, srcs, hom, heights)
     monkeypatch.setattr(sw, "_WARP_CHUNK_POSITIONS", 0)
     assert sw._warp_chunk(o, dims, 20, len(srcs)) == sw.SPLIT_WARP_PLANES == 8
-    chunked = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights, keep_volume=True)
-    np.testing.assert_array_equal(one.volume, chunked.volume)
-    np.testing.assert_array_equal(one.plane_index, chunked.plane_index)
+    chunked = PlaneSweep(cl_device, o).height_map_with_cost_volume(ref_img, srcs, hom, heights)
+    np.testing.assert_array_equal(one[1].data, chunked[1].data)
+    np.testing.assert_array_equal(one[0].plane_index, chunked[0].plane_index)
 
 
 def test_prefilter_is_a_gaussian_blur_with_replicated_edges():
@@ -204,10 +259,10 @@ def test_prefilter_is_a_gaussian_blur_with_replicated_edges():
 def test_prefilter_option_sweeps_the_blurred_images(cl_device):
     """prefilter_sigma_px = s is the sweep of the images blurred by s, not a change of the maths."""
     ref_img, srcs, _, hom, heights = _scene((40, 44))
-    a = PlaneSweep(cl_device, SweepOptions(prefilter_sigma_px=0.6)).run(ref_img, srcs, hom, heights)
-    b = PlaneSweep(cl_device, SweepOptions()).run(prefilter(ref_img, 0.6),
+    a = PlaneSweep(cl_device, SweepOptions(prefilter_sigma_px=0.6)).height_map(ref_img, srcs, hom, heights)
+    b = PlaneSweep(cl_device, SweepOptions()).height_map(prefilter(ref_img, 0.6),
                                                   [prefilter(s, 0.6) for s in srcs], hom, heights)
-    c = PlaneSweep(cl_device, SweepOptions()).run(ref_img, srcs, hom, heights)
+    c = PlaneSweep(cl_device, SweepOptions()).height_map(ref_img, srcs, hom, heights)
     np.testing.assert_array_equal(a.plane_index, b.plane_index)
     np.testing.assert_array_equal(a.valid, b.valid)
     assert not np.array_equal(a.plane_index, c.plane_index)
@@ -218,7 +273,7 @@ def test_pipeline_matches_the_numpy_reference(cl_device):
     ref_img, srcs, _, hom, heights = _scene((40, 52), shifts=((PX_PER_M, 0.0), (0.1, -0.4)))
     o = SweepOptions(census_window=(7, 9), n_best_sources=1, gf_radius=3, gf_eps=1e-3,
                      grad_weight=4.0)
-    res = PlaneSweep(cl_device, o).run(ref_img, srcs, hom, heights)
+    res = PlaneSweep(cl_device, o).height_map(ref_img, srcs, hom, heights)
     assert o.ad_weight > 0  # the default AD term and the optional gradient term, end to end
     vol = ref.sweep_volume(ref_img, srcs, hom.astype(np.float32).astype(np.float64), 4, 3, 1,
                            ad_weight=o.ad_weight, ad_truncation=o.ad_truncation,
@@ -243,7 +298,7 @@ def test_pipeline_matches_the_numpy_reference(cl_device):
 # -- accuracy on synthetic scenes -----------------------------------------------------------------
 def test_guided_wta_height_accuracy_on_a_synthetic_pair(cl_device):
     ref_img, srcs, truth, hom, heights = _scene()
-    res = PlaneSweep(cl_device, SweepOptions()).run(ref_img, srcs, hom, heights)
+    res = PlaneSweep(cl_device, SweepOptions()).height_map(ref_img, srcs, hom, heights)
     err, valid = _errors(res, truth)
     assert np.nanmedian(err) < MEDIAN_ERROR_MAX_M
     assert np.mean(valid & (err < 1.0)) > COMPLETENESS_MIN
@@ -255,7 +310,7 @@ def test_warped_census_is_more_accurate_than_sampled_codes(cl_device):
     meds = {}
     for mode in ("warped_census", "sampled_codes"):
         # Census alone in both (the AD term needs the warped intensities).
-        res = PlaneSweep(cl_device, SweepOptions(cost_mode=mode, ad_weight=0.0, grad_weight=0.0)).run(
+        res = PlaneSweep(cl_device, SweepOptions(cost_mode=mode, ad_weight=0.0, grad_weight=0.0)).height_map(
             ref_img, srcs, hom, heights)
         meds[mode] = np.nanmedian(_errors(res, truth)[0])
     assert meds["warped_census"] < MEDIAN_ERROR_MAX_M < meds["sampled_codes"]
@@ -281,7 +336,7 @@ def test_slanted_plane_heights(cl_device):
         srcs.append(ndimage.map_coordinates(tex, [Y + 30, X + 30], order=3).astype(np.float32))
     fn = lambda hh: translation_homographies(shifts, hh)  # noqa: E731
     heights = plane_heights_for(fn, (h, w), ALT_RANGE, 0.5)
-    res = PlaneSweep(cl_device, SweepOptions(n_best_sources=2)).run(ref_img, srcs, fn(heights), heights)
+    res = PlaneSweep(cl_device, SweepOptions(n_best_sources=2)).height_map(ref_img, srcs, fn(heights), heights)
     err = np.abs(res.height - plane(xs, ys))[BORDER:-BORDER, BORDER:-BORDER]
     assert np.nanmedian(err) < MEDIAN_ERROR_MAX_M
     assert res.valid[BORDER:-BORDER, BORDER:-BORDER].mean() > COMPLETENESS_MIN
@@ -295,7 +350,7 @@ def test_best_k_is_robust_to_a_bad_source(cl_device):
     srcs = [srcs[0], srcs[1], np.random.default_rng(0).random(srcs[2].shape).astype(np.float32)]
     med = {}
     for k in (2, 3):
-        res = PlaneSweep(cl_device, SweepOptions(n_best_sources=k)).run(ref_img, srcs, hom, heights)
+        res = PlaneSweep(cl_device, SweepOptions(n_best_sources=k)).height_map(ref_img, srcs, hom, heights)
         med[k] = np.nanmedian(_errors(res, truth)[0])
     assert med[2] < MEDIAN_ERROR_MAX_M
     assert med[2] < med[3]
@@ -305,7 +360,7 @@ def test_pixels_outside_every_source_are_invalid(cl_device):
     ref_img, srcs, truth, hom, heights = _scene((48, 64))
     # Source cropped to its left half: reference pixels beyond it have no valid source.
     src = srcs[0][:, :32]
-    res = PlaneSweep(cl_device, SweepOptions()).run(ref_img, [src], hom, heights)
+    res = PlaneSweep(cl_device, SweepOptions()).height_map(ref_img, [src], hom, heights)
     u_max = 31 - PX_PER_M * heights.min()  # columns that map outside at every plane
     cols = np.arange(64)
     assert not res.valid[:, cols > u_max + 1].any()
@@ -318,8 +373,8 @@ def test_lr_check_rejects_a_corrupted_region(cl_device):
     src = srcs[0].copy()
     src[30:70, 30:70] = np.random.default_rng(1).random((40, 40))
     o = SweepOptions(lr_check=True, lr_tolerance_planes=1.0)
-    res = PlaneSweep(cl_device, o).run(ref_img, [src], hom, heights)
-    plain = PlaneSweep(cl_device, o.replace(lr_check=False)).run(ref_img, [src], hom, heights)
+    res = PlaneSweep(cl_device, o).height_map(ref_img, [src], hom, heights)
+    plain = PlaneSweep(cl_device, o.replace(lr_check=False)).height_map(ref_img, [src], hom, heights)
     assert (res.valid <= plain.valid).all()
     # Reference pixels seeing the corrupted block (shifted by the parallax, ~2-10 px).
     inside = res.valid[36:64, 26:58].mean()
@@ -401,109 +456,95 @@ def test_plane_windows_sweep_the_same_costs_of_fewer_planes(cl_device):
     where the full sweep's best plane lies inside a window, the same plane index."""
     ref, src, heights, hom = _rolled_pair(6, (45, 58), 3, 0.4, 15.0, 31)
     box = SweepOptions(cost_filter="box", ad_weight=0.0, grad_weight=0.0)
-    whole = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True)
+    engine = PlaneSweep(cl_device, box)
+    whole_map, whole = engine.height_map_with_cost_volume(ref, [src], hom, heights)
+    assert whole.layout == "plane_major" and whole.label_base is None
     block, n_win = 16, 9
     first = np.array([[3, 12, 20, 0], [14, 6, 22, 9], [18, 1, 11, 16]])
     windows = PlaneWindows(block=block, first=first, n_planes=n_win)
-    part = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True,
-                                          plane_windows=windows)
+    part_map, part = engine.height_map_with_cost_volume(ref, [src], hom, heights, windows=windows)
     base = windows.per_pixel(ref.shape)
-    np.testing.assert_array_equal(part.plane_base, base)
-    assert part.volume.shape == (n_win, *ref.shape) and part.n_tiles == first.size
+    np.testing.assert_array_equal(part.label_base, base)
+    assert part.dims == (n_win, *ref.shape) and part_map.split.n_tiles == first.size
     labels = base[None] + np.arange(n_win)[:, None, None]
-    want = np.take_along_axis(whole.volume, labels, axis=0)
-    np.testing.assert_array_equal(part.volume, want)
-    best = np.argmin(whole.volume, axis=0)
-    inside = (best > base) & (best < base + n_win - 1) & whole.valid
+    want = np.take_along_axis(whole.data, labels, axis=0)
+    np.testing.assert_array_equal(part.data, want)
+    np.testing.assert_array_equal(engine.cost_volume(ref, [src], hom, heights,
+                                                     windows=windows).data, want)
+    best = np.argmin(whole.data, axis=0)
+    inside = (best > base) & (best < base + n_win - 1) & whole_map.valid
     assert inside.mean() > 0.2
-    np.testing.assert_allclose(part.plane_index[inside], whole.plane_index[inside], rtol=0,
-                               atol=WINDOW_INDEX_ATOL)
-    np.testing.assert_allclose(part.height[inside], whole.height[inside], rtol=0,
+    np.testing.assert_allclose(part_map.plane_index[inside], whole_map.plane_index[inside],
+                               rtol=0, atol=WINDOW_INDEX_ATOL)
+    np.testing.assert_allclose(part_map.height[inside], whole_map.height[inside], rtol=0,
                                atol=WINDOW_INDEX_ATOL * (heights[1] - heights[0]))
     # pixel-major on the device, SGM's layout: the same costs
-    dev = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True,
-                                         volume_on_device=True, plane_windows=windows)
-    try:
-        np.testing.assert_array_equal(dev.volume.get().transpose(2, 0, 1), want)
-    finally:
-        dev.volume.data.release()
+    with engine.cost_volume_on_device(ref, [src], hom, heights, windows=windows) as dev:
+        assert dev.layout == "pixel_major" and dev.on_device
+        np.testing.assert_array_equal(dev.label_base, base)
+        np.testing.assert_array_equal(dev.data.get().transpose(2, 0, 1), want)
     # Windows of their own lengths (at most n_win): each pixel's first count labels are the
     # same costs; a host volume's labels past them hold the worst cost, a device volume's are
     # not written (SGM skips them).
     count = np.array([[9, 1, 4, 9], [5, 9, 2, 7], [3, 8, 9, 6]])
     ragged = PlaneWindows(block=block, first=first, n_planes=n_win, count=count)
-    host = PlaneSweep(cl_device, box).run(ref, [src], hom, heights, keep_volume=True,
-                                          plane_windows=ragged)
+    host = engine.cost_volume(ref, [src], hom, heights, windows=ragged)
     counts = ragged.counts(ref.shape)
-    np.testing.assert_array_equal(host.plane_count, counts)
+    np.testing.assert_array_equal(host.label_count, counts)
     mine = np.arange(n_win)[:, None, None] < counts[None]
-    np.testing.assert_array_equal(host.volume[mine], want[mine])
-    assert (host.volume[~mine] == box.max_cost).all()
+    np.testing.assert_array_equal(host.data[mine], want[mine])
+    assert (host.data[~mine] == box.max_cost).all()
     # On the device the volume is ragged: each pixel holds just its window's labels, from
-    # plane_offset on; with the guided filter, whose last pass writes it directly
+    # label_offset on; with the guided filter, whose last pass writes it directly
     # (gf_rows_q_pixel_major), the same values as the host volume's, bit for bit.
     for opts in (box, SweepOptions(ad_weight=0.0, grad_weight=0.0)):
-        on_host = host if opts is box else PlaneSweep(cl_device, opts).run(
-            ref, [src], hom, heights, keep_volume=True, plane_windows=ragged)
-        dev = PlaneSweep(cl_device, opts).run(ref, [src], hom, heights, keep_volume=True,
-                                              volume_on_device=True, plane_windows=ragged,
-                                              winner_take_all=False)
-        try:
-            flat = dev.volume.get()
-        finally:
-            dev.volume.data.release()
-        assert flat.shape == (int(counts.sum()),)
-        np.testing.assert_array_equal(dev.plane_count, counts)
-        at = dev.plane_offset[None].astype(np.int64) + np.arange(n_win)[:, None, None]
-        np.testing.assert_array_equal(flat[np.where(mine, at, 0)][mine], on_host.volume[mine])
+        on_host = host if opts is box else PlaneSweep(cl_device, opts).cost_volume(
+            ref, [src], hom, heights, windows=ragged)
+        with PlaneSweep(cl_device, opts).cost_volume_on_device(ref, [src], hom, heights,
+                                                               windows=ragged) as dev:
+            flat = dev.data.get()
+        assert dev.layout == "ragged" and flat.shape == (int(counts.sum()),)
+        np.testing.assert_array_equal(dev.label_count, counts)
+        at = dev.label_offset[None].astype(np.int64) + np.arange(n_win)[:, None, None]
+        np.testing.assert_array_equal(flat[np.where(mine, at, 0)][mine], on_host.data[mine])
     with pytest.raises(InputError, match="plane_windows"):
-        PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
+        engine.cost_volume(ref, [src], hom, heights, windows=PlaneWindows(
             block=block, first=first, n_planes=n_win, count=count + 1))
     with pytest.raises(InputError, match="plane_windows"):
-        PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
+        engine.cost_volume_on_device(ref, [src], hom, heights, windows=PlaneWindows(
             block=block, first=first + 20, n_planes=n_win))
     with pytest.raises(InputError, match="plane_windows"):
-        PlaneSweep(cl_device, box).run(ref, [src], hom, heights, plane_windows=PlaneWindows(
+        engine.height_map_with_cost_volume(ref, [src], hom, heights, windows=PlaneWindows(
             block=8, first=first, n_planes=n_win))
+    with pytest.raises(InputError, match="left-right check"):
+        PlaneSweep(cl_device, box.replace(lr_check=True)).height_map_with_cost_volume(
+            ref, [src], hom, heights, windows=windows)
 
 
 def test_volume_without_winner_take_all(cl_device):
-    """winner_take_all = False (SGM's path) returns the same kept volume with no per-pixel maps,
-    and needs keep_volume and no left-right check. Its guided filter writes the pixel-major
-    volume itself (gf_rows_q_pixel_major): the same values as the plane-major q that the
-    winner-take-all path reads, bit for bit, in one tile and in several."""
+    """cost_volume_on_device (SGM's path) returns the same volume as the sweep that also runs
+    the winner-take-all. Its guided filter writes the pixel-major volume itself
+    (gf_rows_q_pixel_major): the same values as the plane-major q that the winner-take-all path
+    reads, bit for bit, in one tile and in several."""
     ref, src, heights, hom = _rolled_pair(6, (36, 44), 2, 0.5, 10.0, 23)
     # Batches of 11 planes and rows of 44 pixels: partial batches and a row chunk narrower than
     # the kernels' 8-column groups occur.
     opts = SweepOptions(max_planes_per_batch=11)
     engine = PlaneSweep(cl_device, opts)
-    host = engine.run(ref, [src], hom, heights, keep_volume=True)
-    bare = engine.run(ref, [src], hom, heights, keep_volume=True, volume_on_device=True,
-                      winner_take_all=False)
-    try:
-        np.testing.assert_array_equal(bare.volume.get().transpose(2, 0, 1), host.volume)
-        assert bare.plane_index is None and bare.valid is None and bare.height is None
-    finally:
-        bare.volume.data.release()
+    _, host = engine.height_map_with_cost_volume(ref, [src], hom, heights)
+    with engine.cost_volume_on_device(ref, [src], hom, heights) as bare:
+        np.testing.assert_array_equal(bare.data.get().transpose(2, 0, 1), host.data)
     # Tiles whose kept interiors start inside them (the filter's margins), and batches of 4,
     # against the winner-take-all path's copy of the same tiles (the plan is the same: tiles
     # change the filter's float32 sums, so the single-tile volume is no reference here).
     volume_bytes = 4 * heights.size * ref.size
     tiled_engine = PlaneSweep(cl_device, opts.replace(
         memory_budget_bytes=4 * 2 * ref.size + volume_bytes + 200_000, max_planes_per_batch=4))
-    kept = [tiled_engine.run(ref, [src], hom, heights, keep_volume=True, volume_on_device=True,
-                             winner_take_all=wta) for wta in (True, False)]
-    try:
-        assert kept[0].n_tiles == kept[1].n_tiles > 1
-        np.testing.assert_array_equal(kept[1].volume.get(), kept[0].volume.get())
-    finally:
-        for res in kept:
-            res.volume.data.release()
-    with pytest.raises(InputError, match="keep_volume"):
-        engine.run(ref, [src], hom, heights, winner_take_all=False)
-    with pytest.raises(InputError, match="left-right check"):
-        PlaneSweep(cl_device, opts.replace(lr_check=True)).run(
-            ref, [src], hom, heights, keep_volume=True, winner_take_all=False)
+    with_map, kept = tiled_engine.height_map_with_cost_volume(ref, [src], hom, heights,
+                                                              on_device=True)
+    with kept, tiled_engine.cost_volume_on_device(ref, [src], hom, heights) as bare:
+        assert with_map.split.n_tiles == tiled_engine.last_split.n_tiles > 1
+        np.testing.assert_array_equal(bare.data.get(), kept.data.get())
 
 
 def test_visible_at_is_the_winner_take_all_rule(cl_device):
@@ -519,7 +560,7 @@ def test_visible_at_is_the_winner_take_all_rule(cl_device):
     engine = PlaneSweep(cl_device, SweepOptions(reject_range_edges=False))
     seen_any = []
     for p in range(heights.size):
-        res = engine.run(ref, srcs, hom[p:p + 1], heights[p:p + 1])
+        res = engine.height_map(ref, srcs, hom[p:p + 1], heights[p:p + 1])
         seen = visible_at(hom, np.full(ref.shape, p), shapes)
         np.testing.assert_array_equal(seen, res.valid)
         seen_any.append(seen.mean())
@@ -536,41 +577,38 @@ def test_visible_at_is_the_winner_take_all_rule(cl_device):
 
 
 def test_kept_volume_matches_the_wta_and_does_not_depend_on_tiling(cl_device):
-    """keep_volume (the MRF path) returns the filtered cost of every plane: its per-pixel argmin
+    """cost_volume (the MRF path) returns the filtered cost of every plane: its per-pixel argmin
     is the WTA's best plane, and a tiled run returns the same volume as a single-tile run (bit
     for bit: census alone has integer costs, whose box sums float32 adds exactly in any order)."""
     ref, src, heights, hom = _rolled_pair(5, (40, 52), 2, 0.5, 10.0, 12)
     box = SweepOptions(cost_filter="box", ad_weight=0.0, grad_weight=0.0)
-    whole = PlaneSweep(cl_device, box).run(
-        ref, [src], hom, heights, keep_volume=True)
-    assert whole.volume.shape == (heights.size, *ref.shape)
-    best = np.argmin(whole.volume, axis=0)
-    ok = whole.valid
+    engine = PlaneSweep(cl_device, box)
+    whole = engine.cost_volume(ref, [src], hom, heights)
+    assert whole.dims == (heights.size, *ref.shape) and not whole.on_device
+    best = np.argmin(whole.data, axis=0)
+    plain = engine.height_map(ref, [src], hom, heights)
+    ok = plain.valid
     # the parabola moves the index by at most half a plane from the volume's argmin
     assert ok.mean() > 0.5
-    assert np.max(np.abs(whole.plane_index[ok] - best[ok])) <= 0.5
+    assert np.max(np.abs(plain.plane_index[ok] - best[ok])) <= 0.5
     budget = 4 * 2 * ref.size + 260_000  # the images plus room for a few tiles
-    tiled = PlaneSweep(cl_device, box.replace(memory_budget_bytes=budget,
-                                               max_planes_per_batch=4)).run(
-        ref, [src], hom, heights, keep_volume=True)
-    assert tiled.n_tiles > 1
-    np.testing.assert_array_equal(tiled.volume, whole.volume)
-    plain = PlaneSweep(cl_device, box).run(ref, [src], hom, heights)
-    assert plain.volume is None
+    tiled_engine = PlaneSweep(cl_device, box.replace(memory_budget_bytes=budget,
+                                                     max_planes_per_batch=4))
+    tiled = tiled_engine.cost_volume(ref, [src], hom, heights)
+    assert tiled_engine.last_split.n_tiles > 1
+    np.testing.assert_array_equal(tiled.data, whole.data)
     # Kept on the device (each tile's interior written pixel-major, SGM's layout): the same
     # volume, counted in the budget (so the images, the volume and the tiles share it: more tiles).
     volume_bytes = 4 * heights.size * ref.size
-    on_device = PlaneSweep(cl_device, box.replace(
-        memory_budget_bytes=budget + volume_bytes, max_planes_per_batch=4)).run(
-        ref, [src], hom, heights, keep_volume=True, volume_on_device=True)
-    try:
-        assert on_device.n_tiles > 1 and on_device.peak_device_bytes >= volume_bytes
-        assert on_device.volume.shape == ref.shape + (heights.size,)
-        np.testing.assert_array_equal(on_device.volume.get().transpose(2, 0, 1), whole.volume)
-        np.testing.assert_array_equal(on_device.plane_index, whole.plane_index)
-    finally:
-        on_device.volume.data.release()
+    on_device, volume = PlaneSweep(cl_device, box.replace(
+        memory_budget_bytes=budget + volume_bytes, max_planes_per_batch=4)
+    ).height_map_with_cost_volume(ref, [src], hom, heights, on_device=True)
+    with volume:
+        assert on_device.split.n_tiles > 1 and on_device.split.peak_device_bytes >= volume_bytes
+        assert volume.data.shape == ref.shape + (heights.size,)
+        np.testing.assert_array_equal(volume.data.get().transpose(2, 0, 1), whole.data)
+        np.testing.assert_array_equal(on_device.plane_index, plain.plane_index)
     too_small = 4 * 2 * ref.size + volume_bytes // 2
     with pytest.raises(DeviceError, match="images themselves and the kept cost volume"):
-        PlaneSweep(cl_device, box.replace(memory_budget_bytes=too_small)).run(
-            ref, [src], hom, heights, keep_volume=True, volume_on_device=True)
+        PlaneSweep(cl_device, box.replace(memory_budget_bytes=too_small)).cost_volume_on_device(
+            ref, [src], hom, heights)

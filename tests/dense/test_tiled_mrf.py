@@ -45,10 +45,10 @@ def _scene(shape, seed=3):
 def _untiled(device, ref_img, srcs, hom, heights, sweep, mrf):
     """The reference computation: one whole-image sweep keeping its volume, then refine; valid
     where the refinement is, a source sees the chosen plane and (lr_check) the check passed."""
-    r = PlaneSweep(device, mrf_sweep_options(sweep, mrf)).run(ref_img, srcs, hom, heights,
-                                                              keep_volume=True)
+    r, volume = PlaneSweep(device, mrf_sweep_options(sweep, mrf)).height_map_with_cost_volume(
+        ref_img, srcs, hom, heights)
     initial = np.clip(np.rint(r.plane_index), 0, heights.size - 1).astype(np.int32)
-    m = refine(device, r.volume, ref_img, heights, mrf,
+    m = refine(device, volume, ref_img, heights, mrf,
                cost_scale=float(sweep.census_bits), reject_range_edges=sweep.reject_range_edges,
                initial_labels=initial)
     valid = m.valid & visible_at(hom, m.labels, [s.shape for s in srcs])
@@ -64,7 +64,7 @@ def test_one_tile_is_the_untiled_result(cl_device, method, sweep):
     mrf = MRFOptions(method=method)
     got, _ = sweep_refine_tiled(cl_device, ref_img, srcs, hom, heights, sweep, mrf)
     want, valid = _untiled(cl_device, ref_img, srcs, hom, heights, sweep, mrf)
-    assert got.n_tiles == 1
+    assert got.split.n_tiles == 1
     np.testing.assert_array_equal(got.plane_index, want.plane_index)
     np.testing.assert_array_equal(got.valid, valid)
     np.testing.assert_array_equal(np.isnan(got.height), ~valid)
@@ -105,7 +105,7 @@ def test_many_tiles_agree_with_one(cl_device):
     many, seconds = sweep_refine_tiled(cl_device, ref_img, srcs, hom, heights, sweep,
                                        MRFOptions(tile_px=MIN_MRF_TILE_PX, tile_overlap_px=32),
                                        progress=lambda done, total: calls.append((done, total)))
-    assert one.n_tiles == 1 and many.n_tiles == 3 * 3 and seconds > 0
+    assert one.split.n_tiles == 1 and many.split.n_tiles == 3 * 3 and seconds > 0
     assert calls == [(k, 9) for k in range(1, 10)]
     different = np.abs(many.plane_index - one.plane_index) > TILED_INDEX_TOL
     assert different.mean() <= TILED_MAX_DIFFERENT

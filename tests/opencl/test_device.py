@@ -81,6 +81,27 @@ def test_missing_define_is_a_named_build_error(cl_device):
         cl_device.build("selftest", {})
 
 
+def test_every_build_gets_the_shared_constants_and_may_not_redefine_them(cl_device):
+    """The constants of satsweep/opencl/constants.py reach every build as -D definitions, as
+    float32 literals: wta.cl's WTA_BIG is the host's np.float32(WTA_BIG), and a source built
+    without them stops at common.h's #error. A build's own defines may not set them."""
+    from satsweep.opencl.constants import SHARED_DEFINES, WTA_BIG
+
+    opts = sdev._options({"SCALE": 1.0})
+    for name, value in SHARED_DEFINES.items():
+        assert f"-D{name}={sdev._define_value(value)}" in opts
+    assert sdev._define_value(-1.0e30) == "(-1e+30f)" and sdev._define_value(3) == "3"
+    # selftest with SCALE = WTA_BIG: the float32 literal the kernels read.
+    prg = cl_device.build("selftest", {"SCALE": "WTA_BIG"})
+    assert np.float32(_scale_of(cl_device, prg)) == np.float32(WTA_BIG)
+    with pytest.raises(KernelBuildError, match="selftest.cl: WTA_BIG: shared constant"):
+        cl_device.build("selftest", {"SCALE": 1.0, "WTA_BIG": 1.0})
+    text = (sdev.kernel_dir() / "selftest.cl").read_text()
+    bare = cl.Program(cl_device.context, text)
+    with pytest.raises(cl.Error, match="constants.py"):
+        bare.build(options=["-I", str(sdev.kernel_dir()), "-DSCALE=1.0f"])
+
+
 def _scale_of(device, prg) -> float:
     """Run selftest's scale_add on ones and read back the scale the program was built with."""
     n = 8
