@@ -144,6 +144,41 @@ def visible_at(homographies, plane_index, src_shapes: Sequence[tuple[int, int]])
     return out
 
 
+def seen_with_data(homographies, plane_index, src_valid: Sequence[np.ndarray]) -> np.ndarray:
+    """Where a reference pixel maps, at its plane, onto a pixel that holds data in at least one
+    source (H, W) bool: ``visible_at``'s rule with each source's data mask (``src_valid``, (rows,
+    cols) bool, True where the pixel and every pixel its matching window reads hold data) read
+    at the nearest pixel."""
+    hom = np.asarray(homographies, dtype=np.float64)
+    idx = np.asarray(plane_index)
+    h, w = idx.shape
+    out = np.zeros(idx.shape, bool)
+    ys, xs = np.mgrid[0:h, 0:w]
+    flat = idx.ravel()
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(hom.shape[0] + 1))
+    for p in range(hom.shape[0]):
+        pix = order[bounds[p]:bounds[p + 1]]
+        if pix.size == 0:
+            continue
+        x, y = xs.ravel()[pix].astype(np.float64), ys.ravel()[pix].astype(np.float64)
+        seen = np.zeros(pix.size, bool)
+        for s, mask in enumerate(src_valid):
+            rows, cols = mask.shape
+            H = hom[p, s] / hom[p, s, 2, 2]
+            wz = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+            ok = wz > 0
+            safe = np.where(ok, wz, 1.0)
+            u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / safe
+            v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / safe
+            ok &= (u >= 0) & (u <= cols - 1) & (v >= 0) & (v <= rows - 1)
+            iu = np.clip(np.floor(u + 0.5), 0, cols - 1).astype(np.int64)
+            iv = np.clip(np.floor(v + 0.5), 0, rows - 1).astype(np.int64)
+            seen |= ok & mask[iv, iu]
+        out.ravel()[pix] = seen
+    return out
+
+
 def view_homographies(ref_proj, src_projs: Sequence, heights) -> np.ndarray:
     """(n_planes, n_src, 3, 3) float64 homographies, reference pixel -> source pixel, of the planes
     ``heights`` for projections from ``satsweep.geometry.camera`` (``plane_homography``)."""

@@ -201,6 +201,16 @@ def _decode_problem(page, exc: Exception) -> str:
     return f"cannot decode the pixel data ({compression} compression: {type(exc).__name__}: {exc})"
 
 
+def image_nodata(path: str | os.PathLike) -> float | None:
+    """The no-data value a TIFF declares (GDAL's tag 42113), or None."""
+    from satsweep.io.geotiff import TAG_GDAL_NODATA, _parse_nodata
+
+    path = os.fspath(path)
+    with _open_tiff(path) as (_, page):
+        tag = page.tags.get(TAG_GDAL_NODATA)
+        return _parse_nodata(path, tag.value if tag is not None else None)
+
+
 def image_shape(path: str | os.PathLike) -> tuple[int, int]:
     """(height, width) of the first band of a TIFF, read from its header only."""
     path = os.fspath(path)
@@ -268,12 +278,15 @@ def tonemap(
     low_percentile: float = DEFAULT_LOW_PERCENTILE,
     high_percentile: float = DEFAULT_HIGH_PERCENTILE,
     gamma: float = 1.0 / 2.2,
+    valid: np.ndarray | None = None,
 ) -> np.ndarray:
     """Map an image to float32 in [0, 1] for display: clip at robust percentiles, scale, gamma.
 
     ``out = clip((v - p_low) / (p_high - p_low), 0, 1) ** gamma`` with the percentiles taken over
-    the finite pixels. A constant image (or one without finite pixels) maps to zeros; non-finite
-    pixels map to 0, so the result never holds NaN.
+    the finite pixels (and only those of the ``valid`` mask when given: no-data fill values do
+    not stretch the range). A constant image (or one without finite pixels) maps to zeros;
+    non-finite pixels map to 0 and the pixels outside ``valid`` to the median of the others, so
+    the result never holds NaN and no-data areas are flat (no edges to match inside them).
     """
     if not 0.0 <= low_percentile < high_percentile <= 100.0:
         raise OptionsError(
@@ -284,6 +297,8 @@ def tonemap(
         raise OptionsError(f"tonemap gamma = {gamma!r}: must be finite and > 0")
     a = np.asarray(image, dtype=np.float64)
     finite = np.isfinite(a)
+    if valid is not None:
+        finite &= np.asarray(valid, bool)
     out = np.zeros(a.shape, dtype=np.float32)
     if not finite.any():
         return out
@@ -292,4 +307,6 @@ def tonemap(
         return out
     t = np.clip((np.where(finite, a, lo) - lo) / (hi - lo), 0.0, 1.0) ** gamma
     out[...] = t
+    if valid is not None and not finite.all():
+        out[~finite] = np.float32(np.median(out[finite]))
     return out

@@ -34,6 +34,7 @@ class ImageSource:
     shape: tuple[int, int]  # (rows, columns) of the whole image
     acquisition: "AcquisitionMetadata | None" = None  # date, sun and view angles, when the
     # delivery gives them (satsweep.io.metadata)
+    nodata: float | None = None  # the value the file declares for no data (GDAL_NODATA)
 
     @property
     def name(self) -> str:
@@ -69,14 +70,14 @@ def open_source(path: str | os.PathLike) -> ImageSource:
     """Read an image's header, RPC (tag or sidecar) and acquisition metadata (when there is
     some); ImageFormatError / RPCError naming it."""
     from satsweep.geometry.rpc import RPCModel
-    from satsweep.io.images import image_shape
+    from satsweep.io.images import image_nodata, image_shape
     from satsweep.io.metadata import read_acquisition_metadata
 
     path = os.fspath(path)
     shape = image_shape(path)
     return ImageSource(path=path, rpc=RPCModel.from_image(path),
                        shape=(int(shape[0]), int(shape[1])),
-                       acquisition=read_acquisition_metadata(path))
+                       acquisition=read_acquisition_metadata(path), nodata=image_nodata(path))
 
 
 def open_sources(paths: Sequence[str | os.PathLike | ImageSource]) -> list[ImageSource]:

@@ -47,6 +47,8 @@ class View:
     rpc: "RPCModel"  # RPC of the crop (projects ground points to crop pixels)
     x0: int  # column of the crop's first pixel in the original image
     y0: int  # row of the crop's first pixel in the original image
+    valid: np.ndarray | None = None  # bool mask of the pixels that hold data (None: all do);
+    # see validity_mask
 
     @property
     def height(self) -> int:
@@ -119,6 +121,32 @@ def aoi_footprint(
     return x0, y0, x1, y1
 
 
+# Zeros connected to the crop's border in runs of at least this many pixels are a delivery's
+# fill (its margins outside the scene), not dark ground: real 11-14 bit imagery has no such runs.
+MIN_ZERO_RUN_PX = 64
+
+
+def validity_mask(image: np.ndarray, nodata: float | None = None) -> np.ndarray | None:
+    """The pixels of an image that hold data, or None when all do. Not data: NaN, the file's
+    no-data value, and runs of exact zeros of at least ``MIN_ZERO_RUN_PX`` pixels connected to
+    the border (the usual fill of a delivery's margins)."""
+    import cv2
+
+    a = np.asarray(image)
+    bad = ~np.isfinite(a) if a.dtype.kind == "f" else np.zeros(a.shape, bool)
+    if nodata is not None and np.isfinite(nodata):
+        bad |= a == nodata
+    zero = (a == 0).astype(np.uint8)
+    if zero.any():
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(zero, connectivity=8)
+        border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+        big = np.zeros(n, bool)
+        big[border] = stats[border, cv2.CC_STAT_AREA] >= MIN_ZERO_RUN_PX
+        big[0] = False  # the non-zero pixels
+        bad |= big[labels]
+    return None if not bad.any() else ~bad
+
+
 def _pixels(image: np.ndarray) -> np.ndarray:
     """Keep uint8/uint16 pixels as stored; convert any other type to float32."""
     if image.dtype in (np.uint8, np.uint16, np.float32):
@@ -170,7 +198,8 @@ def load_views(
                                           warn_partial=warn_partial)
         crop = source.read((x0, y0, x1, y1))
         views.append(View(path=source.path, image=_pixels(crop),
-                          rpc=source.rpc.cropped(x0=x0, y0=y0), x0=x0, y0=y0))
+                          rpc=source.rpc.cropped(x0=x0, y0=y0), x0=x0, y0=y0,
+                          valid=validity_mask(crop, source.nodata)))
         log.info("%s: crop x=%d..%d, y=%d..%d of %dx%d", source.path, x0, x1, y0, y1,
                  source.shape[1], source.shape[0])
     return views

@@ -27,6 +27,7 @@ from satsweep.pipeline.prepare import (
     crop_views,
     fit_cameras,
     ortho_values,
+    skew_correct_masks,
     skew_correct_views,
 )
 from satsweep.pipeline.rasters import AreaRasters, area_rasters
@@ -67,7 +68,8 @@ class AreaJob:
     aoi: "AOI"
     grid: "DSMGrid"
     split_above_px: float = 0.0  # Split when a camera is further than this from its RPC (0: never)
-    borrowed_shifts: Sequence[Sequence[float]] | None = None  # per view, other tiles' corrections
+    borrowed_shifts: dict[str, Sequence[float]] | None = None  # per image path, other tiles'
+    # pointing corrections (dcx, dcy) px
     may_wait: bool = False  # Wait (rather than skip) when the views cannot be adjusted
 
     @property
@@ -116,7 +118,7 @@ class AreaResult:
 
     rasters: AreaRasters
     cameras: "CameraSet"
-    shifts: list[list[float]] | None
+    shifts: dict[str, list[float]] | None  # per image path, (dcx, dcy) px
     record: AreaRecord
 
     def without_arrays(self) -> "AreaResult":
@@ -148,7 +150,6 @@ class Wait:
 def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     """Every stage from the altitude range to the DSM rasters, for one area on its grid."""
     config, rep = ctx.config, ctx.report
-    names = job.names
     if ctx.alt_range is None and ctx.dem is None:
         with rep.stage("altitude"):
             altitude = choose_altitude_range(job.sources, job.aoi, alt_range=None, dem=None,
@@ -161,6 +162,9 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
                                          dem=ctx.dem, config=config)
     alt = altitude.range
     views, images = crop_views(job.sources, job.aoi, alt, config, report=rep)
+    kept = {v.path for v in views}  # the views holding data over the area
+    sources = [s for s in job.sources if s.path in kept]
+    names = [v.name for v in views]
     cameras = fit_cameras(views, job.aoi, alt, config, report=rep)
     worst = max(v.camera.error.max_px for v in cameras.views)
     if job.split_above_px > 0.0 and worst > job.split_above_px:
@@ -169,13 +173,17 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     # The kernels the sweep stage will need, built in the background meanwhile.
     ctx.device.prebuild(program_forecast(ctx.device, cameras,
                                          enu_height_range(cameras.frame, job.aoi, alt), config))
+    borrowed = (None if job.borrowed_shifts is None
+                else [job.borrowed_shifts[v.path] for v in views])
     cameras, adjustment = adjust_cameras(cameras, images, config, names=names,
-                                         borrowed_shifts=job.borrowed_shifts,
-                                         may_wait=job.may_wait, report=rep)
+                                         borrowed_shifts=borrowed, may_wait=job.may_wait,
+                                         report=rep)
     if adjustment.postponed is not None:
         return Wait(adjustment.postponed)
     ortho_images = ortho_values(views) if config.reconstruct.write_ortho else None
+    masks = [v.valid for v in views]
     if config.reconstruct.skew_correct:
+        masks = skew_correct_masks(cameras, masks)
         cameras, images, ortho_images = skew_correct_views(cameras, images, ortho_images,
                                                            report=rep)
 
@@ -188,7 +196,7 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
         if len(cameras.views) >= MIN_VIEWS_FOR_SIMILARITY:
             from satsweep.dense.similarity import appearance_similarity
 
-            similarity, known = appearance_similarity([s.acquisition for s in job.sources],
+            similarity, known = appearance_similarity([s.acquisition for s in sources],
                                                       images, cameras, job.aoi, mid)
         selection = select_views([v.camera for v in cameras.views], mid_height=mid,
                                  options=config.views, names=names, similarity=similarity,
@@ -196,7 +204,7 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
         for w in selection.warnings:
             rep.warn(w)
     sweeps = sweep_references(ctx.device, cameras, images, selection, u_range, config, rep,
-                              names, aoi=job.aoi, alt_range=alt)
+                              names, aoi=job.aoi, alt_range=alt, valid_masks=masks)
     _check_range_ends(sweeps, altitude, job, ctx)
     rasters = area_rasters(sweeps, cameras, images, job.grid, config, rep,
                            ortho_images=ortho_images)
@@ -204,10 +212,12 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
                         crops=[(v.path, (int(v.x0), int(v.y0), int(v.width), int(v.height)))
                                for v in views],
                         acquisitions=[None if s.acquisition is None else s.acquisition.to_dict()
-                                      for s in job.sources],
+                                      for s in sources],
                         cameras=cameras, adjustment=adjustment, selection=selection,
                         sweeps=sweeps, rasters=rasters)
-    return AreaResult(rasters=rasters, cameras=cameras, shifts=adjustment.own_shifts,
+    own = adjustment.own_shifts
+    return AreaResult(rasters=rasters, cameras=cameras,
+                      shifts=None if own is None else {v.path: s for v, s in zip(views, own)},
                       record=record)
 
 

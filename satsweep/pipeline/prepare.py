@@ -99,6 +99,8 @@ class PreparedViews:
     ortho_images: list[np.ndarray] | None  # the crops' own values, sheared alike (None: none)
     cameras: "CameraSet"  # adjusted (per ``adjustment``) and skew-corrected (per the options)
     adjustment: Adjustment
+    valid: list[np.ndarray | None] = dataclasses.field(default_factory=list)  # per view, the
+    # pixels of ``images`` that hold data (None: all), sheared like them
 
     @property
     def names(self) -> list[str]:
@@ -109,14 +111,28 @@ def crop_views(sources: Sequence["ImageSource"], aoi: "AOI", alt_range: "Altitud
                config: "PipelineConfig", *, report: "RunReport | None" = None
                ) -> tuple[list["View"], list[np.ndarray]]:
     """The "views" step: each image's crop of the AOI cube (``[reconstruct] crop_margin_px``
-    around it) and the crop tonemapped."""
+    around it) and the crop tonemapped (its no-data pixels flat, ``View.valid``). A view with
+    less than ``MIN_VALID_FRACTION`` of its crop holding data is left out with a warning naming
+    it; InputError when fewer than two views remain."""
+    from satsweep.errors import InputError
     from satsweep.io.images import tonemap
     from satsweep.io.views import load_views
 
     with _stage(report, "views"):
         views = load_views(sources, aoi, alt_range, margin_px=config.reconstruct.crop_margin_px)
-        images = [tonemap(v.image) for v in views]
-    return views, images
+        kept = []
+        for v in views:
+            fraction = 1.0 if v.valid is None else float(np.mean(v.valid))
+            if fraction < MIN_VALID_FRACTION:
+                _warn(report, f"{v.path}: only {100 * fraction:.0f}% of the pixels that see the "
+                              "AOI hold data (no-data value, NaN or zero fill): left out")
+                continue
+            kept.append(v)
+        if len(kept) < 2:
+            raise InputError(None, "fewer than two images hold data over the AOI ("
+                                   + ", ".join(v.name for v in views) + ")")
+        images = [tonemap(v.image, valid=v.valid) for v in kept]
+    return kept, images
 
 
 def fit_cameras(views: Sequence["View"], aoi: "AOI", alt_range: "AltitudeRange",
@@ -170,6 +186,13 @@ def adjust_cameras(cameras: "CameraSet", images: Sequence[np.ndarray], config: "
             return cameras, Adjustment(skipped=why)
 
 
+# A view whose crop holds data over less than this fraction of its pixels is left out.
+MIN_VALID_FRACTION = 0.2
+# A sheared pixel holds data when its interpolated mask is at least this: every pixel it reads
+# does (1 - 1e-6: float32 rounding of weights summing to one).
+MASK_INTERPOLATED_MIN = 1.0 - 1e-6
+
+
 def _fill_nan(image: np.ndarray) -> np.ndarray:
     """Skew correction leaves NaN where the sheared image has no source pixel: use 0 there (those
     pixels are in the crop margin, outside the AOI footprint)."""
@@ -192,6 +215,22 @@ def skew_correct_views(cameras: "CameraSet", images: Sequence[np.ndarray],
     return corrected, sheared, ortho_images
 
 
+def skew_correct_masks(cameras: "CameraSet", masks: Sequence[np.ndarray | None]
+                       ) -> list[np.ndarray | None]:
+    """The views' data masks sheared like their images (``skew_correct_views``): a pixel holds
+    data where every source pixel its interpolation reads does; outside the sheared image (the
+    crop margin) it counts as data, as the images' zero fill there always did."""
+    from satsweep.geometry.skew import skew_correct_set
+
+    if all(m is None for m in masks):
+        return list(masks)
+    planes = [np.ones((v.camera.height, v.camera.width), np.float32) if m is None
+              else m.astype(np.float32) for m, v in zip(masks, cameras.views)]
+    _, sheared = skew_correct_set(cameras, planes)
+    return [None if m is None else np.where(np.isfinite(s), s >= MASK_INTERPOLATED_MIN, True)
+            for m, s in zip(masks, sheared)]
+
+
 def ortho_values(views: Sequence["View"]) -> list[np.ndarray]:
     """The orthophoto's grey levels: the crops' own values (sensor units, the same for every
     tile, where each tile's tonemap stretches its own crop)."""
@@ -212,7 +251,9 @@ def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
     cameras, adjustment = adjust_cameras(cameras, images, config,
                                          names=[v.name for v in views], report=report)
     ortho = ortho_values(views) if config.reconstruct.write_ortho else None
+    masks = [v.valid for v in views]
     if config.reconstruct.skew_correct:
+        masks = skew_correct_masks(cameras, masks)
         cameras, images, ortho = skew_correct_views(cameras, images, ortho, report=report)
     return PreparedViews(views=views, images=list(images), ortho_images=ortho, cameras=cameras,
-                         adjustment=adjustment)
+                         adjustment=adjustment, valid=masks)

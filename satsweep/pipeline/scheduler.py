@@ -96,7 +96,8 @@ def reconstruct_areas(sources: Sequence["ImageSource"], aoi: "AOI", grid: "DSMGr
                 mosaic.unseen.append({"core_cells": list(tile.core),
                                       "images": [s.name for s in tile_sources]})
                 continue
-        borrowed = (median_shifts([shifts[s.path] for s in tile_sources])
+        borrowed = (dict(zip([s.path for s in tile_sources],
+                             median_shifts([shifts[s.path] for s in tile_sources])))
                     if all(shifts[s.path] for s in tile_sources) else None)
         job = AreaJob(sources=tile_sources, aoi=tile.aoi, grid=tile.grid,
                       split_above_px=(r.tile_max_error_px if can_split(tile, grid, MIN_TILE_M)
@@ -130,8 +131,8 @@ def reconstruct_areas(sources: Sequence["ImageSource"], aoi: "AOI", grid: "DSMGr
                                 else _cloud_in(piece, sub_grid(grid, *tile.core)))
             cloud.append(x, y, z, colors=colours)
         mosaic.done.append((tile, outcome.without_arrays()))
-        for s, shift in zip(tile_sources, outcome.shifts or []):
-            shifts[s.path].append(shift)
+        for path, shift in (outcome.shifts or {}).items():
+            shifts[path].append(shift)
     if not mosaic.done:
         raise InputError(None, f"no tile of the AOI is seen by two of the images "
                                f"({', '.join(s.name for s in sources)})")

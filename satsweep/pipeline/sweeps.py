@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Sequence
 
 import numpy as np
 
@@ -105,8 +106,9 @@ class ReferenceHeights:
 
 
 def sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
-                     rep: RunReport, names, *, aoi: AOI,
-                     alt_range: AltitudeRange) -> list[ReferenceHeights]:
+                     rep: RunReport, names, *, aoi: AOI, alt_range: AltitudeRange,
+                     valid_masks: Sequence[np.ndarray | None] | None = None
+                     ) -> list[ReferenceHeights]:
     """Sweep every reference view against its sources; MRF refinement per the options.
 
     Each reference is swept over its ``reference_window`` only (the pixels that see the AOI cube,
@@ -114,6 +116,10 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
     image. Without an MRF, the sweep's winner-take-all (its own tiling keeps the cost volume on
     the device). With one, ``sweep_refine_tiled``, timed as the "sweep" stage, whose refinement
     time is then moved to the "mrf" stage and also given in the view's entry with its tile count.
+
+    ``valid_masks`` (per view, the pixels that hold data; None: all) make a reference pixel
+    invalid where its matching window reads no-data pixels, or where at its plane no source
+    window holds data (``_no_data_check``).
     """
     from satsweep.dense.planes import plane_heights, view_homographies
     from satsweep.dense.sweep import PlaneSweep
@@ -152,6 +158,10 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
                         "tiles": int(result.split.n_tiles),
                         "valid_fraction": float(np.mean(result.valid))}
         progress.update(k + 1, names[r])
+        masks = valid_masks if valid_masks is not None else [None] * len(images)
+        if masks[r] is not None or any(masks[s] is not None for s in srcs):
+            _no_data_check(result, hom, [masks[s] for s in srcs], masks[r], window,
+                           [images[s].shape for s in srcs], swept.census_radii)
         height, valid, confidence = _placed(result, window, shape)
         index = np.asarray(result.plane_index)
         ends = (float(np.mean(index <= RANGE_END_PLANES)),
@@ -177,3 +187,36 @@ def _check_sgm_labels(heights: np.ndarray, config: PipelineConfig) -> None:
                                f"{config.sweep.step_px:g}, more than SGM's {SGM_MAX_LABELS}; "
                                "give a tighter altitude range (--alt-range, alt_range=) or "
                                "a DEM (--dem, dem=), a larger step_px, or no MRF (--mrf none)")
+
+
+def _window_data(mask: np.ndarray | None, shape: tuple[int, int],
+                 radii: tuple[int, int]) -> np.ndarray:
+    """The pixels whose matching window (``radii`` = (rx, ry)) holds data only."""
+    import cv2
+
+    if mask is None:
+        return np.ones(shape, bool)
+    rx, ry = radii
+    kernel = np.ones((2 * ry + 1, 2 * rx + 1), np.uint8)
+    bad = cv2.dilate((~mask).astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT,
+                     borderValue=0)
+    return bad == 0
+
+
+def _no_data_check(result, hom: np.ndarray, src_masks: Sequence[np.ndarray | None],
+                   ref_mask: np.ndarray | None, window: tuple[int, int, int, int],
+                   src_shapes: Sequence[tuple[int, int]], radii: tuple[int, int]) -> None:
+    """No-data pixels never make a height: a reference pixel whose census window reads one is
+    invalid, and so is one that, at its chosen plane, no source sees at a pixel whose window
+    holds data (the kernels saw the fill values there as an image)."""
+    from satsweep.dense.planes import seen_with_data
+
+    x0, y0, x1, y1 = window
+    keep = _window_data(ref_mask, ref_mask.shape if ref_mask is not None else (1, 1),
+                        radii)[y0:y1, x0:x1] if ref_mask is not None else True
+    n = hom.shape[0]
+    labels = np.clip(np.rint(np.nan_to_num(result.plane_index)), 0, n - 1).astype(np.int64)
+    masks = [_window_data(m, shape, radii) for m, shape in zip(src_masks, src_shapes)]
+    keep = keep & seen_with_data(hom, labels, masks)
+    result.valid &= keep
+    result.height[~result.valid] = np.nan

@@ -183,3 +183,35 @@ def test_load_views_far_aoi_names_the_image(pleiades_pair):
     far = AOI(55.70, -21.30, 55.71, -21.29)  # about 8 km away, outside both crops
     with pytest.raises(AOIError, match="img_01.tif.*does not see the AOI"):
         sv.load_views(paths, far, AltitudeRange(2300.0, 2380.0))
+
+
+def test_validity_mask_finds_nan_nodata_and_border_zero_runs():
+    from satsweep.io.views import MIN_ZERO_RUN_PX, validity_mask
+
+    a = np.full((40, 50), 1000.0, np.float32)
+    assert validity_mask(a) is None  # all data
+    a[0:10, 0:20] = 0.0  # a run of zeros at the border: a delivery's fill
+    a[20:22, 20:22] = 0.0  # dark pixels inside the image: data
+    a[30, 49] = 0.0  # one zero pixel at the border: too short a run to be fill
+    a[5, 40] = np.nan
+    a[35, 5] = -9999.0
+    mask = validity_mask(a, nodata=-9999.0)
+    expected = np.ones(a.shape, bool)
+    expected[0:10, 0:20] = False
+    expected[5, 40] = expected[35, 5] = False
+    np.testing.assert_array_equal(mask, expected)
+    assert 10 * 20 >= MIN_ZERO_RUN_PX > 1
+
+
+def test_tonemap_ignores_no_data_and_flattens_it():
+    from satsweep.io.images import tonemap
+
+    rng = np.random.default_rng(0)
+    a = rng.uniform(500, 3000, (30, 30))
+    valid = np.ones(a.shape, bool)
+    valid[:, :10] = False
+    with_fill = a.copy()
+    with_fill[~valid] = 0.0
+    t = tonemap(with_fill, valid=valid)
+    np.testing.assert_allclose(t[valid], tonemap(a[:, 10:]).ravel(), atol=1e-6)
+    assert np.all(t[~valid] == np.median(t[valid]).astype(np.float32))
