@@ -70,52 +70,37 @@ from satsweep.options import Options
 class MRFOptions(Options):
     """Options of the MRF refinement of a sweep's cost volume (penalties in cost_scale units)."""
 
-    method: Literal["none", "sgm", "graphcut"] = "sgm"  # none: the sweep's winner-take-all; sgm:
-    # semi-global matching on the device; graphcut: alpha-expansion on the host (see README table)
-    sgm_p1: float = 0.5  # SGM penalty of a one-plane height change (fraction of cost_scale);
-    # tuned with tools/bench_e2e.py together with sgm_p2 and sgm_sweep_gf_radius
-    # (docs/measurements.md: better on all 8 scenes of seeds 0-3 and against S2P than 0.4 / 1.0 /
-    # radius 3, and 0.4 beat 0.15 before). Much more over-smooths: a path pays max(P1, P2') to
-    # jump onto a weakly textured roof, whose census evidence is only ~0.02-0.03 cost_scale per
-    # pixel, so roofs keep the ground's height (tests/dense/test_mrf.py weak-texture roof: p1 0.6 /
-    # p2 2.0 fails)
+    method: Literal["none", "sgm", "graphcut"] = "sgm"  # none: the sweep's winner-take-all;
+    # sgm: semi-global matching on the device; graphcut: alpha-expansion on the host
+    tile_px: int = 1024  # a reference is swept and refined in tiles of at most this side (px)
+    sgm_p1: float = 0.5  # SGM penalty of a one-plane height change (fraction of cost_scale)
     sgm_p2: float = 1.25  # SGM penalty of a larger jump (fraction of cost_scale), before adaptation
-    sgm_sweep_gf_radius: int | None = 2  # guided-filter radius of the sweep whose costs SGM
-    # refines, in place of [sweep] gf_radius (None: that one). SGM aggregates along its paths,
-    # so it wants less spatial filtering than the winner-take-all alone (whose best radius is 5)
-    sgm_paths: Literal[4, 8] = 8  # number of scanline directions aggregated
-    sgm_p2_sigma: float = 0.05  # guide intensity difference (image in [0, 1]) at which P2 is
-    # halved: P2' = max(P1, P2 / (1 + |dI| / sigma)); 0 disables the adaptation
+    sgm_sweep_gf_radius: int | None = 2  # guided-filter radius (px) of the sweep under SGM; None:
+    # [sweep] gf_radius
+    sgm_paths: Literal[4, 8] = 8  # scanline directions aggregated
+    sgm_p2_sigma: float = 0.05  # guide difference (image in [0, 1]) that halves P2; 0: no adaptation
     sgm_work_group: int = 0  # work-items per scanline (power of two); 0: 1 on CPUs, 32 on GPUs
-    sgm_scan: bool = True  # with one work-item per scanline (CPUs): all directions in two raster
-    # scans run side by side (sgm.cl sgm_scan), each pixel's volumes read and written once per
-    # scan instead of once per direction; the same path costs, summed in another order (label
-    # windows of a coarse-to-fine search too). False: one sgm_path launch per direction
+    sgm_scan: bool = True  # one work-item per scanline: all directions in two raster scans rather
+    # than a launch per direction
     sgm_subplane: Literal["equiangular", "parabola"] = "equiangular"  # sub-plane fit through the
-    # aggregated costs of the best plane and its neighbours: SGM's sums are V-shaped near their
-    # minimum (linear P1 penalties), which a symmetric V fits; tools/bench_e2e.py, 4 scenes:
-    # median 0.210 -> 0.196 m, completeness unchanged, against the parabola
-    gc_sweep_gf_radius: int | None = 3  # guided-filter radius of the sweep whose costs the graph
-    # cut refines, in place of [sweep] gf_radius (None: that one). tools/bench_e2e.py, seeds 0-1:
-    # radius 5 lowers the median (0.240 -> 0.219 m) but loses completeness (85.8 -> 84.5%; with
-    # gc_smoothness 0.1 or 0.25 too), so the graph cut keeps the radius it was tuned with
-    gc_smoothness: float = 0.15  # graph-cut weight of a one-plane change between 4-neighbours
-    # (fraction of cost_scale), before the contrast weight
-    gc_truncation_labels: int = 4  # smoothness is linear up to this many planes, then constant
-    gc_edge_sigma: float = 0.1  # guide intensity scale of the contrast weight exp(-dI^2/(2 s^2));
-    # 0: no contrast sensitivity
-    gc_label_window: int = 3  # each pixel may take labels within +-window of the coarser level's
-    # labels around it (the range of its 3x3 coarse neighbourhood), or of initial_labels
-    gc_levels: int = 2  # coarse-to-fine levels below full resolution (each halves the image); the
-    # coarsest level is solved over the full label range; 0: one level, window around the WTA
-    gc_tile: int = 256  # graph-cut tile side (pixels) at full resolution
-    gc_tile_overlap: int = 16  # pixels each tile extends past its kept part on every side
-    gc_iterations: int = 2  # most sweeps over the labels (stops earlier when nothing changes)
-    tile_px: int = 1024  # reconstruct sweeps and refines a reference in tiles of at most this
-    # side (pixels), so that memory holds one tile's cost volume, not the whole image's; smaller
-    # when the device's memory budget needs it (satsweep.pipeline.mrf_tile_side)
-    tile_overlap_px: int = 64  # pixels each such tile is swept and refined past its kept part on
-    # every side, so that SGM paths and graph-cut neighbourhoods reach into the neighbours
+    # aggregated costs around the best plane
+    gc_sweep_gf_radius: int | None = 3  # guided-filter radius (px) of the sweep under the graph
+    # cut; None: [sweep] gf_radius
+    gc_smoothness: float = 0.15  # graph-cut weight of a one-plane change between neighbours
+    # (fraction of cost_scale)
+    gc_truncation_labels: int = 4  # planes beyond which the graph cut's smoothness stays constant
+    gc_edge_sigma: float = 0.1  # guide scale of the contrast weight exp(-dI^2 / 2 s^2); 0: none
+    gc_label_window: int = 3  # labels (planes) each pixel may move from the coarser level's
+    gc_levels: int = 2  # coarse-to-fine levels below full resolution
+    gc_tile: int = 256  # graph-cut tile side (px) at full resolution
+    gc_tile_overlap: int = 16  # pixels each graph-cut tile extends past its kept part
+    gc_iterations: int = 2  # most sweeps over the labels
+    tile_overlap_px: int = 64  # pixels each reference tile is swept and refined past its kept part
+
+    ADVANCED = ("sgm_p1", "sgm_p2", "sgm_sweep_gf_radius", "sgm_paths", "sgm_p2_sigma",
+                "sgm_work_group", "sgm_scan", "sgm_subplane", "gc_sweep_gf_radius",
+                "gc_smoothness", "gc_truncation_labels", "gc_edge_sigma", "gc_label_window",
+                "gc_levels", "gc_tile", "gc_tile_overlap", "gc_iterations", "tile_overlap_px")
 
     def check(self) -> None:
         self._require(math.isfinite(self.sgm_p1) and self.sgm_p1 >= 0.0, "sgm_p1", "must be >= 0")

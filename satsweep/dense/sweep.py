@@ -73,63 +73,51 @@ _SMALL_BUFFERS_BYTES = 1 << 16
 class SweepOptions(Options):
     """Options of the OpenCL plane sweep."""
 
-    census_window: tuple[int, int] = (5, 5)  # census window (rows, columns), odd sizes, area-1 <=
-    # 64; 5x5 beats 7x9 end to end (tools/bench_e2e.py: small trees and roof structures) and
-    # is faster
-    cost_mode: Literal["warped_census", "sampled_codes"] = "warped_census"  # census of the bilinearly
-    # warped source image (sub-pixel), or the source's own codes sampled at the nearest warped pixel
-    ad_weight: float = 8.0  # AD-census: each source's cost adds ad_weight * min(|I_src - I_ref|,
-    # ad_truncation) / ad_truncation census bits (warped source against reference intensity, images
-    # in [0, 1]); 0: census alone. tools/bench_e2e.py, seeds 0-1 with SGM: completeness 86.1 ->
-    # 87.9%, median 0.194 -> 0.192 m; against S2P 0.262 -> 0.250 m (docs/measurements.md). Needs
-    # intensities that agree between views (census alone is the choice for other dates or sensors)
-    ad_truncation: float = 0.15  # intensity difference at which the AD term saturates
-    grad_weight: float = 0.0  # each source's cost adds grad_weight * (min(|dx_src - dx_ref|, t) +
-    # min(|dy_src - dy_ref|, t)) / (2 t) census bits, t = grad_truncation: central differences of
-    # the warped source and of the reference; 0: none. Measured at 4 (docs/measurements.md):
-    # completeness +0.3 to +0.5 points end to end (means), medians mixed (-0.002 to +0.009 m per
-    # scene), closer to S2P; so off
+    step_px: float = 0.5  # plane spacing: one step moves a pixel by at most this (px) in the
+    # widest-baseline source
+    ad_weight: float = 8.0  # census bits the truncated intensity difference adds (AD-census);
+    # 0: census alone (for views whose radiometry differs)
+    search: Literal["full", "coarse_to_fine"] = "coarse_to_fine"  # with SGM: a half-resolution
+    # pass first gives each block of the reference a window of planes; full: every plane
+    memory_fraction: float = 0.5  # device memory budget, a fraction of its global memory
+    memory_budget_bytes: int | None = None  # device memory budget (bytes); overrides the fraction
+    census_window: tuple[int, int] = (5, 5)  # census window (rows, columns): odd sides, at most
+    # 64 neighbours
+    cost_mode: Literal["warped_census", "sampled_codes"] = "warped_census"  # census of the
+    # bilinearly warped source, or the source's own codes at the nearest warped pixel
+    ad_truncation: float = 0.15  # intensity difference (image in [0, 1]) at which AD saturates
+    grad_weight: float = 0.0  # census bits the truncated gradient difference adds; 0: none
     grad_truncation: float = 0.1  # gradient difference at which the gradient term saturates
-    prefilter_sigma_px: float = 0.0  # Gaussian blur (pixels) of the reference and source images
-    # before the census (0: none); lowers the pull of the bilinear warp towards whole source pixels
-    step_px: float = 0.5  # plane spacing: one step moves a pixel by at most this much (pixels) in the
-    # widest-baseline source view
-    n_best_sources: int | None = None  # k: per-pixel cost = mean of the k lowest source costs; None =
-    # half the sources, rounded up; larger than the number of sources means all of them
-    cost_filter: Literal["guided", "box", "none"] = "guided"  # filtering of each cost slice
-    gf_radius: int = 5  # guided filter radius (pixels; window 2r+1 = 11): the winner-take-all
-    # path's (--mrf none); SGM and the graph cut sweep with their own radius ([mrf]
-    # sgm_sweep_gf_radius, gc_sweep_gf_radius). tools/bench_e2e.py --mrf none, 8 scenes of seeds
-    # 0-3: 0.240 m / 82.1% against 0.282 m / 80.6% with radius 3, better on 15 of the 16 figures
-    # (radius 6-7: lower medians, lower completeness); tools/diag_wta.py: docs/measurements.md
+    prefilter_sigma_px: float = 0.0  # Gaussian blur (px) of the images before the census; 0: none
+    n_best_sources: int | None = None  # cost = mean of the k lowest source costs; None: half the
+    # sources, rounded up
+    cost_filter: Literal["guided", "box", "none"] = "guided"  # filter of each cost slice
+    gf_radius: int = 5  # guided filter radius (px) of the winner-take-all path (--mrf none)
     gf_eps: float = 1e-4  # guided filter regularisation (guide units squared, guide in [0, 1])
-    box_radius: int = 2  # box filter radius for cost_filter = "box" (2: a 5x5 box)
+    box_radius: int = 2  # box filter radius (px) for cost_filter = "box"
     subplane: bool = True  # parabola refinement between planes
-    reject_range_edges: bool = True  # a best plane at either end of the height range is invalid
-    lr_check: bool = False  # left-right style check: sweep again with the first source as reference
-    lr_tolerance_planes: float = 1.0  # largest |plane index difference| accepted by the check
-    memory_fraction: float = 0.5  # device memory budget as a fraction of its global memory
-    memory_budget_bytes: int | None = None  # explicit budget (bytes); overrides memory_fraction
-    max_planes_per_batch: int = 32  # planes filtered together (memory grows linearly with it)
-    census_kernel: Literal["split", "staged"] = "split"  # warped_census kernels: "split" warps the
-    # sources in one launch and takes the census in another (sweep_warp + sweep_warped_cost; 1.x
-    # times faster on PoCL, tools/bench_sweep.py); "staged" does both in one work-group kernel
-    # with the warped patch in local memory (sweep_census_cost). Same costs, bit for bit.
-    work_group: tuple[int, int] = (16, 16)  # work-group size of the staged census kernel (x, y)
-    search: Literal["full", "coarse_to_fine"] = "coarse_to_fine"  # with SGM: "coarse_to_fine"
-    # sweeps and refines the reference at half resolution over every coarse_plane_stride-th
-    # plane first, then sweeps each block of the reference over a window of the planes only
-    # (satsweep/dense/coarse.py; as accurate, and faster where the altitude range spans many planes:
-    # docs/measurements.md); "full" sweeps every plane everywhere. The winner-take-all path
-    # (--mrf none), the graph cut and the left-right check always sweep every plane.
+    reject_range_edges: bool = True  # a best plane at an end of the height range is invalid
+    lr_check: bool = False  # sweep again with the first source as reference and keep agreements
+    lr_tolerance_planes: float = 1.0  # largest plane difference (planes) the check accepts
+    max_planes_per_batch: int = 32  # planes filtered together (memory grows with it)
+    census_kernel: Literal["split", "staged"] = "split"  # warp then census in two launches, or
+    # both in one work-group kernel (the same costs, bit for bit)
+    work_group: tuple[int, int] = (16, 16)  # work-group size (x, y) of the staged census kernel
     coarse_plane_stride: int = 4  # coarse_to_fine: the half-resolution pass sweeps every this
-    # many planes (4 planes of step_px = 0.5 are one half-resolution pixel apart)
-    window_block_px: int = 64  # coarse_to_fine: side of the blocks that share a plane window
+    # many planes
+    window_block_px: int = 64  # coarse_to_fine: side (px) of the blocks that share a window
     window_halo_px: int = 8  # coarse_to_fine: pixels around a block whose coarse heights its
-    # window also spans (the coarse map's edges lie a pixel or two off)
+    # window also spans
     window_margin_planes: int = 4  # coarse_to_fine: planes added below and above each window
-    window_max_fraction: float = 0.6  # coarse_to_fine: sweep all planes when the windows would
-    # hold more than this fraction of them (too little to gain)
+    window_max_fraction: float = 0.6  # coarse_to_fine: sweep every plane when the windows would
+    # hold more than this fraction of them
+
+    ADVANCED = ("census_window", "cost_mode", "ad_truncation", "grad_weight", "grad_truncation",
+                "prefilter_sigma_px", "n_best_sources", "cost_filter", "gf_radius", "gf_eps",
+                "box_radius", "subplane", "reject_range_edges", "lr_check", "lr_tolerance_planes",
+                "max_planes_per_batch", "census_kernel", "work_group", "coarse_plane_stride",
+                "window_block_px", "window_halo_px", "window_margin_planes",
+                "window_max_fraction")
 
     def check(self) -> None:
         rows, cols = self.census_window

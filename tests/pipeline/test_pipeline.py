@@ -585,7 +585,7 @@ def test_cli_config_prints_the_explained_defaults(capsys):
             # every key is preceded by its explanation (a comment line)
             at = next(i for i, line in enumerate(lines) if line.startswith(f"{key} = "))
             assert lines[at - 1].startswith("# "), key
-    assert "# AD-census: each source's cost adds ad_weight" in text
+    assert "# census bits the truncated intensity difference adds (AD-census)" in text
 
 
 def test_cli_config_shows_and_checks_a_file(tmp_path, capsys):
@@ -595,7 +595,7 @@ def test_cli_config_shows_and_checks_a_file(tmp_path, capsys):
     cfg.write_text("[sweep]\nad_weight = 0.0\n")
     assert main(["config", "--config", str(cfg)]) == 0
     shown = tomllib.loads(capsys.readouterr().out)
-    assert shown["sweep"]["ad_weight"] == 0.0 and shown["sweep"]["gf_radius"] == 5
+    assert shown["sweep"]["ad_weight"] == 0.0 and shown["sweep"]["advanced"]["gf_radius"] == 5
     cfg.write_text("[sweep]\ngf_radius = 1000\n")
     assert main(["config", "--config", str(cfg)]) == 2
     err = capsys.readouterr().err
