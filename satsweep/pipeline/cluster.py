@@ -87,13 +87,14 @@ GPU_DEFAULT_WORKERS = 2
 
 # A worker's memory for one tile: a fixed part (Python, numpy, OpenCV, the OpenCL runtime and
 # its kernels) and a part per DSM cell of the tile's window (its context included) and view.
-# Fitted on tools/bench_scale.py's synthetic tiles (docs/measurements.md): a worker's peak
-# resident memory was at most WORKER_BASE_BYTES + WORKER_BYTES_PER_CELL_VIEW * cells * views.
-WORKER_BASE_BYTES = 600 * 2**20
-WORKER_BYTES_PER_CELL_VIEW = 400
+# Measured (docs/measurements.md, 2026-12-01): a worker's peak resident memory was 263-290 MiB
+# for 3 views of 56,000-cell windows and 1189 MiB for 2 views of 1.04 million-cell windows
+# (tools/bench_scale.py --workers); this estimate is above both (380 and 1297 MiB).
+WORKER_BASE_BYTES = 300 * 2**20
+WORKER_BYTES_PER_CELL_VIEW = 500
 # The memory limit given to a local Dask worker is the estimate times this: Dask's nanny kills
 # a worker at 95% of its limit, and an estimate is not a measurement of the next scene.
-WORKER_MEMORY_SAFETY = 2.0
+WORKER_MEMORY_SAFETY = 1.5
 # ... and never less than this (bytes): below it the estimate is mostly the fixed part.
 WORKER_MEMORY_FLOOR_BYTES = 2 * 2**30
 
@@ -470,8 +471,8 @@ class DaskRunner:
         return len(self._tasks)
 
     def submit(self, task: TileTask) -> None:
-        # A key per task (its fingerprint): resubmitting the same task is a no-op for Dask.
-        key = f"satsweep-tile-{task.fingerprint[:24]}"
+        # A key per task and output folder: two runs on one cluster never share a task.
+        key = "satsweep-tile-" + hashlib.sha256(task.folder.encode("utf-8")).hexdigest()[:24]
         # Earlier areas of the outputs' order first (Dask runs higher priorities first).
         priority = -(task.phase * 10**6 + (task.path[0] if task.path else 0))
         future = self.client.submit(run_tile_task, task, key=key, pure=False,

@@ -18,8 +18,10 @@ Stages (each timed in the report):
 An AOI wider or taller than ``[reconstruct] tile_m`` runs every stage from the altitude range to
 the DSM's fusion tile by tile (``satsweep.pipeline.scheduler``, ``satsweep.pipeline.tiling``: each
 tile with its own cameras); the tiles' cores fill one DSM grid, whose holes are then filled, and
-the outputs are written once. The stages hand each other typed results; the report serialises
-them at the end.
+the outputs are written once. Each area is a task (``satsweep.pipeline.cluster``) that runs in
+this process or on Dask workers (``[reconstruct] workers``, ``scheduler``) and leaves its results
+in the output's finished-tiles folder, which ``resume`` reuses after an interrupted run. The
+stages hand each other typed results; the report serialises them at the end.
 
 Outputs are first written into a hidden staging folder inside DIR and renamed into DIR only
 when every stage has succeeded: a failed run leaves what DIR held before untouched.

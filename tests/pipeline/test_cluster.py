@@ -339,3 +339,33 @@ def test_a_folder_whose_tiles_a_live_run_uses_is_refused(tmp_path):
         check_output_dir(out, overwrite=True)
     (out / RESUME_CACHE / STAGING_OWNER).write_text("999999999")  # no such process
     check_output_dir(out, overwrite=False)
+
+
+def test_the_command_line_sets_workers_scheduler_and_resume():
+    from satsweep.cli import _pipeline_config, build_parser
+
+    args = build_parser().parse_args(["reconstruct", "a.tif", "b.tif", "--aoi", "0,0,1,1",
+                                      "--out", "o", "--workers", "3", "--scheduler",
+                                      "tcp://head:8786", "--resume"])
+    r = _pipeline_config(args).reconstruct
+    assert (r.workers, r.scheduler, args.resume) == (3, "tcp://head:8786", True)
+    with pytest.raises(OptionsError, match="workers"):
+        PipelineConfig.from_mapping({"reconstruct": {"workers": -1}})
+    with pytest.raises(OptionsError, match="worker_memory_gb"):
+        PipelineConfig.from_mapping({"reconstruct": {"advanced": {"worker_memory_gb": -2.0}}})
+
+
+def test_worker_memory_follows_the_tile_not_the_aoi():
+    """The estimate grows with the largest tile's window and the views, not with the number of
+    tiles (what a worker holds is one tile)."""
+    from satsweep.pipeline.tiling import Tile
+    from satsweep.products.grid import DSMGrid
+
+    def tile(side: int) -> Tile:
+        grid = DSMGrid(epsg=32631, x_min=0.0, y_max=0.0, resolution=0.5, width=side, height=side)
+        return Tile(core=(0, side, 0, side), window=(0, side, 0, side), grid=grid, aoi=None)
+
+    one = cluster.worker_memory_bytes([tile(1000)], 2)
+    assert cluster.worker_memory_bytes([tile(1000)] * 400, 2) == one
+    assert one == cluster.WORKER_BASE_BYTES + cluster.WORKER_BYTES_PER_CELL_VIEW * 2 * 1000**2
+    assert cluster.worker_memory_bytes([tile(1000), tile(2000)], 2) > one
