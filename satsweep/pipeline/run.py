@@ -125,6 +125,10 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
             device = worker_device(settings.device)
             rep["device"] = device.info.as_dict()
             rep.log(f"device: {device.info.label}")
+        elif runner.kind == "scheduler":  # workers elsewhere, in other folders: whole paths
+            sources = [dataclasses.replace(s, path=os.path.abspath(s.path)) for s in sources]
+            if settings.dem is not None:
+                settings = dataclasses.replace(settings, dem=os.path.abspath(settings.dem))
         with rep.capturing_warnings():
             mosaic = reconstruct_areas(sources, aoi, grid, tiles, settings, runner, out.cache,
                                        rep)

@@ -369,3 +369,25 @@ def test_worker_memory_follows_the_tile_not_the_aoi():
     assert cluster.worker_memory_bytes([tile(1000)] * 400, 2) == one
     assert one == cluster.WORKER_BASE_BYTES + cluster.WORKER_BYTES_PER_CELL_VIEW * 2 * 1000**2
     assert cluster.worker_memory_bytes([tile(1000), tile(2000)], 2) > one
+
+
+def test_borrowed_corrections_come_from_a_fixed_set_of_tiles():
+    """A waiting tile borrows, per image, the median of the corrections of every finished tile
+    that adjusted itself, whatever order they finished in; None when an image has none."""
+    import itertools
+
+    from satsweep.pipeline.scheduler import FinishedArea, _borrowed
+
+    def area(k, images, shifts):
+        outcome = TileOutcome(kind="done", core=(k, k + 1, 0, 1), images=images, shifts=shifts)
+        return ((0, (k,)), FinishedArea(tile=None, outcome=outcome, folder=Path(".")))
+
+    finished = [area(0, ["a", "b"], [[0.1, 0.2], [1.0, 2.0]]),
+                area(1, ["a", "b"], [[0.3, 0.0], [1.5, 2.5]]),
+                area(2, ["a", "b"], None),  # it borrowed: not one of the set
+                area(3, ["b", "c"], [[1.2, 2.2], [5.0, 5.0]])]
+    expected = ((0.2, 0.1), (1.2, 2.2))
+    for order in itertools.permutations(finished):
+        assert _borrowed(list(order), ["a", "b"]) == expected
+    assert _borrowed(finished, ["c"]) == ((5.0, 5.0),)
+    assert _borrowed(finished[:3], ["a", "c"]) is None
