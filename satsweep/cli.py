@@ -351,6 +351,15 @@ def _add_pipeline_options(p) -> None:
     p.add_argument("--adjust", choices=("auto", "on", "off"), default=None,
                    help="bundle adjustment of principal points (default auto: on with 3+ views, "
                    "and with 2 views when their features match)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="run the tiles of a tiled AOI on a local Dask cluster of N worker "
+                   "processes, each with its own device context (default: 1 on a CPU device, "
+                   "in this process without Dask, as one PoCL worker already uses every core; 2 "
+                   "on a GPU); an AOI in one piece always runs in this process")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the tiles on a running Dask cluster (tcp://HOST:8786: dask-jobqueue "
+                   "on Slurm or PBS, Kubernetes) whose workers see the images and --out at the "
+                   "same paths (default: $SATSWEEP_SCHEDULER, else local workers)")
     p.add_argument("--overwrite", action="store_true", help="write into a non-empty --out folder")
     p.add_argument("--quiet", action="store_true",
                    help="no progress lines on stderr (warnings are still printed)")
@@ -364,7 +373,8 @@ def _pipeline_config(args: argparse.Namespace):
     from satsweep.config import PipelineConfig
 
     config = PipelineConfig.from_toml(args.config) if args.config else PipelineConfig()
-    config = config.override("reconstruct", device=args.device, adjust=args.adjust)
+    config = config.override("reconstruct", device=args.device, adjust=args.adjust,
+                             workers=args.workers, scheduler=args.scheduler)
     config = config.override("mrf", method=args.mrf)
     return config.override("dsm", resolution=args.resolution)
 
@@ -384,6 +394,10 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--truth", default=None, metavar="TRUTH.tif",
                    help="a ground-truth DSM: evaluate the result against it (report.json, evaluation/)")
+    p.add_argument("--resume", action="store_true",
+                   help="reuse the tiles that an interrupted or failed run into --out finished "
+                   "(kept in --out/.satsweep-tiles; a tile whose inputs or settings changed is "
+                   "computed again)")
     _add_pipeline_options(p)
     p.set_defaults(handler=_cmd_reconstruct)
 
@@ -396,7 +410,8 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     aoi = parse_aoi(args.aoi)
     alt = _cli_altitude_range(args)
     result = reconstruct(args.images, aoi, args.out, alt_range=alt, dem=args.dem, config=config,
-                         overwrite=args.overwrite, truth=args.truth, verbose=not args.quiet)
+                         overwrite=args.overwrite, truth=args.truth, verbose=not args.quiet,
+                         resume=args.resume)
     _print_summary(result)
     return _exit_code(result, args)
 

@@ -25,6 +25,9 @@ from satsweep.products.fusion import DSMOptions
 from satsweep.sparse.bundle import BundleOptions
 from satsweep.sparse.options import SparseOptions
 
+# Most Dask worker processes a run may ask for (a typo such as 10000 is refused up front).
+MAX_WORKERS = 1024
+
 
 @dataclasses.dataclass(frozen=True)
 class ReconstructOptions(Options):
@@ -50,9 +53,19 @@ class ReconstructOptions(Options):
     tile_overlap_m: float = 50.0  # context (m) each tile is reconstructed with beyond its cells
     tile_max_error_px: float = 0.1  # an area whose cameras are further than this (px) from
     # their RPCs is cut again in 2 x 2, down to tiles of 50 m; 0: never
+    workers: int = 0  # Dask worker processes for the tiles of a tiled AOI, each with its own
+    # device context; 0: from the device (1 on a CPU device, in this process: one PoCL worker
+    # already uses every core; 2 on a GPU); 1: in this process, without Dask
+    scheduler: str | None = None  # address of a running Dask scheduler to run the tiles on
+    # (tcp://HOST:8786; Slurm, PBS, Kubernetes clusters); unset: SATSWEEP_SCHEDULER, else local
+    worker_memory_gb: float = 0.0  # memory limit (GiB) of each local Dask worker; 0: from the
+    # tile size (satsweep.pipeline.cluster.worker_memory_bytes)
 
     ADVANCED = ("warn_filled_below", "max_aoi_km2", "max_dsm_cells", "skew_correct", "crop_margin_px", "tie_altitude_quantile",
-                "tie_altitude_margin_m", "tile_overlap_m", "tile_max_error_px")
+                "tie_altitude_margin_m", "tile_overlap_m", "tile_max_error_px", "worker_memory_gb")
+    # How the tiles are run, not what they compute: left out of the finished tiles'
+    # fingerprints, so that a run resumed with other workers reuses them.
+    EXECUTION = ("workers", "scheduler", "worker_memory_gb")
 
     def check(self) -> None:
         self._require(self.device is None or bool(self.device.strip()), "device",
@@ -76,6 +89,13 @@ class ReconstructOptions(Options):
                       "max_dsm_cells", "must be a number of cells >= 1")
         self._require(math.isfinite(self.tile_max_error_px) and self.tile_max_error_px >= 0.0,
                       "tile_max_error_px", "must be a number of pixels >= 0 (0: off)")
+        self._require(0 <= self.workers <= MAX_WORKERS, "workers",
+                      f"must be a number of worker processes in [0, {MAX_WORKERS}] (0: from the "
+                      "device)")
+        self._require(self.scheduler is None or bool(self.scheduler.strip()), "scheduler",
+                      "must be a Dask scheduler address such as tcp://HOST:8786")
+        self._require(math.isfinite(self.worker_memory_gb) and self.worker_memory_gb >= 0.0,
+                      "worker_memory_gb", "must be a number of GiB >= 0 (0: from the tile size)")
 
 
 # Written above every stage's advanced sub-table.

@@ -16,6 +16,10 @@ from satsweep.errors import OptionsError
 # (satsweep.pipeline.outputs.OutputFolder), and the file in it that names the process owning it.
 STAGING_PREFIX = ".satsweep-partial-"
 STAGING_OWNER = "owner.pid"
+# The hidden folder of a run's finished tiles (satsweep.pipeline.cluster): kept when a run fails
+# or is interrupted so that ``--resume`` reuses them, cleared by a run without ``--resume``,
+# removed by a run that succeeds. It holds the STAGING_OWNER file of the run using it.
+RESUME_CACHE = ".satsweep-tiles"
 
 
 def _pid_alive(pid: int) -> bool:
@@ -53,9 +57,23 @@ def stale_staging(path: str | os.PathLike) -> list[str]:
     return stale
 
 
+def cache_owner(path: str | os.PathLike) -> int | None:
+    """The process id of the live run that uses the finished-tiles folder ``RESUME_CACHE`` in
+    the output folder ``path``; None when there is no such folder or its run is gone."""
+    try:
+        with open(os.path.join(os.fspath(path), RESUME_CACHE, STAGING_OWNER),
+                  encoding="ascii") as fh:
+            pid = int(fh.read().strip())
+    except (OSError, ValueError):
+        return None
+    return pid if pid != os.getpid() and _pid_alive(pid) else None
+
+
 def check_output_dir(path: str | os.PathLike, *, overwrite: bool) -> None:
-    """Refuse an output folder that is a file, or a non-empty folder without ``overwrite``.
-    Staging folders left by runs that were killed do not count as content.
+    """Refuse an output folder that is a file, a non-empty folder without ``overwrite``, or one
+    whose finished tiles another live run is using. Staging folders left by runs that were
+    killed, and the finished tiles of an interrupted run (``RESUME_CACHE``), do not count as
+    content.
 
     Called before anything is computed, so that a refused run writes nothing."""
     from satsweep.errors import OutputExistsError
@@ -63,8 +81,12 @@ def check_output_dir(path: str | os.PathLike, *, overwrite: bool) -> None:
     path = os.fspath(path)
     if os.path.exists(path) and not os.path.isdir(path):
         raise OptionsError(f"output folder {path}: exists and is not a folder")
+    owner = cache_owner(path) if os.path.isdir(path) else None
+    if owner is not None:
+        raise OutputExistsError(f"output folder {path} is being written by another satsweep "
+                                f"run (process {owner})")
     if os.path.isdir(path) and not overwrite:
-        stale = {os.path.basename(p) for p in stale_staging(path)}
+        stale = {os.path.basename(p) for p in stale_staging(path)} | {RESUME_CACHE}
         try:
             content = [e for e in os.listdir(path) if e not in stale]
         except OSError as exc:

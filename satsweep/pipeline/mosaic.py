@@ -1,9 +1,11 @@
 """The run's rasters on its DSM grid, assembled on disk from the areas' pieces.
 
 Each finished area (the AOI, or one tile of it) saves its core cells as one ``.npy`` file per
-raster in the run's work folder (``save_piece``: an ``AreaPiece``), so that what is held in
-memory is one area's rasters at a time, whatever the AOI's size (and so that another process
-could have made the piece). At the end ``assemble`` copies the pieces into one band per raster
+raster in its folder of the run's finished tiles (``save_piece``: an ``AreaPiece``), and its
+points as a cloud piece (``save_cloud_piece``), so that what is held in memory is one area's
+rasters at a time, whatever the AOI's size, and so that a Dask worker makes the piece
+(``satsweep.pipeline.cluster``). The cloud file is written from the pieces in the areas' order
+(``append_cloud_piece``). At the end ``assemble`` copies the pieces into one band per raster
 on disk (``satsweep.io.bands.RawBand``), ``fill_holes`` fills the DSM's small holes block by
 block (exactly as ``satsweep.products.fusion.fill_small_holes`` does on the whole grid: each
 block is filled within a margin as wide as the largest hole, which holds every hole that
@@ -79,6 +81,51 @@ def load_piece(folder: str | os.PathLike) -> AreaPiece:
     folder = Path(folder)
     meta = json.loads((folder / "piece.json").read_text(encoding="utf-8"))
     return AreaPiece(folder=folder, core=tuple(meta["core"]), bands=tuple(meta["bands"]))
+
+
+# The files of an area's cloud piece: float64 (n, 3) x, y, z (UTM, height) and uint8 (n, 3)
+# colours, in the order the area's reference views gave them.
+CLOUD_XYZ, CLOUD_RGB = "cloud_xyz.npy", "cloud_rgb.npy"
+# Points copied at a time from a cloud piece into the cloud file.
+CLOUD_CHUNK_POINTS = 2**20
+
+
+def _cloud_in(cloud, grid) -> tuple:
+    """The points of a cloud (x, y, z, colours) whose DSM cell lies in ``grid``."""
+    x, y, z, colours = cloud
+    i, j = grid.cell_of(x=x, y=y)
+    keep = (i >= 0) & (i < grid.height) & (j >= 0) & (j < grid.width)
+    return x[keep], y[keep], z[keep], colours[keep]
+
+
+def save_cloud_piece(folder: str | os.PathLike, clouds: Sequence[tuple],
+                     core: "DSMGrid | None") -> int:
+    """Save an area's clouds (per reference view: x, y, z and (n, 3) uint8 colours) as one
+    piece in ``folder``, keeping the points whose cell lies in ``core`` (None: all); each file
+    under a temporary name, then renamed. Returns the number of points."""
+    folder = Path(folder)
+    parts = [c if core is None else _cloud_in(c, core) for c in clouds]
+    xyz = (np.stack([np.concatenate([p[k] for p in parts]) for k in range(3)], axis=1)
+           if parts else np.zeros((0, 3)))
+    rgb = np.concatenate([p[3] for p in parts]) if parts else np.zeros((0, 3), np.uint8)
+    for name, array in ((CLOUD_XYZ, xyz.astype(np.float64)), (CLOUD_RGB, rgb.astype(np.uint8))):
+        tmp = folder / f".{name}.tmp.npy"
+        np.save(tmp, array)
+        os.replace(tmp, folder / name)
+    return int(xyz.shape[0])
+
+
+def append_cloud_piece(writer, folder: str | os.PathLike) -> int:
+    """Append the cloud piece saved in ``folder`` to a ``PLYWriter``, a chunk at a time (the
+    piece is memory-mapped); the number of points."""
+    folder = Path(folder)
+    xyz = np.load(folder / CLOUD_XYZ, mmap_mode="r")
+    rgb = np.load(folder / CLOUD_RGB, mmap_mode="r")
+    for k in range(0, xyz.shape[0], CLOUD_CHUNK_POINTS):
+        block = np.asarray(xyz[k:k + CLOUD_CHUNK_POINTS])
+        writer.append(block[:, 0], block[:, 1], block[:, 2],
+                      colors=np.asarray(rgb[k:k + CLOUD_CHUNK_POINTS]))
+    return int(xyz.shape[0])
 
 
 def assemble(grid: "DSMGrid", pieces: Sequence[AreaPiece], work: str | os.PathLike,

@@ -41,14 +41,20 @@ class OutputFolder:
     one needs ``overwrite`` (then the outputs of an earlier run that this one does not write
     again are removed on ``commit``; other files are left alone). Staging folders left by killed
     runs are removed. ``abort`` removes the staging folder, and the folders this run created.
+
+    The run's finished tiles go to ``cache`` (``out_dir/.satsweep-tiles``), beside the staging
+    folder rather than in it: ``abort`` keeps them (with ``out_dir``) so that a run with
+    ``resume`` reuses them; a run without ``resume`` starts by clearing them; ``commit`` removes
+    them.
     """
 
-    def __init__(self, out_dir: str | os.PathLike, *, overwrite: bool):
+    def __init__(self, out_dir: str | os.PathLike, *, overwrite: bool, resume: bool = False):
         from satsweep.errors import InputError
-        from satsweep.io.atomic import STAGING_OWNER, STAGING_PREFIX, stale_staging
+        from satsweep.io.atomic import RESUME_CACHE, STAGING_OWNER, STAGING_PREFIX, stale_staging
 
         self.out_dir = Path(out_dir)
         self.overwrite = overwrite
+        self.resume = resume
         self.check(self.out_dir, overwrite=overwrite)
         # The topmost folder this run creates: removed again if the run fails.
         self.created_root = None
@@ -62,6 +68,11 @@ class OutputFolder:
                 shutil.rmtree(stale, ignore_errors=True)
             self.staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.out_dir))
             (self.staging / STAGING_OWNER).write_text(str(os.getpid()), encoding="ascii")
+            self.cache = self.out_dir / RESUME_CACHE
+            if not resume:
+                shutil.rmtree(self.cache, ignore_errors=True)
+            self.cache.mkdir(exist_ok=True)
+            (self.cache / STAGING_OWNER).write_text(str(os.getpid()), encoding="ascii")
         except OSError as exc:
             self._remove_created()
             raise InputError(self.out_dir, f"cannot write the output folder "
@@ -116,12 +127,24 @@ class OutputFolder:
                 os.replace(src, dst)
                 moved.append(dst)
         shutil.rmtree(self.staging, ignore_errors=True)
+        shutil.rmtree(self.cache, ignore_errors=True)
         return moved
 
-    def abort(self) -> None:
-        """Remove the staging folder, and every folder this run created."""
+    def abort(self, *, keep_tiles: bool = False) -> int:
+        """Remove the staging folder; with ``keep_tiles`` keep the finished tiles, if any, for
+        ``--resume`` (and so ``out_dir``), else remove their folder and every folder this run
+        created. Returns the number of finished tiles kept."""
+        from satsweep.io.atomic import STAGING_OWNER
+        from satsweep.pipeline.cluster import finished_entries
+
         shutil.rmtree(self.staging, ignore_errors=True)
-        self._remove_created()
+        kept = finished_entries(self.cache) if keep_tiles else 0
+        if kept:
+            (self.cache / STAGING_OWNER).unlink(missing_ok=True)
+        else:
+            shutil.rmtree(self.cache, ignore_errors=True)
+            self._remove_created()
+        return kept
 
     def _remove_created(self) -> None:
         if self.created_root is not None:

@@ -18,8 +18,10 @@ Stages (each timed in the report):
 An AOI wider or taller than ``[reconstruct] tile_m`` runs every stage from the altitude range to
 the DSM's fusion tile by tile (``satsweep.pipeline.scheduler``, ``satsweep.pipeline.tiling``: each
 tile with its own cameras); the tiles' cores fill one DSM grid, whose holes are then filled, and
-the outputs are written once. The stages hand each other typed results; the report serialises
-them at the end.
+the outputs are written once. Each area is a task (``satsweep.pipeline.cluster``) that runs in
+this process or on Dask workers (``[reconstruct] workers``, ``scheduler``) and leaves its results
+in the output's finished-tiles folder, which ``resume`` reuses after an interrupted run. The
+stages hand each other typed results; the report serialises them at the end.
 
 Outputs are first written into a hidden staging folder inside DIR and renamed into DIR only
 when every stage has succeeded: a failed run leaves what DIR held before untouched.
@@ -29,14 +31,15 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shutil
+import sys
 from pathlib import Path
 from typing import Sequence
 
 from satsweep.config import PipelineConfig
-from satsweep.errors import InputError, OptionsError
+from satsweep.errors import InputError, OptionsError, SatsweepError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.geometry.aoi import AOI
-from satsweep.pipeline.area import RunContext
 from satsweep.pipeline.outputs import (
     OutputFolder,
     ReconstructResult,
@@ -52,22 +55,30 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
                 alt_range: AltitudeRange | None = None, dem: str | os.PathLike | None = None,
                 config: PipelineConfig = PipelineConfig(), overwrite: bool = False,
                 truth: str | os.PathLike | None = None, verbose: bool = True,
-                command: str = "reconstruct") -> ReconstructResult:
+                command: str = "reconstruct", resume: bool = False) -> ReconstructResult:
     """Run the whole pipeline; see the module docstring for the stages and outputs.
 
     ``aoi`` may be given as an ``AOI`` or as a string for ``parse_aoi``, ``alt_range`` as an
-    ``AltitudeRange`` or a (min, max) pair. Every bad argument is a ``SatsweepError``."""
+    ``AltitudeRange`` or a (min, max) pair. ``resume``: reuse the tiles that an interrupted or
+    failed run into ``out_dir`` finished (``satsweep.pipeline.cluster``). Every bad argument is
+    a ``SatsweepError``."""
     # Everything that can be checked cheaply is checked before anything is written.
     paths, aoi, alt_range = _checked_arguments(images, aoi, alt_range, config)
     check_run_size(aoi, config)
     if truth is not None:
         check_truth_dsm(truth, aoi)
-    out = OutputFolder(out_dir, overwrite=overwrite)
+    out = OutputFolder(out_dir, overwrite=overwrite, resume=resume)
     try:
         result = _reconstruct(paths, aoi, out, alt_range=alt_range, dem=dem, config=config,
                               truth=truth, verbose=verbose, command=command)
-    except BaseException:
-        out.abort()
+    except BaseException as exc:
+        # An interrupted or crashed run keeps its finished tiles for --resume; one refused for
+        # its inputs, options or data needs something changed first, and keeps nothing.
+        kept = out.abort(keep_tiles=not isinstance(exc, SatsweepError)
+                         or getattr(exc, "resumable", False))
+        if kept:
+            print(f"satsweep: {kept} finished tile(s) kept in {out.cache}: run the same command "
+                  "with --resume (resume=True) to reuse them", file=sys.stderr, flush=True)
         raise
     out.commit()
     return result
@@ -77,10 +88,14 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
                  truth, verbose: bool, command: str) -> ReconstructResult:
     from satsweep.geometry.geodesy import utm_epsg
     from satsweep.io.sources import open_sources
-    from satsweep.opencl.device import open_device
+    from satsweep.pipeline.cluster import (
+        RunSettings,
+        open_runner,
+        resolve_device_spec,
+        worker_device,
+    )
     from satsweep.pipeline.tiling import plan_tiles
     from satsweep.products.grid import dsm_grid_for_aoi
-    from satsweep.products.ply import PLYWriter
 
     start_preloading()
     rep = RunReport(command, verbose=verbose)
@@ -88,9 +103,9 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     rep["inputs"] = {"images": paths, "aoi": dataclasses.asdict(aoi), "dem": dem and os.fspath(dem),
                      "truth": truth and os.fspath(truth)}
 
-    device = open_device(config.reconstruct.device)
-    rep["device"] = device.info.as_dict()
-    rep.log(f"device: {device.info.label}")
+    settings = RunSettings(config=config, device=resolve_device_spec(config.reconstruct.device),
+                           alt_range=alt_range, dem=None if dem is None else os.fspath(dem),
+                           verbose=verbose)
     sources = open_sources(paths)
     for source in sources:
         for problem in (source.acquisition.warnings if source.acquisition is not None else ()):
@@ -104,39 +119,66 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     if len(tiles) > 1:
         rep.log(f"AOI of {grid.width * grid.resolution:.0f} m x {grid.height * grid.resolution:.0f}"
                 f" m: {len(tiles)} tiles of at most {r.tile_m:g} m, each with its own cameras")
-    # The cloud is written as the areas give it: only one area's points are held at a time.
-    cloud = (PLYWriter(out.path("cloud.ply"), with_colors=True,
-                       comments=(f"crs EPSG:{grid.epsg}", "generated by satsweep"))
-             if r.write_cloud else None)
+    runner = open_runner(settings, tiles, len(sources), rep)
     try:
-        ctx = RunContext(device=device, config=config, report=rep, alt_range=alt_range, dem=dem)
+        if runner.kind == "in-process":  # the tiles run on this process's device
+            device = worker_device(settings.device)
+            rep["device"] = device.info.as_dict()
+            rep.log(f"device: {device.info.label}")
+        elif runner.kind == "scheduler":  # workers elsewhere, in other folders: whole paths
+            sources = [dataclasses.replace(s, path=os.path.abspath(s.path)) for s in sources]
+            if settings.dem is not None:
+                settings = dataclasses.replace(settings, dem=os.path.abspath(settings.dem))
         with rep.capturing_warnings():
-            mosaic = reconstruct_areas(sources, aoi, grid, tiles, cloud, ctx, out.work)
-            return _finish(mosaic, cloud, ctx, out, truth)
-    except BaseException:
-        if cloud is not None:
-            cloud.abort()
-        raise
+            mosaic = reconstruct_areas(sources, aoi, grid, tiles, settings, runner, out.cache,
+                                       rep)
+            _report_execution(rep, runner, mosaic)
+            return _finish(mosaic, settings, rep, out, truth)
+    finally:
+        runner.close()
 
 
-def _finish(mosaic: Mosaic, cloud, ctx: RunContext, out: OutputFolder,
+def _report_execution(rep: RunReport, runner, mosaic: Mosaic) -> None:
+    """The report's ``execution`` section; the device, when the tiles ran on workers."""
+    from satsweep.pipeline.cluster import execution_summary
+
+    rep["execution"] = execution_summary(runner, reused=mosaic.reused, computed=mosaic.computed,
+                                         retries=mosaic.retries,
+                                         outcomes=mosaic.computed_outcomes)
+    if rep["device"] is None:
+        devices = {}
+        for outcome in mosaic.outcomes:
+            if outcome.device is not None:
+                devices.setdefault(outcome.device["platform_name"] + " / "
+                                   + outcome.device["device_name"], outcome.device)
+        if devices:
+            rep["device"] = next(iter(devices.values()))
+            rep.log(f"device: {', '.join(devices)}")
+        if len(devices) > 1:
+            rep.warn(f"the tiles ran on different devices ({'; '.join(devices)}): their "
+                     "heights may differ in the last bits")
+
+
+def _finish(mosaic: Mosaic, settings, rep: RunReport, out: OutputFolder,
             truth) -> ReconstructResult:
     """The mosaic's holes filled, the report's figures, the outputs."""
-    from satsweep.geometry.camera import write_cameras
-    from satsweep.pipeline.mosaic import assemble, fill_holes
+    from satsweep.pipeline.mosaic import append_cloud_piece, assemble, fill_holes
+    from satsweep.products.ply import PLYWriter
 
-    config, rep, grid = ctx.config, ctx.report, mosaic.grid
+    config, grid = settings.config, mosaic.grid
     r, d = config.reconstruct, config.dsm
     entries = []  # per area: its cells and its stages' figures
-    for tile, area in mosaic.done:
-        entries.append({**tile.to_dict(), **area.record.to_report()})
+    for area in mosaic.done:
+        entries.append({**area.tile.to_dict(), **area.outcome.entry})
     rep["tiling"] = {"tile_m": r.tile_m, "overlap_m": r.tile_overlap_m,
                      "max_error_px": r.tile_max_error_px, "tiles": len(mosaic.done),
                      "splits": mosaic.splits, "unseen": mosaic.unseen}
+    if mosaic.failed:
+        rep["tiling"]["failed"] = mosaic.failed
     if mosaic.tiled:
-        if ctx.alt_range is not None:  # else each tile's range is in its entry (DEM, tie points)
-            rep["altitude_range"] = {"min": ctx.alt_range.min, "max": ctx.alt_range.max,
-                                     "source": "user"}
+        if settings.alt_range is not None:  # else each tile's range is in its entry
+            rep["altitude_range"] = {"min": settings.alt_range.min,
+                                     "max": settings.alt_range.max, "source": "user"}
         for k, entry in enumerate(entries):
             entry["cameras_file"] = f"tiles/tile_{k:02d}/cameras.json"
         rep["aoi_tiles"] = entries
@@ -157,14 +199,25 @@ def _finish(mosaic: Mosaic, cloud, ctx: RunContext, out: OutputFolder,
             "holes_filled_cells": filled.filled_cells,
             **({} if mosaic.tiled else entries[0]["dsm"]),  # a tile's are in its entry
         }
-    _check_filled(rep["dsm"]["filled_fraction"], mosaic, ctx)
+    _check_filled(rep["dsm"]["filled_fraction"], mosaic, rep, config)
     with rep.stage("outputs"):
-        rasters["dsm"], rasters["interpolated"] = filled.dsm, filled.interpolated
-        dsm_path = write_products(rasters, cloud, grid, out)
+        # The cloud, from the areas' pieces in their order: one chunk of points at a time.
+        cloud = (PLYWriter(out.path("cloud.ply"), with_colors=True,
+                           comments=(f"crs EPSG:{grid.epsg}", "generated by satsweep"))
+                 if r.write_cloud else None)
+        try:
+            for area in mosaic.done if cloud is not None else []:
+                append_cloud_piece(cloud, area.folder)
+            rasters["dsm"], rasters["interpolated"] = filled.dsm, filled.interpolated
+            dsm_path = write_products(rasters, cloud, grid, out)
+        except BaseException:
+            if cloud is not None:
+                cloud.abort()
+            raise
         if not mosaic.tiled:
-            write_cameras(out.staging, mosaic.done[0][1].cameras)
-        for entry, (_, area) in zip(entries if mosaic.tiled else [], mosaic.done):
-            write_cameras(out.staging / Path(entry["cameras_file"]).parent, area.cameras)
+            shutil.copyfile(mosaic.done[0].cameras_file, out.path("cameras.json"))
+        for entry, area in zip(entries if mosaic.tiled else [], mosaic.done):
+            shutil.copyfile(area.cameras_file, out.path(entry["cameras_file"]))
         out.path("config.toml").write_text(config.to_toml(), encoding="utf-8")
     evaluation = evaluate_products(dsm_path, truth, out, rep) if truth is not None else None
     report = rep.finish()
@@ -173,17 +226,18 @@ def _finish(mosaic: Mosaic, cloud, ctx: RunContext, out: OutputFolder,
                              report=report, evaluation=evaluation)
 
 
-def _check_filled(fraction: float, mosaic: Mosaic, ctx: RunContext) -> None:
+def _check_filled(fraction: float, mosaic: Mosaic, rep: RunReport,
+                  config: PipelineConfig) -> None:
     """An error when no cell got a height (no stereo was possible: featureless or identical
     views); a doubtful warning when fewer than ``[reconstruct] warn_filled_below`` of them did."""
-    names = sorted({s for _, area in mosaic.done for s in area.record.names})
+    names = sorted({s for area in mosaic.done for s in area.outcome.names})
     if fraction == 0.0:
         raise InputError(None, f"no cell of the DSM got a height: the views "
                                f"({', '.join(names)}) could not be matched over the AOI "
                                "(featureless, cloud-covered or identical images?)")
-    floor = ctx.config.reconstruct.warn_filled_below
+    floor = config.reconstruct.warn_filled_below
     if fraction < floor:
-        ctx.report.warn(f"only {100 * fraction:.1f}% of the DSM's cells got a height (less than "
+        rep.warn(f"only {100 * fraction:.1f}% of the DSM's cells got a height (less than "
                         f"[reconstruct] warn_filled_below = {floor:g}): the views match poorly "
                         "over the AOI", doubtful=True)
 
