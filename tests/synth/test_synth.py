@@ -80,8 +80,10 @@ SMALL = SynthOptions(seed=3, n_views=3, size_px=128, gsd_m=1.0, bias_px=1.5,
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Scene:
-    return generate_scene(tmp_path_factory.mktemp("synth") / "scene", SMALL)
+def scene(synthetic_scene) -> Scene:
+    return synthetic_scene(**{f: getattr(SMALL, f) for f in ("seed", "n_views", "size_px",
+                                                             "gsd_m", "bias_px", "location",
+                                                             "ground_alt_m")})
 
 
 @pytest.fixture(scope="module")
