@@ -102,53 +102,10 @@ def ellipsoid_heights(height: np.ndarray, ref_proj, frame) -> np.ndarray:
     return out
 
 
-def visible_at(homographies, plane_index, src_shapes: Sequence[tuple[int, int]]) -> np.ndarray:
-    """Where a reference pixel maps into at least one source at its plane (H, W) bool.
-
-    homographies: (n_planes, n_src, 3, 3) reference pixel -> source pixel, as ``PlaneSweep.run``
-    takes them; plane_index: (H, W) integer plane of each pixel; src_shapes: (rows, cols) of
-    each source. The rule of the sweep's winner-take-all (wta.cl): the homogeneous scale is
-    positive and the point lies in [0, cols - 1] x [0, rows - 1] (computed here in float64).
-    """
-    hom = np.asarray(homographies, dtype=np.float64)
-    idx = np.asarray(plane_index)
-    if not np.issubdtype(idx.dtype, np.integer) or idx.ndim != 2:
-        raise InputError(None, f"plane_index: expected a 2-D integer array, got {idx.dtype} "
-                               f"{idx.shape}")
-    if hom.ndim != 4 or hom.shape[1:] != (len(src_shapes), 3, 3):
-        raise InputError(None, f"homographies: shape {hom.shape}, expected (n_planes, "
-                               f"{len(src_shapes)}, 3, 3)")
-    if idx.size and (idx.min() < 0 or idx.max() >= hom.shape[0]):
-        raise InputError(None, f"plane_index: values must be in [0, {hom.shape[0] - 1}]")
-    h, w = idx.shape
-    out = np.zeros(idx.shape, bool)
-    ys, xs = np.mgrid[0:h, 0:w]
-    flat = idx.ravel()
-    order = np.argsort(flat, kind="stable")
-    bounds = np.searchsorted(flat[order], np.arange(hom.shape[0] + 1))
-    for p in range(hom.shape[0]):  # the pixels of each plane together
-        pix = order[bounds[p]:bounds[p + 1]]
-        if pix.size == 0:
-            continue
-        x, y = xs.ravel()[pix].astype(np.float64), ys.ravel()[pix].astype(np.float64)
-        seen = np.zeros(pix.size, bool)
-        for s, (rows, cols) in enumerate(src_shapes):
-            H = hom[p, s] / hom[p, s, 2, 2]
-            wz = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-            ok = wz > 0
-            safe = np.where(ok, wz, 1.0)
-            u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / safe
-            v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / safe
-            seen |= ok & (u >= 0) & (u <= cols - 1) & (v >= 0) & (v <= rows - 1)
-        out.ravel()[pix] = seen
-    return out
-
-
-def seen_with_data(homographies, plane_index, src_valid: Sequence[np.ndarray]) -> np.ndarray:
-    """Where a reference pixel maps, at its plane, onto a pixel that holds data in at least one
-    source (H, W) bool: ``visible_at``'s rule with each source's data mask (``src_valid``, (rows,
-    cols) bool, True where the pixel and every pixel its matching window reads hold data) read
-    at the nearest pixel."""
+def _seen_per_plane(homographies, plane_index, n_src: int, hit) -> np.ndarray:
+    """(H, W) bool: whether, at its plane, a reference pixel maps with a positive homogeneous
+    scale to a source position (u, v) for which ``hit(s, u, v)`` holds, for some source s. The
+    pixels of each plane are mapped together (float64)."""
     hom = np.asarray(homographies, dtype=np.float64)
     idx = np.asarray(plane_index)
     h, w = idx.shape
@@ -163,20 +120,59 @@ def seen_with_data(homographies, plane_index, src_valid: Sequence[np.ndarray]) -
             continue
         x, y = xs.ravel()[pix].astype(np.float64), ys.ravel()[pix].astype(np.float64)
         seen = np.zeros(pix.size, bool)
-        for s, mask in enumerate(src_valid):
-            rows, cols = mask.shape
+        for s in range(n_src):
             H = hom[p, s] / hom[p, s, 2, 2]
             wz = H[2, 0] * x + H[2, 1] * y + H[2, 2]
             ok = wz > 0
             safe = np.where(ok, wz, 1.0)
             u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / safe
             v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / safe
-            ok &= (u >= 0) & (u <= cols - 1) & (v >= 0) & (v <= rows - 1)
-            iu = np.clip(np.floor(u + 0.5), 0, cols - 1).astype(np.int64)
-            iv = np.clip(np.floor(v + 0.5), 0, rows - 1).astype(np.int64)
-            seen |= ok & mask[iv, iu]
+            seen |= ok & hit(s, u, v)
         out.ravel()[pix] = seen
     return out
+
+
+def visible_at(homographies, plane_index, src_shapes: Sequence[tuple[int, int]]) -> np.ndarray:
+    """Where a reference pixel maps into at least one source at its plane (H, W) bool.
+
+    homographies: (n_planes, n_src, 3, 3) reference pixel -> source pixel, as the sweep takes
+    them; plane_index: (H, W) integer plane of each pixel; src_shapes: (rows, cols) of each
+    source. The rule of the sweep's winner-take-all (wta.cl): the homogeneous scale is positive
+    and the point lies in [0, cols - 1] x [0, rows - 1] (computed here in float64).
+    """
+    hom = np.asarray(homographies, dtype=np.float64)
+    idx = np.asarray(plane_index)
+    if not np.issubdtype(idx.dtype, np.integer) or idx.ndim != 2:
+        raise InputError(None, f"plane_index: expected a 2-D integer array, got {idx.dtype} "
+                               f"{idx.shape}")
+    if hom.ndim != 4 or hom.shape[1:] != (len(src_shapes), 3, 3):
+        raise InputError(None, f"homographies: shape {hom.shape}, expected (n_planes, "
+                               f"{len(src_shapes)}, 3, 3)")
+    if idx.size and (idx.min() < 0 or idx.max() >= hom.shape[0]):
+        raise InputError(None, f"plane_index: values must be in [0, {hom.shape[0] - 1}]")
+
+    def inside(s, u, v):
+        rows, cols = src_shapes[s]
+        return (u >= 0) & (u <= cols - 1) & (v >= 0) & (v <= rows - 1)
+
+    return _seen_per_plane(hom, idx, len(src_shapes), inside)
+
+
+def seen_with_data(homographies, plane_index, src_valid: Sequence[np.ndarray]) -> np.ndarray:
+    """Where a reference pixel maps, at its plane, onto a pixel that holds data in at least one
+    source (H, W) bool: ``visible_at``'s rule with each source's data mask (``src_valid``, (rows,
+    cols) bool, True where the pixel and every pixel its matching window reads hold data) read
+    at the nearest pixel."""
+
+    def on_data(s, u, v):
+        mask = src_valid[s]
+        rows, cols = mask.shape
+        inside = (u >= 0) & (u <= cols - 1) & (v >= 0) & (v <= rows - 1)
+        iu = np.clip(np.floor(u + 0.5), 0, cols - 1).astype(np.int64)
+        iv = np.clip(np.floor(v + 0.5), 0, rows - 1).astype(np.int64)
+        return inside & mask[iv, iu]
+
+    return _seen_per_plane(homographies, plane_index, len(src_valid), on_data)
 
 
 def view_homographies(ref_proj, src_projs: Sequence, heights) -> np.ndarray:

@@ -122,25 +122,12 @@ def write_cog(path: str | os.PathLike, band: RawBand, *, epsg: int, x_min: float
     are made in ``work_dir`` (default: beside ``path``) and removed after."""
     import tifffile
 
-    from satsweep.io.geotiff import (
-        TAG_GDAL_NODATA,
-        TAG_GEO_KEY_DIRECTORY,
-        TAG_MODEL_PIXEL_SCALE,
-        TAG_MODEL_TIEPOINT,
-        _geokeys,
-        _nodata_text,
-    )
+    from satsweep.io.geotiff import georeference_tags
 
     path = Path(path)
     work = Path(work_dir) if work_dir is not None else path.parent
-    geokeys = tuple(_geokeys(epsg))
-    tags = [
-        (TAG_MODEL_PIXEL_SCALE, "d", 3, (float(resolution), float(resolution), 0.0), True),
-        (TAG_MODEL_TIEPOINT, "d", 6, (0.0, 0.0, 0.0, float(x_min), float(y_max), 0.0), True),
-        (TAG_GEO_KEY_DIRECTORY, "H", len(geokeys), geokeys, True),
-    ]
-    if nodata is not None:
-        tags.append((TAG_GDAL_NODATA, "s", 0, _nodata_text(float(nodata), band.dtype), True))
+    tags = georeference_tags(epsg=epsg, x_min=x_min, y_max=y_max, resolution=resolution,
+                             nodata=nodata, dtype=band.dtype)
     xml = _gdal_metadata(description, units, items)
     if xml is not None:
         tags.append((TAG_GDAL_METADATA, "s", 0, xml, True))

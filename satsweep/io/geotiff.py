@@ -159,6 +159,20 @@ def write_geotiff(
     if not (math.isfinite(x_min) and math.isfinite(y_max)):
         raise OptionsError(f"GeoTIFF origin ({x_min!r}, {y_max!r}) must be finite")
     dtype = np.dtype(dtype)
+    tags = georeference_tags(epsg=epsg, x_min=x_min, y_max=y_max, resolution=resolution,
+                             nodata=nodata, dtype=dtype)
+    with _maybe_atomic(path, atomic) as target:
+        tifffile.imwrite(
+            target, np.ascontiguousarray(array, dtype=dtype), photometric="minisblack",
+            metadata=None, extratags=tags,
+        )
+
+
+def georeference_tags(*, epsg: int, x_min: float, y_max: float, resolution: float,
+                      nodata: float | None, dtype) -> list[tuple]:
+    """tifffile extratags of a north-up raster: ModelPixelScale, ModelTiepoint (the outer corner
+    of the top-left pixel), GeoKeyDirectory (PixelIsArea) and GDAL_NODATA (none when ``nodata``
+    is None)."""
     geokeys = tuple(_geokeys(epsg))
     tags = [
         (TAG_MODEL_PIXEL_SCALE, "d", 3, (float(resolution), float(resolution), 0.0), True),
@@ -166,12 +180,8 @@ def write_geotiff(
         (TAG_GEO_KEY_DIRECTORY, "H", len(geokeys), geokeys, True),
     ]
     if nodata is not None:
-        tags.append((TAG_GDAL_NODATA, "s", 0, _nodata_text(float(nodata), dtype), True))
-    with _maybe_atomic(path, atomic) as target:
-        tifffile.imwrite(
-            target, np.ascontiguousarray(array, dtype=dtype), photometric="minisblack",
-            metadata=None, extratags=tags,
-        )
+        tags.append((TAG_GDAL_NODATA, "s", 0, _nodata_text(float(nodata), np.dtype(dtype)), True))
+    return tags
 
 
 def write_tiff(

@@ -369,8 +369,6 @@ def _run_tile(task: TileTask, report: "RunReport", device: "Device") -> TileOutc
         prior = prior_altitude_range(sources, tile.aoi, alt_range=s.alt_range, dem=s.dem)
         sources = sources_seeing(sources, tile.aoi, prior)
         if len(sources) < 2:
-            report.warn(f"cells {tile.core} are seen by {len(sources)} image(s): left without "
-                        "heights")
             return TileOutcome(kind="unseen", core=tile.core, images=[x.path for x in sources])
     seen = [x.path for x in sources]
     if task.seeing is not None and list(task.seeing) != seen:  # cannot happen: same inputs

@@ -187,6 +187,11 @@ def reconstruct_areas(sources: Sequence["ImageSource"], aoi: "AOI", grid: "DSMGr
     mosaic.done = [area for _, area in sorted(finished, key=lambda item: item[0])]
     mosaic.splits = [entry for _, entry in sorted(splits, key=lambda item: item[0])]
     mosaic.unseen = [entry for _, entry in sorted(unseen, key=lambda item: item[0])]
+    if mosaic.unseen:  # one line for them all: a large AOI may have hundreds
+        cells = sum((c[1] - c[0]) * (c[3] - c[2]) for c in (e["core_cells"] for e in mosaic.unseen))
+        rep.warn(f"{len(mosaic.unseen)} tile(s), {100 * cells / (grid.width * grid.height):.1f}% "
+                 "of the AOI, are seen by fewer than two images: left without heights (report: "
+                 "tiling.unseen)")
     failed.sort(key=lambda item: item[0])
     mosaic.failed = [{"core_cells": list(o.core), "images": [os.path.basename(p) for p in o.images],
                       "reason": o.reason} for _, o in failed]
