@@ -192,5 +192,7 @@ def decimated(band: RawBand, max_side: int) -> np.ndarray:
     h, w = band.shape
     step = max(1, -(-max(h, w) // max_side))
     chunk = max(step, SCAN_ROWS // step * step)  # a multiple of step: every block starts on one
-    rows = [band.read(r0, min(r0 + chunk, h), 0, w)[::step, ::step] for r0 in range(0, h, chunk)]
+    # A copy of each block's samples: a view would keep the whole block alive.
+    rows = [band.read(r0, min(r0 + chunk, h), 0, w)[::step, ::step].copy()
+            for r0 in range(0, h, chunk)]
     return np.concatenate(rows) if rows else np.zeros((0, 0), band.dtype)
