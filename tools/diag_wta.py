@@ -32,16 +32,14 @@ from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from satsweep.config import PipelineConfig  # noqa: E402
 from satsweep.dense.sweep import SweepOptions, sweep_views  # noqa: E402
-from satsweep.geometry import camera as scam  # noqa: E402
-from satsweep.geometry import skew
 from satsweep.geometry.altitude import (
     AltitudeRange,  # noqa: E402
     enu_height_range,  # noqa: E402
 )
-from satsweep.io.images import tonemap  # noqa: E402
-from satsweep.io.views import load_views  # noqa: E402
 from satsweep.opencl.device import open_device  # noqa: E402
+from satsweep.pipeline.prepare import prepare_views  # noqa: E402
 from satsweep.synth.scene import Scene, SynthOptions, generate_scene  # noqa: E402
 from satsweep.synth.town import MATERIAL_NAMES, cast_rays  # noqa: E402
 
@@ -167,10 +165,11 @@ def main(argv=None) -> int:
     scene = get_scene(args.scenes, args.seed, args.size, args.noise, args.calibration)
     lo, hi = scene.alt_range
     alt = AltitudeRange(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M)
-    views = load_views([v.image for v in scene.views], scene.aoi, alt)
-    cams = scam.build_cameras(views, scene.aoi, alt, scam.CameraOptions(grid_size=(20, 20, 6)))
-    cams, images = skew.skew_correct_set(cams, [tonemap(v.image) for v in views])
-    images = [np.where(np.isfinite(im), im, 0.0).astype(np.float32) for im in images]
+    # The views as the pipeline prepares them, with the scene's exact RPCs (no adjustment).
+    config = (PipelineConfig().override("camera", grid_size=(20, 20, 6))
+              .override("reconstruct", adjust="off"))
+    prepared = prepare_views([v.image for v in scene.views], scene.aoi, alt, config)
+    cams, images = prepared.cameras, prepared.images
     u_range = enu_height_range(cams.frame, scene.aoi, alt)
     check = camera_check(scene, cams, (lo, hi), np.random.default_rng(0))
     print(f"scene seed {args.seed}, {args.size} px, noise {args.noise:g} DN; camera check "
