@@ -5,20 +5,22 @@ most of its sparse stage there. Only a chosen graph of pairs is matched instead,
 linearly with V:
 
 1. *Candidates*: the pairs whose views see a common part of the AOI. The AOI box is sampled
-   (``_COVERAGE_SAMPLES`` per side, at the middle of the altitude range) and projected by each
-   view's camera; a pair's *overlap* is the fraction of samples inside both crops. Pairs below
-   ``pair_min_overlap`` are no candidates.
+   (``_COVERAGE_SAMPLES`` per side, at the bottom, middle and top of the altitude range) and
+   projected by each view's camera; a pair's *overlap* is the largest fraction of one
+   altitude's samples inside both crops. Pairs below ``pair_min_overlap`` are no candidates.
 2. *Score* of a candidate: overlap x geometry x appearance. Geometry: the pair's base-to-height
    ratio (B/H, the horizontal distance between the two lines of sight through a ground point per
    metre of height, from the cameras) inside ``pair_bh_range`` counts 1, outside
    ``_BH_PENALTY`` (too small: the heights are poorly triangulated; too large: the views differ
    too much for SIFT). Appearance: the verified matches between the ``pair_probe_features``
    strongest features of the two views (:func:`probe_matches`), plus one; views of different
-   seasons, lighting or places match less there than in the full matching.
-3. *Selection*: a maximum spanning forest of the candidates by score (every view that has a
-   candidate is linked to the others by the best pairs available), plus each view's
-   ``pair_neighbours`` best candidates. With V <= pair_neighbours + 1 that is every candidate
-   pair. A view matched with several others is tied in two dimensions (one pair only ties the
+   seasons, lighting or places match less there than in the full matching. Each view probes
+   only its best candidates by geometry (a few times ``pair_neighbours``), so that the probes
+   too grow linearly with the views; the pairs not probed count as if they had no match.
+3. *Selection* (:func:`select_pairs`): a maximum spanning forest of the candidates by score
+   (every view that has a candidate is linked to the others by the best pairs available), then
+   the best pairs until each view has ``pair_neighbours`` of them: about pair_neighbours / 2
+   pairs per view. With V <= pair_neighbours + 1 that is every candidate pair. A view matched with several others is tied in two dimensions (one pair only ties the
    component of its pointing error across the epipolar lines; the other component is the height
    of the pair's points), and the tracks that chain through the graph tie it further.
 
@@ -29,6 +31,7 @@ the largest group of views is matched with its next candidates before it is drop
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -41,6 +44,10 @@ _COVERAGE_SAMPLES = 12
 # Score factor of a pair whose B/H lies outside pair_bh_range: such pairs are still matched when
 # they are the best a view has, but the in-range pairs come first.
 _BH_PENALTY = 0.25
+# Each view probes (appearance) at most this many times pair_neighbours of its candidates, the
+# best by geometry: probing every pair would grow with the square of the views (190 probes of
+# 20 views took 1.2 s of CPU, against 15 s for the whole stage).
+_PROBES_PER_NEIGHBOUR = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,13 +88,19 @@ class PairGraph:
 
 
 # -- what the graph is made of -------------------------------------------------------------------
-def aoi_samples(frame: Any, aoi: Any, altitude: float, n: int = _COVERAGE_SAMPLES) -> np.ndarray:
-    """(n * n, 3) ENU points (m) of a regular grid over the AOI box at ``altitude`` (m)."""
+def aoi_samples(frame: Any, aoi: Any, altitudes: Sequence[float],
+                n: int = _COVERAGE_SAMPLES) -> np.ndarray:
+    """(A, n * n, 3) ENU points (m) of a regular grid over the AOI box at each of the A
+    ``altitudes`` (m above the ellipsoid)."""
     lon = np.linspace(aoi.lon_min, aoi.lon_max, n)
     lat = np.linspace(aoi.lat_min, aoi.lat_max, n)
     lon, lat = np.meshgrid(lon, lat)
-    e, nn, u = frame.from_geodetic(lon=lon.ravel(), lat=lat.ravel(), alt=np.full(lon.size, altitude))
-    return np.column_stack([e, nn, u])
+    out = []
+    for altitude in altitudes:
+        e, nn, u = frame.from_geodetic(lon=lon.ravel(), lat=lat.ravel(),
+                                       alt=np.full(lon.size, float(altitude)))
+        out.append(np.column_stack([e, nn, u]))
+    return np.stack(out)
 
 
 def coverage(cameras: Sequence[Any], points: np.ndarray) -> np.ndarray:
@@ -157,25 +170,59 @@ def _find(parent: list[int], v: int) -> int:
 
 def select_pairs(n_views: int, candidates: Sequence[PairCandidate], neighbours: int,
                  exclude: Sequence[int] = ()) -> tuple[tuple[int, int], ...]:
-    """The pairs to match: a maximum spanning forest of the candidates by score (Kruskal) plus
-    each view's ``neighbours`` best candidates; views in ``exclude`` take no part. Sorted (i, j)."""
+    """The pairs to match: a maximum spanning forest of the candidates by score (Kruskal; it
+    holds each view's best candidate), then, by decreasing score, the pairs of two views that
+    both have fewer than ``neighbours`` pairs, then for each view still short of them its best
+    remaining candidates. Views in ``exclude`` take no part. Sorted (i, j).
+
+    Each view gets ``neighbours`` pairs (or all its candidates) and the total stays near
+    ``neighbours / 2`` pairs per view: with 3, 8 pairs for 5 views, 16 for 10, 31 for 20 (each
+    view's 3 best regardless of the others' would make 9, 19 and 37-40, for corrections no
+    better on tools/bench_ba.py's stacks: at most 0.031 px against 0.028)."""
     out = set()
     skip = set(exclude)
     cands = sorted((c for c in candidates if c.i not in skip and c.j not in skip),
                    key=lambda c: (-c.score, c.i, c.j))
     parent = list(range(n_views))
+    degree = np.zeros(n_views, dtype=np.int64)
+
+    def add(c: PairCandidate) -> None:
+        out.add((c.i, c.j))
+        degree[c.i] += 1
+        degree[c.j] += 1
+
     for c in cands:
         a, b = _find(parent, c.i), _find(parent, c.j)
         if a != b:
             parent[max(a, b)] = min(a, b)
-            out.add((c.i, c.j))
-    taken = np.zeros(n_views, dtype=np.int64)
-    for c in cands:  # by decreasing score: each view's best candidates first
-        if taken[c.i] < neighbours or taken[c.j] < neighbours:
-            out.add((c.i, c.j))
-        taken[c.i] += 1
-        taken[c.j] += 1
+            add(c)
+    for c in cands:  # pairs that neither view has enough of
+        if (c.i, c.j) not in out and degree[c.i] < neighbours and degree[c.j] < neighbours:
+            add(c)
+    for c in cands:  # views still short: their best remaining candidates
+        if (c.i, c.j) not in out and (degree[c.i] < neighbours or degree[c.j] < neighbours):
+            add(c)
     return tuple(sorted(out))
+
+
+def _pairs_to_probe(geometry: Sequence[tuple[int, int, float, float, float]],
+                    options: SparseOptions) -> list[tuple[int, int]]:
+    """The candidate pairs whose appearance is probed: each view's best by geometry, at most
+    ``_PROBES_PER_NEIGHBOUR * pair_neighbours`` of them (ties, as when every view sees the whole
+    AOI within the B/H band, go to the B/H nearest the band's geometric middle)."""
+    lo, hi = options.pair_bh_range
+    middle = math.sqrt(max(lo, 1e-3) * hi)
+    per_view = _PROBES_PER_NEIGHBOUR * options.pair_neighbours
+    ranked = sorted(geometry, key=lambda g: (-g[4], abs(math.log(max(g[3], 1e-6) / middle)),
+                                             g[0], g[1]))
+    count: dict[int, int] = {}
+    out = []
+    for i, j, *_ in ranked:
+        if count.get(i, 0) < per_view or count.get(j, 0) < per_view:
+            out.append((i, j))
+            count[i] = count.get(i, 0) + 1
+            count[j] = count.get(j, 0) + 1
+    return out
 
 
 def build_pair_graph(cameras: Sequence[Any], features: Sequence[tuple[np.ndarray, np.ndarray]],
@@ -185,8 +232,10 @@ def build_pair_graph(cameras: Sequence[Any], features: Sequence[tuple[np.ndarray
     """Candidates, scores and the selected pairs of the views (see the module docstring).
 
     ``cameras``: per view, anything with ``P``, ``width``, ``height`` (the crops' cameras);
-    ``features``: per view ``(xy, descriptors)``, strongest first; ``samples``: ENU points of
-    the AOI (:func:`aoi_samples`), or None for views known to be crops of one AOI (every pair
+    ``features``: per view ``(xy, descriptors)``, strongest first; ``samples``: (A, S, 3) ENU
+    points of the AOI at A altitudes (:func:`aoi_samples`; a pair's overlap is the largest
+    fraction of the samples of one altitude that both views see: where the scene lies in the
+    altitude range is not known yet), or None for views known to be crops of one AOI (every pair
     overlaps fully, and B/H is taken where view 0's centre sees the plane u = 0); ``exclude``:
     views left out (no features); ``thresholds``: per pair the verification threshold (px) of
     the probe, default ``options.ransac_threshold_px``.
@@ -194,12 +243,13 @@ def build_pair_graph(cameras: Sequence[Any], features: Sequence[tuple[np.ndarray
     V = len(cameras)
     skip = set(exclude)
     if samples is not None:
-        seen = coverage(cameras, samples)
-        centre = samples.mean(axis=0)
+        samples = np.asarray(samples, np.float64).reshape(-1, samples.shape[-2], 3)
+        seen = np.stack([coverage(cameras, level) for level in samples], axis=1)  # (V, A, S)
+        centre = samples[len(samples) // 2].mean(axis=0)
     else:
         from satsweep.geometry.camera import _backproject
 
-        seen = np.array([[c is not None] for c in cameras])
+        seen = np.array([[[c is not None]] for c in cameras])
         c0 = next(c for c in cameras if c is not None)
         e, n = _backproject(np.asarray(c0.P, np.float64), (c0.width - 1) / 2.0,
                             (c0.height - 1) / 2.0, 0.0)
@@ -210,22 +260,25 @@ def build_pair_graph(cameras: Sequence[Any], features: Sequence[tuple[np.ndarray
         for j in range(i + 1, V):
             if i in skip or j in skip:
                 continue
-            overlap = float((seen[i] & seen[j]).mean())
+            overlap = float((seen[i] & seen[j]).mean(axis=-1).max())
             if overlap >= options.pair_min_overlap and overlap > 0.0:
                 pairs.append((i, j, overlap))
-    probe = {}
-    everything = V - len(skip) <= options.pair_neighbours + 1
-    if options.pair_probe_features > 0 and not everything:
-        probe = probe_matches(features, cameras, [(i, j) for i, j, _ in pairs], options,
-                              thresholds or {})
     lo, hi = options.pair_bh_range
-    candidates = []
+    geometry = []
     for i, j, overlap in pairs:
         bh = float(np.hypot(*(parallax[i] - parallax[j])))
         factor = 1.0 if lo <= bh <= hi else _BH_PENALTY
+        geometry.append((i, j, overlap, bh, overlap * factor))
+    probe = {}
+    everything = V - len(skip) <= options.pair_neighbours + 1
+    if options.pair_probe_features > 0 and not everything:
+        probe = probe_matches(features, cameras, _pairs_to_probe(geometry, options), options,
+                              thresholds or {})
+    candidates = []
+    for i, j, overlap, bh, geo in geometry:
         p = probe.get((i, j), -1)
         candidates.append(PairCandidate(i=i, j=j, overlap=overlap, base_to_height=bh, probe=p,
-                                        score=overlap * factor * (max(p, 0) + 1)))
+                                        score=geo * (max(p, 0) + 1)))
     candidates.sort(key=lambda c: (-c.score, c.i, c.j))
     selected = select_pairs(V, candidates, options.pair_neighbours, exclude)
     return PairGraph(n_views=V, candidates=tuple(candidates), selected=selected)

@@ -55,7 +55,10 @@ def _nearest(desc1: np.ndarray, desc2: np.ndarray) -> tuple[np.ndarray, np.ndarr
     idx21 = np.zeros(n2, dtype=np.int64)
     cols = np.arange(n2)
     for s in range(0, n1, _KNN_BLOCK):
-        D = na[s:s + _KNN_BLOCK, None] + nb[None, :] - 2.0 * (a[s:s + _KNN_BLOCK] @ b.T)
+        D = a[s:s + _KNN_BLOCK] @ b.T  # in place from here: no temporaries of the block's size
+        D *= -2.0
+        D += nb[None, :]
+        D += na[s:s + _KNN_BLOCK, None]
         rows = D.argmin(axis=0)
         dmin = D[rows, cols]
         better = dmin < best21

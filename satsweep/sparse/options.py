@@ -72,10 +72,11 @@ class SparseOptions(Options):
     # Seed of the RANSAC sampling (results are deterministic for a given seed).
     seed: int = 0
     # -- the pair graph (satsweep.sparse.graph): which pairs of views are matched ---------------
-    # Each view is matched with its this many best candidate pairs (besides the spanning tree
-    # that links every view): the matching then grows linearly with the number of views. With
-    # 3, the synthetic stacks of tools/bench_ba.py match 9 of their 10 pairs (5 views), 19 of
-    # 45 (10) and 38 of 190 (20), and recover pointing errors of 50 px to 0.02-0.03 px.
+    # Each view is matched in this many pairs, its best candidates (after the spanning tree that
+    # links every view; satsweep.sparse.graph.select_pairs): the matching then grows linearly
+    # with the number of views. With 3, the synthetic stacks of tools/bench_ba.py match 8 of
+    # their 10 pairs (5 views), 16 of 45 (10) and 31 of 190 (20), and recover pointing errors
+    # of 50 px to 0.02-0.03 px; with 2, up to 0.041 px (10 views).
     pair_neighbours: int = 3
     # Two views are a candidate pair when at least this fraction of the AOI is seen by both.
     pair_min_overlap: float = 0.2
@@ -110,16 +111,19 @@ class SparseOptions(Options):
     # Each end is the lowest (highest) altitude that at least this many tie points share within
     # altitude_support_m: a wrong match has a height of its own, the ground and a roof do not.
     altitude_support: int = 2
+    # ... or this fraction of the tie points, when more: stacks of many views have more wrong
+    # matches of two views (a 20-view synthetic stack: 8 points up to 9 m above its roofs).
+    altitude_support_fraction: float = 0.001
     # The height window (m) of altitude_support: about the height noise of the tie points
     # (keypoints good to a pixel: 1-3 m at the base-to-height ratios of satellite stereo).
     altitude_support_m: float = 3.0
-    # The margin (m) below the lowest end. tools/bench_ba.py, 11 synthetic stacks of 3-20 views
-    # (biases 2-50 px): the lowest supported tie point lay 0.2-4.7 m below the ground (noise),
-    # and the ranges held the truth on all 11, at most 9.7 m wider below.
+    # The margin (m) below the lowest end. tools/bench_ba.py, 13 synthetic stacks of 3-20 views
+    # (biases 2-50 px): the lowest supported tie point lay up to 5.9 m below the ground (noise),
+    # and the ranges held the truth on all 13, at most 10.9 m wider below.
     altitude_margin_below_m: float = 5.0
     # The margin (m) above the highest end. Same stacks: the highest supported tie point lay
-    # 0.4 m above to 13.1 m below the highest roof (plain roofs have no features); the ranges
-    # were at most 15.4 m wider above (25 m on one stack, whose two wrong matches lay 9-10 m
+    # 1.7 m above to 13.1 m below the highest roof (plain roofs have no features); the ranges
+    # were at most 16.7 m wider above (25 m on one stack, whose two wrong matches lay 9-10 m
     # above its roofs).
     altitude_margin_above_m: float = 15.0
 
@@ -159,6 +163,9 @@ class SparseOptions(Options):
         self._require(self.altitude_min_points >= 2, "altitude_min_points", "must be at least 2")
         self._require(self.altitude_floor_views >= 2, "altitude_floor_views", "must be at least 2")
         self._require(self.altitude_support >= 1, "altitude_support", "must be at least 1")
+        self._require(math.isfinite(self.altitude_support_fraction)
+                      and 0.0 <= self.altitude_support_fraction < 0.5,
+                      "altitude_support_fraction", "must be a fraction in [0, 0.5)")
         self._require(math.isfinite(self.altitude_support_m) and self.altitude_support_m >= 0.0,
                       "altitude_support_m", "must be a finite number of metres >= 0")
         for name in ("altitude_margin_below_m", "altitude_margin_above_m"):

@@ -25,16 +25,21 @@ wide one) gives everything the dense stages need from tie points:
    views' perspective cameras are fitted again over the AOI x that range (over the prior's
    kilometres an RPC is perspective to ~1 px only) and corrected by the coarse translations.
 7. *Fine adjustment* (:func:`satsweep.sparse.bundle.adjust_observations`): the tie points
-   registered to a fraction of a pixel (Lucas-Kanade after a ground-plane warp), then the
-   principal-point bundle adjustment with the anchor regulariser (0.01 px^2/m^2), its anchors
-   triangulated with the coarsely corrected cameras. A view left with fewer than
-   ``min_observations`` observations, or whose correction is uncertain by more than
-   ``max_shift_sigma_px`` (tied along one direction only), is dropped, and 4-7 run again
-   without it: no view is used with a correction that the tie points do not fix.
-8. *Altitude range* (:mod:`satsweep.sparse.tiepoints`): from the adjusted tie points inside
-   the AOI whose reprojection errors are all within ``altitude_max_error_px``, seen by at least
-   ``altitude_min_views`` views when there are enough such points; robust quantiles widened by
-   a margin, kept within the prior range.
+   registered to a fraction of a pixel (Lucas-Kanade after a ground-plane warp; of each pair
+   of views the best registered ``refine_keep_fraction``), then the principal-point bundle
+   adjustment with the anchor regulariser (0.01 px^2/m^2), its anchors triangulated with the
+   coarsely corrected cameras. A view left with fewer than ``min_observations`` observations,
+   or carrying the least determined direction of the shifts when that is uncertain by more than
+   ``max_shift_sigma_px`` (a view tied along one direction only), is dropped, and 4-7 run again
+   without it (and without the views it alone tied to the others): no view is used with a
+   correction that the tie points do not fix.
+8. *Altitude range* (:func:`satsweep.sparse.tiepoints.altitude_range_from_points`): every tie
+   point the coarse adjustment kept, at its keypoints, triangulated with the corrected cameras;
+   those inside the AOI whose reprojection errors are all within ``altitude_max_error_px``.
+   The lowest end comes from the points of ``altitude_floor_views`` views or more, the highest
+   from all, each an altitude that ``altitude_support`` points share within
+   ``altitude_support_m`` (a wrong match has a height of its own), widened by the margins and
+   kept within the prior range.
 
 Corrections are translations in image pixels: a view's content of ground point X lies at
 ``RPC(X) + correction`` (the convention of the synthetic scenes' biases). A crop's pixels are the
@@ -44,6 +49,14 @@ up to the 3-D motion of the whole scene that no image measurement sees (see
 :mod:`satsweep.sparse.bundle`); the stage reports them in the gauge of smallest corrections, and
 the altitude range is that of the scene in the same gauge, i.e. where the corrected cameras put
 it.
+
+Figures (tools/bench_ba.py; synthetic stacks of 1000 px views with pointing errors drawn up to
+50 px per axis, cropped at the RPCs' range widened by 300 m; 2 cores; seeds 0 and 1, 3 views
+also 2 and 3): corrections within 0.024-0.040 px of the truth after the gauge on 3 views,
+0.025-0.027 on 5, 0.019-0.028 on 10, 0.027-0.031 on 20; 0.55, 1.13, 2.38 and 3.95 s (20 views
+/ 5 views: 3.5); every altitude range held the truth, at most 10.9 m wider below and 16.7 m
+above (25 m on one 3-view stack). The Pleiades pair (300 m AOI, the RPCs' -20..2610 m): range
+2261..2391 m from 959 tie points in 0.4 s (S2P's DSM spans 2274..2373 m).
 """
 
 from __future__ import annotations
@@ -555,7 +568,7 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
     t0 = time.perf_counter()
     frame, prior_cams, failed = fit_cameras(views, aoi, prior, options.camera_grid)
     seconds["cameras"] = time.perf_counter() - t0
-    samples = aoi_samples(frame, aoi, prior.mid)
+    samples = aoi_samples(frame, aoi, (prior.min, prior.mid, prior.max))
     fine_frame = [frame]
 
     def refit(kept: Sequence[int], coarse: BundleSolution) -> list[Any]:

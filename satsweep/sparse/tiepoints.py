@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 import os
 from typing import Sequence
 
@@ -175,7 +176,8 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     error within ``altitude_max_error_px``. The range runs from the lowest altitude of the
     points seen by ``altitude_floor_views`` views or more (all points when fewer than
     ``altitude_min_points`` are) to the highest of all, each the lowest or highest altitude
-    supported by ``altitude_support`` points within ``altitude_support_m``
+    supported by ``altitude_support`` points (or ``altitude_support_fraction`` of them) within
+    ``altitude_support_m``
     (:func:`supported_extremes`), widened by ``altitude_margin_below_m`` and
     ``altitude_margin_above_m``, and kept ``within`` the prior range when they overlap it.
 
@@ -211,8 +213,12 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
                             f"{o.altitude_min_points} are needed to bound its heights)")
         return None, record
     a = alt[use]
-    lo = supported_extremes(alt[floor], o.altitude_support, o.altitude_support_m)[0]
-    hi = supported_extremes(a, o.altitude_support, o.altitude_support_m)[1]
+
+    def support(n: int) -> int:
+        return max(o.altitude_support, math.ceil(o.altitude_support_fraction * n))
+
+    lo = supported_extremes(alt[floor], support(int(floor.sum())), o.altitude_support_m)[0]
+    hi = supported_extremes(a, support(a.size), o.altitude_support_m)[1]
     record["supported_extremes_m"] = [lo, hi]
     lo, hi = lo - o.altitude_margin_below_m, hi + o.altitude_margin_above_m
     if within is not None and max(lo, within.min) < min(hi, within.max):

@@ -86,7 +86,7 @@ def test_base_to_height_and_overlap_from_the_cameras():
     far_P = far.P @ np.array([[1, 0, 0, -3000.0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     cams.append(type(far)(K=far.K, R=far.R, t=far.t, P=far_P, width=far.width, height=far.height))
     e, n = np.meshgrid(np.linspace(-100, 100, 9), np.linspace(-100, 100, 9))
-    samples = np.column_stack([e.ravel(), n.ravel(), np.zeros(e.size)])
+    samples = np.column_stack([e.ravel(), n.ravel(), np.zeros(e.size)])[None]
     rng = np.random.default_rng(0)
     feats = [(rng.uniform(0, 1000, (50, 2)), rng.normal(0, 50, (50, 128)).astype(np.float32))
              for _ in cams]
@@ -97,6 +97,16 @@ def test_base_to_height_and_overlap_from_the_cameras():
         expected = np.hypot(*(np.subtract(offsets[c.i], offsets[c.j])))
         assert abs(c.base_to_height - expected) < BH_TOL
         assert c.overlap == 1.0
+    # samples at several heights: a pair's overlap is that of the height both views see best
+    # (3 km up, the 500 m footprints of views 0.35 x 700 km apart share nothing)
+    everything = SparseOptions(pair_probe_features=0, pair_min_overlap=0.0)
+    high = samples + [0.0, 0.0, 3000.0]
+    up = {(c.i, c.j): c.overlap
+          for c in graph.build_pair_graph(cams[:4], feats[:4], everything, samples=high).candidates}
+    assert min(up.values(), default=0.0) < 1.0
+    both = graph.build_pair_graph(cams[:4], feats[:4], everything,
+                                  samples=np.concatenate([high, samples]))
+    assert all(c.overlap == 1.0 for c in both.candidates)
     # with a preferred band of 0.15 .. 0.3, (0, 1) at B/H 0.2 counts fully, (0, 3) at 0.14 and
     # (1, 2) at 0.40 a quarter
     lo_hi = SparseOptions(pair_bh_range=(0.15, 0.3), pair_probe_features=0)
@@ -119,3 +129,22 @@ def test_repair_offers_the_next_candidates():
 def test_graph_options_name_the_bad_field(field, value):
     with pytest.raises(OptionsError, match=field):
         SparseOptions(**{field: value})
+
+
+def test_probes_grow_linearly_with_the_views():
+    """With 16 views every pair is a candidate (120), but each view probes only its best few by
+    geometry: at most 3 x pair_neighbours per view, and every view probes some."""
+    n = 16
+    angles = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    cams = [satellite_camera(0.2 * np.cos(a), 0.2 * np.sin(a)) for a in angles]
+    rng = np.random.default_rng(1)
+    feats = [(rng.uniform(0, 1000, (60, 2)), rng.normal(0, 50, (60, 128)).astype(np.float32))
+             for _ in cams]
+    options = SparseOptions(pair_neighbours=2, pair_probe_features=50)
+    g = graph.build_pair_graph(cams, feats, options)
+    probed = [c for c in g.candidates if c.probe >= 0]
+    per_view = graph._PROBES_PER_NEIGHBOUR * options.pair_neighbours
+    assert len(g.candidates) == n * (n - 1) // 2 and len(probed) <= per_view * n
+    count = np.bincount([v for c in probed for v in (c.i, c.j)], minlength=n)
+    assert count.min() >= per_view
+    assert _connected(n, g.selected)
