@@ -196,6 +196,15 @@ def test_a_view_that_shares_no_area_with_the_others_is_dropped(biased):
     _check_dropped(result, biased, 1, "of the AOI with any other view")
 
 
+def test_a_view_whose_rpc_misses_the_aoi_is_dropped(biased):
+    """View 2's RPC puts the AOI 5000 px away from its crop: no camera can be fitted there, and
+    the view is reported, not a crash."""
+    views, prior = _views(biased)
+    away = _with(views, 2, rpc=views[2].rpc.cropped(x0=-5000, y0=0))
+    result = sparse_stage(away, biased.aoi, prior)
+    _check_dropped(result, biased, 2, "no perspective camera fits its RPC over the AOI")
+
+
 def test_fewer_than_two_tied_views_is_an_error_naming_each(biased):
     views, prior = _views(biased)
     blank = [dataclasses.replace(v, image=np.zeros_like(v.image)) for v in views[:2]]
