@@ -55,7 +55,10 @@ def _nearest(desc1: np.ndarray, desc2: np.ndarray) -> tuple[np.ndarray, np.ndarr
     idx21 = np.zeros(n2, dtype=np.int64)
     cols = np.arange(n2)
     for s in range(0, n1, _KNN_BLOCK):
-        D = na[s:s + _KNN_BLOCK, None] + nb[None, :] - 2.0 * (a[s:s + _KNN_BLOCK] @ b.T)
+        D = a[s:s + _KNN_BLOCK] @ b.T  # in place from here: no temporaries of the block's size
+        D *= -2.0
+        D += nb[None, :]
+        D += na[s:s + _KNN_BLOCK, None]
         rows = D.argmin(axis=0)
         dmin = D[rows, cols]
         better = dmin < best21
@@ -127,7 +130,7 @@ def _verify_offset(d: np.ndarray, threshold: float, rng: np.random.Generator) ->
 
 
 def _affine_fundamental_ransac(xy1: np.ndarray, xy2: np.ndarray, options: SparseOptions,
-                               rng: np.random.Generator) -> np.ndarray:
+                               rng: np.random.Generator, threshold: float) -> np.ndarray:
     """Inlier mask of the best affine fundamental matrix found by RANSAC (4-match samples).
 
     The model is a hyperplane ``n . (q - q0) = 0`` of the joint space ``q = (x2, y2, x1, y1)``;
@@ -139,7 +142,7 @@ def _affine_fundamental_ransac(xy1: np.ndarray, xy2: np.ndarray, options: Sparse
         return np.zeros(n, dtype=bool)
     q = np.column_stack([xy2, xy1])
     q = q - q.mean(axis=0)
-    thr = options.ransac_threshold_px
+    thr = threshold
 
     def residual(normal: np.ndarray, q0: np.ndarray) -> np.ndarray:
         # normal (..., 4), q0 (..., 4) -> (..., n)
@@ -182,20 +185,25 @@ def match_pair(
     options: SparseOptions = SparseOptions(),
     *,
     fundamental: np.ndarray | None = None,
+    threshold_px: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Verified matches between two views: ``(idx1, idx2)`` int64 arrays of feature indices.
 
     Ratio test and mutual check, then geometric verification: with ``fundamental`` (3x3, from
     :func:`fundamental_from_cameras`, ``x2^T F x1 = 0``) the camera epipolar geometry up to one
-    unknown offset (the pointing error); without it RANSAC of an affine fundamental matrix.
+    unknown offset (the pointing error, of any size: the offset is found by RANSAC, not assumed
+    small); without it RANSAC of an affine fundamental matrix (which absorbs any translation).
+    ``threshold_px``: the inlier threshold, default ``options.ransac_threshold_px`` (the sparse
+    stage widens it by the cameras' own approximation errors).
     """
     xy1 = np.asarray(xy1, dtype=np.float64)
     xy2 = np.asarray(xy2, dtype=np.float64)
     i1, i2 = _tentative_matches(np.asarray(desc1, np.float32), np.asarray(desc2, np.float32), options)
     rng = np.random.default_rng(options.seed)
+    threshold = options.ransac_threshold_px if threshold_px is None else float(threshold_px)
     if fundamental is not None:
         d = _epipolar_distance(np.asarray(fundamental, np.float64), xy1[i1], xy2[i2])
-        keep = _verify_offset(d, options.ransac_threshold_px, rng)
+        keep = _verify_offset(d, threshold, rng)
     else:
-        keep = _affine_fundamental_ransac(xy1[i1], xy2[i2], options, rng)
+        keep = _affine_fundamental_ransac(xy1[i1], xy2[i2], options, rng, threshold)
     return i1[keep], i2[keep]

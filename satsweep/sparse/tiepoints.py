@@ -1,4 +1,10 @@
-"""Tie points triangulated with the RPCs: the scene's altitude range when the user gives none.
+"""Altitude ranges from tie points: the scene's heights when the user gives none.
+
+Two ways. :func:`altitude_range_from_points` bounds the sparse stage's adjusted tie points
+(:mod:`satsweep.sparse.stage`): their reprojection errors with the corrected cameras weed out
+wrong matches across views, and the range is robust to those left (see its docstring). The
+older :func:`altitude_range_for_images` (what the pipeline's "altitude" stage calls until it
+moves to the sparse stage) triangulates every pair's matches with the raw RPCs, as follows.
 
 Without ``--alt-range`` or ``--dem``, the only prior on the scene's heights is the RPCs' height
 offset +- scale, which spans kilometres (-20..2610 m for the Pleiades pair, whose ground lies
@@ -21,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 from typing import Sequence
 
 import numpy as np
@@ -137,6 +144,87 @@ def altitude_range_from_tie_points(points: TiePoints, *, quantile: float, margin
     if within is not None and max(lo, within.min) < min(hi, within.max):
         lo, hi = max(lo, within.min), min(hi, within.max)
     return AltitudeRange(lo, hi)
+
+
+def supported_extremes(alt: np.ndarray, support: int, window_m: float) -> tuple[float, float]:
+    """The lowest and the highest altitudes at which ``support`` values lie within ``window_m``.
+
+    ``lo`` is the lowest ``a`` with at least ``support`` altitudes in ``[a, a + window_m]``,
+    ``hi`` the highest with as many in ``[a - window_m, a]``: a wrong match has a height of its
+    own, while the ground and each roof hold several tie points at nearly the same height.
+    Falls back to the extremes when no altitude has that support (fewer values than it)."""
+    a = np.sort(np.asarray(alt, np.float64))
+    n = len(a)
+    k = np.arange(n)
+    below = k - np.searchsorted(a, a - window_m, side="left") + 1
+    above = np.searchsorted(a, a + window_m, side="right") - k
+    lo_ok, hi_ok = np.flatnonzero(above >= support), np.flatnonzero(below >= support)
+    lo = a[lo_ok[0]] if lo_ok.size else a[0]
+    hi = a[hi_ok[-1]] if hi_ok.size else a[-1]
+    return float(lo), float(hi)
+
+
+def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray, frame, aoi: AOI,
+                               options, *, within: AltitudeRange | None = None
+                               ) -> tuple[AltitudeRange | None, dict]:
+    """The altitude range of adjusted tie points (the sparse stage's), and a record of it.
+
+    ``points`` (N, 3): ENU points (m) of ``frame``; ``obs``: their observations (to count the
+    views of each); ``point_error`` (N,): each point's largest reprojection error (px) with the
+    corrected cameras; ``options``: SparseOptions. The points used lie inside the AOI with every
+    error within ``altitude_max_error_px``. The range runs from the lowest altitude of the
+    points seen by ``altitude_floor_views`` views or more (all points when fewer than
+    ``altitude_min_points`` are) to the highest of all, each the lowest or highest altitude
+    supported by ``altitude_support`` points (or ``altitude_support_fraction`` of them) within
+    ``altitude_support_m``
+    (:func:`supported_extremes`), widened by ``altitude_margin_below_m`` and
+    ``altitude_margin_above_m``, and kept ``within`` the prior range when they overlap it.
+
+    Why the two ends differ: a wrong match that two views accept anywhere along its epipolar
+    line gets a height of its own, and more views bring more of them (a 20-view synthetic stack:
+    points of two views down to 32 m below the ground, those of three views or more within 8 m
+    of it); the ground is seen everywhere, by many views. The highest roofs are seen by few
+    views (plain roofs have no features: only their corners, against the ground below), and on
+    3-view stacks no point of three views comes within 5-44 m of the highest roof, while points
+    of two views come within 1-13 m. Returns (None, record with a "reason") when fewer than
+    ``altitude_min_points`` are usable.
+    """
+    o = options
+    n_views = np.bincount(obs.point, minlength=len(points)) if len(points) else np.zeros(0, int)
+    if len(points):
+        lon, lat, alt = frame.to_geodetic(e=points[:, 0], n=points[:, 1], u=points[:, 2])
+        inside = aoi.contains(lon=lon, lat=lat) & np.isfinite(alt)
+    else:
+        alt = np.zeros(0)
+        inside = np.zeros(0, dtype=bool)
+    use = inside & (point_error <= o.altitude_max_error_px)
+    floor = use & (n_views >= o.altitude_floor_views)
+    if floor.sum() < o.altitude_min_points:
+        floor = use
+    record: dict = {"source": "tie points", "tie_points": int(use.sum()),
+                    "tie_points_for_the_lowest": int(floor.sum()),
+                    "tie_points_inside_aoi": int(inside.sum()),
+                    "views_per_tie_point": {str(k): int(c) for k, c in
+                                            enumerate(np.bincount(n_views[use])) if c},
+                    "max_error_px": o.altitude_max_error_px}
+    if use.sum() < o.altitude_min_points:
+        record["reason"] = (f"only {int(use.sum())} adjusted tie points inside the AOI (at least "
+                            f"{o.altitude_min_points} are needed to bound its heights)")
+        return None, record
+    a = alt[use]
+
+    def support(n: int) -> int:
+        return max(o.altitude_support, math.ceil(o.altitude_support_fraction * n))
+
+    lo = supported_extremes(alt[floor], support(int(floor.sum())), o.altitude_support_m)[0]
+    hi = supported_extremes(a, support(a.size), o.altitude_support_m)[1]
+    record["supported_extremes_m"] = [lo, hi]
+    lo, hi = lo - o.altitude_margin_below_m, hi + o.altitude_margin_above_m
+    if within is not None and max(lo, within.min) < min(hi, within.max):
+        lo, hi = max(lo, within.min), min(hi, within.max)
+    record.update({"min": lo, "max": hi,
+                   "tie_point_altitudes_m": [float(x) for x in np.quantile(a, [0.0, 0.5, 1.0])]})
+    return AltitudeRange(lo, hi), record
 
 
 def altitude_range_for_images(images: Sequence, aoi: AOI, sparse_options, *, quantile: float,

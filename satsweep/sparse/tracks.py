@@ -3,10 +3,14 @@ sub-pixel registration.
 
 A *track* is an ``(k, 2)`` int64 array of ``(view, feature)`` rows, one per view, sorted by view:
 the same ground point seen as keypoint ``feature`` of each listed ``view``. ``Observations`` is
-the flat form the triangulation and the bundle adjustment use. :func:`refine_observations`
+the flat form the triangulation and the bundle adjustment use. :func:`register_observations`
 registers each track's observations to its first one by Lucas-Kanade after warping the views
-onto each other with the cameras' ground-plane homography: 0.01-0.05 px where SIFT keypoints are
-good to ~0.3-0.5 px at full resolution.
+onto each other with the cameras' ground-plane homography, and :func:`best_registered` keeps,
+of each pair of views, those whose windows match best. Measured against a synthetic town's
+truth (1000 px views, 15 px windows): 0.09 px median where the window lies on one surface, 0.5
+px where it straddles surfaces metres apart (most SIFT keypoints lie on building edges), 0.11 px
+in the quarter of lowest residuals and 1.4 px in the highest; SIFT keypoints at half resolution
+are off by 0.8 px (median).
 """
 
 from __future__ import annotations
@@ -112,13 +116,19 @@ class Observations:
     def subset(self, keep: np.ndarray) -> "Observations":
         """Keep observations ``keep`` (bool mask); points left with fewer than 2 are dropped and
         the remaining points renumbered 0..n-1 in their previous order."""
-        point, view, xy = self.point[keep], self.view[keep], self.xy[keep]
-        count = np.bincount(point, minlength=self.n_points)
-        alive = count >= 2
-        sel = alive[point]
+        index = self.subset_index(keep)
+        alive = np.zeros(self.n_points, dtype=bool)
+        alive[self.point[index]] = True
         new_index = np.cumsum(alive) - 1
-        return Observations(point=new_index[point[sel]], view=view[sel], xy=xy[sel],
-                            n_points=int(alive.sum()))
+        return Observations(point=new_index[self.point[index]], view=self.view[index],
+                            xy=self.xy[index], n_points=int(alive.sum()))
+
+    def subset_index(self, keep: np.ndarray) -> np.ndarray:
+        """The indices of the observations that :meth:`subset` keeps (to carry other per-
+        observation arrays along)."""
+        kept = np.flatnonzero(keep)
+        count = np.bincount(self.point[kept], minlength=self.n_points)
+        return kept[count[self.point[kept]] >= 2]
 
 
 def observations_from_tracks(tracks: Sequence[np.ndarray], xys: Sequence[np.ndarray]) -> Observations:
@@ -143,8 +153,9 @@ _LK_ITERATIONS = 30
 _LK_EPS_PX = 1e-3
 
 
-def refine_observations(obs: Observations, images: Sequence[np.ndarray], cameras: Sequence[Any], *,
-                        window_px: int, max_shift_px: float) -> tuple[Observations, int]:
+def register_observations(obs: Observations, images: Sequence[np.ndarray], cameras: Sequence[Any], *,
+                          window_px: int, max_shift_px: float
+                          ) -> tuple[Observations, np.ndarray, int]:
     """Register each track's observations to its first one, to a fraction of a pixel.
 
     SIFT places a keypoint to ~0.3-0.5 px (~1 px at half resolution), and those errors reach the
@@ -158,13 +169,14 @@ def refine_observations(obs: Observations, images: Sequence[np.ndarray], cameras
     positions (the tie point is wherever f is). ``images``: the views' tonemapped images in
     [0, 1], in the pixels of ``cameras`` (anything with a 3x4 ``P``). Observations that fail (no
     convergence, outside the image) or move farther than ``max_shift_px`` from their keypoint
-    are dropped, and then points seen by fewer than two views. Returns the observations and the
-    number dropped.
+    are dropped, then points seen by fewer than two views. Returns the observations, the
+    residual of each (mean absolute difference of the two windows' 8-bit grey levels after the
+    registration; 0 for first observations) and the number of observations dropped.
     """
     import cv2
 
     if obs.xy.shape[0] == 0:
-        return obs, 0
+        return obs, np.zeros(0), 0
     first = np.r_[True, obs.point[1:] != obs.point[:-1]]
     if not np.array_equal(obs.point, np.sort(obs.point, kind="stable")):
         raise CameraError("refine_observations: observations must be grouped by point")
@@ -173,6 +185,7 @@ def refine_observations(obs: Observations, images: Sequence[np.ndarray], cameras
     u8 = [_to_u8(im) for im in images]
     planes = [np.asarray(c.P, np.float64)[:, [0, 1, 3]] for c in cameras]  # ENU (e, n, 1) at u = 0
     xy = obs.xy.copy()
+    residual = np.zeros(len(xy))
     keep = np.ones(len(xy), dtype=bool)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, _LK_ITERATIONS, _LK_EPS_PX)
     for w in np.unique(head_view):
@@ -183,7 +196,7 @@ def refine_observations(obs: Observations, images: Sequence[np.ndarray], cameras
             warped = cv2.warpPerspective(u8[v], H, (wd, h),
                                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
             start = cv2.perspectiveTransform(obs.xy[sel].reshape(-1, 1, 2), np.linalg.inv(H))
-            found, status, _err = cv2.calcOpticalFlowPyrLK(
+            found, status, lk_err = cv2.calcOpticalFlowPyrLK(
                 u8[w], warped, obs.xy[head[sel]].astype(np.float32).reshape(-1, 1, 2),
                 start.astype(np.float32), winSize=(window_px, window_px), maxLevel=_LK_LEVELS,
                 criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
@@ -191,6 +204,42 @@ def refine_observations(obs: Observations, images: Sequence[np.ndarray], cameras
             shift = np.hypot(*(back - obs.xy[sel]).T)
             ok = (status.ravel() == 1) & np.isfinite(shift) & (shift <= max_shift_px)
             xy[sel[ok]] = back[ok]
+            residual[sel] = np.where(ok, lk_err.ravel().astype(np.float64), np.inf)
             keep[sel[~ok]] = False
-    refined = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
-    return refined.subset(keep), int((~keep).sum())
+    registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
+    index = registered.subset_index(keep)
+    return registered.subset(keep), residual[index], int((~keep).sum())
+
+
+def best_registered(obs: Observations, residual: np.ndarray, keep_fraction: float,
+                    at_least: int = 0) -> Observations:
+    """Of each pair (view of the tracks' first observations, other view), the ``keep_fraction``
+    observations with the lowest registration residuals (:func:`register_observations`), and
+    at least the ``at_least`` lowest (all when fewer); then points seen by fewer than two views
+    are dropped.
+
+    The windows that match worst straddle surfaces at different heights (building edges, where
+    SIFT puts most of its keypoints): no translation registers both surfaces, and the
+    compromise is off by tenths of a pixel (see the ``refine_keep_fraction`` option)."""
+    if keep_fraction >= 1.0 or obs.xy.shape[0] == 0:
+        return obs
+    first = np.r_[True, obs.point[1:] != obs.point[:-1]]
+    head_view = obs.view[np.flatnonzero(first)[np.cumsum(first) - 1]]
+    keep = first.copy()
+    for w in np.unique(head_view):
+        for v in np.unique(obs.view[(head_view == w) & ~first]):
+            sel = np.flatnonzero((head_view == w) & (obs.view == v) & ~first)
+            n = max(int(np.ceil(keep_fraction * len(sel))), at_least)
+            keep[sel[np.argsort(residual[sel], kind="stable")[:n]]] = True
+    return obs.subset(keep)
+
+
+def refine_observations(obs: Observations, images: Sequence[np.ndarray], cameras: Sequence[Any], *,
+                        window_px: int, max_shift_px: float,
+                        keep_fraction: float = 1.0) -> tuple[Observations, int]:
+    """:func:`register_observations`, then :func:`best_registered` with ``keep_fraction``.
+    Returns the observations and the number dropped by the registration (not counting those
+    ``keep_fraction`` leaves out)."""
+    registered, residual, dropped = register_observations(
+        obs, images, cameras, window_px=window_px, max_shift_px=max_shift_px)
+    return best_registered(registered, residual, keep_fraction), dropped

@@ -42,10 +42,13 @@ def projection_jacobian(P: np.ndarray, view: np.ndarray, X: np.ndarray) -> tuple
 
 
 def _sum_by_point(values: np.ndarray, point: np.ndarray, n_points: int) -> np.ndarray:
-    """Sum (M, ...) values into (n_points, ...) by point index."""
-    out = np.zeros((n_points,) + values.shape[1:], dtype=np.float64)
-    np.add.at(out, point, values)
-    return out
+    """Sum (M, ...) values into (n_points, ...) by point index (a bincount per component,
+    several times faster than np.add.at)."""
+    flat = values.reshape(len(point), int(np.prod(values.shape[1:], dtype=np.int64)))
+    out = np.empty((n_points, flat.shape[1]), dtype=np.float64)
+    for c in range(flat.shape[1]):
+        out[:, c] = np.bincount(point, weights=flat[:, c], minlength=n_points)
+    return out.reshape((n_points,) + values.shape[1:])
 
 
 def triangulate_observations(obs: Observations, P: np.ndarray, *,

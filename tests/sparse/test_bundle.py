@@ -193,6 +193,90 @@ def test_too_few_tie_points_name_the_view():
         bundle.adjust_observations(cams, obs.subset(keep), names=["img_a", "img_b", "img_c"])
 
 
+# -- pointing errors of tens of pixels ---------------------------------------------------------
+# The issue's largest pointing errors (px per axis).
+LARGE_BIAS_PX = 50.0
+# The coarse stage on raw tie points (0.3 px noise, 600 points): its shifts are within a few
+# hundredths of a pixel of the truth (measured 0.005-0.026 px over 4 draws); the fine stage then
+# has nothing left but the noise.
+COARSE_SHIFT_TOL_PX = 0.1
+
+
+def _cameras(n: int):
+    """n synthetic satellite cameras around the scene (offsets up to 0.3 x 700 km)."""
+    from tests.synthetic_cameras import satellite_camera
+
+    angles = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    radius = np.linspace(0.08, 0.3, n)
+    return [satellite_camera(r * np.cos(a), r * np.sin(a), roll=0.01 * k)
+            for k, (a, r) in enumerate(zip(angles, radius))]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_coarse_then_fine_recovers_pointing_errors_of_50_px(seed):
+    """Biases up to 50 px, 5% blunders of up to 30 px: the coarse adjustment assumes nothing on
+    their size; the fine one from its corrections leaves the noise's share only."""
+    cams = three_cameras()
+    rng = np.random.default_rng(seed)
+    biases = rng.uniform(-LARGE_BIAS_PX, LARGE_BIAS_PX, (3, 2))
+    obs, _ = _tie_points(cams, biases, seed=seed)
+    # the plain adjustment drops everything past its 10 px triangulation threshold
+    coarse = bundle.adjust_coarse(cams, obs)
+    jac = _numeric_jacobians(cams)
+    assert np.abs(_residual_after_gauge(coarse.shifts, biases, jac)).max() < COARSE_SHIFT_TOL_PX
+    moved = [bundle.shift_principal_point(c, s) for c, s in zip(cams, coarse.shifts)]
+    fine = bundle.adjust_observations(moved, obs)
+    total = coarse.shifts + fine.shifts
+    assert np.abs(_residual_after_gauge(total, biases, jac)).max() < GEOMETRIC_SHIFT_TOL_PX
+    assert np.median(fine.errors_after) < MEDIAN_AFTER_MAX_PX
+
+
+def test_the_gauge_of_smallest_corrections_ignores_an_outlying_view():
+    """Five views off by hundredths of a pixel and one by 36 px, seen through an arbitrary
+    motion of the scene: the robust gauge gives the five their small corrections back (a
+    least-squares fit would spread the 36 px over all of them)."""
+    cams = _cameras(6)
+    P = triangulation.projection_stack(cams)
+    A = _numeric_jacobians(cams, point=(0.0, 0.0, 0.0))
+    rng = np.random.default_rng(4)
+    b = rng.normal(0.0, 0.02, (6, 2))
+    b[3] = [36.0, -2.0]
+    shifts = b - A @ np.array([7.0, -4.0, 55.0])
+    dX = bundle.robust_gauge(P, shifts, np.zeros(3))
+    corrected = shifts - A @ dX
+    # 3 unknowns fitted to 10 values of 0.02 px noise: a few hundredths of a pixel each
+    assert np.abs(np.delete(corrected - b, 3, axis=0)).max() < 0.05
+    assert np.abs(corrected[3] - b[3]).max() < 0.1
+    plain = np.linalg.lstsq(A.reshape(-1, 3), shifts.ravel(), rcond=None)[0]
+    assert np.abs(np.delete(shifts - A @ plain - b, 3, axis=0)).max() > 1.0
+
+
+def test_uncertainty_flags_a_view_tied_along_one_direction():
+    """View 3 seen only in two-view tracks with view 0: its shift along their epipolar lines is
+    the height of those points, not measured. The same view in tracks with views 1 and 2 too
+    is tied in both directions."""
+    cams = _cameras(4)
+    rng = np.random.default_rng(5)
+    X = rng.uniform([-200.0, -200.0, 0.0], [200.0, 200.0, 60.0], (400, 3))
+
+    def obs_of(tracks):
+        xys = [project(c, X) + rng.normal(0.0, NOISE_PX, (len(X), 2)) for c in cams]
+        return sparse_tracks.observations_from_tracks(tracks, xys)
+
+    shared = [np.array([[0, i], [1, i], [2, i]]) for i in range(200)]
+    pairs_only = [np.array([[0, i], [3, i]]) for i in range(200, 400)]
+    weak = obs_of(shared + pairs_only)
+    sol = bundle.adjust_observations(cams, weak)
+    u = bundle.shift_uncertainty(cams, sol.obs, sol.points, sol.shifts)
+    limit = bundle.BundleOptions().max_shift_sigma_px
+    assert u.worst_sigma > 10 * limit and u.worst_view == 3
+    strong = obs_of(shared + [np.array([[0, i], [2, i], [3, i]]) for i in range(200, 400)])
+    sol = bundle.adjust_observations(cams, strong)
+    u = bundle.shift_uncertainty(cams, sol.obs, sol.points, sol.shifts)
+    # 0.3 px of noise over a few hundred tracks: hundredths of a pixel
+    assert u.worst_sigma < limit / 3 and u.sigma.max() <= u.worst_sigma
+
+
 # -- rendered synthetic scenes -----------------------------------------------------------------
 SCENE_SIZE_PX = 256  # small views keep each scene to a few seconds on 2 cores
 SCENE_BIAS_PX = 2.0  # the issue's "biases of up to 2 px"
@@ -275,7 +359,7 @@ def test_synthetic_scene_without_bias_keeps_the_cameras(unbiased_scene):
 def test_blank_image_is_named(biased_scene):
     _, cams, images = biased_scene
     blank = [images[0], np.zeros_like(images[1]), images[2]]
-    with pytest.raises(CameraError, match=r"too few SIFT features in view_01\.tif \(0\)"):
+    with pytest.raises(CameraError, match=r"view_01\.tif: too few SIFT features \(0;"):
         bundle.adjust_principal_points(cams, blank)
 
 
@@ -287,11 +371,13 @@ def test_views_of_different_places_are_named(biased_scene, unbiased_scene):
     other = np.pad(other, ((0, max(0, h - other.shape[0])), (0, max(0, w - other.shape[1]))),
                    mode="reflect")[:h, :w]
     two = bundle._view_cameras(cams)[0][:2]
-    with pytest.raises(CameraError, match=r"view_01\.tif.*too few verified matches.*view_00\.tif"):
+    with pytest.raises(CameraError, match=r"view_0[01]\.tif: too few verified matches with the "
+                                          r"other views \(best: view_0[01]\.tif"):
         bundle.adjust_principal_points(two, [images[0], other], names=["view_00.tif", "view_01.tif"])
     # With three views the outsider is named alone.
-    with pytest.raises(CameraError, match=r"view_01\.tif shares too few verified matches"):
+    with pytest.raises(CameraError, match=r"view_01\.tif: too few verified matches") as info:
         bundle.adjust_principal_points(cams, [images[0], other, images[2]])
+    assert "view_00.tif:" not in str(info.value) and "view_02.tif:" not in str(info.value)
 
 
 def test_a_single_view_is_refused(biased_scene):

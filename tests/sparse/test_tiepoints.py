@@ -13,7 +13,9 @@ from satsweep.sparse.options import SparseOptions
 from satsweep.sparse.tiepoints import (
     MIN_TIE_POINTS,
     TiePoints,
+    altitude_range_from_points,
     altitude_range_from_tie_points,
+    supported_extremes,
     tie_points,
     triangulate_pair,
 )
@@ -103,3 +105,67 @@ def test_range_is_between_quantiles_widened_by_the_margin():
     with pytest.raises(InputError, match="tie points between a.tif, b.tif.*--alt-range"):
         altitude_range_from_tie_points(_points(alts[:MIN_TIE_POINTS - 1]), quantile=0.01,
                                        margin_m=20.0, names=("a.tif", "b.tif"))
+
+
+# -- the range of the sparse stage's adjusted tie points ---------------------------------------
+def test_supported_extremes_ignore_lone_heights():
+    rng = np.random.default_rng(0)
+    ground = rng.uniform(100.0, 101.0, 300)
+    roof = np.array([141.0, 142.5, 143.0])  # a roof's corners
+    lone = np.array([-400.0, 60.0, 190.0, 900.0])  # wrong matches, each at a height of its own
+    a = np.concatenate([ground, roof, lone])
+    lo, hi = supported_extremes(a, support=2, window_m=3.0)
+    assert lo == ground.min() and hi == 143.0
+    assert supported_extremes(a, support=1, window_m=3.0) == (-400.0, 900.0)
+    # fewer values than the support: the extremes
+    assert supported_extremes(np.array([5.0]), support=3, window_m=1.0) == (5.0, 5.0)
+
+
+class _Frame:
+    """ENU = (lon, lat, alt) offsets, for points given directly in degrees and metres."""
+
+    @staticmethod
+    def to_geodetic(*, e, n, u):
+        return np.asarray(e), np.asarray(n), np.asarray(u)
+
+
+def _adjusted(alts, views, errors, lon=0.5):
+    from satsweep.geometry.aoi import AOI
+    from satsweep.sparse.tracks import Observations
+
+    alts = np.asarray(alts, float)
+    views = np.asarray(views)
+    points = np.column_stack([np.full(alts.size, lon), np.full(alts.size, 0.5), alts])
+    obs = Observations(point=np.repeat(np.arange(alts.size), views),
+                       view=np.concatenate([np.arange(k) for k in views]),
+                       xy=np.zeros((int(views.sum()), 2)), n_points=alts.size)
+    return points, obs, np.asarray(errors, float), AOI(0.0, 0.0, 1.0, 1.0)
+
+
+def test_adjusted_range_takes_its_floor_from_points_of_three_views():
+    """Ground at 100 m seen by 3 views, a roof at 150 m seen by 2, two-view wrong matches at
+    70 m (a pair of them) and one with a large error at 400 m: the floor is the three-view
+    ground's, the top the two-view roof's, each widened by its margin."""
+    o = SparseOptions()
+    alts = [100.0 + 0.1 * k for k in range(30)] + [150.0, 151.0] + [70.0, 70.5] + [400.0]
+    views = [3] * 30 + [2, 2] + [2, 2] + [2]
+    errors = [0.2] * 34 + [3.0]
+    points, obs, err, aoi = _adjusted(alts, views, errors)
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert rng == AltitudeRange(100.0 - o.altitude_margin_below_m, 151.0 + o.altitude_margin_above_m)
+    assert record["tie_points"] == 34 and record["tie_points_for_the_lowest"] == 30
+    # kept within a prior range it overlaps
+    rng, _ = altitude_range_from_points(points, obs, err, _Frame, aoi, o,
+                                        within=AltitudeRange(98.0, 160.0))
+    assert rng == AltitudeRange(98.0, 160.0)
+
+
+def test_adjusted_range_needs_enough_points_inside_the_aoi():
+    o = SparseOptions()
+    points, obs, err, aoi = _adjusted([100.0] * 30, [2] * 30, [0.1] * 30, lon=1.5)  # outside
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert rng is None and "only 0 adjusted tie points inside the AOI" in record["reason"]
+    # too few points of three views: the floor comes from all of them
+    points, obs, err, aoi = _adjusted([100.0] * 25 + [90.0, 90.5], [2] * 27, [0.1] * 27)
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert rng.min == 90.0 - o.altitude_margin_below_m and record["tie_points_for_the_lowest"] == 27

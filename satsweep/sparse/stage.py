@@ -1,0 +1,616 @@
+"""The sparse stage: pointing corrections, the views that can be used, and the altitude range.
+
+One pass over the views cropped at a prior altitude range (the user's, a DEM's, or the RPCs'
+wide one) gives everything the dense stages need from tie points:
+
+1. *Features*, once per view (SIFT, :mod:`satsweep.sparse.features`). A view with fewer than
+   ``min_matches`` keypoints (blank, cloud, water) is dropped.
+2. *Pair graph* (:mod:`satsweep.sparse.graph`): the candidate pairs (views that see a common
+   part of the AOI), scored by overlap, base-to-height ratio and the matches of their strongest
+   features; a spanning tree of the best pairs plus each view's ``pair_neighbours`` best ones
+   are matched, not all V (V - 1) / 2 pairs. A view without candidates is dropped.
+3. *Matching* of the selected pairs (:mod:`satsweep.sparse.matching`): ratio test, mutual
+   check, and verification by the cameras' epipolar geometry up to one unknown offset per pair,
+   found by RANSAC: a pointing error of any size is a translation of the whole image, which
+   moves all of a pair's epipolar distances by nearly one offset. The threshold is widened by
+   the two cameras' approximation errors (the cameras of a wide prior range are approximate).
+   Views that the pairs with at least ``min_matches`` verified matches do not link to the
+   largest group of views are matched with ``pair_repair`` more of their candidates; if that
+   fails, they are dropped (another place, mostly cloud).
+4. *Tracks* (:mod:`satsweep.sparse.tracks`): the verified matches chained across views.
+5. *Coarse correction* (:func:`satsweep.sparse.bundle.adjust_coarse`): a robust adjustment of
+   one translation per view on the raw keypoints, with no assumption on the size of the
+   pointing errors, put in the gauge of smallest corrections.
+6. *Cameras for the fine adjustment*: the coarse tie points' altitudes bound the scene; the
+   views' perspective cameras are fitted again over the AOI x that range (over the prior's
+   kilometres an RPC is perspective to ~1 px only) and corrected by the coarse translations.
+7. *Fine adjustment* (:func:`satsweep.sparse.bundle.adjust_observations`): the tie points
+   registered to a fraction of a pixel (Lucas-Kanade after a ground-plane warp; of each pair
+   of views the best registered ``refine_keep_fraction``), then the principal-point bundle
+   adjustment with the anchor regulariser (0.01 px^2/m^2), its anchors triangulated with the
+   coarsely corrected cameras. A view left with fewer than ``min_observations`` observations,
+   or carrying the least determined direction of the shifts when that is uncertain by more than
+   ``max_shift_sigma_px`` (a view tied along one direction only), is dropped, and 4-7 run again
+   without it (and without the views it alone tied to the others): no view is used with a
+   correction that the tie points do not fix.
+8. *Altitude range* (:func:`satsweep.sparse.tiepoints.altitude_range_from_points`): every tie
+   point the coarse adjustment kept, at its keypoints, triangulated with the corrected cameras;
+   those inside the AOI whose reprojection errors are all within ``altitude_max_error_px``.
+   The lowest end comes from the points of ``altitude_floor_views`` views or more, the highest
+   from all, each an altitude that ``altitude_support`` points share within
+   ``altitude_support_m`` (a wrong match has a height of its own), widened by the margins and
+   kept within the prior range.
+
+Corrections are translations in image pixels: a view's content of ground point X lies at
+``RPC(X) + correction`` (the convention of the synthetic scenes' biases). A crop's pixels are the
+full image's shifted by an integer offset, so the same translation moves the principal point of
+any later crop's camera (:func:`satsweep.sparse.bundle.shift_principal_points`). They are known
+up to the 3-D motion of the whole scene that no image measurement sees (see
+:mod:`satsweep.sparse.bundle`); the stage reports them in the gauge of smallest corrections, and
+the altitude range is that of the scene in the same gauge, i.e. where the corrected cameras put
+it.
+
+Figures (tools/bench_ba.py; synthetic stacks of 1000 px views with pointing errors drawn up to
+50 px per axis, cropped at the RPCs' range widened by 300 m; 2 cores; seeds 0 and 1, 3 views
+also 2 and 3): corrections within 0.024-0.040 px of the truth after the gauge on 3 views,
+0.025-0.027 on 5, 0.019-0.028 on 10, 0.027-0.031 on 20; 0.55, 1.13, 2.38 and 3.95 s (20 views
+/ 5 views: 3.5); every altitude range held the truth, at most 10.9 m wider below and 16.7 m
+above (25 m on one 3-view stack). The Pleiades pair (300 m AOI, the RPCs' -20..2610 m): range
+2261..2391 m from 959 tie points in 0.4 s (S2P's DSM spans 2274..2373 m).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from typing import Any, Sequence
+
+import numpy as np
+
+from satsweep.errors import CameraError, InputError
+from satsweep.sparse.bundle import (
+    BundleOptions,
+    BundleSolution,
+    TooFewObservations,
+    adjust_coarse,
+    adjust_observations,
+    shift_principal_point,
+    shift_uncertainty,
+)
+from satsweep.sparse.features import detect_features, feature_scale_for
+from satsweep.sparse.graph import PairGraph, aoi_samples, build_pair_graph, repair_pairs
+from satsweep.sparse.matching import fundamental_from_cameras, match_pair
+from satsweep.sparse.options import SparseOptions
+from satsweep.sparse.tracks import (
+    Observations,
+    best_registered,
+    build_tracks,
+    connected_labels,
+    observations_from_tracks,
+    register_observations,
+)
+from satsweep.sparse.triangulation import project, projection_stack, triangulate_observations
+
+__all__ = ["DroppedView", "SparseResult", "TiedViews", "sparse_stage", "tie_views"]
+
+# The coarse tie points' altitudes bound the cube over which the fine cameras are fitted: their
+# 1% and 99% quantiles widened by this margin (m). The coarse points carry the keypoints' noise
+# and the prior cameras' approximation errors (metres of height); a cube too tall only costs
+# approximation error (0.07 px over 300 m on the Pleiades pair, against 0.02 px over 80 m).
+_FINE_CUBE_QUANTILE = 0.01
+_FINE_CUBE_MARGIN_M = 30.0
+# Of each pair of views, the fine adjustment keeps at least this many of the best registered tie
+# points (refine_keep_fraction of a few dozen would leave too few to tie small views).
+_MIN_BEST_REGISTERED = 50
+
+
+@dataclasses.dataclass(frozen=True)
+class DroppedView:
+    """A view the sparse stage could not use, and why (one line naming the problem)."""
+
+    index: int  # the view's index among those given
+    path: str  # its file (tie_views, which knows names only, puts the name given)
+    reason: str
+
+    @property
+    def name(self) -> str:
+        return os.path.basename(self.path)
+
+    def message(self) -> str:
+        """``NAME: reason``, for warnings and errors."""
+        return f"{self.name}: {self.reason}"
+
+
+# -- the core, shared with adjust_principal_points -----------------------------------------------
+@dataclasses.dataclass(frozen=True, eq=False)
+class TiedViews:
+    """What :func:`tie_views` found. Views are indexed as given; ``kept`` lists those tied.
+
+    ``shifts`` (V, 2) px: the corrections of the kept views (coarse + fine; NaN for dropped
+    views) with respect to ``cameras`` (the fine adjustment's, uncorrected); ``sigma`` (V,) px:
+    their uncertainty (inf for dropped views). ``points`` (N, 3) ENU m in the fine cameras'
+    frame and ``obs`` (views numbered as given): every tie point the coarse adjustment kept, at
+    its keypoints (the fine adjustment used the best registered of them), triangulated with the
+    corrected cameras; ``point_error`` (N,) px the largest reprojection error of each (inf
+    behind a camera).
+    """
+
+    names: tuple[str, ...]
+    kept: tuple[int, ...]
+    dropped: tuple[DroppedView, ...]
+    shifts: np.ndarray
+    coarse_shifts: np.ndarray
+    sigma: np.ndarray
+    cameras: tuple[Any, ...]  # the fine adjustment's cameras, uncorrected (per view)
+    points: np.ndarray
+    obs: Observations
+    point_error: np.ndarray
+    errors_before: np.ndarray  # (M,) px, obs with the uncorrected cameras and their triangulation
+    graph: PairGraph
+    matches: dict[tuple[int, int], int]  # verified matches of every pair matched
+    n_features: tuple[int, ...]
+    n_tracks: int
+    track_length_histogram: dict[int, int]
+    n_refine_dropped: int
+    coarse: BundleSolution | None
+    fine: BundleSolution | None
+    seconds: dict[str, float]
+
+
+def _detect(images: Sequence[np.ndarray], options: SparseOptions) -> list[tuple[np.ndarray, np.ndarray]]:
+    """SIFT features of every image (strongest first)."""
+    return [detect_features(im, max_features=options.max_features,
+                            contrast_threshold=options.contrast_threshold,
+                            scale=feature_scale_for(np.shape(im), options))
+            for im in images]
+
+
+def _camera_error(cam: Any) -> float:
+    """The camera's largest approximation error over the AOI (px), 0 when not known."""
+    err = getattr(cam, "error", None)
+    return float(err.max_px) if err is not None else 0.0
+
+
+def _largest_group(V: int, active: set[int], edges: Sequence[tuple[int, int]],
+                   matches: dict[tuple[int, int], int]) -> set[int]:
+    """The views of the connected component (over ``edges``) holding the most active views;
+    ties go to the component with the most verified matches, then to the lowest view."""
+    ij = np.array(edges, dtype=np.int64).reshape(-1, 2)
+    labels = connected_labels(V, ij[:, 0], ij[:, 1])
+    best, best_key = set(), None
+    for lab in np.unique(labels[sorted(active)]):
+        members = {v for v in active if labels[v] == lab}
+        weight = sum(matches[e] for e in edges if e[0] in members)
+        key = (len(members), weight, -min(members))
+        if best_key is None or key > best_key:
+            best, best_key = members, key
+    return best
+
+
+def _local(obs: Observations, kept: Sequence[int]) -> Observations:
+    """Observations of the ``kept`` views only, views renumbered 0..len(kept) - 1."""
+    index = np.full(max(int(obs.view.max(initial=-1)), max(kept, default=-1)) + 1, -1,
+                    dtype=np.int64)
+    index[list(kept)] = np.arange(len(kept))
+    sub = obs.subset(index[obs.view] >= 0)
+    return dataclasses.replace(sub, view=index[sub.view])
+
+
+def _global(obs: Observations, kept: Sequence[int]) -> Observations:
+    """Inverse of :func:`_local`: views renumbered as given."""
+    return dataclasses.replace(obs, view=np.asarray(kept, dtype=np.int64)[obs.view])
+
+
+def _worst_error(obs: Observations, errors: np.ndarray) -> np.ndarray:
+    """(N,) the largest of each point's observation errors."""
+    worst = np.zeros(obs.n_points)
+    np.maximum.at(worst, obs.point, errors)
+    return worst
+
+
+def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Sequence[str],
+              options: SparseOptions = SparseOptions(),
+              bundle_options: BundleOptions = BundleOptions(), *,
+              samples: np.ndarray | None = None, fine_cameras: Any = None,
+              dropped: dict[int, str] | None = None) -> TiedViews:
+    """Steps 1-7 of the module docstring on tonemapped ``images`` and their ``cameras``.
+
+    ``cameras``: per view a PerspectiveCamera of its image (those of the prior range);
+    ``samples``: ENU points of the AOI in the cameras' frame (:func:`graph.aoi_samples`), None
+    for crops of one AOI; ``fine_cameras``: None to adjust finely with ``cameras`` too, else a
+    callable ``(kept view indices, coarse solution over them) -> cameras of every view`` (the
+    sparse stage fits them over the coarse tie points' altitudes); ``dropped``: views already
+    known to be unusable (camera None), with the reason. Views that cannot be tied are in the
+    result's ``dropped``; raises CameraError only for inputs of the wrong size.
+    """
+    V = len(images)
+    if len(cameras) != V or len(names) != V:
+        raise CameraError(f"tie_views: {V} images, {len(cameras)} cameras, {len(names)} names")
+    for name, image, cam in zip(names, images, cameras):
+        if cam is not None and np.shape(image) != (cam.height, cam.width):
+            raise CameraError(f"{name}: image of shape {np.shape(image)} but the camera is "
+                              f"{cam.width}x{cam.height} px")
+    o, b = options, bundle_options
+    seconds: dict[str, float] = {}
+    dropped = dict(dropped or {})
+    for v, cam in enumerate(cameras):
+        if cam is None and v not in dropped:
+            raise CameraError(f"tie_views: view {names[v]} has no camera and no reason to drop it")
+
+    t0 = time.perf_counter()
+    feats = _detect([im if v not in dropped else np.zeros((1, 1)) for v, im in enumerate(images)], o)
+    n_features = tuple(len(xy) for xy, _ in feats)
+    for v, k in enumerate(n_features):
+        if k < o.min_matches and v not in dropped:
+            dropped[v] = (f"too few SIFT features ({k}; need at least {o.min_matches}): a blank, "
+                          "cloudy or featureless image")
+    seconds["features"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    thresholds = {(i, j): o.ransac_threshold_px + _camera_error(cameras[i]) + _camera_error(cameras[j])
+                  for i in range(V) for j in range(i + 1, V) if i not in dropped and j not in dropped}
+    graph = build_pair_graph(cameras, feats, o, samples=samples, exclude=sorted(dropped),
+                             thresholds=thresholds)
+    with_candidates = {v for c in graph.candidates for v in (c.i, c.j)}
+    for v in range(V):
+        if v not in dropped and v not in with_candidates:
+            dropped[v] = (f"shares less than {o.pair_min_overlap:.0%} of the AOI with any other "
+                          "view")
+    seconds["graph"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    pair_matches: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+    def match(pairs):
+        for i, j in pairs:
+            F = (fundamental_from_cameras(cameras[i], cameras[j])
+                 if o.geometric_model == "cameras" else None)
+            pair_matches[(i, j)] = match_pair(feats[i][1], feats[j][1], feats[i][0], feats[j][0],
+                                              o, fundamental=F, threshold_px=thresholds[(i, j)])
+
+    match(graph.selected)
+    repaired: set[int] = set()
+    while True:
+        active = set(range(V)) - set(dropped)
+        counts = {p: len(m[0]) for p, m in pair_matches.items()}
+        edges = [p for p, k in counts.items()
+                 if k >= o.min_matches and p[0] in active and p[1] in active]
+        main = _largest_group(V, active, edges, counts) if active else set()
+        loose = sorted(active - main - repaired)
+        extra = repair_pairs(graph, set(pair_matches), loose, o.pair_repair) if o.pair_repair else []
+        repaired.update(loose)
+        if not extra:
+            break
+        match(extra)
+    for v in sorted(active - main):
+        mine = [(k, p) for p, k in counts.items() if v in p]
+        if mine:
+            k, (i, j) = max(mine)
+            other = names[j if i == v else i]
+            dropped[v] = (f"too few verified matches with the other views (best: {other} with "
+                          f"{k}; need at least {o.min_matches}): does it see the same place?")
+        else:
+            dropped[v] = "no pair of views to match it with"
+    seconds["matching"] = time.perf_counter() - t0
+
+    matches = {p: len(m[0]) for p, m in sorted(pair_matches.items())}
+    xys = [xy for xy, _ in feats]
+    coarse = fine = None
+    tied = False
+    tracks: list = []
+    n_refine_dropped = 0
+    fine_cams = list(cameras)
+    shifts = np.full((V, 2), np.nan)
+    coarse_shifts = np.full((V, 2), np.nan)
+    sigma = np.full(V, np.inf)
+    for _ in range(V):  # each round ties the views or drops at least one
+        used = {p: m for p, m in pair_matches.items()
+                if len(m[0]) >= o.min_matches and p[0] not in dropped and p[1] not in dropped}
+        active = set(range(V)) - set(dropped)
+        main = _largest_group(V, active, list(used), matches) if active else set()
+        for v in sorted(active - main):  # cut off by a view dropped in a previous round
+            dropped[v] = "no longer tied to the largest group of views once others were dropped"
+        kept = sorted(main)
+        if len(kept) < 2:
+            break
+        t0 = time.perf_counter()
+        used = {p: m for p, m in used.items() if p[0] in main and p[1] in main}
+        tracks = build_tracks(V, used)
+        obs = _local(observations_from_tracks(tracks, xys), kept)
+        seconds["tracks"] = seconds.get("tracks", 0.0) + time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        local_cams = [cameras[v] for v in kept]
+        coarse = adjust_coarse(local_cams, obs, b)
+        seconds["coarse"] = seconds.get("coarse", 0.0) + time.perf_counter() - t0
+        count = np.bincount(coarse.obs.view, minlength=len(kept))
+        poor = [(kept[k], int(count[k])) for k in range(len(kept)) if count[k] < b.min_observations]
+        if poor:
+            for v, c in poor:
+                dropped[v] = (f"only {c} tie points agree with the other views (need at least "
+                              f"{b.min_observations}): does it see the same place?")
+            continue
+
+        if fine_cameras is not None:
+            t0 = time.perf_counter()
+            fine_cams = list(fine_cameras(kept, coarse))
+            seconds["cameras"] = seconds.get("cameras", 0.0) + time.perf_counter() - t0
+        local_fine = [shift_principal_point(fine_cams[v], s) for v, s in zip(kept, coarse.shifts)]
+        registered, residual = coarse.obs, np.zeros(len(coarse.obs.view))
+        if o.refine_window_px:
+            t0 = time.perf_counter()
+            registered, residual, n_refine_dropped = register_observations(
+                coarse.obs, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
+                max_shift_px=o.refine_max_shift_px)
+            seconds["refinement"] = seconds.get("refinement", 0.0) + time.perf_counter() - t0
+        fine_obs = best_registered(registered, residual, o.refine_keep_fraction,
+                                   at_least=_MIN_BEST_REGISTERED)
+        t0 = time.perf_counter()
+        try:
+            fine = adjust_observations(local_fine, fine_obs, b, names=[names[v] for v in kept])
+        except TooFewObservations as exc:
+            for k, c in zip(exc.views, exc.counts):
+                dropped[kept[k]] = (f"only {c} tie points left after the fine adjustment (need "
+                                    f"at least {b.min_observations})")
+            seconds["fine"] = seconds.get("fine", 0.0) + time.perf_counter() - t0
+            continue
+        certainty = shift_uncertainty(local_fine, fine.obs, fine.points, fine.shifts)
+        seconds["fine"] = seconds.get("fine", 0.0) + time.perf_counter() - t0
+        if len(kept) > 2 and not certainty.worst_sigma <= b.max_shift_sigma_px:
+            # (With two views the one direction the tie points do not fix is the height of the
+            # scene, part of the motion no image sees.)
+            v = kept[certainty.worst_view]
+            dropped[v] = (f"its pointing correction is uncertain by {certainty.worst_sigma:.2f} px "
+                          f"(more than {b.max_shift_sigma_px:g} px): it is not tied to the other "
+                          "views in every direction")
+            continue
+        shifts[kept] = coarse.shifts + fine.shifts
+        coarse_shifts[kept] = coarse.shifts
+        sigma[kept] = certainty.sigma
+        tied = True
+        break
+    if not tied:
+        kept, fine = [], None
+        for v in range(V):
+            dropped.setdefault(v, "fewer than two views could be tied together")
+    lengths = np.bincount([len(t) for t in tracks], minlength=V + 1) if tracks else np.zeros(V + 1, int)
+    if fine is not None:
+        # Every tie point the coarse adjustment kept, at its keypoints, triangulated with the
+        # corrected cameras: the registration moves the keypoints of roof corners (windows over
+        # a roof and the ground below) by pixels and drops them, and those are the highest points.
+        local_fine = [fine_cams[v] for v in kept]
+        P = projection_stack([shift_principal_point(c, s) for c, s in zip(local_fine, shifts[kept])])
+        points, err, front = triangulate_observations(coarse.obs, P)
+        point_error = _worst_error(coarse.obs, err)
+        point_error[~front] = np.inf
+        obs = _global(coarse.obs, kept)
+        P0 = projection_stack(local_fine)
+        X0 = triangulate_observations(fine.obs, P0)[0]
+        xy = project(P0, fine.obs.view, X0[fine.obs.point])[0]
+        errors_before = np.hypot(*(xy - fine.obs.xy).T)
+    else:
+        obs = Observations(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), 0)
+        point_error, points, errors_before = np.zeros(0), np.zeros((0, 3)), np.zeros(0)
+    return TiedViews(
+        names=tuple(names), kept=tuple(kept),
+        dropped=tuple(DroppedView(v, names[v], r) for v, r in sorted(dropped.items())),
+        shifts=shifts, coarse_shifts=coarse_shifts, sigma=sigma, cameras=tuple(fine_cams),
+        points=points, obs=obs, point_error=point_error, errors_before=errors_before, graph=graph,
+        matches=matches,
+        n_features=n_features, n_tracks=len(tracks),
+        track_length_histogram={int(k): int(c) for k, c in enumerate(lengths) if c > 0},
+        n_refine_dropped=n_refine_dropped, coarse=coarse, fine=fine, seconds=seconds)
+
+
+# -- the stage -----------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True, eq=False)
+class SparseResult:
+    """What the sparse stage gives the pipeline (see the module docstring).
+
+    ``corrections_px`` (V, 2): per view given, the translation (col, row) in image pixels of its
+    content with respect to its RPC (content of X at ``RPC(X) + correction``), NaN for a dropped
+    view; apply it to any crop's camera with ``shift_principal_points``. ``altitude_range``:
+    None when too few tie points bound the heights (``altitude["reason"]`` says why).
+    """
+
+    paths: tuple[str, ...]
+    names: tuple[str, ...]
+    corrections_px: np.ndarray
+    correction_sigma_px: np.ndarray
+    coarse_corrections_px: np.ndarray
+    dropped: tuple[DroppedView, ...]
+    prior_range: Any  # AltitudeRange the views were cropped at
+    altitude_range: Any  # AltitudeRange | None
+    altitude: dict[str, Any]  # how the range was found: tie points used, quantiles, reason
+    tied: TiedViews
+    frame: Any  # the ENU frame of tied.points (that of the fine adjustment's cameras)
+    min_matches: int  # pairs with fewer verified matches were not used
+    seconds: dict[str, float]
+
+    @property
+    def kept(self) -> tuple[int, ...]:
+        return self.tied.kept
+
+    @property
+    def kept_paths(self) -> tuple[str, ...]:
+        return tuple(self.paths[v] for v in self.kept)
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        """One line per dropped view, naming its file."""
+        return tuple(f"{d.path}: dropped by the sparse stage: {d.reason}" for d in self.dropped)
+
+    @property
+    def max_correction_px(self) -> float:
+        """The largest |correction| component of the kept views (px): the extra crop margin a
+        later crop needs to hold the AOI's content."""
+        c = self.corrections_px[list(self.kept)]
+        return float(np.abs(c).max(initial=0.0))
+
+    def corrections_for(self, paths: Sequence[str | os.PathLike]) -> list[tuple[float, float]]:
+        """The corrections of the given images (kept views only), in their order: the shifts to
+        pass to ``shift_principal_points`` for a CameraSet of those images."""
+        index = {os.path.realpath(p): v for v, p in enumerate(self.paths)}
+        out = []
+        for p in paths:
+            v = index.get(os.path.realpath(os.fspath(p)))
+            if v is None or v not in self.kept:
+                raise InputError(p, "no pointing correction: the sparse stage did not tie this view")
+            out.append((float(self.corrections_px[v, 0]), float(self.corrections_px[v, 1])))
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (the ``sparse`` section of report.json)."""
+        t, n = self.tied, self.names
+        fine, coarse = t.fine, t.coarse
+
+        def figures(sol: BundleSolution | None) -> dict[str, Any] | None:
+            if sol is None or len(sol.errors_after) == 0:
+                return None
+            return {"points": int(sol.obs.n_points), "observations": int(len(sol.obs.view)),
+                    "reprojection_error_px": {
+                        "before": {"median": float(np.median(sol.errors_before)),
+                                   "mean": float(np.mean(sol.errors_before))},
+                        "after": {"median": float(np.median(sol.errors_after)),
+                                  "mean": float(np.mean(sol.errors_after))}},
+                    "solver_evaluations": list(sol.evaluations)}
+
+        cands = {(c.i, c.j): c for c in t.graph.candidates}
+        pairs = []
+        for (i, j), k in t.matches.items():
+            c = cands.get((i, j))
+            pairs.append({"views": [n[i], n[j]], "matches": k, "used": i in t.kept
+                          and j in t.kept and k >= self.min_matches,
+                          "selected": (i, j) in t.graph.selected,
+                          "base_to_height": None if c is None else c.base_to_height,
+                          "overlap": None if c is None else c.overlap,
+                          "probe_matches": None if c is None or c.probe < 0 else c.probe})
+        views = {}
+        for v, name in enumerate(n):
+            entry: dict[str, Any] = {"features": t.n_features[v]}
+            if v in t.kept:
+                entry["correction_px"] = [float(x) for x in self.corrections_px[v]]
+                entry["coarse_correction_px"] = [float(x) for x in self.coarse_corrections_px[v]]
+                entry["correction_sigma_px"] = float(self.correction_sigma_px[v])
+                entry["observations"] = int(np.sum(t.obs.view == v))
+            views[name] = entry
+        return {
+            "views": views,
+            "dropped": [{"image": d.path, "reason": d.reason} for d in self.dropped],
+            "pair_graph": {"candidates": len(t.graph.candidates), "matched": len(t.matches),
+                           "all_pairs": len(n) * (len(n) - 1) // 2, "pairs": pairs},
+            "tracks": t.n_tracks,
+            "track_length_histogram": {str(k): v for k, v in sorted(t.track_length_histogram.items())},
+            "refine_dropped": t.n_refine_dropped,
+            "coarse": figures(coarse),
+            "fine": figures(fine),
+            "prior_range": [self.prior_range.min, self.prior_range.max],
+            "altitude_range": self.altitude,
+            "seconds": dict(self.seconds),
+            "convention": "correction_px: the view's content of ground point X lies at RPC(X) + "
+                          "correction (image pixels, col/row); it moves the principal point of "
+                          "any crop's camera; defined up to the motion of the whole scene, "
+                          "chosen to make the corrections smallest",
+        }
+
+
+def fit_cameras(views: Sequence[Any], aoi: Any, alt: Any, grid_size: tuple[int, int, int], *,
+                only: Sequence[int] | None = None) -> tuple[Any, list[Any], dict[int, str]]:
+    """Perspective cameras of the views' crops over the AOI x ``alt`` cube, one grid of
+    ``grid_size`` samples for all (:func:`satsweep.geometry.camera.fit_camera`), in the frame
+    ``frame_for(aoi, alt)``. Returns the frame, the cameras (None for the views not in ``only``
+    and for those whose fit fails) and the failures' messages by view."""
+    from satsweep.geometry.camera import CameraOptions, aoi_grid, fit_camera, frame_for
+
+    frame = frame_for(aoi, alt)
+    options = CameraOptions(grid_size=grid_size)
+    grid = aoi_grid(frame, aoi, alt, grid_size)
+    cams: list[Any] = []
+    failed: dict[int, str] = {}
+    for v, view in enumerate(views):
+        if only is not None and v not in only:
+            cams.append(None)
+            continue
+        try:
+            cams.append(fit_camera(view.rpc, grid, np.shape(view.image), options))
+        except CameraError as exc:
+            cams.append(None)
+            failed[v] = f"no perspective camera fits its RPC over the AOI ({exc})"
+    return frame, cams, failed
+
+
+def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
+                 options: SparseOptions = SparseOptions(),
+                 bundle_options: BundleOptions = BundleOptions(), *,
+                 names: Sequence[str] | None = None,
+                 images: Sequence[np.ndarray] | None = None) -> SparseResult:
+    """The sparse stage (module docstring) on ``views`` cropped at the ``prior`` altitude range.
+
+    ``views``: :class:`satsweep.io.views.View` (``load_views(paths, aoi, prior, margin_px=...)``);
+    ``aoi``: the AOI; ``prior``: the AltitudeRange they were cropped at (the user's, a DEM's or
+    the RPCs'); ``images``: their tonemapped images if already made; ``names``: for messages,
+    default the file names. Raises CameraError naming every view and why when fewer than two
+    views can be tied.
+    """
+    from satsweep.geometry.altitude import AltitudeRange
+    from satsweep.io.images import tonemap
+    from satsweep.sparse.tiepoints import altitude_range_from_points
+
+    t_all = time.perf_counter()
+    seconds: dict[str, float] = {}
+    paths = tuple(os.fspath(v.path) for v in views)
+    names = tuple(os.path.basename(p) for p in paths) if names is None else tuple(names)
+    t0 = time.perf_counter()
+    if images is None:
+        images = [tonemap(v.image) for v in views]
+    seconds["tonemap"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    frame, prior_cams, failed = fit_cameras(views, aoi, prior, options.camera_grid)
+    seconds["cameras"] = time.perf_counter() - t0
+    samples = aoi_samples(frame, aoi, (prior.min, prior.mid, prior.max))
+    fine_frame = [frame]
+
+    def refit(kept: Sequence[int], coarse: BundleSolution) -> list[Any]:
+        """Cameras over the AOI x the coarse tie points' altitudes (the prior's if too few)."""
+        lon, lat, alt = frame.to_geodetic(e=coarse.points[:, 0], n=coarse.points[:, 1],
+                                          u=coarse.points[:, 2])
+        inside = aoi.contains(lon=lon, lat=lat) & np.isfinite(alt)
+        if inside.sum() < options.altitude_min_points:
+            fine_frame[0] = frame
+            return list(prior_cams)
+        lo, hi = np.quantile(alt[inside], [_FINE_CUBE_QUANTILE, 1.0 - _FINE_CUBE_QUANTILE])
+        lo = max(float(lo) - _FINE_CUBE_MARGIN_M, prior.min)
+        hi = min(float(hi) + _FINE_CUBE_MARGIN_M, prior.max)
+        if not lo < hi:
+            fine_frame[0] = frame
+            return list(prior_cams)
+        fine, cams, failures = fit_cameras(views, aoi, AltitudeRange(lo, hi), options.camera_grid,
+                                           only=kept)
+        if failures:  # a view that sees too little of the AOI's cube: the prior's cameras
+            fine_frame[0] = frame
+            return list(prior_cams)
+        fine_frame[0] = fine
+        return cams
+
+    tied = tie_views(images, prior_cams, names, options, bundle_options, samples=samples,
+                     fine_cameras=refit, dropped=failed)
+    seconds.update({k: seconds.get(k, 0.0) + v for k, v in tied.seconds.items()})
+    if len(tied.kept) < 2:
+        why = "; ".join(f"{paths[d.index]}: {d.reason}" for d in tied.dropped) or "no view could be tied"
+        raise CameraError(f"the sparse stage could not tie two views together: {why}")
+
+    t0 = time.perf_counter()
+    frame = fine_frame[0]
+    altitude_range, altitude = altitude_range_from_points(
+        tied.points, tied.obs, tied.point_error, frame, aoi, options, within=prior)
+    seconds["altitude"] = time.perf_counter() - t0
+    seconds["total"] = time.perf_counter() - t_all
+    dropped = tuple(dataclasses.replace(d, path=paths[d.index]) for d in tied.dropped)
+    result = SparseResult(
+        paths=paths, names=names, corrections_px=tied.shifts, correction_sigma_px=tied.sigma,
+        coarse_corrections_px=tied.coarse_shifts, dropped=dropped, prior_range=prior,
+        altitude_range=altitude_range, altitude=altitude, tied=tied, frame=frame,
+        min_matches=options.min_matches, seconds=seconds)
+    return result
+
