@@ -93,7 +93,7 @@ FLAT_WINDOW_CELLS = 7
 # The altitude range given to the pipeline: the scene's truth range widened by this (m).
 ALT_MARGIN_M = 5.0
 # Stages shown in the timing columns (satsweep.pipeline's report names), in order.
-STAGES = ("altitude", "views", "cameras", "adjust", "skew", "select", "sweep", "mrf", "dsm", "fill",
+STAGES = ("sparse", "views", "cameras", "adjust", "skew", "select", "sweep", "mrf", "dsm", "fill",
           "outputs")
 
 

@@ -12,26 +12,29 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from satsweep.errors import SatsweepError
+from satsweep.errors import CameraError, InputError, SatsweepError
 from satsweep.geometry.altitude import AltitudeRange, enu_height_range
-from satsweep.pipeline.altitude import AltitudeChoice, choose_altitude_range
+from satsweep.pipeline.altitude import AltitudeChoice, choose_altitude_range, prior_altitude_range
 from satsweep.pipeline.forecast import program_forecast
 from satsweep.pipeline.prepare import (
     Adjustment,
-    adjust_cameras,
     crop_views,
     fit_cameras,
     ortho_values,
     skew_correct_masks,
     skew_correct_views,
+    tie_sources,
+    unadjusted,
 )
 from satsweep.pipeline.rasters import AreaRasters, area_rasters
 from satsweep.pipeline.sweeps import ReferenceHeights, sweep_references
+from satsweep.sparse.bundle import shift_principal_points
 
 if TYPE_CHECKING:  # pragma: no cover
     from satsweep.config import PipelineConfig
@@ -86,6 +89,7 @@ class AreaRecord:
     acquisitions: list[dict | None]  # per view, its acquisition metadata (None: none given)
     cameras: "CameraSet"
     adjustment: Adjustment
+    sparse: dict | None  # the sparse stage's figures (pair graph, corrections, dropped views)
     selection: "Selection"
     sweeps: list[ReferenceHeights]
     rasters: AreaRasters
@@ -104,6 +108,7 @@ class AreaRecord:
             "cameras": {"approx_error_px": {os.path.basename(n): v.camera.error.to_dict()
                                             for n, v in zip(names, self.cameras.views)},
                         "warnings": list(self.cameras.warnings)},
+            "sparse": self.sparse,
             "ba": self.adjustment.to_report(),
             "view_selection": self.selection.to_dict([os.path.basename(n) for n in names]),
             "sweep": [s.to_report() for s in self.sweeps],
@@ -150,20 +155,43 @@ class Wait:
 def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     """Every stage from the altitude range to the DSM rasters, for one area on its grid."""
     config, rep = ctx.config, ctx.report
-    if ctx.alt_range is None and ctx.dem is None:
-        with rep.stage("altitude"):
-            altitude = choose_altitude_range(job.sources, job.aoi, alt_range=None, dem=None,
-                                             config=config)
-        rep.log(f"altitude range {altitude.range.min:.1f}..{altitude.range.max:.1f} m from "
-                f"{altitude.details['tie_points']} tie points (give --alt-range or --dem, alt_range= "
-                "or dem= in the API, to set it)")
+    r = config.reconstruct
+    given = ctx.alt_range is not None or ctx.dem is not None
+    sources = list(job.sources)
+    sparse, untied = None, None
+    if not given or r.adjust != "off":
+        # One sparse stage over the views cropped at the prior range gives the pointing
+        # corrections, the views that can be tied, and (without a range) the altitude range.
+        prior = prior_altitude_range(sources, job.aoi, alt_range=ctx.alt_range, dem=ctx.dem)
+        try:
+            sparse = tie_sources(sources, job.aoi, prior, config, report=rep)
+        except CameraError as exc:
+            if not given:
+                raise InputError(None, f"no altitude range given and the views cannot be tied "
+                                       f"to find one ({exc}): give --alt-range MIN MAX or --dem "
+                                       "FILE (alt_range= or dem= in the Python API)") from None
+            untied = exc
+        else:
+            kept = set(sparse.kept_paths)
+            sources = [src for src in sources if src.path in kept]
+    if given:
+        altitude = choose_altitude_range(sources, job.aoi, alt_range=ctx.alt_range, dem=ctx.dem,
+                                         config=config)
     else:
-        altitude = choose_altitude_range(job.sources, job.aoi, alt_range=ctx.alt_range,
-                                         dem=ctx.dem, config=config)
+        if sparse.altitude_range is None:
+            raise InputError(None, f"no altitude range given and {sparse.altitude['reason']}: "
+                                   "give --alt-range MIN MAX or --dem FILE (alt_range= or dem= "
+                                   "in the Python API)")
+        altitude = AltitudeChoice(sparse.altitude_range, "tie points", sparse.altitude)
+        rep.log(f"altitude range {altitude.range.min:.1f}..{altitude.range.max:.1f} m from "
+                f"{sparse.altitude['tie_points']} adjusted tie points (give --alt-range or --dem, "
+                "alt_range= or dem= in the API, to set it)")
     alt = altitude.range
-    views, images = crop_views(job.sources, job.aoi, alt, config, report=rep)
+    # The crops are widened by the largest correction, so that they hold the AOI's content.
+    extra = 0 if sparse is None else int(math.ceil(sparse.max_correction_px))
+    views, images = crop_views(sources, job.aoi, alt, config, report=rep, extra_margin_px=extra)
     kept = {v.path for v in views}  # the views holding data over the area
-    sources = [s for s in job.sources if s.path in kept]
+    sources = [src for src in sources if src.path in kept]
     names = [v.name for v in views]
     cameras = fit_cameras(views, job.aoi, alt, config, report=rep)
     worst = max(v.camera.error.max_px for v in cameras.views)
@@ -173,13 +201,19 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     # The kernels the sweep stage will need, built in the background meanwhile.
     ctx.device.prebuild(program_forecast(ctx.device, cameras,
                                          enu_height_range(cameras.frame, job.aoi, alt), config))
-    borrowed = (None if job.borrowed_shifts is None
-                else [job.borrowed_shifts[v.path] for v in views])
-    cameras, adjustment = adjust_cameras(cameras, images, config, names=names,
-                                         borrowed_shifts=borrowed, may_wait=job.may_wait,
-                                         report=rep)
-    if adjustment.postponed is not None:
-        return Wait(adjustment.postponed)
+    if r.adjust == "off":
+        adjustment = Adjustment(skipped="reconstruct.adjust = off")
+    elif sparse is not None:
+        shifts = sparse.corrections_for([v.path for v in views])
+        cameras = shift_principal_points(cameras, shifts)
+        adjustment = Adjustment(sparse_shifts={v.name: s for v, s in zip(views, shifts)})
+    else:
+        borrowed = (None if job.borrowed_shifts is None
+                    else [job.borrowed_shifts[v.path] for v in views])
+        cameras, adjustment = unadjusted(cameras, untied, config, borrowed_shifts=borrowed,
+                                         may_wait=job.may_wait, report=rep)
+        if adjustment.postponed is not None:
+            return Wait(adjustment.postponed)
     ortho_images = ortho_values(views) if config.reconstruct.write_ortho else None
     masks = [v.valid for v in views]
     if config.reconstruct.skew_correct:
@@ -213,7 +247,8 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
                                for v in views],
                         acquisitions=[None if s.acquisition is None else s.acquisition.to_dict()
                                       for s in sources],
-                        cameras=cameras, adjustment=adjustment, selection=selection,
+                        cameras=cameras, adjustment=adjustment,
+                        sparse=None if sparse is None else sparse.to_dict(), selection=selection,
                         sweeps=sweeps, rasters=rasters)
     own = adjustment.own_shifts
     return AreaResult(rasters=rasters, cameras=cameras,

@@ -71,15 +71,23 @@ class Adjustment:
     skipped: str | None = None
     borrowed_shift_px: tuple[tuple[float, float], ...] | None = None
     postponed: str | None = None
+    sparse_shifts: dict[str, tuple[float, float]] | None = None  # per image name, the sparse
+    # stage's correction applied (satsweep.sparse.stage)
 
     @property
     def own_shifts(self) -> list[list[float]] | None:
         """Per view (dcx, dcy) px of this area's own adjustment; None without one."""
+        if self.sparse_shifts is not None:
+            return [list(s) for s in self.sparse_shifts.values()]
         if self.bundle is None:
             return None
         return [list(s) for s in self.bundle.principal_point_shift_px]
 
     def to_report(self) -> dict[str, Any]:
+        if self.sparse_shifts is not None:
+            return {"method": "sparse stage (report: sparse)",
+                    "principal_point_shift_px": {n: list(s)
+                                                 for n, s in self.sparse_shifts.items()}}
         if self.bundle is not None:
             return self.bundle.to_dict()
         if self.postponed is not None:
@@ -108,8 +116,8 @@ class PreparedViews:
 
 
 def crop_views(sources: Sequence["ImageSource"], aoi: "AOI", alt_range: "AltitudeRange",
-               config: "PipelineConfig", *, report: "RunReport | None" = None
-               ) -> tuple[list["View"], list[np.ndarray]]:
+               config: "PipelineConfig", *, report: "RunReport | None" = None,
+               extra_margin_px: int = 0) -> tuple[list["View"], list[np.ndarray]]:
     """The "views" step: each image's crop of the AOI cube (``[reconstruct] crop_margin_px``
     around it) and the crop tonemapped (its no-data pixels flat, ``View.valid``). A view with
     less than ``MIN_VALID_FRACTION`` of its crop holding data is left out with a warning naming
@@ -119,7 +127,8 @@ def crop_views(sources: Sequence["ImageSource"], aoi: "AOI", alt_range: "Altitud
     from satsweep.io.views import load_views
 
     with _stage(report, "views"):
-        views = load_views(sources, aoi, alt_range, margin_px=config.reconstruct.crop_margin_px)
+        views = load_views(sources, aoi, alt_range,
+                           margin_px=config.reconstruct.crop_margin_px + int(extra_margin_px))
         kept = []
         for v in views:
             fraction = 1.0 if v.valid is None else float(np.mean(v.valid))
@@ -169,21 +178,54 @@ def adjust_cameras(cameras: "CameraSet", images: Sequence[np.ndarray], config: "
                                                               config.sparse, names=names)
             return adjusted, Adjustment(bundle=result)
         except CameraError as exc:
-            why = f"not enough matches for the adjustment: {exc}"
-            if borrowed_shifts is not None:
-                _warn(report, f"bundle adjustment of this tile impossible ({exc}); the "
-                             "other tiles' pointing corrections are used")
-                shifts = tuple(tuple(float(v) for v in s) for s in borrowed_shifts)
-                return (bundle.shift_principal_points(cameras, borrowed_shifts),
-                        Adjustment(skipped=why, borrowed_shift_px=shifts))
-            if may_wait:
-                _log(report, f"bundle adjustment of this tile impossible ({exc}): it waits for "
-                             "the other tiles' pointing corrections")
-                return cameras, Adjustment(postponed=why)
-            if mode == "on" or len(cameras.views) >= 3:
-                raise
-            _warn(report, f"bundle adjustment skipped: {exc}")
-            return cameras, Adjustment(skipped=why)
+            return unadjusted(cameras, exc, config, borrowed_shifts=borrowed_shifts,
+                              may_wait=may_wait, report=report)
+
+
+def unadjusted(cameras: "CameraSet", exc: CameraError, config: "PipelineConfig", *,
+               borrowed_shifts: Sequence[Sequence[float]] | None = None, may_wait: bool = False,
+               report: "RunReport | None" = None) -> tuple["CameraSet", Adjustment]:
+    """What to do when the views could not be tied (``exc``): the other tiles' corrections
+    (``borrowed_shifts``), else wait for them (``may_wait``), else skip the adjustment with 2
+    views under ``adjust = auto``; raise ``exc`` otherwise."""
+    from satsweep.sparse import bundle
+
+    why = f"not enough matches for the adjustment: {exc}"
+    if borrowed_shifts is not None:
+        _warn(report, f"bundle adjustment of this tile impossible ({exc}); the other tiles' "
+                      "pointing corrections are used")
+        shifts = tuple(tuple(float(v) for v in s) for s in borrowed_shifts)
+        return (bundle.shift_principal_points(cameras, borrowed_shifts),
+                Adjustment(skipped=why, borrowed_shift_px=shifts))
+    if may_wait:
+        _log(report, f"bundle adjustment of this tile impossible ({exc}): it waits for the "
+                     "other tiles' pointing corrections")
+        return cameras, Adjustment(postponed=why)
+    if config.reconstruct.adjust == "on" or len(cameras.views) >= 3:
+        raise exc
+    _warn(report, f"bundle adjustment skipped: {exc}")
+    return cameras, Adjustment(skipped=why)
+
+
+def tie_sources(sources: Sequence["ImageSource"], aoi: "AOI", prior: "AltitudeRange",
+                config: "PipelineConfig", *, report: "RunReport | None" = None):
+    """The "sparse" step (``satsweep.sparse.stage.sparse_stage``): the images cropped at the
+    ``prior`` altitude range (the user's, a DEM's or the RPCs' wide one), their pointing
+    corrections, the views that can be tied and the altitude range of the tie points. CameraError
+    when fewer than two views can be tied."""
+    from satsweep.io.images import tonemap
+    from satsweep.io.views import load_views
+    from satsweep.sparse.stage import sparse_stage
+
+    with _stage(report, "sparse"):
+        # Over the RPCs' kilometres of heights the footprints overflow the images: no warning.
+        views = load_views(sources, aoi, prior, margin_px=config.reconstruct.crop_margin_px,
+                           warn_partial=False)
+        result = sparse_stage(views, aoi, prior, config.sparse, config.bundle,
+                              images=[tonemap(v.image, valid=v.valid) for v in views])
+    for line in result.warnings:
+        _warn(report, line)
+    return result
 
 
 # A view whose crop holds data over less than this fraction of its pixels is left out.

@@ -347,10 +347,10 @@ def test_a_tile_without_matches_takes_the_other_tiles_pointing_corrections(scene
                                                                          monkeypatch):
     """A tile whose views cannot be adjusted (its first adjustment and its second fail here)
     waits for the others, then takes the median of their principal-point shifts."""
-    import satsweep.sparse.bundle
+    import satsweep.sparse.stage
     from satsweep.errors import CameraError
 
-    real = satsweep.sparse.bundle.adjust_principal_points
+    real = satsweep.sparse.stage.sparse_stage
     calls = []
 
     def flaky(*args, **kwargs):
@@ -359,7 +359,7 @@ def test_a_tile_without_matches_takes_the_other_tiles_pointing_corrections(scene
             raise CameraError("too few matches (planted by the test)")
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(satsweep.sparse.bundle, "adjust_principal_points", flaky)
+    monkeypatch.setattr(satsweep.sparse.stage, "sparse_stage", flaky)
     res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "reconstruct": {
         "tile_m": AOI_TILE_M, "tile_overlap_m": AOI_TILE_OVERLAP_M}})
     _check_accuracy(res)
@@ -452,8 +452,9 @@ def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
     # the range holds the ground, within the RPCs' heights (these synthetic RPCs are fitted over
     # the relief alone, so theirs is not the kilometres of a real RPC)
     assert alt["min"] <= lo and alt["max"] > lo + 1.0
-    assert alt["rpc_range"][0] <= alt["min"] and alt["max"] <= alt["rpc_range"][1]
-    assert "altitude" in res.report["timings_s"]
+    prior = res.report["sparse"]["prior_range"]  # the RPCs' range the views were tied over
+    assert prior[0] <= alt["min"] and alt["max"] <= prior[1]
+    assert "sparse" in res.report["timings_s"]
     _check_accuracy(res)  # the bounds of the run given the range
 
 

@@ -219,7 +219,8 @@ def test_sigterm_and_sighup_leave_no_staging(small_town, tmp_path, signame):
     out = tmp_path / "out"
     proc = subprocess.Popen(
         [sys.executable, "-m", "satsweep", "reconstruct", *[str(v.image) for v in small_town.views],
-         "--aoi", _aoi_arg(small_town), "--alt-range", "90", "170", "--out", str(out), "--quiet"],
+         "--aoi", _aoi_arg(small_town), "--alt-range", "90", "170", "--out", str(out), "--quiet",
+         "--mrf", "graphcut"],  # the slowest refinement: the signal comes long before the end
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env={**os.environ})
     deadline = time.monotonic() + STAGING_WAIT_S
     while time.monotonic() < deadline and proc.poll() is None:
@@ -340,7 +341,9 @@ def test_a_view_without_data_is_left_out_with_a_warning(synthetic_scene, tmp_pat
     result = reconstruct([images[0], images[1], blank], scene.aoi, tmp_path / "o",
                          alt_range=(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M),
                          config=PipelineConfig.from_mapping(FAST), verbose=False)
-    assert any("blank.tif" in w["message"] and "left out" in w["message"]
+    # The sparse stage drops it (no features), or the views stage (no data) when not tying.
+    assert any("blank.tif" in w["message"] and ("left out" in w["message"]
+                                                or "dropped" in w["message"])
                for w in result.report["warnings"])
     assert [Path(v["image"]).name for v in result.report["views"]] == [
         images[0].name, images[1].name]
