@@ -88,31 +88,22 @@ __all__ = [
 class BundleOptions(Options):
     """Options of the principal-point bundle adjustment."""
 
-    # lambda: weight (px^2 per m^2) of the anchor ||X - Xhat||^2 of each point to its
-    # pre-adjustment triangulation (VisSat's 0.01); it fixes the gauge and must be > 0.
-    regulariser: float = 0.01
-    # Robust loss applied to each residual (scipy.optimize.least_squares' names and definitions).
-    # soft_l1 (the smooth pseudo-Huber) by default: with Huber's kink scipy's trust-region steps
-    # crawled (measured: 200 function evaluations against 6 for soft_l1, same solution).
-    loss: Literal["linear", "huber", "soft_l1", "cauchy", "arctan"] = "soft_l1"
-    # Residual (px) at which the robust loss leaves its quadratic zone.
-    loss_scale_px: float = 1.0
-    # Before the adjustment, tracks whose triangulation leaves an observation further than this
-    # (px) are dropped: a pointing error of a few px leaves pre-adjustment errors of that order.
-    initial_threshold_px: float = 10.0
-    # After the first solve, observations further than this (px) from their reprojection go.
-    coarse_threshold_px: float = 4.0
-    # After the second solve, observations further than this (px) go; a last solve follows.
-    fine_threshold_px: float = 2.0
-    # Each view must keep at least this many observations after outlier rejection.
-    min_observations: int = 20
-    # Cost evaluations allowed to each solve.
-    max_evaluations: int = 200
-    # A view whose correction is uncertain by more than this (px, one sigma along its worst
-    # direction, from the normal equations; satsweep.sparse.bundle.shift_uncertainty) is dropped
-    # by the sparse stage: it is tied along one direction only (e.g. by two-view tracks with a
-    # single other view, whose heights absorb the other direction). Tied views measure 0.005-0.03 px.
-    max_shift_sigma_px: float = 0.1
+    regulariser: float = 0.01  # weight (px^2 per m^2) of each point's anchor to its
+    # pre-adjustment triangulation; fixes the gauge, > 0
+    loss: Literal["linear", "huber", "soft_l1", "cauchy", "arctan"] = "soft_l1"  # robust loss of
+    # each residual
+    loss_scale_px: float = 1.0  # residual (px) where the robust loss leaves its quadratic zone
+    initial_threshold_px: float = 10.0  # tracks leaving an observation farther (px) before the
+    # adjustment are dropped
+    coarse_threshold_px: float = 4.0  # observations farther (px) after the first solve go
+    fine_threshold_px: float = 2.0  # observations farther (px) after the second solve go
+    min_observations: int = 20  # observations each view must keep
+    max_evaluations: int = 200  # cost evaluations allowed to each solve
+    max_shift_sigma_px: float = 0.1  # a view whose correction is more uncertain (px, 1 sigma) is
+    # dropped by the sparse stage
+
+    ADVANCED = ("loss", "loss_scale_px", "initial_threshold_px", "coarse_threshold_px",
+                "fine_threshold_px", "min_observations", "max_evaluations", "max_shift_sigma_px")
 
     def check(self) -> None:
         self._require(math.isfinite(self.regulariser) and self.regulariser > 0.0, "regulariser",
