@@ -181,7 +181,7 @@ def print_table(rows: list[dict]) -> None:
             continue
         lo, hi = r["altitude_range"]
         t_lo, t_hi = r["truth_range"]
-        sparse = sum(r["stages"].get(s, 0.0) for s in ("altitude", "adjust"))
+        sparse = r["stages"].get("sparse", 0.0)
         print(f"{r['seed']:>4} {r['kind']:<15} {r['k']:>3} {r['references']:>4} "
               f"{r['median_m']:>6.3f} {100 * r['completeness_1m']:>6.1f} {r['dfc_mae_m']:>6.3f} "
               f"{r['dfc_valid']:>6.3f} {f'{lo:.0f}..{hi:.0f} ({t_lo:.0f}..{t_hi:.0f})':>26} "

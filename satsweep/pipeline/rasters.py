@@ -121,8 +121,12 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             clouds.append((x[keep], y[keep], z[keep],
                            np.repeat(gray.ravel()[pixel[keep]][:, None], 3, axis=1)))
         if fusion == "consensus":
-            fused, count, members = consensus_dsms(rasters, tolerance_m=d.consensus_tolerance_m,
-                                                   min_views=d.consensus_min_views)
+            view_sets = [(pv.index, *pv.source_indices) for pv in per_view]
+            # A stack of fewer distinct views than asked needs them all, not the impossible.
+            distinct = min(d.consensus_min_distinct_views, len(set().union(*view_sets)))
+            fused, count, members = consensus_dsms(
+                rasters, tolerance_m=d.consensus_tolerance_m, min_views=d.consensus_min_views,
+                view_sets=view_sets, min_distinct_views=distinct)
             # The confidence of the views that agree on the cell's height.
             conf = _nanmean_stack([np.where(m, c, np.nan) for m, c in zip(members, conf_rasters)],
                                   grid.shape)

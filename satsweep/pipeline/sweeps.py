@@ -87,6 +87,7 @@ class ReferenceHeights:
     confidence: np.ndarray  # (H, W) float32 in [0, 1]
     reference: str  # file names, for the report
     sources: tuple[str, ...]
+    source_indices: tuple[int, ...]  # the sources' view indices
     planes: int  # planes swept
     plane_step_m: float | None
     window: tuple[int, int, int, int]  # the swept pixels (x0, y0, x1, y1), ends excluded
@@ -168,7 +169,8 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
                 float(np.mean(index >= len(heights) - 1 - RANGE_END_PLANES)))
         out.append(ReferenceHeights(
             index=r, height=height, valid=valid, confidence=confidence, reference=names[r],
-            sources=tuple(names[s] for s in srcs), planes=int(len(heights)),
+            sources=tuple(names[s] for s in srcs), source_indices=tuple(int(s) for s in srcs),
+            planes=int(len(heights)),
             plane_step_m=float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
             window=tuple(int(v) for v in window), valid_fraction=float(np.mean(result.valid)),
             tiles=int(result.split.n_tiles), window_planes=result.split.window_planes,

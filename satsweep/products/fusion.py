@@ -57,9 +57,13 @@ class DSMOptions(Options):
     # consensus with CONSENSUS_MIN_REFERENCES reference views or more
     consensus_tolerance_m: float = 1.0  # consensus: heights within this (m) of each other agree
     consensus_min_views: int = 2  # consensus: cells fewer views agree on are left empty
+    consensus_min_distinct_views: int = 3  # consensus: the agreeing height maps must be matched
+    # from at least this many distinct views in all (A against B and B against A are one pair;
+    # at most the views there are)
 
     ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
-                "fill_method", "consensus_tolerance_m", "consensus_min_views")
+                "fill_method", "consensus_tolerance_m", "consensus_min_views",
+                "consensus_min_distinct_views")
 
     def check(self) -> None:
         self._require(math.isfinite(self.resolution) and self.resolution > 0.0, "resolution", "must be > 0 metres")
@@ -240,16 +244,21 @@ def fuse_dsms(
     return fused, count
 
 
-def consensus_dsms(dsms: Sequence[np.ndarray], *, tolerance_m: float,
-                   min_views: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def consensus_dsms(dsms: Sequence[np.ndarray], *, tolerance_m: float, min_views: int,
+                   view_sets: Sequence[Sequence[int]] | None = None,
+                   min_distinct_views: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-cell consensus of per-reference-view DSMs on the same grid.
 
     For each cell the views' heights are sorted and the widest group of them that fits in a
-    window of ``2 * tolerance_m`` is found (on a tie, the highest such group: a DSM is the top
-    surface); the cell's height is the median of that group, its count the group's size. A
+    window of ``2 * tolerance_m`` is found (on a tie, the lowest such group: edge fattening smears
+    roof heights onto the ground beside buildings, never the other way); the cell's height is the median of that group, its count the group's size. A
     cell where fewer than ``min_views`` views agree is left empty: one view's blunder (a shadow
-    matched tens of metres off, a car that moved) is never a height on its own. Returns (fused
-    float32, agreeing views per cell as uint8, (V, H, W) bool: which view is in the group).
+    matched tens of metres off, a car that moved) is never a height on its own. With
+    ``view_sets`` (per DSM, the views its height map was matched from: its reference and
+    sources, indices < 64), the group must also draw on at least ``min_distinct_views`` views
+    in all: two height maps of one pair seen both ways (A against B, B against A) share their
+    errors and are one measurement, not two. Returns (fused float32, agreeing views per cell as
+    uint8, (V, H, W) bool: which view is in the group).
     """
     if not dsms:
         raise ValueError("consensus_dsms needs at least one DSM")
@@ -271,20 +280,38 @@ def consensus_dsms(dsms: Sequence[np.ndarray], *, tolerance_m: float,
             # size[i]: the values from s[i] up to s[i] + width (sorted: a contiguous run).
             size = ((s[None, :] >= s[:, None]) & (s[None, :] <= s[:, None] + width)).sum(axis=1)
         size[~np.isfinite(s)] = 0
-        # The widest window; among equally wide ones the highest (the last start index).
-        best = (n - 1) - np.argmax(size[::-1], axis=0)
+        # The widest window; among equally wide ones the lowest (the first start index):
+        # edge fattening puts roof heights beside a building, so on a tie the ground wins
+        # (multi-date seeds 0 and 1, 10 views: DFC MAE 2.60 m against 3.06 m for the highest).
+        best = np.argmax(size, axis=0)
         c = np.take_along_axis(size, best[None], axis=0)[0]
         lo = np.take_along_axis(s, best[None], axis=0)[0]
         mid_lo = np.take_along_axis(s, np.minimum(best + (c - 1) // 2, n - 1)[None], axis=0)[0]
         mid_hi = np.take_along_axis(s, np.minimum(best + c // 2, n - 1)[None], axis=0)[0]
         ok = c >= max(int(min_views), 1)
-        f = np.where(ok, 0.5 * (mid_lo + mid_hi), np.nan)
         with np.errstate(invalid="ignore"):
             inside = (stack >= lo[None]) & (stack <= lo[None] + width) & ok[None]
+        if view_sets is not None and min_distinct_views > 0:
+            ok &= _distinct_views(inside, view_sets) >= min_distinct_views
+            inside &= ok[None]
+        f = np.where(ok, 0.5 * (mid_lo + mid_hi), np.nan)
         fused[block] = f
         count[block] = np.where(ok, c, 0).astype(np.uint8)
         members[:, block] = inside
     return fused, count, members
+
+
+def _distinct_views(inside: np.ndarray, view_sets: Sequence[Sequence[int]]) -> np.ndarray:
+    """Per cell, the number of distinct views in the view sets of the DSMs ``inside`` marks."""
+    bits = np.array([sum(1 << int(v) for v in set(vs)) for vs in view_sets], dtype=np.uint64)
+    union = np.zeros(inside.shape[1:], dtype=np.uint64)
+    for k, b in enumerate(bits):
+        union |= np.where(inside[k], b, np.uint64(0))
+    count = np.zeros(union.shape, dtype=np.int64)
+    while union.any():  # popcount, one bit at a time (a few dozen views at most)
+        count += (union & np.uint64(1)).astype(np.int64)
+        union >>= np.uint64(1)
+    return count
 
 
 # -- hole filling ------------------------------------------------------------------------------

@@ -526,12 +526,12 @@ def test_match_radiometry_fits_gain_and_offset_robustly():
 
 def _consensus_reference(values: list[float], tolerance: float, min_views: int):
     """Plain-Python consensus of one cell: the largest group within a window of 2 * tolerance
-    (the highest on a tie), its median and size."""
+    (the lowest on a tie), its median and size."""
     v = sorted(x for x in values if np.isfinite(x))
     best = (0, None)
     for i, lo in enumerate(v):
         group = [x for x in v if lo <= x <= lo + 2 * tolerance]
-        if len(group) >= best[0]:
+        if len(group) > best[0]:
             best = (len(group), group)
     size, group = best
     if size < min_views or group is None:
@@ -575,3 +575,29 @@ def test_consensus_never_keeps_a_lone_view():
     fused, count, _ = consensus_dsms([a, b], tolerance_m=1.0, min_views=2)
     assert fused[0, 0] == pytest.approx(10.2) and count[0, 0] == 2
     assert np.isnan(fused[0, 1]) and np.isnan(fused[1, 1]) and count[1, 1] == 0
+
+
+def test_consensus_ties_go_to_the_lower_group():
+    """Two equally large groups: the lower wins (a roof height smeared beside a building
+    must not beat the ground on a tie)."""
+    from satsweep.products.fusion import consensus_dsms
+
+    dsms = [np.full((1, 1), v, np.float32) for v in (10.0, 10.2, 40.0, 40.3)]
+    fused, count, _ = consensus_dsms(dsms, tolerance_m=1.0, min_views=2)
+    assert fused[0, 0] == pytest.approx(10.1) and count[0, 0] == 2
+
+
+def test_consensus_counts_a_pair_seen_both_ways_once():
+    """Height maps A-against-B and B-against-A share their errors: with view_sets the
+    agreeing group must draw on min_distinct_views distinct views."""
+    from satsweep.products.fusion import consensus_dsms
+
+    dsms = [np.full((1, 2), v, np.float32) for v in (10.0, 10.1, 10.2)]
+    dsms[2][0, 1] = 50.0  # cell 1: only the first two height maps agree
+    view_sets = [(0, 1), (1, 0), (2, 3)]
+    fused, count, members = consensus_dsms(
+        dsms, tolerance_m=1.0, min_views=2, view_sets=view_sets, min_distinct_views=3)
+    assert fused[0, 0] == pytest.approx(10.1) and count[0, 0] == 3  # views 0..3 in all
+    assert np.isnan(fused[0, 1]) and count[0, 1] == 0 and not members[:, 0, 1].any()
+    fused, count, _ = consensus_dsms(dsms, tolerance_m=1.0, min_views=2)
+    assert fused[0, 1] == pytest.approx(10.05) and count[0, 1] == 2
