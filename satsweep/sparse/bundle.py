@@ -99,7 +99,7 @@ class BundleOptions(Options):
     fine_threshold_px: float = 2.0  # observations farther (px) after the second solve go
     min_observations: int = 20  # observations each view must keep
     max_evaluations: int = 200  # cost evaluations allowed to each solve
-    max_shift_sigma_px: float = 0.1  # a view whose correction is more uncertain (px, 1 sigma) is
+    max_shift_sigma_px: float = 0.3  # a view whose correction is more uncertain (px, 1 sigma) is
     # dropped by the sparse stage
 
     ADVANCED = ("loss", "loss_scale_px", "initial_threshold_px", "coarse_threshold_px",

@@ -15,7 +15,7 @@ class SparseOptions(Options):
     """Options of feature detection, matching and triangulation."""
 
     max_features: int = 3000  # SIFT keypoints kept per view (the strongest)
-    min_matches: int = 30  # verified matches a pair needs to be used
+    min_matches: int = 15  # verified matches a pair needs to be used
     pair_neighbours: int = 3  # pairs each view is matched in, beyond the spanning tree
     feature_scale: float = 0.5  # SIFT runs on the views resampled by this factor; 1: as they are
     feature_scale_min_px: int = 512  # views whose smaller side (px) is below this: full resolution
@@ -33,7 +33,7 @@ class SparseOptions(Options):
     pair_min_overlap: float = 0.2  # least fraction of the AOI two views must both see to pair
     pair_bh_range: tuple[float, float] = (0.02, 0.6)  # base-to-height ratios of the preferred pairs
     pair_probe_features: int = 300  # strongest features matched to score candidate pairs; 0: none
-    pair_repair: int = 3  # more candidates tried for a view not tied, before it is dropped
+    pair_repair: int = 6  # more candidates tried for a view not tied, before it is dropped
     camera_grid: tuple[int, int, int] = (20, 20, 8)  # samples (east, north, up) of the sparse
     # stage's own cameras
     altitude_max_error_px: float = 1.0  # tie points reprojected farther (px) do not bound heights

@@ -204,7 +204,9 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
             shift = np.hypot(*(back - obs.xy[sel]).T)
             ok = (status.ravel() == 1) & np.isfinite(shift) & (shift <= max_shift_px)
             xy[sel[ok]] = back[ok]
-            residual[sel] = np.where(ok, lk_err.ravel().astype(np.float64), np.inf)
+            with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
+                err = lk_err.ravel().astype(np.float64)
+            residual[sel] = np.where(ok, err, np.inf)
             keep[sel[~ok]] = False
     registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
     index = registered.subset_index(keep)
