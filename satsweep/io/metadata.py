@@ -215,13 +215,18 @@ class _Source:
         if value:
             self.values.setdefault(field, value)
 
-    def angle(self, field: str, key: str, text: str | None, *, transform=None) -> None:
-        if text is None or not text.strip() or field in self.values:
-            return
+    def _number(self, key: str, text: str | None) -> float | None:
+        """The number in ``text``; None (with a warning when it is not a number) otherwise."""
+        if text is None or not text.strip():
+            return None
         try:
-            value = _number(text)
+            return _number(text)
         except ValueError:
             self.warn(f"{key} = {text.strip()!r} is not a number")
+            return None
+
+    def angle(self, field: str, key: str, text: str | None, *, transform=None) -> None:
+        if field in self.values or (value := self._number(key, text)) is None:
             return
         if transform is not None:
             value = transform(value)
@@ -233,12 +238,7 @@ class _Source:
 
     def cloud(self, key: str, text: str | None, *, fraction: bool) -> None:
         """Cloud cover: a fraction (Maxar, negative = n/a) or a percent (GDAL, 999 = n/a)."""
-        if text is None or not text.strip() or "cloud_cover_percent" in self.values:
-            return
-        try:
-            value = _number(text)
-        except ValueError:
-            self.warn(f"{key} = {text.strip()!r} is not a number")
+        if "cloud_cover_percent" in self.values or (value := self._number(key, text)) is None:
             return
         if (fraction and value < 0.0) or (not fraction and value == GDAL_CLOUDCOVER_NA):
             return  # the format's "not available"
