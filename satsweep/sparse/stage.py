@@ -38,8 +38,10 @@ wide one) gives everything the dense stages need from tie points:
    those inside the AOI whose reprojection errors are all within ``altitude_max_error_px``.
    The lowest end comes from the points of ``altitude_floor_views`` views or more, the highest
    from all, each an altitude that ``altitude_support`` points share within
-   ``altitude_support_m`` (a wrong match has a height of its own), widened by the margins and
-   kept within the prior range.
+   ``altitude_support_m`` (a wrong match has a height of its own); the highest of the points
+   above that top that views outside its track see where it lies raises it (a lone tower's
+   roof, :mod:`satsweep.sparse.verify`); widened by the margins and kept within the prior
+   range.
 
 Corrections are translations in image pixels: a view's content of ground point X lies at
 ``RPC(X) + correction`` (the convention of the synthetic scenes' biases). A crop's pixels are the
@@ -540,6 +542,21 @@ def fit_cameras(views: Sequence[Any], aoi: Any, alt: Any, grid_size: tuple[int, 
     return frame, cams, failed
 
 
+def _confirmer(tied: TiedViews, images: Sequence[np.ndarray]):
+    """Whether views outside a tie point's track see it where the track puts it
+    (:mod:`satsweep.sparse.verify`), by point index of ``tied.points``."""
+    from satsweep.sparse.verify import MIN_OTHER_VIEWS, confirming_views
+
+    P = {v: np.asarray(shift_principal_point(tied.cameras[v], tied.shifts[v]).P, np.float64)
+         for v in tied.kept}
+
+    def confirm(i: int) -> bool:
+        track = tied.obs.view[tied.obs.point == i]
+        return confirming_views(tied.points[i], track, images, P)[0] >= MIN_OTHER_VIEWS
+
+    return confirm
+
+
 def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
                  options: SparseOptions = SparseOptions(),
                  bundle_options: BundleOptions = BundleOptions(), *,
@@ -603,7 +620,8 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
     t0 = time.perf_counter()
     frame = fine_frame[0]
     altitude_range, altitude = altitude_range_from_points(
-        tied.points, tied.obs, tied.point_error, frame, aoi, options, within=prior)
+        tied.points, tied.obs, tied.point_error, frame, aoi, options, within=prior,
+        confirm=_confirmer(tied, images))
     seconds["altitude"] = time.perf_counter() - t0
     seconds["total"] = time.perf_counter() - t_all
     dropped = tuple(dataclasses.replace(d, path=paths[d.index]) for d in tied.dropped)

@@ -28,7 +28,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -43,6 +43,8 @@ REFINE_SAMPLES = 3
 REFINE_HALF_M = 50.0
 # Fewer tie points than this inside the AOI cannot bound its heights.
 MIN_TIE_POINTS = 20
+# Points above the supported top that are checked against the views, highest first.
+MAX_CONFIRM_CANDIDATES = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -165,7 +167,8 @@ def supported_extremes(alt: np.ndarray, support: int, window_m: float) -> tuple[
 
 
 def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray, frame, aoi: AOI,
-                               options, *, within: AltitudeRange | None = None
+                               options, *, within: AltitudeRange | None = None,
+                               confirm: Callable[[int], bool] | None = None
                                ) -> tuple[AltitudeRange | None, dict]:
     """The altitude range of adjusted tie points (the sparse stage's), and a record of it.
 
@@ -177,7 +180,10 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     ``altitude_min_points`` are) to the highest of all, each the lowest or highest altitude
     supported by ``altitude_support`` points (or ``altitude_support_fraction`` of them) within
     ``altitude_support_m``
-    (:func:`supported_extremes`), widened by ``altitude_margin_below_m`` and
+    (:func:`supported_extremes`); ``confirm(i)``, when given, is asked about the points above
+    that top, highest first (at most ``MAX_CONFIRM_CANDIDATES``), and the first it accepts
+    raises the top to its altitude (the sparse stage asks the views,
+    :mod:`satsweep.sparse.verify`); both ends widened by ``altitude_margin_below_m`` and
     ``altitude_margin_above_m``, and kept ``within`` the prior range when they overlap it.
 
     Why the two ends differ: a wrong match that two views accept anywhere along its epipolar
@@ -219,6 +225,19 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     lo = supported_extremes(alt[floor], support(int(floor.sum())), o.altitude_support_m)[0]
     hi = supported_extremes(a, support(a.size), o.altitude_support_m)[1]
     record["supported_extremes_m"] = [lo, hi]
+    if confirm is not None:
+        # The points above the supported top, highest first: the first that other views
+        # confirm raises it (a lone tower's roof; satsweep.sparse.verify).
+        above = np.flatnonzero(use & (alt > hi + o.altitude_support_m))
+        above = above[np.argsort(-alt[above])][:MAX_CONFIRM_CANDIDATES]
+        tried = 0
+        for i in above:
+            tried += 1
+            if confirm(int(i)):
+                hi = float(alt[i])
+                record["confirmed_top_m"] = hi
+                break
+        record["unsupported_points_tried"] = tried
     lo, hi = lo - o.altitude_margin_below_m, hi + o.altitude_margin_above_m
     if within is not None and max(lo, within.min) < min(hi, within.max):
         lo, hi = max(lo, within.min), min(hi, within.max)
