@@ -9,9 +9,11 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import re
 import signal
 import sys
+import threading
 import warnings
 from typing import Callable, Sequence
 
@@ -22,6 +24,8 @@ Handler = Callable[[argparse.Namespace], int]
 
 # Exit code of a run that finished but whose warnings say the result is doubtful, with --strict.
 EXIT_DOUBTFUL = 3
+# Seconds after which a SIGTERM or SIGHUP that came during an import is sent again.
+SIGNAL_RETRY_S = 0.05
 
 
 class _Parser(argparse.ArgumentParser):
@@ -48,7 +52,13 @@ def _termination_raises():
     KeyboardInterrupt), so a killed run removes its staging folder; the previous handlers are
     restored after."""
 
-    def raise_terminated(signum, _frame):
+    def raise_terminated(signum, frame):
+        if frame is not None and frame.f_code.co_filename.startswith("<frozen importlib"):
+            # An exception raised in the import system's lock callbacks is printed and ignored
+            # ("Exception ignored in: _get_module_lock.<locals>.cb"): the run would go on. The
+            # signal is sent again a moment later, once the import is through.
+            threading.Timer(SIGNAL_RETRY_S, os.kill, (os.getpid(), signum)).start()
+            return
         raise Terminated(signum)
 
     previous = {}
