@@ -76,6 +76,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         flat_cells,
         fuse_dsms,
         rasterise_max_cells,
+        visibility_check_heights,
     )
     from satsweep.products.ortho import match_radiometry, value_at_highest
     from satsweep.products.points import height_map_to_enu, map_view_points
@@ -91,11 +92,19 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                    for height, P in zip(heights, projections)]
         checked = [np.isfinite(h) for h in heights]
         fusion = d.fusion_for(len(per_view))
-        # The consensus compares the views cell by cell: no pixel-level check before it.
+        # The consensus compares the views cell by cell: no agreement check before it, but a
+        # free-space check (views from the other sides see the ground where views from one
+        # side put a facade at its roof's height, products.fusion.visibility_check_heights).
         cross_check = d.cross_check_m > 0 and len(per_view) >= 2 and fusion == "median"
-        if cross_check:
-            checked = cross_check_heights(heights, projections, tolerance_m=d.cross_check_m,
-                                          min_agreeing=d.cross_check_views, points=centres)
+        visibility = (d.visibility_check and d.cross_check_m > 0 and len(per_view) >= 2
+                      and fusion == "consensus")
+        if cross_check or visibility:
+            if cross_check:
+                checked = cross_check_heights(heights, projections, tolerance_m=d.cross_check_m,
+                                              min_agreeing=d.cross_check_views, points=centres)
+            else:
+                checked = visibility_check_heights(heights, projections,
+                                                   tolerance_m=d.cross_check_m, points=centres)
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
@@ -147,10 +156,12 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             kept = [o if k == first else match_radiometry(kept[first], o)
                     for k, o in enumerate(kept)]
             ortho = _nanmean_stack(kept, grid.shape)
+        kept_fraction = [float(k.sum() / max(1, np.isfinite(h).sum()))
+                         for k, h in zip(checked, heights)]
         cross = ({"tolerance_m": d.cross_check_m, "views": d.cross_check_views,
-                  "kept_fraction": [float(k.sum() / max(1, np.isfinite(h).sum()))
-                                    for k, h in zip(checked, heights)]}
-                 if cross_check else None)
+                  "kept_fraction": kept_fraction} if cross_check
+                 else {"check": "free space", "tolerance_m": d.cross_check_m,
+                       "kept_fraction": kept_fraction} if visibility else None)
     return AreaRasters(dsm=fused, confidence=conf, ortho=ortho,
                        count=np.minimum(count, 255).astype(np.uint8), clouds=clouds,
                        fusion=fusion, cross_check=cross,

@@ -45,7 +45,8 @@ class DSMOptions(Options):
     subsamples: int = 2  # points splatted per side of each reference pixel's footprint (1: its
     # centre only)
     cross_check_m: float = 2.0  # a reference pixel is kept where another reference view's
-    # height map agrees within this (m); 0: no check
+    # height map agrees within this (m), or with consensus, unless more views see past it by
+    # more than this than agree (visibility_check); 0: no check
     cross_check_views: int = 1  # how many other reference views must agree
     outlier_m: float = 2.0  # fusion: per-view heights farther than this (m) from the cell's
     # first median are dropped
@@ -57,13 +58,15 @@ class DSMOptions(Options):
     # consensus with CONSENSUS_MIN_REFERENCES reference views or more
     consensus_tolerance_m: float = 1.0  # consensus: heights within this (m) of each other agree
     consensus_min_views: int = 2  # consensus: cells fewer views agree on are left empty
+    visibility_check: bool = True  # consensus: drop the points that more reference views see
+    # past (free space, by more than cross_check_m) than agree with
     consensus_min_distinct_views: int = 3  # consensus: the agreeing height maps must be matched
     # from at least this many distinct views in all (A against B and B against A are one pair;
     # at most the views there are)
 
     ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
                 "fill_method", "consensus_tolerance_m", "consensus_min_views",
-                "consensus_min_distinct_views")
+                "consensus_min_distinct_views", "visibility_check")
 
     def check(self) -> None:
         self._require(math.isfinite(self.resolution) and self.resolution > 0.0, "resolution", "must be > 0 metres")
@@ -140,6 +143,57 @@ def cross_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.
                 agree[idx] += np.abs(other - u[idx]) <= tolerance_m
         mask = np.zeros(h.shape, dtype=bool)
         mask[rows, cols] = agree >= need
+        out.append(mask)
+    return out
+
+
+def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.ndarray], *,
+                             tolerance_m: float,
+                             points: Sequence[tuple[np.ndarray, ...]] | None = None
+                             ) -> list[np.ndarray]:
+    """Free-space check of several reference views' height maps.
+
+    Each known pixel of view k becomes its 3-D point, projected into every other view j. View j
+    *sees past* the point when its own height at that pixel lies more than ``tolerance_m`` below
+    it: its line of sight runs through the point to a surface behind it, so the point is empty
+    space for j. It *agrees* when the heights are within ``tolerance_m``; a height above the
+    point means the point is hidden from j (no evidence). A pixel is kept unless more views see
+    past it than agree with it. The errors this removes are those a consensus of views cannot:
+    a facade matched at its roof's height puts roof points over the ground in front of the
+    wall, and every view from that side makes the same mistake, while views from the other
+    sides see the ground there. Arguments and returns as :func:`cross_check_heights`.
+    """
+    maps = [np.asarray(h, dtype=np.float64) for h in heights]
+    known = [np.isfinite(h) for h in maps]
+    if len(maps) < 2:
+        return known
+    out = []
+    for k, (h, P) in enumerate(zip(maps, projections)):
+        if points is None:
+            rows, cols = np.nonzero(known[k])
+            u = h[rows, cols]
+            e, n = solve_ground_en(P, col=cols.astype(np.float64), row=rows.astype(np.float64),
+                                   u=u)
+        else:
+            e, n, u, pixel = points[k]
+            rows, cols = np.divmod(pixel, h.shape[1])
+        agree = np.zeros(u.size, dtype=np.int64)
+        past = np.zeros(u.size, dtype=np.int64)
+        for j, (hj, Pj) in enumerate(zip(maps, projections)):
+            if j == k:
+                continue
+            col, row = project_points(Pj, e=e, n=n, u=u)
+            with np.errstate(invalid="ignore"):
+                ic = np.floor(col + 0.5)
+                ir = np.floor(row + 0.5)
+                inside = (ic >= 0) & (ic < hj.shape[1]) & (ir >= 0) & (ir < hj.shape[0])
+            idx = np.nonzero(inside)[0]
+            other = hj[ir[idx].astype(np.int64), ic[idx].astype(np.int64)]
+            with np.errstate(invalid="ignore"):
+                agree[idx] += np.abs(other - u[idx]) <= tolerance_m
+                past[idx] += other < u[idx] - tolerance_m
+        mask = np.zeros(h.shape, dtype=bool)
+        mask[rows, cols] = past <= agree
         out.append(mask)
     return out
 

@@ -601,3 +601,54 @@ def test_consensus_counts_a_pair_seen_both_ways_once():
     assert np.isnan(fused[0, 1]) and count[0, 1] == 0 and not members[:, 0, 1].any()
     fused, count, _ = consensus_dsms(dsms, tolerance_m=1.0, min_views=2)
     assert fused[0, 1] == pytest.approx(10.05) and count[0, 1] == 2
+
+
+# -- free-space (visibility) check --------------------------------------------------------------
+# A 2-D world (east, up; north is the row): ground u = 0, a block u = 10 m over 20 <= e < 30.
+# Affine views: pixel column = e + a * u (a = tan of the incidence, its sign the side the
+# satellite looks from), row = n, one pixel per metre.
+_BLOCK = (20.0, 30.0, 10.0)
+
+
+def _affine(a: float) -> np.ndarray:
+    """The affine view as a 3x4 matrix, with a perspective term small enough (a camera 1000 km
+    away) to give its rays a side to look from."""
+    return np.array([[1.0, 0.0, a, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1e-6, 1.0]])
+
+
+def _true_heights(a: float, width: int, rows: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """The height each pixel sees (first hit from above along e = col - a u), and whether it sees
+    a wall."""
+    e0, e1, top = _BLOCK
+    col = np.arange(width, dtype=np.float64) + 0.5
+    h = np.zeros(width)
+    wall = np.zeros(width, bool)
+    e_top = col - a * top  # where the ray crosses the roof's height
+    roof = (e_top >= e0) & (e_top < e1)
+    h[roof] = top
+    # Below the roof's height the ray meets the wall the satellite faces, else the ground.
+    face = e0 if a > 0 else e1
+    u_wall = (col - face) / a
+    hits = ~roof & (u_wall > 0) & (u_wall < top)
+    h[hits] = u_wall[hits]
+    wall[hits] = True
+    return np.tile(h, (rows, 1)), np.tile(wall, (rows, 1))
+
+
+def test_visibility_check_drops_a_facade_matched_at_its_roof_height_only():
+    width = 60
+    slopes = (0.5, 0.4, -0.5)
+    maps, walls = zip(*(_true_heights(a, width) for a in slopes))
+    fattened = maps[0].copy()
+    fattened[walls[0]] = _BLOCK[2]  # view 0's facade swept at the roof's height
+    heights = [fattened, maps[1], maps[2]]
+    kept = dsm.visibility_check_heights(heights, [_affine(a) for a in slopes], tolerance_m=2.0)
+    # The facade's pixels within the tolerance of the roof's height are right to that tolerance.
+    wrong = walls[0] & (maps[0] < _BLOCK[2] - 2.0)
+    assert wrong.sum() >= 8
+    assert not kept[0][wrong].any()
+    for k, (h, mask) in enumerate(zip(maps, kept)):
+        right = ~wrong if k == 0 else np.ones(h.shape, bool)
+        assert mask[right].all(), k
+    # A single view has nothing to check against: all its pixels are kept.
+    assert dsm.visibility_check_heights([maps[0]], [_affine(0.5)], tolerance_m=2.0)[0].all()
