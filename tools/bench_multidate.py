@@ -140,7 +140,10 @@ def main(argv=None) -> int:
     for item in args.set:
         key, _, value = item.partition("=")
         section, _, name = key.partition(".")
-        config = config.override(section, **{name: json.loads(value)})
+        value = json.loads(value)
+        # JSON has no tuples: a list is a tuple option's value (census_window = [3, 3]).
+        config = config.override(section, **{name: tuple(value) if isinstance(value, list)
+                                             else value})
 
     def log(msg):
         print(f"[bench_multidate] {msg}", file=sys.stderr, flush=True)

@@ -44,6 +44,8 @@ class SparseOptions(Options):
     altitude_support_m: float = 3.0  # height window (m) of that support
     altitude_margin_below_m: float = 5.0  # margin (m) below the lowest end
     altitude_margin_above_m: float = 15.0  # margin (m) above the highest end
+    altitude_aoi_margin_m: float = 25.0  # tie points this far (m) outside the AOI also bound its
+    # heights: a roof across the AOI's edge may have its only features outside it
 
     ADVANCED = ("feature_scale", "feature_scale_min_px", "refine_window_px",
                 "refine_max_shift_px", "refine_keep_fraction", "contrast_threshold", "ratio",
@@ -51,7 +53,8 @@ class SparseOptions(Options):
                 "pair_min_overlap", "pair_bh_range", "pair_probe_features", "pair_repair",
                 "camera_grid", "altitude_max_error_px", "altitude_min_points",
                 "altitude_floor_views", "altitude_support", "altitude_support_fraction",
-                "altitude_support_m", "altitude_margin_below_m", "altitude_margin_above_m")
+                "altitude_support_m", "altitude_margin_below_m", "altitude_margin_above_m",
+                "altitude_aoi_margin_m")
 
     def check(self) -> None:
         self._require(self.max_features >= 8, "max_features", "must be at least 8")
@@ -94,6 +97,7 @@ class SparseOptions(Options):
                       "altitude_support_fraction", "must be a fraction in [0, 0.5)")
         self._require(math.isfinite(self.altitude_support_m) and self.altitude_support_m >= 0.0,
                       "altitude_support_m", "must be a finite number of metres >= 0")
-        for name in ("altitude_margin_below_m", "altitude_margin_above_m"):
+        for name in ("altitude_margin_below_m", "altitude_margin_above_m",
+                "altitude_aoi_margin_m"):
             v = getattr(self, name)
             self._require(math.isfinite(v) and v >= 0.0, name, "must be a finite number of metres >= 0")

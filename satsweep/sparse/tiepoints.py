@@ -166,6 +166,14 @@ def supported_extremes(alt: np.ndarray, support: int, window_m: float) -> tuple[
     return float(lo), float(hi)
 
 
+def _near_aoi(points: np.ndarray, frame, aoi: AOI, margin_m: float) -> np.ndarray:
+    """Which ENU ``points`` lie within ``margin_m`` of the AOI (its ENU bounding box, grown)."""
+    lon, lat = aoi.boundary()
+    e, n, _ = frame.from_geodetic(lon=lon, lat=lat, alt=np.zeros(lon.shape))
+    return ((points[:, 0] >= e.min() - margin_m) & (points[:, 0] <= e.max() + margin_m)
+            & (points[:, 1] >= n.min() - margin_m) & (points[:, 1] <= n.max() + margin_m))
+
+
 def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray, frame, aoi: AOI,
                                options, *, within: AltitudeRange | None = None,
                                confirm: Callable[[int], bool] | None = None
@@ -174,8 +182,8 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
 
     ``points`` (N, 3): ENU points (m) of ``frame``; ``obs``: their observations (to count the
     views of each); ``point_error`` (N,): each point's largest reprojection error (px) with the
-    corrected cameras; ``options``: SparseOptions. The points used lie inside the AOI with every
-    error within ``altitude_max_error_px``. The range runs from the lowest altitude of the
+    corrected cameras; ``options``: SparseOptions. The points used lie inside the AOI grown by
+    ``altitude_aoi_margin_m`` with every error within ``altitude_max_error_px``. The range runs from the lowest altitude of the
     points seen by ``altitude_floor_views`` views or more (all points when fewer than
     ``altitude_min_points`` are) to the highest of all, each the lowest or highest altitude
     supported by ``altitude_support`` points (or ``altitude_support_fraction`` of them) within
@@ -199,7 +207,7 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     n_views = np.bincount(obs.point, minlength=len(points)) if len(points) else np.zeros(0, int)
     if len(points):
         lon, lat, alt = frame.to_geodetic(e=points[:, 0], n=points[:, 1], u=points[:, 2])
-        inside = aoi.contains(lon=lon, lat=lat) & np.isfinite(alt)
+        inside = _near_aoi(points, frame, aoi, o.altitude_aoi_margin_m) & np.isfinite(alt)
     else:
         alt = np.zeros(0)
         inside = np.zeros(0, dtype=bool)
@@ -209,12 +217,14 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
         floor = use
     record: dict = {"source": "tie points", "tie_points": int(use.sum()),
                     "tie_points_for_the_lowest": int(floor.sum()),
-                    "tie_points_inside_aoi": int(inside.sum()),
+                    "tie_points_near_aoi": int(inside.sum()),
+                    "aoi_margin_m": o.altitude_aoi_margin_m,
                     "views_per_tie_point": {str(k): int(c) for k, c in
                                             enumerate(np.bincount(n_views[use])) if c},
                     "max_error_px": o.altitude_max_error_px}
     if use.sum() < o.altitude_min_points:
-        record["reason"] = (f"only {int(use.sum())} adjusted tie points inside the AOI (at least "
+        record["reason"] = (f"only {int(use.sum())} adjusted tie points within "
+                            f"{o.altitude_aoi_margin_m:g} m of the AOI (at least "
                             f"{o.altitude_min_points} are needed to bound its heights)")
         return None, record
     a = alt[use]

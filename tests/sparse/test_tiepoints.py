@@ -128,6 +128,10 @@ class _Frame:
     def to_geodetic(*, e, n, u):
         return np.asarray(e), np.asarray(n), np.asarray(u)
 
+    @staticmethod
+    def from_geodetic(*, lon, lat, alt):
+        return np.asarray(lon), np.asarray(lat), np.asarray(alt)
+
 
 def _adjusted(alts, views, errors, lon=0.5):
     from satsweep.geometry.aoi import AOI
@@ -160,11 +164,18 @@ def test_adjusted_range_takes_its_floor_from_points_of_three_views():
     assert rng == AltitudeRange(98.0, 160.0)
 
 
-def test_adjusted_range_needs_enough_points_inside_the_aoi():
+def test_adjusted_range_needs_enough_points_near_the_aoi():
+    """Points count within altitude_aoi_margin_m of the AOI (a roof across its edge may have its
+    features outside), not farther."""
     o = SparseOptions()
-    points, obs, err, aoi = _adjusted([100.0] * 30, [2] * 30, [0.1] * 30, lon=1.5)  # outside
+    far = 1.0 + o.altitude_aoi_margin_m + 0.5  # the AOI spans 0..1 (units of _Frame: metres)
+    points, obs, err, aoi = _adjusted([100.0] * 30, [2] * 30, [0.1] * 30, lon=far)
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
-    assert rng is None and "only 0 adjusted tie points inside the AOI" in record["reason"]
+    assert rng is None and "only 0 adjusted tie points within 25 m of the AOI" in record["reason"]
+    near = 1.0 + o.altitude_aoi_margin_m - 0.5
+    points, obs, err, aoi = _adjusted([100.0] * 30, [2] * 30, [0.1] * 30, lon=near)
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert rng is not None and record["tie_points_near_aoi"] == 30
     # too few points of three views: the floor comes from all of them
     points, obs, err, aoi = _adjusted([100.0] * 25 + [90.0, 90.5], [2] * 27, [0.1] * 27)
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
