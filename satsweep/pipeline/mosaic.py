@@ -153,7 +153,8 @@ class Filled:
 
 
 def fill_holes(dsm: RawBand, work: str | os.PathLike, *, max_hole_cells: int,
-               method: Literal["min", "median"], block: int = FILL_BLOCK_CELLS) -> Filled:
+               method: Literal["min", "median"], border_holes: bool = True,
+               block: int = FILL_BLOCK_CELLS) -> Filled:
     """``fill_small_holes`` of the whole band, block by block (see the module docstring)."""
     from satsweep.products.fusion import fill_small_holes
 
@@ -175,7 +176,10 @@ def fill_holes(dsm: RawBand, work: str | os.PathLike, *, max_hole_cells: int,
                 wr0, wr1 = max(r0 - margin, 0), min(r1 + margin, h)
                 wc0, wc1 = max(c0 - margin, 0), min(c1 + margin, w)
                 window = dsm.read(wr0, wr1, wc0, wc1)
-                done, _ = fill_small_holes(window, max_hole_cells=max_hole_cells, method=method)
+                # A hole that reaches the block from the window's edge (not the grid's) spans the
+                # margin: more than max_hole_cells, never filled, as on the whole grid.
+                done, _ = fill_small_holes(window, max_hole_cells=max_hole_cells, method=method,
+                                           border_holes=border_holes)
                 result = done[r0 - wr0:r1 - wr0, c0 - wc0:c1 - wc0]
             after = np.isfinite(result)
             out.write(r0, c0, result)

@@ -191,7 +191,7 @@ def _finish(mosaic: Mosaic, settings, rep: RunReport, out: OutputFolder,
     with rep.stage("fill"):
         rasters = assemble(grid, mosaic.pieces, out.work, bands)
         filled = fill_holes(rasters["dsm"], out.work, max_hole_cells=d.fill_max_hole_cells,
-                            method=d.fill_method)
+                            method=d.fill_method, border_holes=d.fill_border_holes)
         rep["dsm"] = {
             "epsg": grid.epsg, "resolution_m": grid.resolution, "width": grid.width,
             "height": grid.height, "x_min": grid.x_min, "y_max": grid.y_max,

@@ -8,8 +8,8 @@ Stages (host code, float64 numpy, vectorised):
    per cell (a DSM is the top surface: a roof point beats a wall point falling in the same cell).
 3. ``fuse_dsms``: per cell, median of the per-reference-view DSMs after discarding values farther
    than ``outlier_m`` from their first median (a consistency filter across views).
-4. ``fill_small_holes``: optional; fills enclosed holes of a few cells and returns how many cells
-   it filled, so the caller reports it.
+4. ``fill_small_holes``: optional; fills holes of a few cells (those at the border too, by
+   default) and returns how many cells it filled, so the caller reports it.
 """
 
 from __future__ import annotations
@@ -41,7 +41,9 @@ class DSMOptions(Options):
     """Options of the DSM stage (rasterisation, fusion across reference views, hole filling)."""
 
     resolution: float = 0.5  # DSM cell size (m, UTM)
-    fill_max_hole_cells: int = 1000  # fill enclosed holes of at most this many cells; 0: none
+    fill_max_hole_cells: int = 1000  # fill holes of at most this many cells; 0: none
+    fill_border_holes: bool = True  # also fill the holes that touch the DSM's border (those of
+    # fill_max_hole_cells cells at most)
     subsamples: int = 2  # points splatted per side of each reference pixel's footprint (1: its
     # centre only)
     cross_check_m: float = 2.0  # a reference pixel is kept where another reference view's
@@ -65,7 +67,7 @@ class DSMOptions(Options):
     # at most the views there are)
 
     ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
-                "fill_method", "consensus_tolerance_m", "consensus_min_views",
+                "fill_method", "fill_border_holes", "consensus_tolerance_m", "consensus_min_views",
                 "consensus_min_distinct_views", "visibility_check")
 
     def check(self) -> None:
@@ -370,13 +372,14 @@ def _distinct_views(inside: np.ndarray, view_sets: Sequence[Sequence[int]]) -> n
 
 # -- hole filling ------------------------------------------------------------------------------
 def fill_small_holes(
-    dsm: np.ndarray, *, max_hole_cells: int, method: Literal["min", "median"] = "min"
+    dsm: np.ndarray, *, max_hole_cells: int, method: Literal["min", "median"] = "min",
+    border_holes: bool = True,
 ) -> tuple[np.ndarray, int]:
-    """Fill enclosed no-data holes of at most ``max_hole_cells`` 4-connected cells.
+    """Fill no-data holes of at most ``max_hole_cells`` 4-connected cells.
 
-    A hole is a 4-connected set of NaN cells that does not touch the raster border (a gap at the
-    border is not known to be closed). Each hole gets one value from its rim (the valid cells
-    4-adjacent to it): the minimum by default, because small holes in satellite DSMs are mostly
+    A hole is a 4-connected set of NaN cells; with ``border_holes=False`` only those that do not
+    touch the raster border (a gap at the border is not known to be closed). Each hole gets one
+    value from its rim (the valid cells 4-adjacent to it, inside the raster): the minimum by default, because small holes in satellite DSMs are mostly
     ground occluded by a wall, i.e. the lower side; or the median. Returns (filled float32 copy,
     number of cells filled), which the caller must report.
     """
@@ -401,7 +404,8 @@ def fill_small_holes(
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     eligible = (sizes <= max_hole_cells)
     eligible[0] = False
-    eligible[border] = False
+    if not border_holes:
+        eligible[border] = False
     if not eligible[1:].any():
         return a, 0
     # Rim pairs (hole label, rim value) from the four neighbour directions.

@@ -36,12 +36,15 @@ def _dsm_with_holes(seed: int, shape=(90, 110)) -> np.ndarray:
 
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("method", ["min", "median"])
-def test_blockwise_filling_is_the_whole_grid_filling(tmp_path, seed, method):
+@pytest.mark.parametrize("border_holes", [True, False])
+def test_blockwise_filling_is_the_whole_grid_filling(tmp_path, seed, method, border_holes):
     a = _dsm_with_holes(seed)
     band = RawBand.create(tmp_path / "dsm.raw", a.shape, np.float32, np.nan)
     band.write(0, 0, a)
-    expected, count = fill_small_holes(a, max_hole_cells=30, method=method)
-    filled = fill_holes(band, tmp_path, max_hole_cells=30, method=method, block=16)
+    expected, count = fill_small_holes(a, max_hole_cells=30, method=method,
+                                       border_holes=border_holes)
+    filled = fill_holes(band, tmp_path, max_hole_cells=30, method=method,
+                        border_holes=border_holes, block=16)
     np.testing.assert_array_equal(filled.dsm.read(0, 90, 0, 110), expected)
     assert filled.filled_cells == count and filled.valid_cells == np.isfinite(expected).sum()
     mask = filled.interpolated.read(0, 90, 0, 110)

@@ -428,8 +428,9 @@ def _holes_dsm():
     d = rng.uniform(100, 110, (20, 20))
     d[5:7, 5:7] = np.nan  # 4-cell enclosed hole
     d[12:18, 10:15] = np.nan  # 30-cell enclosed hole: too large
-    d[0:2, 15:18] = np.nan  # touches the border: never filled
+    d[0:2, 15:18] = np.nan  # 6 cells touching the border: too large
     d[9, 2] = np.nan  # 1-cell hole
+    d[19, 8:10] = np.nan  # 2 cells touching the border
     return d
 
 
@@ -445,17 +446,21 @@ def _rim_values(d, cells):
 
 
 @pytest.mark.parametrize("method", ["min", "median"])
-def test_fill_small_holes(method):
+@pytest.mark.parametrize("border_holes", [True, False])
+def test_fill_small_holes(method, border_holes):
     d = _holes_dsm()
-    filled, n = dsm.fill_small_holes(d, max_hole_cells=4, method=method)
-    assert n == 5
-    hole4 = [(5, 5), (5, 6), (6, 5), (6, 6)]
-    rim4 = _rim_values(d, hole4)
-    rim1 = _rim_values(d, [(9, 2)])
+    filled, n = dsm.fill_small_holes(d, max_hole_cells=4, method=method,
+                                     border_holes=border_holes)
+    assert n == (7 if border_holes else 5)
     pick = np.min if method == "min" else np.median
-    for i, j in hole4:
-        assert math.isclose(filled[i, j], np.float32(pick(rim4)), rel_tol=0, abs_tol=1e-4)
-    assert math.isclose(filled[9, 2], np.float32(pick(rim1)), rel_tol=0, abs_tol=1e-4)
+    holes = [[(5, 5), (5, 6), (6, 5), (6, 6)], [(9, 2)]]
+    edge = [(19, 8), (19, 9)]  # its rim: the cells inside the raster
+    for hole in holes + ([edge] if border_holes else []):
+        rim = _rim_values(d, hole)
+        for i, j in hole:
+            assert math.isclose(filled[i, j], np.float32(pick(rim)), rel_tol=0, abs_tol=1e-4)
+    if not border_holes:
+        assert np.isnan(filled[19, 8:10]).all()
     assert np.isnan(filled[12:18, 10:15]).all() and np.isnan(filled[0:2, 15:18]).all()
     untouched = np.isfinite(d)
     np.testing.assert_array_equal(filled[untouched], d[untouched].astype(np.float32))
