@@ -94,7 +94,8 @@ from satsweep.sparse.tracks import (
 )
 from satsweep.sparse.triangulation import project, projection_stack, triangulate_observations
 
-__all__ = ["DroppedView", "SparseResult", "TiedViews", "sparse_stage", "tie_views"]
+__all__ = ["DroppedView", "SparseResult", "TiedViews", "sparse_stage", "tie_point_confirmer",
+           "tie_views"]
 
 # The coarse tie points' altitudes bound the cube over which the fine cameras are fitted: their
 # 1% and 99% quantiles widened by this margin (m). The coarse points carry the keypoints' noise
@@ -542,9 +543,10 @@ def fit_cameras(views: Sequence[Any], aoi: Any, alt: Any, grid_size: tuple[int, 
     return frame, cams, failed
 
 
-def _confirmer(tied: TiedViews, images: Sequence[np.ndarray]):
-    """Whether views outside a tie point's track see it where the track puts it
-    (:mod:`satsweep.sparse.verify`), by point index of ``tied.points``."""
+def tie_point_confirmer(tied: TiedViews, images: Sequence[np.ndarray]):
+    """A function of a point index of ``tied.points``: whether views outside its track see it
+    where the track puts it (:mod:`satsweep.sparse.verify`), with the corrected cameras of
+    ``tied`` and the views' tonemapped ``images``."""
     from satsweep.sparse.verify import MIN_OTHER_VIEWS, confirming_views
 
     P = {v: np.asarray(shift_principal_point(tied.cameras[v], tied.shifts[v]).P, np.float64)
@@ -621,7 +623,7 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
     frame = fine_frame[0]
     altitude_range, altitude = altitude_range_from_points(
         tied.points, tied.obs, tied.point_error, frame, aoi, options, within=prior,
-        confirm=_confirmer(tied, images))
+        confirm=tie_point_confirmer(tied, images))
     seconds["altitude"] = time.perf_counter() - t0
     seconds["total"] = time.perf_counter() - t_all
     dropped = tuple(dataclasses.replace(d, path=paths[d.index]) for d in tied.dropped)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from satsweep.io.images import tonemap
-from satsweep.sparse.stage import _confirmer, sparse_stage
+from satsweep.sparse.stage import sparse_stage, tie_point_confirmer
 from satsweep.sparse.verify import MIN_OTHER_VIEWS, confirming_views
 from tests.sparse.test_stage import SIZE_PX, _motion, _views
 
@@ -50,7 +50,7 @@ def _right_points(scene, result) -> np.ndarray:
 def test_right_points_are_confirmed_and_moved_ones_are_not(six_views):
     scene, result, images = six_views
     tied = result.tied
-    confirm = _confirmer(tied, images)
+    confirm = tie_point_confirmer(tied, images)
     right = _right_points(scene, result)
     assert right.size >= 20
     confirmed = [i for i in right if confirm(int(i))]
@@ -88,7 +88,7 @@ def test_a_lone_point_above_the_supported_top_raises_it_only_when_confirmed(six_
     points[top, 2] += 30.0
     args = (points, tied.obs, tied.point_error, result.frame, scene.aoi, SparseOptions())
     plain, _ = altitude_range_from_points(*args)
-    checked, record = altitude_range_from_points(*args, confirm=_confirmer(
+    checked, record = altitude_range_from_points(*args, confirm=tie_point_confirmer(
         _replace_points(tied, points), images))
     accepted, record_all = altitude_range_from_points(*args, confirm=lambda i: True)
     assert checked.max == pytest.approx(plain.max)
