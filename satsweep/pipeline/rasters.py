@@ -96,15 +96,15 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         # free-space check (views from the other sides see the ground where views from one
         # side put a facade at its roof's height, products.fusion.visibility_check_heights).
         cross_check = d.cross_check_m > 0 and len(per_view) >= 2 and fusion == "median"
-        visibility = (d.visibility_check and d.cross_check_m > 0 and len(per_view) >= 2
-                      and fusion == "consensus")
+        visibility = d.visibility_check and len(per_view) >= 2 and fusion == "consensus"
         if cross_check or visibility:
             if cross_check:
                 checked = cross_check_heights(heights, projections, tolerance_m=d.cross_check_m,
                                               min_agreeing=d.cross_check_views, points=centres)
             else:
                 checked = visibility_check_heights(heights, projections,
-                                                   tolerance_m=d.cross_check_m, points=centres)
+                                                   tolerance_m=d.consensus_tolerance_m,
+                                                   points=centres)
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
@@ -160,7 +160,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                          for k, h in zip(checked, heights)]
         cross = ({"tolerance_m": d.cross_check_m, "views": d.cross_check_views,
                   "kept_fraction": kept_fraction} if cross_check
-                 else {"check": "free space", "tolerance_m": d.cross_check_m,
+                 else {"check": "free space", "tolerance_m": d.consensus_tolerance_m,
                        "kept_fraction": kept_fraction} if visibility else None)
     return AreaRasters(dsm=fused, confidence=conf, ortho=ortho,
                        count=np.minimum(count, 255).astype(np.uint8), clouds=clouds,

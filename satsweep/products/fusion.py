@@ -46,9 +46,8 @@ class DSMOptions(Options):
     # fill_max_hole_cells cells at most)
     subsamples: int = 2  # points splatted per side of each reference pixel's footprint (1: its
     # centre only)
-    cross_check_m: float = 2.0  # a reference pixel is kept where another reference view's
-    # height map agrees within this (m), or with consensus, unless more views see past it by
-    # more than this than agree (visibility_check); 0: no check
+    cross_check_m: float = 2.0  # median fusion: a reference pixel is kept where another
+    # reference view's height map agrees within this (m); 0: no check
     cross_check_views: int = 1  # how many other reference views must agree
     outlier_m: float = 2.0  # fusion: per-view heights farther than this (m) from the cell's
     # first median are dropped
@@ -61,7 +60,7 @@ class DSMOptions(Options):
     consensus_tolerance_m: float = 1.0  # consensus: heights within this (m) of each other agree
     consensus_min_views: int = 2  # consensus: cells fewer views agree on are left empty
     visibility_check: bool = True  # consensus: drop the points that more reference views see
-    # past (free space, by more than cross_check_m) than agree with
+    # past (free space, by more than consensus_tolerance_m) than agree with (within it)
     consensus_min_distinct_views: int = 3  # consensus: the agreeing height maps must be matched
     # from at least this many distinct views in all (A against B and B against A are one pair;
     # at most the views there are)
