@@ -106,46 +106,11 @@ def cross_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.
     view's ``height_map_to_enu(heights[k], isfinite(heights[k]), projections[k])``, when the
     caller has them already (they are then not solved again; the same masks).
     """
-    maps = [np.asarray(h, dtype=np.float64) for h in heights]
-    if len(maps) != len(projections):
-        raise ValueError(f"cross_check_heights: {len(maps)} height maps, {len(projections)} projections")
-    if not (math.isfinite(tolerance_m) and tolerance_m > 0.0):
-        raise OptionsError(f"tolerance_m = {tolerance_m!r}: must be > 0 metres")
     if not (isinstance(min_agreeing, int) and min_agreeing >= 1):
         raise OptionsError(f"min_agreeing = {min_agreeing!r}: must be an integer >= 1")
-    known = [np.isfinite(h) for h in maps]
-    if points is not None and len(points) != len(maps):
-        raise ValueError(f"cross_check_heights: {len(maps)} height maps, {len(points)} point sets")
-    if len(maps) < 2:
-        return known
-    need = min(min_agreeing, len(maps) - 1)
-    out = []
-    for k, (h, P) in enumerate(zip(maps, projections)):
-        if points is None:
-            rows, cols = np.nonzero(known[k])
-            u = h[rows, cols]
-            e, n = solve_ground_en(P, col=cols.astype(np.float64), row=rows.astype(np.float64),
-                                   u=u)
-        else:
-            e, n, u, pixel = points[k]
-            rows, cols = np.divmod(pixel, h.shape[1])
-        agree = np.zeros(u.size, dtype=np.int64)
-        for j, (hj, Pj) in enumerate(zip(maps, projections)):
-            if j == k:
-                continue
-            col, row = project_points(Pj, e=e, n=n, u=u)
-            with np.errstate(invalid="ignore"):
-                ic = np.floor(col + 0.5)
-                ir = np.floor(row + 0.5)
-                inside = (ic >= 0) & (ic < hj.shape[1]) & (ir >= 0) & (ir < hj.shape[0])
-            idx = np.nonzero(inside)[0]
-            other = hj[ir[idx].astype(np.int64), ic[idx].astype(np.int64)]
-            with np.errstate(invalid="ignore"):
-                agree[idx] += np.abs(other - u[idx]) <= tolerance_m
-        mask = np.zeros(h.shape, dtype=bool)
-        mask[rows, cols] = agree >= need
-        out.append(mask)
-    return out
+    need = min(min_agreeing, len(heights) - 1)
+    return [known & (agree >= need) for known, agree, _ in
+            _heights_seen_by_others(heights, projections, tolerance_m, points, "cross_check_heights")]
 
 
 def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.ndarray], *,
@@ -164,14 +129,32 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
     wall, and every view from that side makes the same mistake, while views from the other
     sides see the ground there. Arguments and returns as :func:`cross_check_heights`.
     """
+    return [known & (past <= agree) for known, agree, past in
+            _heights_seen_by_others(heights, projections, tolerance_m, points,
+                                    "visibility_check_heights")]
+
+
+def _heights_seen_by_others(heights, projections, tolerance_m: float, points, caller: str):
+    """Yields per view k (known, agree, past) as (H_k, W_k) maps: its known pixels, and at each how
+    many other views' heights at the pixel's 3-D point lie within ``tolerance_m`` of its height
+    (agree) or more than that below it (past); zeros where unknown, and everywhere with a single
+    view. See :func:`cross_check_heights` for the arguments."""
     maps = [np.asarray(h, dtype=np.float64) for h in heights]
-    known = [np.isfinite(h) for h in maps]
-    if len(maps) < 2:
-        return known
-    out = []
+    if len(maps) != len(projections):
+        raise ValueError(f"{caller}: {len(maps)} height maps, {len(projections)} projections")
+    if not (math.isfinite(tolerance_m) and tolerance_m > 0.0):
+        raise OptionsError(f"tolerance_m = {tolerance_m!r}: must be > 0 metres")
+    if points is not None and len(points) != len(maps):
+        raise ValueError(f"{caller}: {len(maps)} height maps, {len(points)} point sets")
     for k, (h, P) in enumerate(zip(maps, projections)):
+        known = np.isfinite(h)
+        agree_map = np.zeros(h.shape, dtype=np.int32)
+        past_map = np.zeros(h.shape, dtype=np.int32)
+        if len(maps) < 2:  # nothing to check against
+            yield known, agree_map, past_map
+            continue
         if points is None:
-            rows, cols = np.nonzero(known[k])
+            rows, cols = np.nonzero(known)
             u = h[rows, cols]
             e, n = solve_ground_en(P, col=cols.astype(np.float64), row=rows.astype(np.float64),
                                    u=u)
@@ -193,10 +176,9 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
             with np.errstate(invalid="ignore"):
                 agree[idx] += np.abs(other - u[idx]) <= tolerance_m
                 past[idx] += other < u[idx] - tolerance_m
-        mask = np.zeros(h.shape, dtype=bool)
-        mask[rows, cols] = past <= agree
-        out.append(mask)
-    return out
+        agree_map[rows, cols] = agree
+        past_map[rows, cols] = past
+        yield known, agree_map, past_map
 
 
 # -- rasterisation -----------------------------------------------------------------------------
