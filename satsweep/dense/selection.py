@@ -50,7 +50,7 @@ REFERENCE_DISSIMILARITY_DEG = 30.0
 class ViewSelectionOptions(Options):
     """Options of the choice of reference views and of their sources."""
 
-    max_references: int = 6  # reference views swept (each costs a sweep)
+    max_references: int = 8  # reference views swept (each costs a sweep)
     max_sources: int = 4  # source views per reference
     min_b_over_h: float = 0.1  # least base-to-height ratio of a reference-source pair
     max_b_over_h: float = 0.5  # largest base-to-height ratio of a reference-source pair
