@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import secrets
 import shutil
-import tempfile
 from pathlib import Path
 
 from satsweep.pipeline.report import RunReport, to_json
@@ -62,21 +62,45 @@ class OutputFolder:
             if folder.exists():
                 break
             self.created_root = folder
+        self.staging: Path | None = None
+        self.cache = self.out_dir / RESUME_CACHE
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             for stale in stale_staging(self.out_dir):
                 shutil.rmtree(stale, ignore_errors=True)
-            self.staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=self.out_dir))
+            self._make_staging(STAGING_PREFIX)
             (self.staging / STAGING_OWNER).write_text(str(os.getpid()), encoding="ascii")
-            self.cache = self.out_dir / RESUME_CACHE
             if not resume:
                 shutil.rmtree(self.cache, ignore_errors=True)
             self.cache.mkdir(exist_ok=True)
             (self.cache / STAGING_OWNER).write_text(str(os.getpid()), encoding="ascii")
         except OSError as exc:
-            self._remove_created()
+            self._undo_init()
             raise InputError(self.out_dir, f"cannot write the output folder "
                                            f"({exc.strerror or exc})") from None
+        except BaseException:
+            # Ctrl-C, SIGTERM or SIGHUP while the folders are being made: the caller has no
+            # object to abort, so nothing of them may be left.
+            self._undo_init()
+            raise
+
+    def _make_staging(self, prefix: str) -> None:
+        """Create the staging folder, its name known before it exists (``self.staging``), so
+        that an interruption at any moment leaves nothing that ``_undo_init`` does not know."""
+        while True:
+            self.staging = self.out_dir / f"{prefix}{secrets.token_hex(4)}"
+            try:
+                self.staging.mkdir(mode=0o700)
+                return
+            except FileExistsError:
+                continue
+
+    def _undo_init(self) -> None:
+        if self.staging is not None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+        if not self.resume:
+            shutil.rmtree(self.cache, ignore_errors=True)
+        self._remove_created()
 
     @property
     def created(self) -> bool:

@@ -67,11 +67,15 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
     check_run_size(aoi, config)
     if truth is not None:
         check_truth_dsm(truth, aoi)
-    out = OutputFolder(out_dir, overwrite=overwrite, resume=resume)
+    out = None
     try:
+        # Inside the try: an interruption just after the folder is made still aborts it.
+        out = OutputFolder(out_dir, overwrite=overwrite, resume=resume)
         result = _reconstruct(paths, aoi, out, alt_range=alt_range, dem=dem, config=config,
                               truth=truth, verbose=verbose, command=command)
     except BaseException as exc:
+        if out is None:  # refused before anything was written (OutputFolder cleans up itself)
+            raise
         # An interrupted or crashed run keeps its finished tiles for --resume; one refused for
         # its inputs, options or data needs something changed first, and keeps nothing.
         kept = out.abort(keep_tiles=not isinstance(exc, SatsweepError)
