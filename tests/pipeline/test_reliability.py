@@ -230,7 +230,12 @@ def test_sigterm_and_sighup_leave_no_staging(small_town, tmp_path, signame):
     assert proc.poll() is None, "the run ended before it could be signalled"
     signum = getattr(signal, signame)
     proc.send_signal(signum)
-    _, err = proc.communicate(timeout=60)
+    try:
+        _, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()  # a run that ignored the signal must not outlive the test
+        proc.communicate()
+        raise
     assert proc.returncode == 128 + signum, err
     assert f"terminated ({signame})" in err
     # No staging folder is left; at most the finished tiles' cache, kept for --resume, which
