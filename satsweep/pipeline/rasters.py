@@ -97,14 +97,16 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         # side put a facade at its roof's height, products.fusion.visibility_check_heights).
         cross_check = d.cross_check_m > 0 and len(per_view) >= 2 and fusion == "median"
         visibility = d.visibility_check and len(per_view) >= 2 and fusion == "consensus"
-        if cross_check or visibility:
-            if cross_check:
-                checked = cross_check_heights(heights, projections, tolerance_m=d.cross_check_m,
-                                              min_agreeing=d.cross_check_views, points=centres)
-            else:
-                checked = visibility_check_heights(heights, projections,
-                                                   tolerance_m=d.consensus_tolerance_m,
-                                                   points=centres)
+        check = None  # the pixel-level check's settings, for the report
+        if cross_check:
+            checked = cross_check_heights(heights, projections, tolerance_m=d.cross_check_m,
+                                          min_agreeing=d.cross_check_views, points=centres)
+            check = {"tolerance_m": d.cross_check_m, "views": d.cross_check_views}
+        elif visibility:
+            checked = visibility_check_heights(heights, projections,
+                                               tolerance_m=d.consensus_tolerance_m, points=centres)
+            check = {"check": "free space", "tolerance_m": d.consensus_tolerance_m}
+        if check is not None:
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
@@ -156,15 +158,12 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             kept = [o if k == first else match_radiometry(kept[first], o)
                     for k, o in enumerate(kept)]
             ortho = _nanmean_stack(kept, grid.shape)
-        kept_fraction = [float(k.sum() / max(1, np.isfinite(h).sum()))
-                         for k, h in zip(checked, heights)]
-        cross = ({"tolerance_m": d.cross_check_m, "views": d.cross_check_views,
-                  "kept_fraction": kept_fraction} if cross_check
-                 else {"check": "free space", "tolerance_m": d.consensus_tolerance_m,
-                       "kept_fraction": kept_fraction} if visibility else None)
+        if check is not None:
+            check["kept_fraction"] = [float(k.sum() / max(1, np.isfinite(h).sum()))
+                                      for k, h in zip(checked, heights)]
     return AreaRasters(dsm=fused, confidence=conf, ortho=ortho,
                        count=np.minimum(count, 255).astype(np.uint8), clouds=clouds,
-                       fusion=fusion, cross_check=cross,
+                       fusion=fusion, cross_check=check,
                        per_view_filled_fraction=[float(np.isfinite(a).mean()) for a in rasters],
                        enu_to_map={"polynomial": to_map.accurate,
                                    "max_error_m": to_map.max_error_m})

@@ -206,7 +206,7 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     o = options
     n_views = np.bincount(obs.point, minlength=len(points)) if len(points) else np.zeros(0, int)
     if len(points):
-        lon, lat, alt = frame.to_geodetic(e=points[:, 0], n=points[:, 1], u=points[:, 2])
+        alt = frame.to_geodetic(e=points[:, 0], n=points[:, 1], u=points[:, 2])[2]
         inside = _near_aoi(points, frame, aoi, o.altitude_aoi_margin_m) & np.isfinite(alt)
     else:
         alt = np.zeros(0)

@@ -32,6 +32,7 @@ from satsweep.pipeline.cluster import (
 )
 from satsweep.pipeline.outputs import OutputFolder
 from satsweep.pipeline.run import reconstruct
+from tests.pipeline.test_pipeline import _alt, _aoi_arg
 from tools.digest_outputs import digests
 
 # The small town (its AOI is 59 m square) in 2 x 2 tiles of 30 m with 16 m of context, as the
@@ -39,23 +40,11 @@ from tools.digest_outputs import digests
 TILED = {"camera": {"grid_size": [20, 20, 6]},
          "reconstruct": {"tile_m": 50.0, "tile_overlap_m": 16.0}}
 N_TILES = 4
-# The town's altitude range, widened so that the surface never sits at its ends.
-ALT_MARGIN_M = 5.0
 # How long a test waits for a run to reach the point where it is disturbed (a tile takes a few
 # seconds on 2 cores; a worker's first tile also imports satsweep and builds the kernels).
 WAIT_S = 120.0
 # The products compared bit for bit (decoded rasters, cloud bytes: tools/digest_outputs.py).
 PRODUCTS = {"dsm.tif", "confidence.tif", "ortho.tif", "count.tif", "cloud.ply"}
-
-
-def _alt(scene) -> AltitudeRange:
-    lo, hi = scene.alt_range
-    return AltitudeRange(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M)
-
-
-def _aoi_arg(scene) -> str:
-    a = scene.aoi
-    return f"{a.lon_min},{a.lat_min},{a.lon_max},{a.lat_max}"
 
 
 def _run(scene, out: Path, mapping: dict = TILED, **kwargs):
@@ -162,14 +151,7 @@ def test_local_workers_and_a_killed_command_resumed_give_the_same_outputs(small_
     not finished, and the outputs are those of the run in one process, bit for bit."""
     _, reference, _ = serial
     out = tmp_path / "out"
-    config = tmp_path / "tiled.toml"
-    config.write_text("[camera]\ngrid_size = [20, 20, 6]\n[reconstruct]\ntile_m = 50.0\n"
-                      "[reconstruct.advanced]\ntile_overlap_m = 16.0\n")
-    alt = _alt(small_town)
-    command = [sys.executable, "-m", "satsweep", "reconstruct",
-               *[str(v.image) for v in small_town.views], "--aoi", _aoi_arg(small_town),
-               "--alt-range", str(alt.min), str(alt.max), "--config", str(config), "--out",
-               str(out), "--workers", "2", "--quiet"]
+    command = _tiled_command(small_town, tmp_path, out, "--workers", "2")
     proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             start_new_session=True)
     try:
@@ -187,6 +169,18 @@ def test_local_workers_and_a_killed_command_resumed_give_the_same_outputs(small_
     assert not (out / RESUME_CACHE).exists()
 
 
+def _tiled_command(scene, tmp_path: Path, out: Path, *args: str, workers_line: str = "") -> list:
+    """The ``satsweep reconstruct`` command line of ``scene`` in the tiles of ``TILED`` (written
+    as a config file, with ``workers_line`` in its [reconstruct] table), ``args`` added."""
+    config = tmp_path / "tiled.toml"
+    config.write_text("[camera]\ngrid_size = [20, 20, 6]\n[reconstruct]\ntile_m = 50.0\n"
+                      f"{workers_line}[reconstruct.advanced]\ntile_overlap_m = 16.0\n")
+    alt = _alt(scene)
+    return [sys.executable, "-m", "satsweep", "reconstruct", *[str(v.image) for v in scene.views],
+            "--aoi", _aoi_arg(scene), "--alt-range", str(alt.min), str(alt.max), "--config",
+            str(config), "--out", str(out), *args, "--quiet"]
+
+
 def _wait_for_finished_tiles(cache: Path, proc, count: int) -> int:
     deadline = time.monotonic() + WAIT_S
     while time.monotonic() < deadline and proc.poll() is None:
@@ -202,14 +196,7 @@ def test_a_killed_command_resumes_from_its_finished_tiles(small_town, serial, tm
     command with --resume reuses them, computes the others, and gives the same outputs."""
     _, reference, _ = serial
     out = tmp_path / "out"
-    config = tmp_path / "tiled.toml"
-    config.write_text("[camera]\ngrid_size = [20, 20, 6]\n[reconstruct]\ntile_m = 50.0\n"
-                      "workers = 1\n[reconstruct.advanced]\ntile_overlap_m = 16.0\n")
-    alt = _alt(small_town)
-    command = [sys.executable, "-m", "satsweep", "reconstruct",
-               *[str(v.image) for v in small_town.views], "--aoi", _aoi_arg(small_town),
-               "--alt-range", str(alt.min), str(alt.max), "--config", str(config), "--out",
-               str(out), "--quiet"]
+    command = _tiled_command(small_town, tmp_path, out, workers_line="workers = 1\n")
     proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         _wait_for_finished_tiles(out / RESUME_CACHE, proc, 2)

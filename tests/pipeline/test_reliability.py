@@ -21,26 +21,15 @@ from satsweep.geometry.altitude import AltitudeRange
 from satsweep.io.atomic import RESUME_CACHE as TILE_CACHE
 from satsweep.io.atomic import STAGING_OWNER, STAGING_PREFIX
 from satsweep.pipeline.run import reconstruct
+from tests.pipeline.test_pipeline import ALT_MARGIN_M, _alt, _aoi_arg
 
 # A fast camera fit for the small town (its 96 m AOI needs no dense grid).
 FAST = {"camera": {"grid_size": [20, 20, 6]}}
-# The small town's altitude range, widened so that the surface never sits at its ends.
-ALT_MARGIN_M = 5.0
 # A range that starts this far above the town's lowest ground cuts the ground off.
 CUT_GROUND_M = 8.0
 # How long the SIGTERM test waits for the run to create its staging folder (a run takes ~5 s
 # on 2 cores; the first launch also imports and builds kernels).
 STAGING_WAIT_S = 60.0
-
-
-def _aoi_arg(scene) -> str:
-    a = scene.aoi
-    return f"{a.lon_min},{a.lat_min},{a.lon_max},{a.lat_max}"
-
-
-def _alt(scene) -> AltitudeRange:
-    lo, hi = scene.alt_range
-    return AltitudeRange(lo - ALT_MARGIN_M, hi + ALT_MARGIN_M)
 
 
 def _one_error_line(capsys, args) -> str:
