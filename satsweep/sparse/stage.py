@@ -25,8 +25,9 @@ wide one) gives everything the dense stages need from tie points:
    views' perspective cameras are fitted again over the AOI x that range (over the prior's
    kilometres an RPC is perspective to ~1 px only) and corrected by the coarse translations.
 7. *Fine adjustment* (:func:`satsweep.sparse.bundle.adjust_observations`): the tie points
-   registered to a fraction of a pixel (Lucas-Kanade after a ground-plane warp; of each pair
-   of views the best registered ``refine_keep_fraction``), then the principal-point bundle
+   registered to a fraction of a pixel (Lucas-Kanade after a ground-plane warp, again on local
+   contrast where another date's grey levels fail it; of each pair of views the best registered
+   ``refine_keep_fraction``), then the principal-point bundle
    adjustment with the anchor regulariser (0.01 px^2/m^2), its anchors triangulated with the
    coarsely corrected cameras. A view left with fewer than ``min_observations`` observations,
    or carrying the least determined direction of the shifts when that is uncertain by more than
@@ -345,7 +346,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             t0 = time.perf_counter()
             registered, residual, n_refine_dropped = register_observations(
                 coarse.obs, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
-                max_shift_px=o.refine_max_shift_px)
+                max_shift_px=o.refine_max_shift_px, keep_fraction=o.refine_keep_fraction,
+                at_least=_MIN_BEST_REGISTERED)
             seconds["refinement"] = seconds.get("refinement", 0.0) + time.perf_counter() - t0
         fine_obs = best_registered(registered, residual, o.refine_keep_fraction,
                                    at_least=_MIN_BEST_REGISTERED)

@@ -151,11 +151,41 @@ def observations_from_tracks(tracks: Sequence[np.ndarray], xys: Sequence[np.ndar
 _LK_LEVELS = 1
 _LK_ITERATIONS = 30
 _LK_EPS_PX = 1e-3
+# Lucas-Kanade assumes the two windows' grey levels equal; views of other dates differ in gain,
+# offset and gamma (and SIFT does not mind). An observation that fails on the grey levels is
+# registered again on both images' local contrast: each pixel's difference to the Gaussian mean
+# of scale _CONTRAST_SIGMA_PX around it over the local standard deviation plus _CONTRAST_FLOOR
+# (8-bit grey levels: flat areas stay flat, not amplified noise), mapped to 8 bits as
+# 128 + _CONTRAST_GAIN x that. Not first: on views of one date it registers less precisely
+# (tools/bench_ba.py, 50 px biases, 3/5/10 views: corrections within 0.054-0.061 px of the
+# truth, against 0.027-0.036 on the grey levels). Its residuals are ranked after every grey-level
+# one (+ _CONTRAST_RANK) in best_registered.
+_CONTRAST_SIGMA_PX = 3.0
+_CONTRAST_FLOOR = 2.0
+_CONTRAST_GAIN = 40.0
+_CONTRAST_RANK = 256.0
+# ... and only in pairs of views where at least this share failed on the grey levels: 37-80% of
+# a cross-date pair's tie points on the multi-date scenes, 3% of a same-date pair's (whose few
+# failures, made again, cost a third of the registration's time on 20 views and tied nothing).
+_CONTRAST_PAIR_FAILED = 0.2
+
+
+def local_contrast_u8(image: np.ndarray) -> np.ndarray:
+    """A tonemapped image (NaN: 0) as 8-bit local contrast (see _CONTRAST_SIGMA_PX): gain,
+    offset and any monotonic grey-level change that is locally affine leave it unchanged."""
+    import cv2
+
+    x = _to_u8(image).astype(np.float32)
+    d = x - cv2.GaussianBlur(x, (0, 0), _CONTRAST_SIGMA_PX)
+    s = cv2.sqrt(cv2.GaussianBlur(cv2.multiply(d, d), (0, 0), _CONTRAST_SIGMA_PX)) + _CONTRAST_FLOOR
+    # (OpenCV's arithmetic: a third of numpy's time on 1000 px views; convertScaleAbs rounds and
+    # saturates at 255, the max at 0.)
+    return cv2.convertScaleAbs(cv2.max(cv2.divide(d, s, scale=_CONTRAST_GAIN) + 128.0, 0.0))
 
 
 def register_observations(obs: Observations, images: Sequence[np.ndarray], cameras: Sequence[Any], *,
-                          window_px: int, max_shift_px: float
-                          ) -> tuple[Observations, np.ndarray, int]:
+                          window_px: int, max_shift_px: float, keep_fraction: float = 1.0,
+                          at_least: int = 0) -> tuple[Observations, np.ndarray, int]:
     """Register each track's observations to its first one, to a fraction of a pixel.
 
     SIFT places a keypoint to ~0.3-0.5 px (~1 px at half resolution), and those errors reach the
@@ -169,9 +199,15 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     positions (the tie point is wherever f is). ``images``: the views' tonemapped images in
     [0, 1], in the pixels of ``cameras`` (anything with a 3x4 ``P``). Observations that fail (no
     convergence, outside the image) or move farther than ``max_shift_px`` from their keypoint
-    are dropped, then points seen by fewer than two views. Returns the observations, the
-    residual of each (mean absolute difference of the two windows' 8-bit grey levels after the
-    registration; 0 for first observations) and the number of observations dropped.
+    are dropped, then points seen by fewer than two views. What fails on the grey levels is
+    registered again on the images' local contrast (:func:`local_contrast_u8`: views of other
+    dates differ in gain, offset and gamma), in the pairs of views (view of the first
+    observations, other view) where fewer registered than :func:`best_registered` with
+    ``keep_fraction`` and ``at_least`` would keep (elsewhere it would keep none of them: they
+    rank after) and at least _CONTRAST_PAIR_FAILED of the pair failed. Returns the observations, the residual of each (mean
+    absolute difference of the two windows' 8-bit grey levels after the registration, or of their
+    local contrast plus _CONTRAST_RANK; 0 for first observations) and the number of observations
+    dropped.
     """
     import cv2
 
@@ -182,32 +218,50 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
         raise CameraError("refine_observations: observations must be grouped by point")
     head = np.flatnonzero(first)[np.cumsum(first) - 1]  # each observation's first observation
     head_view = obs.view[head]
-    u8 = [_to_u8(im) for im in images]
     planes = [np.asarray(c.P, np.float64)[:, [0, 1, 3]] for c in cameras]  # ENU (e, n, 1) at u = 0
     xy = obs.xy.copy()
-    residual = np.zeros(len(xy))
-    keep = np.ones(len(xy), dtype=bool)
+    residual = np.full(len(xy), np.inf)
+    residual[first] = 0.0
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, _LK_ITERATIONS, _LK_EPS_PX)
+    # Grey levels first; what fails there, again on local contrast, ranked after (see
+    # _CONTRAST_SIGMA_PX; those images are made only when needed).
+    grey = [_to_u8(im) for im in images]
+    contrast: dict[int, np.ndarray] = {}
     for w in np.unique(head_view):
+        h, wd = grey[w].shape
         for v in np.unique(obs.view[(head_view == w) & ~first]):
-            sel = np.flatnonzero((head_view == w) & (obs.view == v) & ~first)
+            pair = np.flatnonzero((head_view == w) & (obs.view == v) & ~first)
             H = planes[v] @ np.linalg.inv(planes[w])  # view w pixels -> view v pixels
-            h, wd = u8[w].shape
-            warped = cv2.warpPerspective(u8[v], H, (wd, h),
-                                         flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-            start = cv2.perspectiveTransform(obs.xy[sel].reshape(-1, 1, 2), np.linalg.inv(H))
-            found, status, lk_err = cv2.calcOpticalFlowPyrLK(
-                u8[w], warped, obs.xy[head[sel]].astype(np.float32).reshape(-1, 1, 2),
-                start.astype(np.float32), winSize=(window_px, window_px), maxLevel=_LK_LEVELS,
-                criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-            back = cv2.perspectiveTransform(found.astype(np.float64), H).reshape(-1, 2)
-            shift = np.hypot(*(back - obs.xy[sel]).T)
-            ok = (status.ravel() == 1) & np.isfinite(shift) & (shift <= max_shift_px)
-            xy[sel[ok]] = back[ok]
-            with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
-                err = lk_err.ravel().astype(np.float64)
-            residual[sel] = np.where(ok, err, np.inf)
-            keep[sel[~ok]] = False
+            start = cv2.perspectiveTransform(obs.xy[pair].reshape(-1, 1, 2), np.linalg.inv(H))
+            wanted = max(int(np.ceil(keep_fraction * len(pair))), at_least)
+            for rank in (0.0, _CONTRAST_RANK):
+                todo = ~np.isfinite(residual[pair])
+                if not todo.any() or (rank > 0.0 and (len(pair) - todo.sum() >= wanted or
+                                                      todo.sum() < _CONTRAST_PAIR_FAILED * len(pair))):
+                    break
+                if rank == 0.0:
+                    head_u8, other = grey[w], grey[v]
+                else:
+                    for k in (w, v):
+                        if k not in contrast:
+                            contrast[k] = local_contrast_u8(images[k])
+                    head_u8, other = contrast[w], contrast[v]
+                warped = cv2.warpPerspective(other, H, (wd, h),
+                                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+                sel = pair[todo]
+                found, status, lk_err = cv2.calcOpticalFlowPyrLK(
+                    head_u8, warped, obs.xy[head[sel]].astype(np.float32).reshape(-1, 1, 2),
+                    start[todo].astype(np.float32), winSize=(window_px, window_px),
+                    maxLevel=_LK_LEVELS, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+                back = cv2.perspectiveTransform(found.astype(np.float64), H).reshape(-1, 2)
+                shift = np.hypot(*(back - obs.xy[sel]).T)
+                with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
+                    err = lk_err.ravel().astype(np.float64)
+                ok = ((status.ravel() == 1) & np.isfinite(shift) & (shift <= max_shift_px)
+                      & np.isfinite(err))
+                xy[sel[ok]] = back[ok]
+                residual[sel[ok]] = rank + err[ok]
+    keep = np.isfinite(residual)
     registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
     index = registered.subset_index(keep)
     return registered.subset(keep), residual[index], int((~keep).sum())
@@ -243,5 +297,6 @@ def refine_observations(obs: Observations, images: Sequence[np.ndarray], cameras
     Returns the observations and the number dropped by the registration (not counting those
     ``keep_fraction`` leaves out)."""
     registered, residual, dropped = register_observations(
-        obs, images, cameras, window_px=window_px, max_shift_px=max_shift_px)
+        obs, images, cameras, window_px=window_px, max_shift_px=max_shift_px,
+        keep_fraction=keep_fraction)
     return best_registered(registered, residual, keep_fraction), dropped

@@ -140,6 +140,43 @@ def test_refinement_registers_tie_points_across_rotated_views():
     assert err.max() < REGISTRATION_TOL_PX, err.max()
 
 
+def test_registration_of_another_dates_view_falls_back_to_local_contrast():
+    """View 1 is view 0 moved by a known sub-pixel translation and seen on another date: grey
+    levels 0.5 + 0.4 x view 0's (brighter, less contrast). Lucas-Kanade on the grey levels loses
+    most of the tie points (their windows differ by 36-50 levels of 255); registered again on
+    both views' local contrast they come back to the truth, ranked after every observation the
+    grey levels registered."""
+    import cv2
+
+    rng = np.random.default_rng(7)
+    texture = cv2.GaussianBlur(rng.random((300, 300)).astype(np.float32), (0, 0), 2.0)
+    image0 = (texture - texture.min()) / np.ptp(texture)
+    move = np.array([3.3, -2.6])  # view 0 pixels -> view 1 pixels; the cameras know 3, -2
+    image1 = cv2.warpAffine(image0, np.hstack([np.eye(2), move[:, None]]), (300, 300),
+                            flags=cv2.INTER_CUBIC)
+    image1 = 0.5 + 0.4 * np.clip(image1, 0.0, 1.0)
+    H1 = np.eye(3)
+    H1[:2, 2] = [3.0, -2.0]
+    cams = [_PlaneCamera(np.eye(3)), _PlaneCamera(H1)]
+    xy0 = rng.uniform(60.0, 240.0, (40, 2))
+    obs = sparse_tracks.Observations(point=np.repeat(np.arange(40), 2), view=np.tile([0, 1], 40),
+                                     xy=np.stack([xy0, xy0 + H1[:2, 2]], axis=1).reshape(-1, 2),
+                                     n_points=40)
+    registered, residual, dropped = sparse_tracks.register_observations(
+        obs, [image0, image1], cams, window_px=15, max_shift_px=2.0)
+    second = residual[1::2] >= sparse_tracks._CONTRAST_RANK
+    assert registered.n_points == 40 and dropped == 0
+    assert second.sum() >= 30, second.sum()  # measured 35 of 40 (the grey levels alone keep 5)
+    assert residual[1::2][~second].max() < residual[1::2][second].min()
+    err = np.hypot(*(registered.xy[1::2][second] - (registered.xy[0::2][second] + move)).T)
+    assert err.max() < REGISTRATION_TOL_PX, err.max()
+    # Where the grey levels registered what best_registered keeps (here 4 of 40), not again.
+    fewer, residual, dropped = sparse_tracks.register_observations(
+        obs, [image0, image1], cams, window_px=15, max_shift_px=2.0, keep_fraction=0.1)
+    assert fewer.n_points == 40 - second.sum() and dropped == second.sum()
+    assert (residual < sparse_tracks._CONTRAST_RANK).all()
+
+
 def test_registration_residuals_choose_the_best_registered():
     """register_observations reports each observation's window residual; best_registered keeps,
     per pair of views, the given fraction with the lowest residuals (and at least a floor)."""
