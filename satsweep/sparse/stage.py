@@ -288,14 +288,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             break
         match(extra)
     for v in sorted(active - main):
-        mine = [(k, p) for p, k in counts.items() if v in p]
-        if mine:
-            k, (i, j) = max(mine)
-            other = names[j if i == v else i]
-            dropped[v] = (f"too few verified matches with the other views (best: {other} with "
-                          f"{k}; need at least {o.min_matches}): does it see the same place?")
-        else:
-            dropped[v] = "no pair of views to match it with"
+        dropped[v] = _unlinked_reason(v, counts, names, o.min_matches, len(main))
     seconds["matching"] = time.perf_counter() - t0
 
     matches = {p: len(m[0]) for p, m in sorted(pair_matches.items())}
@@ -518,6 +511,23 @@ class SparseResult:
                           "any crop's camera; defined up to the motion of the whole scene, "
                           "chosen to make the corrections smallest",
         }
+
+
+def _unlinked_reason(v: int, counts: dict[tuple[int, int], int], names: Sequence[str],
+                     min_matches: int, main_size: int) -> str:
+    """Why view ``v`` is outside the largest group of views that its matched pairs (``counts``:
+    verified matches per pair (i, j)) with at least ``min_matches`` tie together."""
+    mine = [(k, p) for p, k in counts.items() if v in p]
+    if not mine:
+        return "no pair of views to match it with"
+    k, (i, j) = max(mine)
+    other = names[j if i == v else i]
+    if k < min_matches:
+        return (f"too few verified matches with the other views (best: {other} with {k}; need "
+                f"at least {min_matches}): does it see the same place?")
+    return (f"tied to {other} ({k} verified matches), but no chain of pairs with at least "
+            f"{min_matches} links it to the largest group of views ({main_size}): a date or "
+            "place apart from the others?")
 
 
 def fit_cameras(views: Sequence[Any], aoi: Any, alt: Any, grid_size: tuple[int, int, int], *,

@@ -185,6 +185,23 @@ def test_a_view_of_another_place_is_dropped(biased, synthetic_scene):
     _check_dropped(result, biased, 0, "does it see the same place?")
 
 
+def test_a_view_outside_the_largest_group_is_told_why():
+    """Views 3 and 4 tie to each other (22 verified matches) but to views 0-2 by 5 and 3: the
+    reason names the pair and the group, not "too few matches"; view 5's best pair has 12 of
+    the 15 needed; view 6 was matched with none."""
+    from satsweep.sparse.stage import _unlinked_reason
+
+    names = [f"view_{v:02d}.tif" for v in range(7)]
+    counts = {(0, 1): 200, (1, 2): 150, (3, 4): 22, (0, 3): 5, (2, 4): 3, (1, 5): 12}
+    why = _unlinked_reason(3, counts, names, 15, 3)
+    assert why.startswith("tied to view_04.tif (22 verified matches), but no chain of pairs with "
+                          "at least 15 links it to the largest group of views (3)"), why
+    assert _unlinked_reason(5, counts, names, 15, 3).startswith(
+        "too few verified matches with the other views (best: view_01.tif with 12; need at "
+        "least 15)")
+    assert _unlinked_reason(6, counts, names, 15, 3) == "no pair of views to match it with"
+
+
 def test_a_view_that_shares_no_area_with_the_others_is_dropped(biased):
     """View 1's RPC puts the AOI 190 px further right and down than the others' (a view that sees
     only a corner of a large AOI): it shares about 7% of the AOI with each other view, short of
