@@ -1,7 +1,7 @@
 """Reading satellite images (TIFF) with tifffile, and tonemapping them.
 
-- ``read_image``: the first band of a TIFF as a 2D array in its stored dtype (optionally only a
-  window of it: an uncompressed file is memory-mapped, a tiled or stripped one has only the
+- ``read_image``: the first band of a TIFF as a 2D array in its stored dtype, or an RGB image's
+  luminance (optionally only a window of it: an uncompressed file is memory-mapped, a tiled or stripped one has only the
   segments under the window decoded).
 - ``tonemap``: a robust percentile clip and gamma, to about [0, 1].
 
@@ -124,12 +124,34 @@ def _check_layout(path: str, page) -> None:
         )
 
 
-def _first_band(data: np.ndarray, axes: str) -> np.ndarray:
+# Luminance of an RGB image (ITU-R BT.601 weights of red, green and blue, as OpenCV's and
+# COLMAP's grey conversions): pansharpened colour deliveries are matched on all three bands,
+# not on their red band alone.
+LUMA_WEIGHTS = (0.299, 0.587, 0.114)
+
+
+def _is_rgb(page) -> bool:
+    """Whether the page is an RGB image (photometric RGB, 3 samples or more: alpha is ignored)."""
+    return int(page.photometric) == 2 and int(page.samplesperpixel) >= 3
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """(..., 3) red, green, blue samples -> float32 luminance (LUMA_WEIGHTS); a grey sample
+    (R = G = B, a fill value among them) keeps its value exactly."""
+    r, g, b = (rgb[..., k].astype(np.float32) for k in range(3))
+    y = LUMA_WEIGHTS[0] * r + LUMA_WEIGHTS[1] * g + LUMA_WEIGHTS[2] * b
+    return np.where((r == g) & (g == b), r, y).astype(np.float32)
+
+
+def _grey(data: np.ndarray, axes: str, rows: slice, cols: slice, rgb: bool) -> np.ndarray:
+    """The window ``rows``, ``cols`` of the page's pixels ``data``: the first band, or the
+    luminance of an RGB image (see read_image)."""
     if axes == "YXS":
-        return data[..., 0]
+        return luminance(data[rows, cols, :3]) if rgb else np.array(data[rows, cols, 0])
     if axes == "SYX":
-        return data[0]
-    return data
+        return luminance(np.stack([data[k, rows, cols] for k in range(3)], axis=-1)) if rgb \
+            else np.array(data[0, rows, cols])
+    return np.array(data[rows, cols])
 
 
 def _segment_shape(page) -> tuple[int, int]:
@@ -151,34 +173,44 @@ def _segmented(page) -> bool:
 
 
 def _read_segments(tif, page, rows: slice, cols: slice) -> np.ndarray:
-    """The first band's window (native byte order), decoding only the tiles or strips that it
-    overlaps: a small AOI of a large compressed or tiled scene reads a small part of the file.
+    """The window of the first band (native byte order), or of an RGB image's luminance,
+    decoding only the tiles or strips that it overlaps: a small AOI of a large compressed or
+    tiled scene reads a small part of the file.
 
-    Segments are numbered row by row over the page's grid of tiles (or strips), the first band's
-    segments first when the bands are stored separately (planar configuration 2); a segment with
-    no bytes (a sparse file's empty block) reads as zeros, as GDAL and tifffile read it.
+    Segments are numbered row by row over the page's grid of tiles (or strips), band after band
+    when the bands are stored separately (planar configuration 2); a segment with no bytes (a
+    sparse file's empty block) reads as zeros, as GDAL and tifffile read it.
     """
     seg_rows, seg_cols = _segment_shape(page)
     across = -(-int(page.imagewidth) // seg_cols)
-    out = np.zeros((rows.stop - rows.start, cols.stop - cols.start),
+    per_band = across * -(-int(page.imagelength) // seg_rows)
+    rgb = _is_rgb(page)
+    separate = page.axes == "SYX"
+    bands = 3 if rgb else 1
+    out = np.zeros((rows.stop - rows.start, cols.stop - cols.start, bands),
                    page.dtype.newbyteorder("="))
     fh = tif.filehandle
     decode = page.decode
     for ty in range(rows.start // seg_rows, (rows.stop - 1) // seg_rows + 1):
         for tx in range(cols.start // seg_cols, (cols.stop - 1) // seg_cols + 1):
-            index = ty * across + tx
-            if not page.databytecounts[index]:
-                continue
-            fh.seek(page.dataoffsets[index])
-            data = fh.read(page.databytecounts[index])
-            segment, _, _ = decode(data, index, jpegtables=page.jpegtables)
             y0, x0 = ty * seg_rows, tx * seg_cols
-            # The overlap of the segment and the window, in image coordinates.
-            r0, r1 = max(y0, rows.start), min(y0 + segment.shape[1], rows.stop)
-            c0, c1 = max(x0, cols.start), min(x0 + segment.shape[2], cols.stop)
-            out[r0 - rows.start:r1 - rows.start, c0 - cols.start:c1 - cols.start] = \
-                segment[0, r0 - y0:r1 - y0, c0 - x0:c1 - x0, 0]
-    return out
+            for band in range(bands if separate else 1):
+                index = band * per_band + ty * across + tx
+                if not page.databytecounts[index]:
+                    continue
+                fh.seek(page.dataoffsets[index])
+                data = fh.read(page.databytecounts[index])
+                segment, _, _ = decode(data, index, jpegtables=page.jpegtables)
+                # The overlap of the segment and the window, in image coordinates.
+                r0, r1 = max(y0, rows.start), min(y0 + segment.shape[1], rows.stop)
+                c0, c1 = max(x0, cols.start), min(x0 + segment.shape[2], cols.stop)
+                part = segment[0, r0 - y0:r1 - y0, c0 - x0:c1 - x0]
+                target = out[r0 - rows.start:r1 - rows.start, c0 - cols.start:c1 - cols.start]
+                if separate:
+                    target[..., band] = part[..., 0]
+                else:
+                    target[...] = part[..., :bands]
+    return luminance(out) if rgb else out[..., 0]
 
 
 def _window_slices(window, width: int, height: int) -> tuple[slice, slice]:
@@ -220,7 +252,9 @@ def image_shape(path: str | os.PathLike) -> tuple[int, int]:
 
 
 def read_image(path: str | os.PathLike, *, window: Sequence[int] | None = None) -> np.ndarray:
-    """Read the first band of a TIFF as a 2D array in its stored dtype (native byte order).
+    """Read the first band of a TIFF as a 2D array in its stored dtype (native byte order); of an
+    RGB image (photometric RGB), its luminance ``0.299 R + 0.587 G + 0.114 B`` as float32
+    (LUMA_WEIGHTS; grey pixels, R = G = B, keep their value exactly).
 
     ``window = (x0, y0, x1, y1)`` (pixel indices, ends excluded) reads only that part; an
     uncompressed contiguous file is then memory-mapped so that only the window is read.
@@ -248,7 +282,8 @@ def _window_inside(window, width: int, height: int) -> bool:
 
 
 def _read_window(path: str, tif, page, window, rows: slice, cols: slice) -> np.ndarray:
-    """The pixels of ``rows``, ``cols`` of the first band (see ``read_image``)."""
+    """The pixels of ``rows``, ``cols`` of the first band, or of an RGB image's luminance (see
+    ``read_image``)."""
     dtype = page.dtype.newbyteorder(tif.byteorder)
     mappable = (
         window is not None
@@ -259,14 +294,15 @@ def _read_window(path: str, tif, page, window, rows: slice, cols: slice) -> np.n
         and page.bitspersample == 8 * dtype.itemsize
     )
     try:
+        rgb = _is_rgb(page)
         if mappable:
             data = np.memmap(path, dtype=dtype, mode="r", offset=page.dataoffsets[0], shape=page.shape)
-            out = np.array(_first_band(data, page.axes)[rows, cols])
+            out = _grey(data, page.axes, rows, cols, rgb)
             del data
         elif window is not None and _segmented(page):
             out = _read_segments(tif, page, rows, cols)
         else:
-            out = np.array(_first_band(page.asarray(), page.axes)[rows, cols])
+            out = _grey(page.asarray(), page.axes, rows, cols, rgb)
     except Exception as exc:  # noqa: BLE001 - any decoder failure on this file is a format error
         raise ImageFormatError(path, _decode_problem(page, exc)) from None
     return out
