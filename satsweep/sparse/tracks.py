@@ -204,10 +204,10 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     dates differ in gain, offset and gamma), in the pairs of views (view of the first
     observations, other view) where fewer registered than :func:`best_registered` with
     ``keep_fraction`` and ``at_least`` would keep (elsewhere it would keep none of them: they
-    rank after) and at least _CONTRAST_PAIR_FAILED of the pair failed. Returns the observations, the residual of each (mean
-    absolute difference of the two windows' 8-bit grey levels after the registration, or of their
-    local contrast plus _CONTRAST_RANK; 0 for first observations) and the number of observations
-    dropped.
+    rank after) and at least _CONTRAST_PAIR_FAILED of the pair failed. Returns the observations,
+    the residual of each (mean absolute difference of the two windows' 8-bit grey levels after
+    the registration, or of their local contrast plus _CONTRAST_RANK; 0 for first observations)
+    and the number of observations dropped.
     """
     import cv2
 
@@ -223,44 +223,42 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     residual = np.full(len(xy), np.inf)
     residual[first] = 0.0
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, _LK_ITERATIONS, _LK_EPS_PX)
-    # Grey levels first; what fails there, again on local contrast, ranked after (see
-    # _CONTRAST_SIGMA_PX; those images are made only when needed).
+
+    def register(head_u8: np.ndarray, other_u8: np.ndarray, H: np.ndarray, sel: np.ndarray,
+                 rank: float) -> None:
+        """Observations ``sel`` (of one view, their tracks' first in the view of ``head_u8``)
+        registered on these images: ``xy`` and ``residual`` (+ ``rank``) where it succeeds."""
+        h, wd = head_u8.shape
+        warped = cv2.warpPerspective(other_u8, H, (wd, h),
+                                     flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        start = cv2.perspectiveTransform(obs.xy[sel].reshape(-1, 1, 2), np.linalg.inv(H))
+        found, status, lk_err = cv2.calcOpticalFlowPyrLK(
+            head_u8, warped, obs.xy[head[sel]].astype(np.float32).reshape(-1, 1, 2),
+            start.astype(np.float32), winSize=(window_px, window_px), maxLevel=_LK_LEVELS,
+            criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        back = cv2.perspectiveTransform(found.astype(np.float64), H).reshape(-1, 2)
+        shift = np.hypot(*(back - obs.xy[sel]).T)
+        with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
+            err = lk_err.ravel().astype(np.float64)
+        ok = (status.ravel() == 1) & np.isfinite(shift) & (shift <= max_shift_px) & np.isfinite(err)
+        xy[sel[ok]] = back[ok]
+        residual[sel[ok]] = rank + err[ok]
+
     grey = [_to_u8(im) for im in images]
-    contrast: dict[int, np.ndarray] = {}
+    contrast: dict[int, np.ndarray] = {}  # made only for the views that need it
     for w in np.unique(head_view):
-        h, wd = grey[w].shape
         for v in np.unique(obs.view[(head_view == w) & ~first]):
             pair = np.flatnonzero((head_view == w) & (obs.view == v) & ~first)
             H = planes[v] @ np.linalg.inv(planes[w])  # view w pixels -> view v pixels
-            start = cv2.perspectiveTransform(obs.xy[pair].reshape(-1, 1, 2), np.linalg.inv(H))
+            register(grey[w], grey[v], H, pair, 0.0)
+            failed = pair[~np.isfinite(residual[pair])]
             wanted = max(int(np.ceil(keep_fraction * len(pair))), at_least)
-            for rank in (0.0, _CONTRAST_RANK):
-                todo = ~np.isfinite(residual[pair])
-                if not todo.any() or (rank > 0.0 and (len(pair) - todo.sum() >= wanted or
-                                                      todo.sum() < _CONTRAST_PAIR_FAILED * len(pair))):
-                    break
-                if rank == 0.0:
-                    head_u8, other = grey[w], grey[v]
-                else:
-                    for k in (w, v):
-                        if k not in contrast:
-                            contrast[k] = local_contrast_u8(images[k])
-                    head_u8, other = contrast[w], contrast[v]
-                warped = cv2.warpPerspective(other, H, (wd, h),
-                                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-                sel = pair[todo]
-                found, status, lk_err = cv2.calcOpticalFlowPyrLK(
-                    head_u8, warped, obs.xy[head[sel]].astype(np.float32).reshape(-1, 1, 2),
-                    start[todo].astype(np.float32), winSize=(window_px, window_px),
-                    maxLevel=_LK_LEVELS, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-                back = cv2.perspectiveTransform(found.astype(np.float64), H).reshape(-1, 2)
-                shift = np.hypot(*(back - obs.xy[sel]).T)
-                with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
-                    err = lk_err.ravel().astype(np.float64)
-                ok = ((status.ravel() == 1) & np.isfinite(shift) & (shift <= max_shift_px)
-                      & np.isfinite(err))
-                xy[sel[ok]] = back[ok]
-                residual[sel[ok]] = rank + err[ok]
+            if (len(failed) and len(pair) - len(failed) < wanted
+                    and len(failed) >= _CONTRAST_PAIR_FAILED * len(pair)):
+                for k in (w, v):
+                    if k not in contrast:
+                        contrast[k] = local_contrast_u8(images[k])
+                register(contrast[w], contrast[v], H, failed, _CONTRAST_RANK)
     keep = np.isfinite(residual)
     registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
     index = registered.subset_index(keep)
