@@ -55,6 +55,9 @@ NOISE_PX = 0.3
 SOLVER_COST_RTOL = 1e-9
 SOLVER_AGREEMENT_PX = 1e-3
 SOLVER_AGREEMENT_M = 1e-2
+# The Schur complement's matrix product against a loop over the tracks: float64 sums of a few
+# thousand O(1) terms in another order.
+SCHUR_RTOL = 1e-12
 
 
 def _tie_points(cams, biases, *, n=600, outliers=0.05, seed=0):
@@ -97,6 +100,37 @@ def _residual_after_gauge(shifts, biases, jacobians) -> np.ndarray:
 def test_options_name_the_bad_field(field, value):
     with pytest.raises(OptionsError, match="BundleOptions"):
         bundle.BundleOptions(**{field: value})
+
+
+@pytest.mark.parametrize("n_views", [4, 12])
+def test_reduced_hessian_against_a_loop_over_the_tracks(n_views):
+    """The shifts' normal matrix with the points eliminated, S - sum_p C_p U_p^-1 C_p^T, summed
+    track by track in numpy, against _reduced_hessian's one product of two 2V x 3N matrices."""
+    rng = np.random.default_rng(3)
+    n_points = 300
+    tracks = [rng.choice(n_views, rng.integers(2, min(6, n_views + 1)), replace=False)
+              for _ in range(n_points)]
+    view = np.concatenate(tracks)
+    point = np.repeat(np.arange(n_points), [len(t) for t in tracks])
+    obs = sparse_tracks.Observations(point=point, view=view, xy=np.zeros((len(view), 2)),
+                                     n_points=n_points)
+    J = rng.normal(size=(len(view), 2, 3))
+    wr = rng.uniform(0.5, 2.0, (len(view), 2))
+    diag = rng.uniform(0.01, 0.1, (n_points, 3))
+    Hs = bundle._reduced_hessian(n_views, obs, J, wr, diag, 0.0)[0]
+    H = Hs.transpose(0, 2, 1, 3).reshape(2 * n_views, 2 * n_views)
+    ref = np.zeros((2 * n_views, 2 * n_views))
+    for k in range(len(view)):  # S: the shifts' own block, J_shift = identity
+        ref[2 * view[k]:2 * view[k] + 2, 2 * view[k]:2 * view[k] + 2] += np.diag(wr[k])
+    for p in range(n_points):
+        ks = np.flatnonzero(point == p)
+        U = sum(J[k].T @ (wr[k][:, None] * J[k]) for k in ks) + np.diag(diag[p])
+        Uinv = np.linalg.inv(U)
+        for a in ks:
+            for b in ks:
+                block = (wr[a][:, None] * J[a]) @ Uinv @ (wr[b][:, None] * J[b]).T
+                ref[2 * view[a]:2 * view[a] + 2, 2 * view[b]:2 * view[b] + 2] -= block
+    np.testing.assert_allclose(H, ref, rtol=SCHUR_RTOL, atol=SCHUR_RTOL * np.abs(ref).max())
 
 
 def test_shifting_the_principal_point_moves_projections_exactly():
