@@ -86,6 +86,7 @@ from satsweep.sparse.graph import PairGraph, aoi_samples, build_pair_graph, repa
 from satsweep.sparse.matching import fundamental_from_cameras, match_pair
 from satsweep.sparse.options import SparseOptions
 from satsweep.sparse.tracks import (
+    CONTRAST_RANK,
     Observations,
     best_registered,
     build_tracks,
@@ -157,6 +158,7 @@ class TiedViews:
     n_tracks: int
     track_length_histogram: dict[int, int]
     n_refine_dropped: int
+    n_refine_contrast: int  # observations registered on local contrast (other dates)
     coarse: BundleSolution | None
     fine: BundleSolution | None
     seconds: dict[str, float]
@@ -296,7 +298,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     coarse = fine = None
     tied = False
     tracks: list = []
-    n_refine_dropped = 0
+    n_refine_dropped = n_refine_contrast = 0
     fine_cams = list(cameras)
     shifts = np.full((V, 2), np.nan)
     coarse_shifts = np.full((V, 2), np.nan)
@@ -341,6 +343,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
                 coarse.obs, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
                 max_shift_px=o.refine_max_shift_px, keep_fraction=o.refine_keep_fraction,
                 at_least=_MIN_BEST_REGISTERED)
+            n_refine_contrast = int(np.sum(residual >= CONTRAST_RANK))
             seconds["refinement"] = seconds.get("refinement", 0.0) + time.perf_counter() - t0
         fine_obs = best_registered(registered, residual, o.refine_keep_fraction,
                                    at_least=_MIN_BEST_REGISTERED)
@@ -398,7 +401,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         matches=matches,
         n_features=n_features, n_tracks=len(tracks),
         track_length_histogram={int(k): int(c) for k, c in enumerate(lengths) if c > 0},
-        n_refine_dropped=n_refine_dropped, coarse=coarse, fine=fine, seconds=seconds)
+        n_refine_dropped=n_refine_dropped, n_refine_contrast=n_refine_contrast, coarse=coarse,
+        fine=fine, seconds=seconds)
 
 
 # -- the stage -----------------------------------------------------------------------------------
@@ -501,6 +505,7 @@ class SparseResult:
             "tracks": t.n_tracks,
             "track_length_histogram": {str(k): v for k, v in sorted(t.track_length_histogram.items())},
             "refine_dropped": t.n_refine_dropped,
+            "refine_on_local_contrast": t.n_refine_contrast,
             "coarse": figures(coarse),
             "fine": figures(fine),
             "prior_range": [self.prior_range.min, self.prior_range.max],

@@ -159,11 +159,11 @@ _LK_EPS_PX = 1e-3
 # 128 + _CONTRAST_GAIN x that. Not first: on views of one date it registers less precisely
 # (tools/bench_ba.py, 50 px biases, 3/5/10 views: corrections within 0.054-0.061 px of the
 # truth, against 0.027-0.036 on the grey levels). Its residuals are ranked after every grey-level
-# one (+ _CONTRAST_RANK) in best_registered.
+# one (+ CONTRAST_RANK) in best_registered.
 _CONTRAST_SIGMA_PX = 3.0
 _CONTRAST_FLOOR = 2.0
 _CONTRAST_GAIN = 40.0
-_CONTRAST_RANK = 256.0
+CONTRAST_RANK = 256.0
 # ... and only in pairs of views where at least this share failed on the grey levels: 37-80% of
 # a cross-date pair's tie points on the multi-date scenes, 3% of a same-date pair's (whose few
 # failures, made again, cost a third of the registration's time on 20 views and tied nothing).
@@ -206,7 +206,7 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     ``keep_fraction`` and ``at_least`` would keep (elsewhere it would keep none of them: they
     rank after) and at least _CONTRAST_PAIR_FAILED of the pair failed. Returns the observations,
     the residual of each (mean absolute difference of the two windows' 8-bit grey levels after
-    the registration, or of their local contrast plus _CONTRAST_RANK; 0 for first observations)
+    the registration, or of their local contrast plus CONTRAST_RANK; 0 for first observations)
     and the number of observations dropped.
     """
     import cv2
@@ -258,7 +258,7 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
                 for k in (w, v):
                     if k not in contrast:
                         contrast[k] = local_contrast_u8(images[k])
-                register(contrast[w], contrast[v], H, failed, _CONTRAST_RANK)
+                register(contrast[w], contrast[v], H, failed, CONTRAST_RANK)
     keep = np.isfinite(residual)
     registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
     index = registered.subset_index(keep)

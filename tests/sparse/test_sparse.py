@@ -164,7 +164,7 @@ def test_registration_of_another_dates_view_falls_back_to_local_contrast():
                                      n_points=40)
     registered, residual, dropped = sparse_tracks.register_observations(
         obs, [image0, image1], cams, window_px=15, max_shift_px=2.0)
-    second = residual[1::2] >= sparse_tracks._CONTRAST_RANK
+    second = residual[1::2] >= sparse_tracks.CONTRAST_RANK
     assert registered.n_points == 40 and dropped == 0
     assert second.sum() >= 30, second.sum()  # measured 35 of 40 (the grey levels alone keep 5)
     assert residual[1::2][~second].max() < residual[1::2][second].min()
@@ -174,7 +174,7 @@ def test_registration_of_another_dates_view_falls_back_to_local_contrast():
     fewer, residual, dropped = sparse_tracks.register_observations(
         obs, [image0, image1], cams, window_px=15, max_shift_px=2.0, keep_fraction=0.1)
     assert fewer.n_points == 40 - second.sum() and dropped == second.sum()
-    assert (residual < sparse_tracks._CONTRAST_RANK).all()
+    assert (residual < sparse_tracks.CONTRAST_RANK).all()
 
 
 def test_registration_residuals_choose_the_best_registered():
