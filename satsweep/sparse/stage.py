@@ -33,7 +33,9 @@ wide one) gives everything the dense stages need from tie points:
    or carrying the least determined direction of the shifts when that is uncertain by more than
    ``max_shift_sigma_px`` (a view tied along one direction only), is dropped, and 4-7 run again
    without it (and without the views it alone tied to the others): no view is used with a
-   correction that the tie points do not fix.
+   correction that the tie points do not fix. When that direction is the motion of some views
+   against the largest group of views tied in every direction by themselves (groups of
+   different dates linked by a few tie points), those views are dropped together.
 8. *Altitude range* (:func:`satsweep.sparse.tiepoints.altitude_range_from_points`): every tie
    point the coarse adjustment kept, at its keypoints, triangulated with the corrected cameras;
    those inside the AOI whose reprojection errors are all within ``altitude_max_error_px``.
@@ -192,6 +194,49 @@ def _largest_group(V: int, active: set[int], edges: Sequence[tuple[int, int]],
         if best_key is None or key > best_key:
             best, best_key = members, key
     return best
+
+
+def _shared_points(obs: Observations, V: int) -> np.ndarray:
+    """(V, V) int: the number of tie points (tracks) each pair of views shares."""
+    seen = np.zeros((obs.n_points, V), dtype=np.int64)
+    seen[obs.point, obs.view] = 1
+    return seen.T @ seen
+
+
+def _tied_groups(cameras: Sequence[Any], fine: BundleSolution, options: BundleOptions) -> set[int]:
+    """The views (indices into ``cameras``) tied in every direction by their own tie points:
+    the largest group of views linked pair by pair by at least ``min_observations`` shared tie
+    points if it is tied alone (:func:`_tied_alone`), with every other such group that keeps it
+    tied added, largest first; all views when the largest group is not tied alone (the uncertain
+    direction is then inside it)."""
+    V = len(cameras)
+    shared = _shared_points(fine.obs, V)
+    edges = [(i, j) for i in range(V) for j in range(i + 1, V)
+             if shared[i, j] >= options.min_observations]
+    labels = connected_labels(V, np.array([e[0] for e in edges], np.int64),
+                              np.array([e[1] for e in edges], np.int64))
+    groups = sorted(({v for v in range(V) if labels[v] == lab} for lab in np.unique(labels)),
+                    key=lambda g: (-len(g), min(g)))
+    main = groups[0]
+    if len(groups) == 1 or len(main) < 2 or not _tied_alone(sorted(main), cameras, fine, options):
+        return set(range(V))
+    for g in groups[1:]:
+        if _tied_alone(sorted(main | g), cameras, fine, options):
+            main = main | g
+    return main
+
+
+def _tied_alone(group: Sequence[int], cameras: Sequence[Any], fine: BundleSolution,
+                options: BundleOptions) -> bool:
+    """Whether the views ``group`` (indices into ``cameras`` and the solution's views) are tied in
+    every direction by their own tie points: the uncertainty of their shifts, from the
+    observations among them at the solution ``fine``, is within ``max_shift_sigma_px``."""
+    mask = np.isin(fine.obs.view, group)
+    alive = np.unique(fine.obs.point[fine.obs.subset_index(mask)])
+    sub = _local(fine.obs, group)
+    certainty = shift_uncertainty([cameras[k] for k in group], sub, fine.points[alive],
+                                  fine.shifts[list(group)])
+    return bool(certainty.worst_sigma <= options.max_shift_sigma_px)
 
 
 def _local(obs: Observations, kept: Sequence[int]) -> Observations:
@@ -360,7 +405,24 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         seconds["fine"] = seconds.get("fine", 0.0) + time.perf_counter() - t0
         if len(kept) > 2 and not certainty.worst_sigma <= b.max_shift_sigma_px:
             # (With two views the one direction the tie points do not fix is the height of the
-            # scene, part of the motion no image sees.)
+            # scene, part of the motion no image sees.) Groups of views that share at least
+            # min_observations tie points pair by pair: from the largest, if it is tied in
+            # every direction by itself, each other group that keeps it so is added (largest
+            # first); the views left are dropped together. The uncertain direction is then
+            # their motion against the others: dropping one view after another, the largest
+            # share of that motion may lie in the larger group, and the stage would end with the
+            # smaller one.
+            main = _tied_groups(local_fine, fine, b)
+            if len(main) < len(kept):
+                shared = _shared_points(fine.obs, len(kept))
+                for k in sorted(set(range(len(kept))) - main):
+                    most = max(main, key=lambda m: shared[k, m])
+                    dropped[kept[k]] = (
+                        f"not tied in every direction to the {len(main)} views tied together (it "
+                        f"shares at most {shared[k, most]} tie points with one of them, "
+                        f"{names[kept[most]]}): its pointing correction is uncertain by "
+                        f"{certainty.sigma[k]:.2f} px (more than {b.max_shift_sigma_px:g} px)")
+                continue
             v = kept[certainty.worst_view]
             dropped[v] = (f"its pointing correction is uncertain by {certainty.worst_sigma:.2f} px "
                           f"(more than {b.max_shift_sigma_px:g} px): it is not tied to the other "

@@ -178,6 +178,26 @@ def test_views_of_other_dates_are_tied_through_local_contrast(synthetic_scene):
     assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
 
 
+def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_scene):
+    """Seed 1 of the same stack: views 0-3 (two dates) and views 4-5 (a third) share 7 tie
+    points, which fix their relative motion along one direction only. The two views are
+    dropped together, with that reason; dropping the view of largest uncertainty one at a time
+    ended with views 4 and 5 alone."""
+    scene = synthetic_scene(**dict(MULTIDATE, seed=1))
+    rpc = altitude_range_from_rpcs([v.rpc() for v in scene.views], warn=False)
+    # Cropped at the RPCs' range +-30 m (at +-300 m all six views tie: which tie points there
+    # are depends on the crops).
+    views, prior = _views(scene, AltitudeRange(rpc.min - 30.0, rpc.max + 30.0))
+    result = sparse_stage(views, scene.aoi, prior)
+    assert result.kept == (0, 1, 2, 3), result.warnings
+    reasons = {d.index: d.reason for d in result.dropped}
+    assert sorted(reasons) == [4, 5]
+    assert all(r.startswith("not tied in every direction to the 4 views tied together")
+               for r in reasons.values()), reasons
+    resid, _ = _motion(result, scene)
+    assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
+
+
 def test_a_blank_view_is_dropped(biased):
     views, prior = _views(biased)
     blank = np.full_like(views[1].image, 1000)
