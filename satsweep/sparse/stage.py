@@ -27,10 +27,10 @@ wide one) gives everything the dense stages need from tie points:
 7. *Fine adjustment* (:func:`satsweep.sparse.bundle.adjust_observations`): the tie points
    registered to a fraction of a pixel (Lucas-Kanade after a ground-plane warp, again on local
    contrast where another date's grey levels fail it; of each pair of views the best registered
-   ``refine_keep_fraction``), then the principal-point bundle
-   adjustment with the anchor regulariser (0.01 px^2/m^2), its anchors triangulated with the
-   coarsely corrected cameras. A view left with fewer than ``min_observations`` observations,
-   or carrying the least determined direction of the shifts when that is uncertain by more than
+   ``refine_keep_fraction``), then the principal-point bundle adjustment with the anchor
+   regulariser (0.01 px^2/m^2), its anchors triangulated with the coarsely corrected cameras.
+   A view left with fewer than ``min_observations`` observations, or carrying the least
+   determined direction of the shifts when that is uncertain by more than
    ``max_shift_sigma_px`` (a view tied along one direction only), is dropped, and 4-7 run again
    without it (and without the views it alone tied to the others): no view is used with a
    correction that the tie points do not fix. When that direction is the motion of some views
