@@ -226,17 +226,34 @@ def _tied_groups(cameras: Sequence[Any], fine: BundleSolution, options: BundleOp
     return main
 
 
-def _tied_alone(group: Sequence[int], cameras: Sequence[Any], fine: BundleSolution,
-                options: BundleOptions) -> bool:
-    """Whether the views ``group`` (indices into ``cameras`` and the solution's views) are tied in
-    every direction by their own tie points: the uncertainty of their shifts, from the
-    observations among them at the solution ``fine``, is within ``max_shift_sigma_px``."""
+def _uncertainty_of(group: Sequence[int], cameras: Sequence[Any], fine: BundleSolution):
+    """shift_uncertainty of the views ``group`` (indices into ``cameras`` and the solution's
+    views) from the observations among them, at the solution ``fine`` (not solved again)."""
     mask = np.isin(fine.obs.view, group)
     alive = np.unique(fine.obs.point[fine.obs.subset_index(mask)])
-    sub = _local(fine.obs, group)
-    certainty = shift_uncertainty([cameras[k] for k in group], sub, fine.points[alive],
-                                  fine.shifts[list(group)])
-    return bool(certainty.worst_sigma <= options.max_shift_sigma_px)
+    return shift_uncertainty([cameras[k] for k in group], _local(fine.obs, group),
+                             fine.points[alive], fine.shifts[list(group)])
+
+
+def _tied_alone(group: Sequence[int], cameras: Sequence[Any], fine: BundleSolution,
+                options: BundleOptions) -> bool:
+    """Whether the views ``group`` are tied in every direction by their own tie points: the
+    uncertainty of their shifts (:func:`_uncertainty_of`) within ``max_shift_sigma_px``."""
+    worst = _uncertainty_of(group, cameras, fine).worst_sigma
+    return bool(worst <= options.max_shift_sigma_px)
+
+
+def _one_by_one(cameras: Sequence[Any], fine: BundleSolution, options: BundleOptions) -> list[int]:
+    """The views that dropping the least determined one after another (at the solution
+    ``fine``, not solved again) removes before the others are tied in every direction."""
+    group = list(range(len(cameras)))
+    gone: list[int] = []
+    while len(group) > 2:
+        u = _uncertainty_of(group, cameras, fine)
+        if u.worst_sigma <= options.max_shift_sigma_px:
+            break
+        gone.append(group.pop(u.worst_view))
+    return gone
 
 
 def _local(obs: Observations, kept: Sequence[int]) -> Observations:
@@ -405,14 +422,18 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         seconds["fine"] = seconds.get("fine", 0.0) + time.perf_counter() - t0
         if len(kept) > 2 and not certainty.worst_sigma <= b.max_shift_sigma_px:
             # (With two views the one direction the tie points do not fix is the height of the
-            # scene, part of the motion no image sees.) Groups of views that share at least
-            # min_observations tie points pair by pair: from the largest, if it is tied in
-            # every direction by itself, each other group that keeps it so is added (largest
-            # first); the views left are dropped together. The uncertain direction is then
-            # their motion against the others: dropping one view after another, the largest
-            # share of that motion may lie in the larger group, and the stage would end with the
-            # smaller one.
+            # scene, part of the motion no image sees.) The view carrying most of the least
+            # determined direction is dropped, and the stage runs again. But when groups of
+            # views (linked pair by pair by at least min_observations shared tie points) split
+            # the stack, the largest group tied alone, with every other group that keeps it so,
+            # is kept and the rest dropped together, if that drops fewer views than dropping
+            # one after another would (estimated without solving again): the uncertain
+            # direction is then their motion against it, whose largest share may lie in the
+            # larger group, and one view after another could end with the smaller group.
             main = _tied_groups(local_fine, fine, b)
+            if len(main) < len(kept) and (len(kept) - len(main)
+                                          >= len(_one_by_one(local_fine, fine, b))):
+                main = set(range(len(kept)))
             if len(main) < len(kept):
                 shared = _shared_points(fine.obs, len(kept))
                 for k in sorted(set(range(len(kept))) - main):
@@ -420,8 +441,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
                     dropped[kept[k]] = (
                         f"not tied in every direction to the {len(main)} views tied together (it "
                         f"shares at most {shared[k, most]} tie points with one of them, "
-                        f"{names[kept[most]]}): its pointing correction is uncertain by "
-                        f"{certainty.sigma[k]:.2f} px (more than {b.max_shift_sigma_px:g} px)")
+                        f"{names[kept[most]]}; their relative correction is uncertain by "
+                        f"{certainty.worst_sigma:.2f} px, more than {b.max_shift_sigma_px:g} px)")
                 continue
             v = kept[certainty.worst_view]
             dropped[v] = (f"its pointing correction is uncertain by {certainty.worst_sigma:.2f} px "
