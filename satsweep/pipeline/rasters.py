@@ -104,8 +104,10 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             check = {"tolerance_m": d.cross_check_m, "views": d.cross_check_views}
         elif visibility:
             checked = visibility_check_heights(heights, projections,
-                                               tolerance_m=d.consensus_tolerance_m, points=centres)
-            check = {"check": "free space", "tolerance_m": d.consensus_tolerance_m}
+                                               tolerance_m=d.consensus_tolerance_m,
+                                               far_m=d.visibility_far_m, points=centres)
+            check = {"check": "free space", "tolerance_m": d.consensus_tolerance_m,
+                     "far_m": d.visibility_far_m}
         if check is not None:
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]

@@ -61,13 +61,15 @@ class DSMOptions(Options):
     consensus_min_views: int = 2  # consensus: cells fewer views agree on are left empty
     visibility_check: bool = True  # consensus: drop the points that more reference views see
     # past (free space, by more than consensus_tolerance_m) than agree with (within it)
+    visibility_far_m: float = 15.0  # ... or that views seeing more than this (m) past them are
+    # half as many as agree with (facades at their roof's height); 0: no such rule
     consensus_min_distinct_views: int = 3  # consensus: the agreeing height maps must be matched
     # from at least this many distinct views in all (A against B and B against A are one pair;
     # at most the views there are)
 
     ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
                 "fill_method", "fill_border_holes", "consensus_tolerance_m", "consensus_min_views",
-                "consensus_min_distinct_views", "visibility_check")
+                "consensus_min_distinct_views", "visibility_check", "visibility_far_m")
 
     def check(self) -> None:
         self._require(math.isfinite(self.resolution) and self.resolution > 0.0, "resolution", "must be > 0 metres")
@@ -78,6 +80,8 @@ class DSMOptions(Options):
         self._require(math.isfinite(self.outlier_m) and self.outlier_m > 0.0, "outlier_m", "must be > 0 metres")
         self._require(self.min_views >= 1, "min_views", "must be >= 1")
         self._require(self.fill_max_hole_cells >= 0, "fill_max_hole_cells", "must be >= 0 (0 disables filling)")
+        self._require(math.isfinite(self.visibility_far_m) and self.visibility_far_m >= 0.0,
+                      "visibility_far_m", "must be >= 0 metres (0: no such rule)")
         self._require(math.isfinite(self.consensus_tolerance_m) and self.consensus_tolerance_m > 0,
                       "consensus_tolerance_m", "must be > 0 metres")
         self._require(self.consensus_min_views >= 1, "consensus_min_views", "must be >= 1")
@@ -109,12 +113,12 @@ def cross_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.
     if not (isinstance(min_agreeing, int) and min_agreeing >= 1):
         raise OptionsError(f"min_agreeing = {min_agreeing!r}: must be an integer >= 1")
     need = min(min_agreeing, len(heights) - 1)
-    return [known & (agree >= need) for known, agree, _ in
+    return [known & (agree >= need) for known, agree, _, _ in
             _heights_seen_by_others(heights, projections, tolerance_m, points, "cross_check_heights")]
 
 
 def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequence[np.ndarray], *,
-                             tolerance_m: float,
+                             tolerance_m: float, far_m: float = 0.0,
                              points: Sequence[tuple[np.ndarray, ...]] | None = None
                              ) -> list[np.ndarray]:
     """Free-space check of several reference views' height maps.
@@ -123,22 +127,32 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
     *sees past* the point when its own height at that pixel lies more than ``tolerance_m`` below
     it: its line of sight runs through the point to a surface behind it, so the point is empty
     space for j. It *agrees* when the heights are within ``tolerance_m``; a height above the
-    point means the point is hidden from j (no evidence). A pixel is kept unless more views see
-    past it than agree with it. The errors this removes are those a consensus of views cannot:
-    a facade matched at its roof's height puts roof points over the ground in front of the
-    wall, and every view from that side makes the same mistake, while views from the other
-    sides see the ground there. Arguments and returns as :func:`cross_check_heights`.
+    point means the point is hidden from j (no evidence). A pixel is dropped when more views see
+    past it than agree with it, or (``far_m`` > 0) when the views that see more than ``far_m``
+    past it are at least half as many as those that agree. The errors this removes are those a
+    consensus of views cannot: a facade matched at its roof's height puts roof points over the
+    ground in front of the wall, and every view from that side makes the same mistake, while
+    views from the other sides see the ground there; a tall building's facade is seen by
+    several views from its side, and the few views that see the ground tens of metres below
+    such a point outweigh them. Seeing past by a few metres is weaker evidence (trees of another
+    season, roof edges that other views erode by a cell) and needs a majority. Arguments and
+    returns as :func:`cross_check_heights`.
     """
-    return [known & (past <= agree) for known, agree, past in
+    if not (math.isfinite(far_m) and far_m >= 0.0):
+        raise OptionsError(f"far_m = {far_m!r}: must be >= 0 metres (0: no such rule)")
+    return [known & (past <= agree) & ((far_m == 0.0) | (2 * far <= agree))
+            for known, agree, past, far in
             _heights_seen_by_others(heights, projections, tolerance_m, points,
-                                    "visibility_check_heights")]
+                                    "visibility_check_heights", far_m=far_m)]
 
 
-def _heights_seen_by_others(heights, projections, tolerance_m: float, points, caller: str):
-    """Yields per view k (known, agree, past) as (H_k, W_k) maps: its known pixels, and at each how
-    many other views' heights at the pixel's 3-D point lie within ``tolerance_m`` of its height
-    (agree) or more than that below it (past); zeros where unknown, and everywhere with a single
-    view. See :func:`cross_check_heights` for the arguments."""
+def _heights_seen_by_others(heights, projections, tolerance_m: float, points, caller: str,
+                            far_m: float = 0.0):
+    """Yields per view k (known, agree, past, far) as (H_k, W_k) maps: its known pixels, and at
+    each how many other views' heights at the pixel's 3-D point lie within ``tolerance_m`` of its
+    height (agree), more than that below it (past), or more than ``max(tolerance_m, far_m)``
+    below it (far); zeros where unknown, and everywhere with a single view. See
+    :func:`cross_check_heights` for the arguments."""
     maps = [np.asarray(h, dtype=np.float64) for h in heights]
     if len(maps) != len(projections):
         raise ValueError(f"{caller}: {len(maps)} height maps, {len(projections)} projections")
@@ -150,8 +164,9 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
         known = np.isfinite(h)
         agree_map = np.zeros(h.shape, dtype=np.int32)
         past_map = np.zeros(h.shape, dtype=np.int32)
+        far_map = np.zeros(h.shape, dtype=np.int32)
         if len(maps) < 2:  # nothing to check against
-            yield known, agree_map, past_map
+            yield known, agree_map, past_map, far_map
             continue
         if points is None:
             rows, cols = np.nonzero(known)
@@ -163,6 +178,7 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
             rows, cols = np.divmod(pixel, h.shape[1])
         agree = np.zeros(u.size, dtype=np.int64)
         past = np.zeros(u.size, dtype=np.int64)
+        far = np.zeros(u.size, dtype=np.int64)
         for j, (hj, Pj) in enumerate(zip(maps, projections)):
             if j == k:
                 continue
@@ -176,9 +192,11 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
             with np.errstate(invalid="ignore"):
                 agree[idx] += np.abs(other - u[idx]) <= tolerance_m
                 past[idx] += other < u[idx] - tolerance_m
+                far[idx] += other < u[idx] - max(tolerance_m, far_m)
         agree_map[rows, cols] = agree
         past_map[rows, cols] = past
-        yield known, agree_map, past_map
+        far_map[rows, cols] = far
+        yield known, agree_map, past_map, far_map
 
 
 # -- rasterisation -----------------------------------------------------------------------------
