@@ -35,7 +35,8 @@ wide one) gives everything the dense stages need from tie points:
    without it (and without the views it alone tied to the others): no view is used with a
    correction that the tie points do not fix. When that direction is the motion of some views
    against the largest group of views tied in every direction by themselves (groups of
-   different dates linked by a few tie points), those views are dropped together.
+   different dates linked by a few tie points), those views are dropped together if that drops
+   fewer than one view after another would.
 8. *Altitude range* (:func:`satsweep.sparse.tiepoints.altitude_range_from_points`): every tie
    point the coarse adjustment kept, at its keypoints, triangulated with the corrected cameras;
    those inside the AOI whose reprojection errors are all within ``altitude_max_error_px``.
