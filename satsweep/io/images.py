@@ -1,8 +1,8 @@
 """Reading satellite images (TIFF) with tifffile, and tonemapping them.
 
 - ``read_image``: the first band of a TIFF as a 2D array in its stored dtype, or an RGB image's
-  luminance (optionally only a window of it: an uncompressed file is memory-mapped, a tiled or stripped one has only the
-  segments under the window decoded).
+  luminance (optionally only a window of it: an uncompressed file is memory-mapped, a tiled or
+  stripped one has only the segments under the window decoded).
 - ``tonemap``: a robust percentile clip and gamma, to about [0, 1].
 
 GeoTIFFs (DSMs, DEMs) are read and written by :mod:`satsweep.io.geotiff`.

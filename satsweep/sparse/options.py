@@ -98,6 +98,6 @@ class SparseOptions(Options):
         self._require(math.isfinite(self.altitude_support_m) and self.altitude_support_m >= 0.0,
                       "altitude_support_m", "must be a finite number of metres >= 0")
         for name in ("altitude_margin_below_m", "altitude_margin_above_m",
-                "altitude_aoi_margin_m"):
+                     "altitude_aoi_margin_m"):
             v = getattr(self, name)
             self._require(math.isfinite(v) and v >= 0.0, name, "must be a finite number of metres >= 0")

@@ -204,14 +204,14 @@ def _shared_points(obs: Observations, V: int) -> np.ndarray:
     return seen.T @ seen
 
 
-def _tied_groups(cameras: Sequence[Any], fine: BundleSolution, options: BundleOptions) -> set[int]:
+def _tied_groups(cameras: Sequence[Any], fine: BundleSolution, options: BundleOptions,
+                 shared: np.ndarray) -> set[int]:
     """The views (indices into ``cameras``) tied in every direction by their own tie points:
     the largest group of views linked pair by pair by at least ``min_observations`` shared tie
     points if it is tied alone (:func:`_tied_alone`), with every other such group that keeps it
     tied added, largest first; all views when the largest group is not tied alone (the uncertain
-    direction is then inside it)."""
+    direction is then inside it). ``shared``: :func:`_shared_points` of the solution."""
     V = len(cameras)
-    shared = _shared_points(fine.obs, V)
     edges = [(i, j) for i in range(V) for j in range(i + 1, V)
              if shared[i, j] >= options.min_observations]
     labels = connected_labels(V, np.array([e[0] for e in edges], np.int64),
@@ -431,12 +431,12 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             # one after another would (estimated without solving again): the uncertain
             # direction is then their motion against it, whose largest share may lie in the
             # larger group, and one view after another could end with the smaller group.
-            main = _tied_groups(local_fine, fine, b)
+            shared = _shared_points(fine.obs, len(kept))
+            main = _tied_groups(local_fine, fine, b, shared)
             if len(main) < len(kept) and (len(kept) - len(main)
                                           >= len(_one_by_one(local_fine, fine, b))):
                 main = set(range(len(kept)))
             if len(main) < len(kept):
-                shared = _shared_points(fine.obs, len(kept))
                 for k in sorted(set(range(len(kept))) - main):
                     most = max(main, key=lambda m: shared[k, m])
                     dropped[kept[k]] = (

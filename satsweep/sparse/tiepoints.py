@@ -183,8 +183,8 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     ``points`` (N, 3): ENU points (m) of ``frame``; ``obs``: their observations (to count the
     views of each); ``point_error`` (N,): each point's largest reprojection error (px) with the
     corrected cameras; ``options``: SparseOptions. The points used lie inside the AOI grown by
-    ``altitude_aoi_margin_m`` with every error within ``altitude_max_error_px``. The range runs from the lowest altitude of the
-    points seen by ``altitude_floor_views`` views or more (all points when fewer than
+    ``altitude_aoi_margin_m`` with every error within ``altitude_max_error_px``. The range runs
+    from the lowest altitude of the points seen by ``altitude_floor_views`` views or more (all points when fewer than
     ``altitude_min_points`` are) to the highest of all, each the lowest or highest altitude
     supported by ``altitude_support`` points (or ``altitude_support_fraction`` of them) within
     ``altitude_support_m``
@@ -241,8 +241,7 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
         above = np.flatnonzero(use & (alt > hi + o.altitude_support_m))
         above = above[np.argsort(-alt[above])][:MAX_CONFIRM_CANDIDATES]
         tried = 0
-        for i in above:
-            tried += 1
+        for tried, i in enumerate(above, start=1):
             if confirm(int(i)):
                 hi = float(alt[i])
                 record["confirmed_top_m"] = hi
