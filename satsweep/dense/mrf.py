@@ -77,6 +77,9 @@ class MRFOptions(Options):
     sgm_p2: float = 1.25  # SGM penalty of a larger jump (fraction of cost_scale), before adaptation
     sgm_sweep_gf_radius: int | None = 2  # guided-filter radius (px) of the sweep under SGM; None:
     # [sweep] gf_radius
+    sgm_consensus_gf_radius: int | None = 1  # ... in an area whose DSM is the consensus of many
+    # reference views' height maps ([dsm] fusion; 6 or more): it rejects each map's blunders,
+    # and a wider filter erodes crowns and roof edges; None: sgm_sweep_gf_radius
     sgm_paths: Literal[4, 8] = 8  # scanline directions aggregated
     sgm_p2_sigma: float = 0.05  # guide difference (image in [0, 1]) that halves P2; 0: no adaptation
     sgm_work_group: int = 0  # work-items per scanline (power of two); 0: 1 on CPUs, 32 on GPUs
@@ -97,10 +100,18 @@ class MRFOptions(Options):
     gc_iterations: int = 2  # most sweeps over the labels
     tile_overlap_px: int = 64  # pixels each reference tile is swept and refined past its kept part
 
-    ADVANCED = ("sgm_p1", "sgm_p2", "sgm_sweep_gf_radius", "sgm_paths", "sgm_p2_sigma",
-                "sgm_work_group", "sgm_scan", "sgm_subplane", "gc_sweep_gf_radius",
+    ADVANCED = ("sgm_p1", "sgm_p2", "sgm_sweep_gf_radius", "sgm_consensus_gf_radius",
+                "sgm_paths", "sgm_p2_sigma", "sgm_work_group", "sgm_scan", "sgm_subplane",
+                "gc_sweep_gf_radius",
                 "gc_smoothness", "gc_truncation_labels", "gc_edge_sigma", "gc_label_window",
                 "gc_levels", "gc_tile", "gc_tile_overlap", "gc_iterations", "tile_overlap_px")
+
+    def for_consensus(self) -> "MRFOptions":
+        """The options of an area whose DSM is a consensus of many height maps: the sweep under
+        SGM filters with ``sgm_consensus_gf_radius`` (when set)."""
+        if self.method != "sgm" or self.sgm_consensus_gf_radius is None:
+            return self
+        return self.replace(sgm_sweep_gf_radius=self.sgm_consensus_gf_radius)
 
     def check(self) -> None:
         self._require(math.isfinite(self.sgm_p1) and self.sgm_p1 >= 0.0, "sgm_p1", "must be >= 0")
@@ -108,6 +119,9 @@ class MRFOptions(Options):
                       "must be finite and >= sgm_p1")
         self._require(self.sgm_sweep_gf_radius is None or 0 <= self.sgm_sweep_gf_radius <= 64,
                       "sgm_sweep_gf_radius", "must be in [0, 64] (or None)")
+        self._require(self.sgm_consensus_gf_radius is None
+                      or 0 <= self.sgm_consensus_gf_radius <= 64,
+                      "sgm_consensus_gf_radius", "must be in [0, 64] (or None)")
         self._require(self.gc_sweep_gf_radius is None or 0 <= self.gc_sweep_gf_radius <= 64,
                       "gc_sweep_gf_radius", "must be in [0, 64] (or None)")
         self._require(math.isfinite(self.sgm_p2_sigma) and self.sgm_p2_sigma >= 0.0,

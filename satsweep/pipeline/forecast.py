@@ -7,6 +7,7 @@ from __future__ import annotations
 from satsweep.config import PipelineConfig
 from satsweep.dense.tiled import coarse_pass_planes, mrf_sweep_options, mrf_sweep_wants_wta
 from satsweep.errors import SatsweepError
+from satsweep.pipeline.sweeps import area_mrf_options
 
 
 def program_forecast(device, cameras, u_range: tuple[float, float],
@@ -31,12 +32,13 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
                        for cam, v in zip(cams, cameras.views)]
         selection = select_views(cams,
                                  mid_height=0.5 * (u_range[0] + u_range[1]), options=config.views)
-        method = config.mrf.method
+        mrf = area_mrf_options(config, len(selection.references))
+        method = mrf.method
         if method == "none":
             engine, wta = PlaneSweep(device, config.sweep), True
         else:
-            engine = PlaneSweep(device, mrf_sweep_options(config.sweep, config.mrf))
-            wta = mrf_sweep_wants_wta(config.sweep, config.mrf)
+            engine = PlaneSweep(device, mrf_sweep_options(config.sweep, mrf))
+            wta = mrf_sweep_wants_wta(config.sweep, mrf)
         requests = []
         for r in selection.references:
             srcs = list(selection.sources[r])
@@ -48,12 +50,12 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
                 # A coarse-to-fine search's windows are refined by the full search's program
                 # (sgm_refine builds SGM for every plane); its coarse pass has its own planes.
                 counts = [heights.size]
-                n_coarse = coarse_pass_planes(config.sweep, config.mrf, shape, heights.size)
+                n_coarse = coarse_pass_planes(config.sweep, mrf, shape, heights.size)
                 if n_coarse:
                     counts.append(n_coarse)
                 for n in counts:
                     if n <= SGM_MAX_LABELS:
-                        requests += sgm_program_requests(device, config.mrf, n)
+                        requests += sgm_program_requests(device, mrf, n)
         return requests
     except SatsweepError:  # raised again, where it belongs, by the stage that meets it
         return []

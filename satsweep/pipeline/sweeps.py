@@ -25,6 +25,14 @@ from satsweep.pipeline.report import RunReport
 # every height and is not swept.
 REFERENCE_CONTEXT_PX = 8
 
+# An area of at least this many reference views whose DSM is their consensus ([dsm] fusion) is
+# swept under SGM with ``mrf.sgm_consensus_gf_radius``: the consensus of many height maps rejects
+# each one's blunders, which the wider filter of a pair would have smoothed away, and the wider
+# filter erodes crowns and roof edges. tools/bench_multidate.py (384 px, seeds 0-5; within 1 m
+# % / DFC MAE m, means): 8 references 90.7 / 0.790 -> 91.9 / 0.725, 7 references 85.6 / 1.088
+# -> 86.1 / 1.022, but 5 of 10 views (4-5 references) 68.4 -> 66.6% (docs/measurements.md).
+NARROW_FILTER_MIN_REFERENCES = 6
+
 
 def reference_window(camera, frame, aoi: AOI, alt_range: AltitudeRange, shape: tuple[int, int],
                      context_px: int = REFERENCE_CONTEXT_PX) -> tuple[int, int, int, int]:
@@ -106,6 +114,15 @@ class ReferenceHeights:
                 "at_range_ends": list(self.at_range_ends)}
 
 
+def area_mrf_options(config: PipelineConfig, n_references: int):
+    """The MRF options of an area of ``n_references`` reference views: ``mrf.for_consensus()``
+    where at least ``NARROW_FILTER_MIN_REFERENCES`` height maps make a consensus, else as given."""
+    if (n_references >= NARROW_FILTER_MIN_REFERENCES
+            and config.dsm.fusion_for(n_references) == "consensus"):
+        return config.mrf.for_consensus()
+    return config.mrf
+
+
 def sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
                      rep: RunReport, names, *, aoi: AOI, alt_range: AltitudeRange,
                      valid_masks: Sequence[np.ndarray | None] | None = None
@@ -128,7 +145,8 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
     out = []
     progress = rep.progress("sweep", len(selection.references))
     with_mrf = config.mrf.method != "none"
-    swept = mrf_sweep_options(config.sweep, config.mrf)  # the sweep options as run
+    mrf = area_mrf_options(config, len(selection.references))
+    swept = mrf_sweep_options(config.sweep, mrf)  # the sweep options as run
     for k, r in enumerate(selection.references):
         srcs = list(selection.sources[r])
         ref_proj = cameras.views[r].projection
@@ -148,14 +166,15 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             if with_mrf:
                 _check_sgm_labels(heights, config)
                 result, seconds = sweep_refine_tiled(
-                    device, ref_image, src_images, hom, heights, config.sweep, config.mrf,
+                    device, ref_image, src_images, hom, heights, config.sweep, mrf,
                     progress=rep.progress("sweep tiles", 1).callback(names[r]))
             else:
                 result = PlaneSweep(device, config.sweep).height_map(ref_image, src_images, hom,
                                                                       heights)
         if with_mrf:
             rep.move_time("sweep", "mrf", seconds)
-            mrf_info = {"method": config.mrf.method, "seconds": seconds,
+            mrf_info = {"method": mrf.method, "seconds": seconds,
+                        "sweep_gf_radius": int(swept.gf_radius),
                         "tiles": int(result.split.n_tiles),
                         "valid_fraction": float(np.mean(result.valid))}
         progress.update(k + 1, names[r])

@@ -12,9 +12,11 @@ import rasterio
 
 from satsweep.cli import main
 from satsweep.config import PipelineConfig
+from satsweep.dense.mrf import MRFOptions
 from satsweep.errors import InputError, OptionsError, OutputExistsError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.pipeline.run import reconstruct
+from satsweep.pipeline.sweeps import NARROW_FILTER_MIN_REFERENCES, area_mrf_options
 from satsweep.products.ply import read_ply
 
 # A small camera-fit grid keeps the test fast; the approximation error stays far below 0.01 px.
@@ -274,6 +276,10 @@ def test_tiled_mrf_reconstruction_is_as_accurate_and_reports_its_tiles(scene, re
     assert rep["timings_s"]["mrf"] > 0
     one = json.loads((reconstruction.out_dir / "report.json").read_text())
     assert all(v["mrf"]["tiles"] == 1 for v in one["sweep"])
+    # a median fusion of few references: the sweep under SGM filters with sgm_sweep_gf_radius
+    assert one["dsm"]["fusion"] == "median"
+    assert all(v["mrf"]["sweep_gf_radius"] == MRFOptions().sgm_sweep_gf_radius
+               for v in one["sweep"])
 
 
 # AOI tiles for the test town (its AOI is 59 m square): the smallest tile side gives 2 x 2 tiles.
@@ -674,11 +680,27 @@ def test_preloading_imports_the_listed_modules():
     assert all(name in sys.modules for name in PRELOADED_MODULES)
 
 
+@pytest.mark.parametrize("n_references,fusion,narrow", [
+    (NARROW_FILTER_MIN_REFERENCES, "auto", True), (NARROW_FILTER_MIN_REFERENCES - 1, "auto", False),
+    (NARROW_FILTER_MIN_REFERENCES, "median", False), (12, "consensus", True),
+])
+def test_many_references_of_a_consensus_are_swept_with_the_narrower_filter(n_references, fusion,
+                                                                          narrow):
+    config = PipelineConfig().override("dsm", fusion=fusion)
+    mrf = area_mrf_options(config, n_references)
+    want = config.mrf.sgm_consensus_gf_radius if narrow else config.mrf.sgm_sweep_gf_radius
+    assert mrf == config.mrf.replace(sgm_sweep_gf_radius=want)
+    assert config.mrf.sgm_consensus_gf_radius != config.mrf.sgm_sweep_gf_radius
+
+
 def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
     """With the consensus, every measured cell is the agreement of at least consensus_min_views
     reference views, as count.tif says; the others have no height or an interpolated one."""
     result = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "dsm": {"fusion": "consensus"}})
     assert result.report["dsm"]["fusion"] == "consensus"
+    # a consensus of 3 references: too few for the narrower filter (area_mrf_options)
+    assert all(v["mrf"]["sweep_gf_radius"] == MRFOptions().sgm_sweep_gf_radius
+               for v in result.report["sweep"])
     out = result.out_dir
     with rasterio.open(out / "count.tif") as c, rasterio.open(out / "interpolated.tif") as m:
         count, flags = c.read(1), m.read(1)
