@@ -17,6 +17,9 @@ from satsweep.sparse.tracks import Observations, observations_from_tracks
 # over an AOI, so the linear solution is within millimetres of the optimum and 3 steps reach the
 # float64 floor; 5 leave a margin for long, oblique tracks.
 REFINE_ITERATIONS = 5
+# The refinement stops early once no point moves by more than this (m) in a step: the steps
+# shrink quadratically, so the next would move them by far less than a micrometre.
+REFINE_STEP_TOL_M = 1e-6
 
 # -- projection and triangulation ----------------------------------------------------------------
 def projection_stack(cameras: Sequence[Any]) -> np.ndarray:
@@ -76,7 +79,11 @@ def triangulate_observations(obs: Observations, P: np.ndarray, *,
         r = xy - obs.xy
         JtJ = _sum_by_point(np.einsum("mki,mkj->mij", J, J), obs.point, n)
         Jtr = _sum_by_point(np.einsum("mki,mk->mi", J, r), obs.point, n)
-        X = X - _solve3(JtJ, Jtr)
+        step = _solve3(JtJ, Jtr)
+        X = X - step
+        with np.errstate(invalid="ignore"):
+            if not np.nanmax(np.abs(step), initial=0.0) > REFINE_STEP_TOL_M:
+                break
     xy, w = project(P, obs.view, X[obs.point])
     err = np.hypot(*(xy - obs.xy).T)
     err[~np.isfinite(err)] = np.inf
