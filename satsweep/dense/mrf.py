@@ -102,9 +102,9 @@ class MRFOptions(Options):
 
     ADVANCED = ("sgm_p1", "sgm_p2", "sgm_sweep_gf_radius", "sgm_consensus_gf_radius",
                 "sgm_paths", "sgm_p2_sigma", "sgm_work_group", "sgm_scan", "sgm_subplane",
-                "gc_sweep_gf_radius",
-                "gc_smoothness", "gc_truncation_labels", "gc_edge_sigma", "gc_label_window",
-                "gc_levels", "gc_tile", "gc_tile_overlap", "gc_iterations", "tile_overlap_px")
+                "gc_sweep_gf_radius", "gc_smoothness", "gc_truncation_labels", "gc_edge_sigma",
+                "gc_label_window", "gc_levels", "gc_tile", "gc_tile_overlap", "gc_iterations",
+                "tile_overlap_px")
 
     def for_consensus(self) -> "MRFOptions":
         """The options of an area whose DSM is a consensus of many height maps: the sweep under

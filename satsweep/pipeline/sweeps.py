@@ -11,6 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from satsweep.config import PipelineConfig
+from satsweep.dense.mrf import MRFOptions
 from satsweep.dense.tiled import mrf_sweep_options, sweep_refine_tiled
 from satsweep.errors import InputError
 from satsweep.geometry.altitude import AltitudeRange
@@ -114,7 +115,7 @@ class ReferenceHeights:
                 "at_range_ends": list(self.at_range_ends)}
 
 
-def area_mrf_options(config: PipelineConfig, n_references: int):
+def area_mrf_options(config: PipelineConfig, n_references: int) -> MRFOptions:
     """The MRF options of an area of ``n_references`` reference views: ``mrf.for_consensus()``
     where at least ``NARROW_FILTER_MIN_REFERENCES`` height maps make a consensus, else as given."""
     if (n_references >= NARROW_FILTER_MIN_REFERENCES
