@@ -44,8 +44,8 @@ wide one) gives everything the dense stages need from tie points:
    from all, each an altitude that ``altitude_support`` points share within
    ``altitude_support_m`` (a wrong match has a height of its own); the highest of the points
    above that top that views outside its track see where it lies raises it (a lone tower's
-   roof, :mod:`satsweep.sparse.verify`); widened by the margins and kept within the prior
-   range.
+   roof, :mod:`satsweep.sparse.verify`); widened by the margins, which the prior range cuts
+   (an end past the prior stays: the corrected cameras may put the scene there).
 
 Corrections are translations in image pixels: a view's content of ground point X lies at
 ``RPC(X) + correction`` (the convention of the synthetic scenes' biases). A crop's pixels are the

@@ -162,6 +162,14 @@ def test_adjusted_range_takes_its_floor_from_points_of_three_views():
     rng, _ = altitude_range_from_points(points, obs, err, _Frame, aoi, o,
                                         within=AltitudeRange(98.0, 160.0))
     assert rng == AltitudeRange(98.0, 160.0)
+    # the supported floor and top past the prior's (the corrected cameras put the scene there):
+    # the range reaches them, and only the margins beyond the prior are cut
+    rng, _ = altitude_range_from_points(points, obs, err, _Frame, aoi, o,
+                                        within=AltitudeRange(103.0, 150.5))
+    assert rng == AltitudeRange(100.0, 151.0)
+    rng, _ = altitude_range_from_points(points, obs, err, _Frame, aoi, o,
+                                        within=AltitudeRange(99.0, 150.5))
+    assert rng == AltitudeRange(99.0, 151.0)
 
 
 def test_adjusted_range_needs_enough_points_near_the_aoi():
