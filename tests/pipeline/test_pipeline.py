@@ -707,3 +707,20 @@ def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
     assert set(np.unique(count)) <= {0, 1, 2}
     np.testing.assert_array_equal(flags == 0, count >= 2)  # measured = two views agreeing
     _check_accuracy(result)
+
+
+@pytest.mark.parametrize("tie_range,warned", [
+    ((-65.0, -25.0), True), ((253.0, 294.0), True),
+    ((148.0, 184.0), True),  # shares 17 of its 36 m with the RPCs' range
+    ((89.0, 161.0), False), ((95.0, 165.0), False), ((100.0, 140.0), False),
+])
+def test_a_tie_point_range_outside_the_rpcs_is_a_doubtful_warning(tie_range, warned):
+    from satsweep.pipeline.area import range_outside_prior
+
+    prior = AltitudeRange(95.0, 165.0)
+    message = range_outside_prior(AltitudeRange(*tie_range), prior, 2)
+    assert (message is not None) == warned
+    if warned:
+        assert f"{tie_range[0]:.0f}..{tie_range[1]:.0f} m" in message and "95..165 m" in message
+        assert "--alt-range" in message and "two views" in message
+        assert "two views" not in range_outside_prior(AltitudeRange(*tie_range), prior, 5)
