@@ -308,8 +308,9 @@ def consensus_dsms(dsms: Sequence[np.ndarray], *, tolerance_m: float, min_views:
     For each cell the views' heights are sorted and the widest group of them that fits in a
     window of ``2 * tolerance_m`` is found (on a tie, the lowest such group: edge fattening smears
     roof heights onto the ground beside buildings, never the other way); the cell's height is
-    the median of that group, its count the group's size. A cell where fewer than ``min_views`` views agree is left empty: one view's blunder (a shadow
-    matched tens of metres off, a car that moved) is never a height on its own. With
+    the median of that group, its count the group's size. A cell where fewer than
+    ``min_views`` views agree is left empty: one view's blunder (a shadow matched tens of
+    metres off, a car that moved) is never a height on its own. With
     ``view_sets`` (per DSM, the views its height map was matched from: its reference and
     sources, indices < 64), the group must also draw on at least ``min_distinct_views`` views
     in all: two height maps of one pair seen both ways (A against B, B against A) share their
@@ -380,8 +381,9 @@ def fill_small_holes(
     A hole is a 4-connected set of NaN cells; with ``border_holes=False`` only those that do not
     touch the raster border (a gap at the border is not known to be closed). Each hole gets one
     value from its rim (the valid cells 4-adjacent to it, inside the raster): the minimum by
-    default, because small holes in satellite DSMs are mostly ground occluded by a wall, i.e. the lower side; or the median. Returns (filled float32 copy,
-    number of cells filled), which the caller must report.
+    default, because small holes in satellite DSMs are mostly ground occluded by a wall, i.e.
+    the lower side; or the median. Returns (filled float32 copy, number of cells filled), which
+    the caller must report.
     """
     import cv2
 

@@ -184,10 +184,10 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     views of each); ``point_error`` (N,): each point's largest reprojection error (px) with the
     corrected cameras; ``options``: SparseOptions. The points used lie inside the AOI grown by
     ``altitude_aoi_margin_m`` with every error within ``altitude_max_error_px``. The range runs
-    from the lowest altitude of the points seen by ``altitude_floor_views`` views or more (all points when fewer than
-    ``altitude_min_points`` are) to the highest of all, each the lowest or highest altitude
-    supported by ``altitude_support`` points (or ``altitude_support_fraction`` of them) within
-    ``altitude_support_m``
+    from the lowest altitude of the points seen by ``altitude_floor_views`` views or more (all
+    points when fewer than ``altitude_min_points`` are) to the highest of all, each the lowest
+    or highest altitude supported by ``altitude_support`` points (or
+    ``altitude_support_fraction`` of them) within ``altitude_support_m``
     (:func:`supported_extremes`); ``confirm(i)``, when given, is asked about the points above
     that top, highest first (at most ``MAX_CONFIRM_CANDIDATES``), and the first it accepts
     raises the top to its altitude (the sparse stage asks the views,

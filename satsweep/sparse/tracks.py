@@ -170,12 +170,13 @@ CONTRAST_RANK = 256.0
 _CONTRAST_PAIR_FAILED = 0.2
 
 
-def local_contrast_u8(image: np.ndarray) -> np.ndarray:
-    """A tonemapped image (NaN: 0) as 8-bit local contrast (see _CONTRAST_SIGMA_PX): gain,
-    offset and any monotonic grey-level change that is locally affine leave it unchanged."""
+def local_contrast_u8(grey_u8: np.ndarray) -> np.ndarray:
+    """An 8-bit grey image (``_to_u8`` of a tonemapped one) as 8-bit local contrast (see
+    _CONTRAST_SIGMA_PX): gain, offset and any monotonic grey-level change that is locally affine
+    leave it unchanged."""
     import cv2
 
-    x = _to_u8(image).astype(np.float32)
+    x = grey_u8.astype(np.float32)
     d = x - cv2.GaussianBlur(x, (0, 0), _CONTRAST_SIGMA_PX)
     s = cv2.sqrt(cv2.GaussianBlur(cv2.multiply(d, d), (0, 0), _CONTRAST_SIGMA_PX)) + _CONTRAST_FLOOR
     # (OpenCV's arithmetic: a third of numpy's time on 1000 px views; convertScaleAbs rounds and
@@ -257,7 +258,7 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
                     and len(failed) >= _CONTRAST_PAIR_FAILED * len(pair)):
                 for k in (w, v):
                     if k not in contrast:
-                        contrast[k] = local_contrast_u8(images[k])
+                        contrast[k] = local_contrast_u8(grey[k])
                 register(contrast[w], contrast[v], H, failed, CONTRAST_RANK)
     keep = np.isfinite(residual)
     registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
