@@ -226,6 +226,26 @@ def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     return out.reshape((n,) + values.shape[1:])
 
 
+def _inverse_spd3(U: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric positive-definite 3 x 3 blocks ``U`` (N, 3, 3), by their adjugates
+    (a third of ``np.linalg.inv``'s time on thousands of blocks). Raises LinAlgError, as
+    ``np.linalg.inv`` does, when a block is singular (a determinant that is not positive)."""
+    a, b, c = U[:, 0, 0], U[:, 0, 1], U[:, 0, 2]
+    d, e, f = U[:, 1, 1], U[:, 1, 2], U[:, 2, 2]
+    out = np.empty_like(U)
+    out[:, 0, 0] = d * f - e * e
+    out[:, 0, 1] = out[:, 1, 0] = c * e - b * f
+    out[:, 0, 2] = out[:, 2, 0] = b * e - c * d
+    out[:, 1, 1] = a * f - c * c
+    out[:, 1, 2] = out[:, 2, 1] = b * c - a * e
+    out[:, 2, 2] = a * d - b * b
+    det = a * out[:, 0, 0] + b * out[:, 0, 1] + c * out[:, 0, 2]
+    if not np.all(det > 0.0):
+        raise np.linalg.LinAlgError("a point's 3 x 3 normal block is singular")
+    out /= det[:, None, None]
+    return out
+
+
 def _reduced_hessian(V: int, obs: Observations, J: np.ndarray, wr: np.ndarray, point_diag: np.ndarray,
                      damping: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The shifts' normal matrix with the points eliminated (Schur complement), (V, V, 2, 2).
@@ -238,25 +258,30 @@ def _reduced_hessian(V: int, obs: Observations, J: np.ndarray, wr: np.ndarray, p
     The fill-in ``sum_p sum_(k, k' of p) G_k CA_k'^T`` is one dense product of two 2V x 3N
     matrices holding the blocks ``G_k`` and ``CA_k`` (view rows, point columns): O(V^2 N)
     arithmetic in BLAS, where summing the blocks pair by pair costs the square of each track's
-    length (20 views: 4 times faster).
+    length (20 views: 4 times faster). The blocks are written through flat indices and the
+    small products are batched matrix products (einsum and 3-D fancy indexing took twice as
+    long: 20 views, 18 000 observations, 9-12 ms -> 5-9 ms a call).
     """
     N = obs.n_points
     CA = wr[:, :, None] * J  # W_k A_k (M, 2, 3): the shift-point blocks of J^T W J
-    U = _sum_by(obs.point, np.einsum("mai,maj->mij", J, CA), N)
-    U[:, [0, 1, 2], [0, 1, 2]] += point_diag
+    U = _sum_by(obs.point, J.transpose(0, 2, 1) @ CA, N)
+    diagonal = [0, 1, 2]
+    U[:, diagonal, diagonal] += point_diag
     S = _sum_by(obs.view, wr, V)
     # Marquardt's damping: the diagonal scaled by (1 + damping).
-    U[:, [0, 1, 2], [0, 1, 2]] *= 1.0 + damping
+    U[:, diagonal, diagonal] *= 1.0 + damping
     S = S * (1.0 + damping)
-    Uinv = np.linalg.inv(U)
-    G = np.einsum("mai,mij->maj", CA, Uinv[obs.point])  # C_k U_p^-1 (M, 2, 3)
-    rows = (2 * obs.view)[:, None, None] + np.arange(2)[None, :, None]
-    cols = (3 * obs.point)[:, None, None] + np.arange(3)[None, None, :]
-    Gd = np.zeros((2 * V, 3 * N))
-    Cd = np.zeros((2 * V, 3 * N))
-    Gd[rows, cols] = G  # a track sees each view once: no two blocks share an entry
-    Cd[rows, cols] = CA
-    H = -(Gd @ Cd.T)
+    Uinv = _inverse_spd3(U)
+    G = CA @ Uinv[obs.point]  # C_k U_p^-1 (M, 2, 3)
+    # Entry (2 view + a, 3 point + i) of the 2V x 3N matrices, flat; a track sees each view
+    # once, so no two blocks share an entry.
+    flat = (((2 * obs.view)[:, None, None] + np.arange(2)[None, :, None]) * (3 * N)
+            + (3 * obs.point)[:, None, None] + np.arange(3)[None, None, :]).ravel()
+    Gd = np.zeros(6 * V * N)
+    Cd = np.zeros(6 * V * N)
+    Gd[flat] = G.ravel()
+    Cd[flat] = CA.ravel()
+    H = -(Gd.reshape(2 * V, 3 * N) @ Cd.reshape(2 * V, 3 * N).T)
     H[np.arange(2 * V), np.arange(2 * V)] += S.ravel()
     Hs = H.reshape(V, 2, V, 2).transpose(0, 2, 1, 3)
     return Hs, Uinv, CA, G

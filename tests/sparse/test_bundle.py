@@ -133,6 +133,20 @@ def test_reduced_hessian_against_a_loop_over_the_tracks(n_views):
     np.testing.assert_allclose(H, ref, rtol=SCHUR_RTOL, atol=SCHUR_RTOL * np.abs(ref).max())
 
 
+def test_inverse_of_the_point_blocks_against_numpy():
+    """The adjugate inverses of symmetric positive-definite 3 x 3 blocks equal
+    np.linalg.inv's; a singular block raises LinAlgError as np.linalg.inv does."""
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(200, 3, 3))
+    U = A @ A.transpose(0, 2, 1) + 1e-3 * np.eye(3)
+    np.testing.assert_allclose(bundle._inverse_spd3(U), np.linalg.inv(U), rtol=SCHUR_RTOL,
+                               atol=SCHUR_RTOL * np.abs(np.linalg.inv(U)).max())
+    singular = U.copy()
+    singular[7] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])  # rank 1
+    with pytest.raises(np.linalg.LinAlgError):
+        bundle._inverse_spd3(singular)
+
+
 def test_shifting_the_principal_point_moves_projections_exactly():
     cam = three_cameras()[1]
     X = np.random.default_rng(1).uniform(-200.0, 200.0, (50, 3))
