@@ -25,10 +25,11 @@ wide one) gives everything the dense stages need from tie points:
    views' perspective cameras are fitted again over the AOI x that range (over the prior's
    kilometres an RPC is perspective to ~1 px only) and corrected by the coarse translations.
 7. *Fine adjustment* (:func:`satsweep.sparse.bundle.adjust_observations`): the tie points
-   registered to a fraction of a pixel (Lucas-Kanade after a ground-plane warp, again on local
-   contrast where another date's grey levels fail it; of each pair of views the best registered
-   ``refine_keep_fraction``), then the principal-point bundle adjustment with the anchor
-   regulariser (0.01 px^2/m^2), its anchors triangulated with the coarsely corrected cameras.
+   registered to a fraction of a pixel (Lucas-Kanade after a ground-plane warp; on local
+   contrast in pairs of views whose grey levels differ, as another date's do; of each pair of
+   views the best registered ``refine_keep_fraction``), then the principal-point bundle
+   adjustment with the anchor regulariser (0.01 px^2/m^2) and a robust loss whose quadratic
+   zone ends at 0.3 px, its anchors triangulated with the coarsely corrected cameras.
    A view left with fewer than ``min_observations`` observations, or carrying the least
    determined direction of the shifts when that is uncertain by more than
    ``max_shift_sigma_px`` (a view tied along one direction only), is dropped, and 4-7 run again
