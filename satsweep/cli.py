@@ -307,6 +307,9 @@ def _add_synth(sub) -> None:
                    help="multi-date: first day of the 13 months the dates are drawn in (default 2019-01-01)")
     p.add_argument("--no-metadata", action="store_true",
                    help="multi-date: write no .IMD sidecars nor GDAL_METADATA tags (dates and sun angles)")
+    p.add_argument("--product", choices=("dn16", "rgb8"), default=None,
+                   help="the views' images: dn16, 12-bit numbers in uint16 (default), or rgb8, 8-bit RGB "
+                   "stretched per image as pansharpened deliveries (WorldView-3, Pleiades) are")
     p.add_argument("--overwrite", action="store_true", help="replace the scene in a non-empty --out folder")
     p.set_defaults(handler=_cmd_synth)
 
@@ -320,7 +323,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         views = min(2 * args.acquisitions, 64)
     given = {"seed": args.seed, "n_views": views, "size_px": args.size, "gsd_m": args.gsd,
              "bias_px": args.bias, "acquisitions": args.acquisitions, "large_bias_px": args.large_bias,
-             "start_date": args.start_date, "write_metadata": False if args.no_metadata else None}
+             "start_date": args.start_date, "write_metadata": False if args.no_metadata else None,
+             "product": args.product}
     if args.location is not None:
         try:
             lon, lat = (float(v) for v in args.location.split(","))

@@ -6,7 +6,8 @@ default), grouped into passes of 1-3 views on about half as many dates over 13 m
 shadows, vegetation, transients and radiometry differ between dates, viewing azimuths come from
 all around, and a quarter of the views carry pointing errors of half to all of ``--large-bias``
 pixels (50 by default) on top of ``--bias`` (2). Every view has its acquisition metadata
-(``.IMD`` sidecar) unless ``--no-metadata``.
+(``.IMD`` sidecar) unless ``--no-metadata``. ``--product rgb8`` writes them as 8-bit RGB
+stretched per image, as pansharpened deliveries are (the real stacks' form).
 
 For each number of views k, the k views are taken evenly over the scene's views (in date
 order), always with view 0, and reconstructed by ``satsweep.pipeline.reconstruct`` from their
@@ -20,6 +21,7 @@ compares the 10-view result with: at least 5 points more completeness within 1 m
     python tools/bench_multidate.py                        # seeds 0 1, 2/5/10/20 views, 384 px
     python tools/bench_multidate.py --views 2 5 10 --size 256 --seeds 0
     python tools/bench_multidate.py --given-range --no-metadata --json out.json
+    python tools/bench_multidate.py --views 10 --seeds 0 1 2 3 4 5 --product rgb8 --no-pairs
 """
 
 from __future__ import annotations
@@ -53,15 +55,16 @@ TARGET_GAIN_POINTS = 5.0
 
 
 def scene_options(seed: int, n_views: int, size: int, bias: float, large_bias: float,
-                  metadata: bool) -> SynthOptions:
+                  metadata: bool, product: str = "dn16") -> SynthOptions:
     return SynthOptions(seed=seed, n_views=n_views, size_px=size, gsd_m=0.5, bias_px=bias,
                         acquisitions=max(1, n_views // 2), large_bias_px=large_bias,
-                        write_metadata=metadata)
+                        write_metadata=metadata, product=product)
 
 
 def get_scene(cache: Path, options: SynthOptions, log) -> Scene:
     name = (f"s{options.seed}_v{options.n_views}_px{options.size_px}_b{options.bias_px:g}"
-            f"_l{options.large_bias_px:g}_m{int(bool(options.write_metadata))}")
+            f"_l{options.large_bias_px:g}_m{int(bool(options.write_metadata))}"
+            + ("" if options.product == "dn16" else f"_{options.product}"))
     folder = cache / name
     if (folder / "scene.json").is_file():
         return Scene.load(folder)
@@ -126,6 +129,9 @@ def main(argv=None) -> int:
     p.add_argument("--large-bias", type=float, default=50.0,
                    help="largest extra pointing error of a quarter of the views (px)")
     p.add_argument("--no-metadata", action="store_true", help="views without .IMD sidecars")
+    p.add_argument("--product", choices=("dn16", "rgb8"), default="dn16",
+                   help="the views' images (satsweep synth --product): rgb8 = 8-bit RGB stretched per "
+                   "image, as WorldView-3 and Pleiades pansharpened deliveries are")
     p.add_argument("--given-range", action="store_true",
                    help="give the truth's altitude range (widened by 5 m) instead of none")
     p.add_argument("--no-pairs", action="store_true", help="skip the same-date pairs")
@@ -154,7 +160,8 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="satsweep-bench-multidate-") as tmp:
         for seed in args.seeds:
             scene = get_scene(cache, scene_options(seed, max(args.views), args.size, args.bias,
-                                                   args.large_bias, not args.no_metadata), log)
+                                                   args.large_bias, not args.no_metadata,
+                                                   args.product), log)
             for k in args.views:
                 views = subset(len(scene.views), k)
                 row = run(scene, views, Path(tmp) / f"s{seed}_k{k}", args, config)

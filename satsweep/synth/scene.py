@@ -2,7 +2,8 @@
 
 ``generate_scene(out_dir, SynthOptions(...))`` writes into ``out_dir``:
 
-* ``view_NN.tif``: single-band uint16 (12-bit values) images of a seeded town, each seen by a
+* ``view_NN.tif``: single-band uint16 (12-bit values) images (``product="rgb8"``: 8-bit RGB,
+  as pansharpened deliveries are, see :func:`to_rgb8`) of a seeded town, each seen by a
   linear pushbroom satellite (``satsweep.synth.pushbroom``) from its own off-nadir angle and azimuth,
   rendered by exact ray casting (first surface point along each line of sight) with
   ``supersampling**2`` rays per pixel, Lambertian shading under a sun with cast shadows, and
@@ -173,6 +174,10 @@ class SynthOptions(Options):
     # .IMD sidecar and GDAL_METADATA tag with each view's date, sun and satellite angles: None =
     # in multi-date scenes (single-date scenes have no dates; True is refused there)
     write_metadata: bool | None = None
+    # What each view's image is: "dn16", 12-bit digital numbers in a uint16 band (a sensor's
+    # radiometry); "rgb8", an 8-bit RGB delivery as pansharpened products are, each image
+    # stretched to its own range (satsweep.synth.scene.to_rgb8)
+    product: str = "dn16"
 
     def check(self) -> None:
         self._require(self.n_views >= 1, "n_views", "need at least one view")
@@ -243,6 +248,7 @@ class SynthOptions(Options):
                       "large_bias_fraction", "must lie in (0, 1]")
         self._require(not (self.write_metadata and n == 0), "write_metadata",
                       "single-date scenes have no acquisition dates: set acquisitions >= 1")
+        self._require(self.product in PRODUCTS, "product", f"must be one of {', '.join(PRODUCTS)}")
 
     @property
     def multidate(self) -> bool:
@@ -292,9 +298,11 @@ class SynthOptions(Options):
 
     def scene_dict(self) -> dict:
         """The options as scene.json records them: every field, except that a single-date
-        scene leaves out the multi-date fields at their defaults (so that its scene.json is the
-        same as before they existed)."""
+        scene leaves out the multi-date fields at their defaults, and every scene ``product``
+        at its default (so that its scene.json is the same as before they existed)."""
         d = self.to_dict()
+        if self.product == "dn16":
+            del d["product"]  # (scenes from before the field existed)
         if not self.multidate:
             for f in dataclasses.fields(self):
                 if f.name in MULTIDATE_FIELDS and getattr(self, f.name) == f.default:
@@ -443,6 +451,27 @@ def to_dn_radiometric(radiance: np.ndarray, *, gain: float, offset_dn: float, ga
                         dn_max=DN_MAX)
     dn = dn + rng.standard_normal(radiance.shape) * noise_dn
     return np.clip(np.rint(dn), 0, DN_MAX).astype(np.uint16)
+
+
+# The image products of SynthOptions.product.
+PRODUCTS = ("dn16", "rgb8")
+# "rgb8": the quantiles (%) of each view's DN that its stretch maps to 0 and 255 (a dynamic
+# range adjustment of its own, as 8-bit deliveries have: one date's is not another's), the
+# gamma of the stretch, and each channel's (gain, offset) of the stretched value (a grey scene
+# seen through three bands that respond a little differently).
+RGB8_CLIP_PERCENT = (0.5, 99.5)
+RGB8_GAMMA = 1.6
+RGB8_CHANNELS = ((0.97, 0.0), (1.0, 0.0), (0.9, 0.03))
+
+
+def to_rgb8(dn: np.ndarray) -> np.ndarray:
+    """A view's digital numbers as an 8-bit RGB delivery (H, W, 3): stretched from its
+    RGB8_CLIP_PERCENT quantiles to [0, 1], raised to 1 / RGB8_GAMMA, each channel's response
+    applied, rounded to 8 bits. Shadows keep a few grey levels, as they do in such products."""
+    lo, hi = np.percentile(dn, RGB8_CLIP_PERCENT)
+    x = np.clip((dn.astype(np.float64) - lo) / max(float(hi - lo), 1.0), 0.0, 1.0) ** (1.0 / RGB8_GAMMA)
+    rgb = np.stack([gain * x + offset for gain, offset in RGB8_CHANNELS], axis=-1)
+    return np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -738,6 +767,8 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
                 vp = plan.views[k]
                 image = to_dn_radiometric(radiance, gain=vp.gain, offset_dn=vp.offset_dn, gamma=vp.gamma,
                                           noise_dn=options.noise_dn, rng=rng)
+            if options.product == "rgb8":
+                image = to_rgb8(image)
             rpc, fit_res, check = fit_view_rpc(cam, frame, lon_range=lon_range, lat_range=lat_range,
                                                alt_range=alt_cube, bias_px=bias, seed=options.seed + k)
             name = view_name(k)

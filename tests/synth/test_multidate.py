@@ -392,6 +392,32 @@ def test_cli_multidate_flags(tmp_path, capsys):
     assert not (tmp_path / "bad").exists()
 
 
+def test_rgb8_views_are_8bit_rgb_stretched_per_image(tmp_path):
+    """product="rgb8": every view an 8-bit RGB image whose green channel is that view's own DN
+    stretched from its 0.5% to its 99.5% quantile (gamma RGB8_GAMMA), checked against the same
+    scene in DN: an independent stretch of those numbers, within the rounding of 8 bits; the RPC
+    tag and the rest of the scene as they are; the pipeline's reader takes its luminance."""
+    opts = SynthOptions(seed=2, n_views=2, acquisitions=2, size_px=64, gsd_m=2.0, max_off_nadir_deg=15.0)
+    dn = generate_scene(tmp_path / "dn", opts)
+    rgb = generate_scene(tmp_path / "rgb", opts.replace(product="rgb8"))
+    for a, b in zip(dn.views, rgb.views):
+        grey = tifffile.imread(a.image).astype(np.float64)
+        img = tifffile.imread(b.image)
+        assert img.dtype == np.uint8 and img.shape == grey.shape + (3,)
+        lo, hi = np.percentile(grey, (0.5, 99.5))
+        expected = np.clip((grey - lo) / (hi - lo), 0.0, 1.0) ** (1.0 / 1.6) * 255.0
+        assert np.abs(img[..., 1] - expected).max() <= 0.5 + 1e-9  # rounding to 8 bits
+        assert 0.0 < np.mean(img[..., 1] == 0) < 0.02 and 0.0 < np.mean(img[..., 1] == 255) < 0.02
+        with tifffile.TiffFile(a.image) as ta, tifffile.TiffFile(b.image) as tb:
+            assert tb.pages[0].tags[50844].value == ta.pages[0].tags[50844].value  # the RPC tag
+        assert read_image(b.image).shape == grey.shape
+    doc = json.loads((rgb.directory / SCENE_FILE).read_text())
+    assert doc["options"]["product"] == "rgb8"
+    assert "product" not in json.loads((dn.directory / SCENE_FILE).read_text())["options"]
+    with pytest.raises(OptionsError, match="product"):
+        SynthOptions(product="png")
+
+
 # -- realism -----------------------------------------------------------------------------------
 def test_cross_date_pair_fails_where_the_same_date_pair_succeeds(realism_scenes, tmp_path):
     scene = realism_scenes["all"]
