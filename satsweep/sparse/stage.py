@@ -15,8 +15,10 @@ wide one) gives everything the dense stages need from tie points:
    moves all of a pair's epipolar distances by nearly one offset. The threshold is widened by
    the two cameras' approximation errors (the cameras of a wide prior range are approximate).
    Views that the pairs with at least ``min_matches`` verified matches do not link to the
-   largest group of views are matched with ``pair_repair`` more of their candidates; if that
-   fails, they are dropped (another place, mostly cloud).
+   largest group of views are matched with ``pair_repair`` more of their candidates. A group
+   of such views (one date's acquisition, tied within itself) whose weaker pairs into the
+   largest group (``_WEAK_PAIR_MIN`` matches or more each) hold three times ``min_matches``
+   together is linked by them; the views still apart are dropped (another place, mostly cloud).
 4. *Tracks* (:mod:`satsweep.sparse.tracks`): the verified matches chained across views.
 5. *Coarse correction* (:func:`satsweep.sparse.bundle.adjust_coarse`): a robust adjustment of
    one translation per view on the raw keypoints, with no assumption on the size of the
@@ -113,6 +115,17 @@ _FINE_CUBE_MARGIN_M = 30.0
 # Of each pair of views, the fine adjustment keeps at least this many of the best registered tie
 # points (refine_keep_fraction of a few dozen would leave too few to tie small views).
 _MIN_BEST_REGISTERED = 50
+# A group of views tied among themselves by pairs of min_matches or more (one date's views) but
+# by none to the largest group is linked to it by its weaker pairs into it: pairs of at least
+# this many verified matches (each pair's offset then rests on several matches: on the 384 px
+# multi-date crops those of 5-12 matches lie within 1 px of the true offset, those of 2-3 can
+# be tens of pixels off), when together they hold at least _WEAK_LINK_FACTOR x min_matches
+# (three pairs or more; what three pairs that link on their own would bring at the least: on
+# v10 seed 5 with the range given, 30 matches in three pairs linked two views whose corrections
+# came 0.49 px off and moved another view's from 0.34 to 0.64 px; the groups linked by 53-113
+# matches in 6-15 pairs came within 0.1-0.38 px).
+_WEAK_PAIR_MIN = 6
+_WEAK_LINK_FACTOR = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,6 +180,8 @@ class TiedViews:
     coarse: BundleSolution | None
     fine: BundleSolution | None
     seconds: dict[str, float]
+    weak_links: tuple[tuple[int, int], ...] = ()  # pairs of fewer than min_matches that linked
+    # a group of views to the others (_weak_links)
 
 
 def _detect(images: Sequence[np.ndarray], options: SparseOptions) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -197,6 +212,33 @@ def _largest_group(V: int, active: set[int], edges: Sequence[tuple[int, int]],
         if best_key is None or key > best_key:
             best, best_key = members, key
     return best
+
+
+def _weak_links(V: int, active: set[int], main: set[int], counts: dict[tuple[int, int], int],
+                min_matches: int) -> tuple[set[int], list[tuple[int, int]]]:
+    """The largest group ``main`` grown by the groups of views (linked by pairs of at least
+    ``min_matches`` verified matches) whose weaker pairs into it (_WEAK_PAIR_MIN or more) hold
+    at least _WEAK_LINK_FACTOR x ``min_matches`` verified matches together, and those pairs.
+    Another date's
+    acquisition of two or three views shares a few matches with each view of the others and
+    many within itself: no single pair links it, all of them do."""
+    strong = [p for p, k in counts.items() if k >= min_matches and p[0] in active and p[1] in active]
+    ij = np.array(strong, dtype=np.int64).reshape(-1, 2)
+    labels = connected_labels(V, ij[:, 0], ij[:, 1])
+    main, links = set(main), []
+    grown = True
+    while grown:
+        grown = False
+        for lab in np.unique(labels[sorted(active - main)]) if active - main else ():
+            members = {v for v in active - main if labels[v] == lab}
+            weak = [p for p, k in counts.items() if _WEAK_PAIR_MIN <= k < min_matches
+                    and ((p[0] in members and p[1] in main) or (p[1] in members and p[0] in main))]
+            if sum(counts[p] for p in weak) >= _WEAK_LINK_FACTOR * min_matches:
+                main |= members
+                links += weak
+                grown = True
+                break
+    return main, sorted(links)
 
 
 def _shared_points(obs: Observations, V: int) -> np.ndarray:
@@ -354,6 +396,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         if not extra:
             break
         match(extra)
+    main, links = _weak_links(V, active, main, counts, o.min_matches)
     for v in sorted(active - main):
         dropped[v] = _unlinked_reason(v, counts, names, o.min_matches, len(main))
     seconds["matching"] = time.perf_counter() - t0
@@ -370,7 +413,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     sigma = np.full(V, np.inf)
     for _ in range(V):  # each round ties the views or drops at least one
         used = {p: m for p, m in pair_matches.items()
-                if len(m[0]) >= o.min_matches and p[0] not in dropped and p[1] not in dropped}
+                if (len(m[0]) >= o.min_matches or p in links) and p[0] not in dropped
+                and p[1] not in dropped}
         active = set(range(V)) - set(dropped)
         main = _largest_group(V, active, list(used), matches) if active else set()
         for v in sorted(active - main):  # cut off by a view dropped in a previous round
@@ -488,7 +532,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         n_features=n_features, n_tracks=len(tracks),
         track_length_histogram={int(k): int(c) for k, c in enumerate(lengths) if c > 0},
         n_refine_dropped=n_refine_dropped, n_refine_contrast=n_refine_contrast, coarse=coarse,
-        fine=fine, seconds=seconds)
+        fine=fine, seconds=seconds, weak_links=tuple(p for p in links if p[0] in kept and p[1] in kept))
 
 
 # -- the stage -----------------------------------------------------------------------------------
@@ -569,7 +613,8 @@ class SparseResult:
         for (i, j), k in t.matches.items():
             c = cands.get((i, j))
             pairs.append({"views": [n[i], n[j]], "matches": k, "used": i in t.kept
-                          and j in t.kept and k >= self.min_matches,
+                          and j in t.kept and (k >= self.min_matches or (i, j) in t.weak_links),
+                          "weak_link": (i, j) in t.weak_links,
                           "selected": (i, j) in t.graph.selected,
                           "base_to_height": None if c is None else c.base_to_height,
                           "overlap": None if c is None else c.overlap,

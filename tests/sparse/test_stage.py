@@ -243,6 +243,28 @@ def test_a_view_outside_the_largest_group_is_told_why():
     assert _unlinked_reason(6, counts, names, 15, 3) == "no pair of views to match it with"
 
 
+def test_a_date_apart_is_linked_by_its_weak_pairs_together():
+    """Views 3-4 (one date: 120 matches between them) share 7 to 14 verified matches with each of
+    views 0-2: no pair alone reaches 15, together (46) they pass three times 15, so the group
+    joins the largest one by those pairs. A pair of 3 (below _WEAK_PAIR_MIN: its offset rests
+    on too few matches) counts for nothing; view 5's one pair of 14 and views 6-7's pairs of 6
+    and 5 stay short, and so would 3-4 with 44."""
+    from satsweep.sparse.stage import _WEAK_LINK_FACTOR, _WEAK_PAIR_MIN, _weak_links
+
+    assert (_WEAK_PAIR_MIN, _WEAK_LINK_FACTOR) == (6, 3)  # the counts below are set around them
+    counts = {(0, 1): 200, (1, 2): 150, (3, 4): 120, (0, 3): 7, (1, 4): 8, (2, 4): 9,
+              (0, 4): 10, (1, 3): 12, (2, 3): 3, (0, 5): 14, (6, 7): 90, (2, 6): 6, (1, 7): 5}
+    active = set(range(8))
+    main, links = _weak_links(8, active, {0, 1, 2}, counts, 15)
+    assert main == {0, 1, 2, 3, 4} and links == [(0, 3), (0, 4), (1, 3), (1, 4), (2, 4)]
+    main, links = _weak_links(8, active, {0, 1, 2}, counts | {(1, 3): 10}, 15)
+    assert main == {0, 1, 2} and links == []
+    # A group linked through another that weak pairs linked first
+    counts2 = counts | {(3, 6): 14, (4, 7): 13, (3, 7): 12}
+    main, links = _weak_links(8, active, {0, 1, 2}, counts2, 15)
+    assert main == set(range(8)) - {5} and (3, 6) in links and (4, 7) in links
+
+
 def test_a_view_that_shares_no_area_with_the_others_is_dropped(biased):
     """View 1's RPC puts the AOI 190 px further right and down than the others' (a view that sees
     only a corner of a large AOI): it shares about 7% of the AOI with each other view, short of
