@@ -35,8 +35,14 @@ import shutil
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
+
+# This checkout's satsweep first, not an installed one (a run from another worktree measures
+# that worktree's code).
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
 
 
 def _scene(folder: str, views: int, seed: int, size: int, bias: float):

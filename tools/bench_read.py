@@ -21,6 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+# This checkout's satsweep first, not an installed one (a run from another worktree measures
+# that worktree's code).
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
 
 def _scene(size: int) -> np.ndarray:
     """A smooth 12-bit field with a fine texture: compresses like an image, not like noise."""

@@ -16,8 +16,14 @@ import os
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
+
+# This checkout's satsweep first, not an installed one (a run from another worktree measures
+# that worktree's code).
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
 
 
 def main(argv=None) -> int:
