@@ -518,9 +518,11 @@ def robust_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray) -> np.nda
         Mp = np.concatenate([A[v], A[w]], axis=1)  # (pairs, 4, 3)
         bp = np.concatenate([shifts[v], shifts[w]], axis=1)  # (pairs, 4)
         MtM = np.einsum("pki,pkj->pij", Mp, Mp)
-        ok = np.linalg.cond(MtM) < 1e12  # two views of one pass see the motion alike
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ok = np.linalg.cond(MtM) < 1e12  # two views of one pass see the motion alike
         if ok.any():
-            fits = np.linalg.solve(MtM[ok], np.einsum("pki,pk->pi", Mp[ok], bp[ok])[..., None])[..., 0]
+            rhs = np.einsum("pki,pk->pi", Mp[ok], bp[ok])
+            fits = np.linalg.solve(MtM[ok], rhs[..., None])[..., 0]
             off = np.hypot(*(shifts[None] - np.einsum("vai,pi->pva", A, fits)).transpose(2, 0, 1))
             agree = (off <= _GAUGE_CONSENSUS_PX).sum(axis=1)
             order = np.lexsort((off.sum(axis=1), -agree))[:_GAUGE_STARTS]

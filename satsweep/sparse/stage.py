@@ -65,8 +65,8 @@ worst correction within 0.039 px of the truth after the gauge on 3 views, 0.029 
 10, 0.029 on 20; 0.59, 1.14, 2.46 and 4.39 s (20 views / 5 views: 3.8); every altitude range
 held the truth. On the multi-date stacks of tools/bench_multidate.py (10 views of 384 px, one
 to three per date) the tie points between dates are less precise: 0.18 px for the worst view
-(mean over seeds 0-5), 0.06 px for the median one. The Pleiades pair (300 m AOI, the RPCs' -20..2610 m): range
-2261..2391 m from 959 tie points in 0.4 s (S2P's DSM spans 2274..2373 m).
+(mean over seeds 0-5), 0.06 px for the median one. The Pleiades pair (300 m AOI, the RPCs'
+-20..2610 m): range 2261..2391 m from 959 tie points in 0.4 s (S2P's DSM spans 2274..2373 m).
 """
 
 from __future__ import annotations
@@ -219,9 +219,8 @@ def _weak_links(V: int, active: set[int], main: set[int], counts: dict[tuple[int
     """The largest group ``main`` grown by the groups of views (linked by pairs of at least
     ``min_matches`` verified matches) whose weaker pairs into it (_WEAK_PAIR_MIN or more) hold
     at least _WEAK_LINK_FACTOR x ``min_matches`` verified matches together, and those pairs.
-    Another date's
-    acquisition of two or three views shares a few matches with each view of the others and
-    many within itself: no single pair links it, all of them do."""
+    Another date's acquisition of two or three views shares a few matches with each view of the
+    others and many within itself: no single pair links it, all of them do."""
     strong = [p for p, k in counts.items() if k >= min_matches and p[0] in active and p[1] in active]
     ij = np.array(strong, dtype=np.int64).reshape(-1, 2)
     labels = connected_labels(V, ij[:, 0], ij[:, 1])
