@@ -95,7 +95,9 @@ RULES = [
     "(1 - similarity), then incidence; those under min_similarity dropped if a better one "
     "remains; at most max_sources",
     "similarity: from the acquisition metadata when both views have it (1 within one pass, else "
-    "sun-direction and season terms), else measured (gradient ZNCC on the AOI's mid plane)",
+    "sun-direction and season terms), else from the sparse stage's tie points (each pair's "
+    "matches among the strongest features over the stack's largest), else measured (gradient "
+    "ZNCC on the AOI's mid plane)",
 ]
 
 
@@ -110,7 +112,8 @@ class Selection:
     geometry: tuple[ViewGeometry, ...]
     warnings: tuple[str, ...] = ()
     similarity: np.ndarray | None = None  # (n, n) appearance similarity; None: not known
-    similarity_from_metadata: np.ndarray | None = None  # (n, n) bool: pairs the metadata decided
+    similarity_source: np.ndarray | None = None  # (n, n) where each pair's came from:
+    # "metadata", "tie points" or "images" (satsweep.dense.similarity)
 
     def to_dict(self, names: Sequence[str] | None = None) -> dict:
         n = len(self.geometry)
@@ -131,8 +134,8 @@ class Selection:
             ],
             "similarity": (None if self.similarity is None else [
                 {"a": names[i], "b": names[j], "similarity": float(self.similarity[i, j]),
-                 "from": ("metadata" if self.similarity_from_metadata is not None
-                          and self.similarity_from_metadata[i, j] else "images")}
+                 "from": ("images" if self.similarity_source is None
+                          else str(self.similarity_source[i, j]))}
                 for i in range(n) for j in range(i + 1, n)]),
             "rules": RULES,
             "warnings": list(self.warnings),
@@ -180,7 +183,7 @@ def crop_overlap(cam_i, cam_j, mid_height: float, samples: int = 21) -> float:
 def select_views(cameras: Sequence, *, mid_height: float,
                  options: ViewSelectionOptions = ViewSelectionOptions(),
                  names: Sequence[str] | None = None, similarity: np.ndarray | None = None,
-                 similarity_from_metadata: np.ndarray | None = None) -> Selection:
+                 similarity_source: np.ndarray | None = None) -> Selection:
     """Choose references and their sources from the approximated cameras (see module doc).
 
     ``cameras`` are objects with ``center`` (ENU, m), ``P``, ``width`` and ``height``;
@@ -252,7 +255,7 @@ def select_views(cameras: Sequence, *, mid_height: float,
     return Selection(references=tuple(references), sources=sources, b_over_h=bh, overlap=ov,
                      geometry=geometry, warnings=tuple(warnings),
                      similarity=None if similarity is None else sim,
-                     similarity_from_metadata=similarity_from_metadata)
+                     similarity_source=similarity_source)
 
 
 def _range_distance(value: float, o: ViewSelectionOptions) -> float:

@@ -233,11 +233,12 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
         if len(cameras.views) >= MIN_VIEWS_FOR_SIMILARITY:
             from satsweep.dense.similarity import appearance_similarity
 
-            similarity, known = appearance_similarity([s.acquisition for s in sources],
-                                                      images, cameras, job.aoi, mid)
+            similarity, known = appearance_similarity(
+                [s.acquisition for s in sources], images, cameras, job.aoi, mid,
+                matches=None if sparse is None else sparse.match_counts([v.path for v in views]))
         selection = select_views([v.camera for v in cameras.views], mid_height=mid,
                                  options=config.views, names=names, similarity=similarity,
-                                 similarity_from_metadata=known)
+                                 similarity_source=known)
         for w in selection.warnings:
             rep.warn(w)
     sweeps = sweep_references(ctx.device, cameras, images, selection, u_range, config, rep,

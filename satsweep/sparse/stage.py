@@ -591,6 +591,26 @@ class SparseResult:
             out.append((float(self.corrections_px[v, 0]), float(self.corrections_px[v, 1])))
         return out
 
+    def match_counts(self, paths: Sequence[str | os.PathLike]) -> np.ndarray:
+        """(n, n) matches of each pair of the views ``paths``, an appearance similarity
+        (:func:`satsweep.dense.similarity.similarity_from_matches`): the pair graph's probe
+        (verified matches among the strongest features), or, in a stack small enough that every
+        pair was matched without a probe, the pairs' verified matches; NaN for pairs without
+        either and for views the stage was not given."""
+        index = {os.path.realpath(p): k for k, p in enumerate(self.paths)}
+        where = [index.get(os.path.realpath(p)) for p in paths]
+        probes = {(c.i, c.j): c.probe for c in self.tied.graph.candidates if c.probe >= 0}
+        if not probes:
+            probes = dict(self.tied.matches)
+        out = np.full((len(where), len(where)), np.nan)
+        for a, i in enumerate(where):
+            for b, j in enumerate(where):
+                if i is not None and j is not None and i != j:
+                    k = probes.get((min(i, j), max(i, j)))
+                    if k is not None:
+                        out[a, b] = k
+        return out
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (the ``sparse`` section of report.json)."""
         t, n = self.tied, self.names

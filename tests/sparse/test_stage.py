@@ -243,6 +243,24 @@ def test_a_view_outside_the_largest_group_is_told_why():
     assert _unlinked_reason(6, counts, names, 15, 3) == "no pair of views to match it with"
 
 
+def test_match_counts_follow_the_given_paths(biased_result):
+    """SparseResult.match_counts: each pair's matches (3 views: every pair matched, no probe, so
+    the verified matches), symmetric, in the order of the paths asked for; NaN on the diagonal
+    and for a path the stage was not given."""
+    result, views = biased_result
+    assert not any(c.probe >= 0 for c in result.tied.graph.candidates)
+    matches = result.tied.matches
+    order = [views[2].path, views[0].path, "elsewhere.tif", views[1].path]
+    counts = result.match_counts(order)
+    given = [2, 0, None, 1]
+    for a, i in enumerate(given):
+        for b, j in enumerate(given):
+            want = (np.nan if i is None or j is None or i == j
+                    else matches.get((min(i, j), max(i, j)), np.nan))
+            assert (np.isnan(counts[a, b]) and np.isnan(want)) or counts[a, b] == want
+    assert np.isfinite(counts[[0, 1, 3]][:, [0, 1, 3]][~np.eye(3, dtype=bool)]).all()
+
+
 def test_a_date_apart_is_linked_by_its_weak_pairs_together():
     """Views 3-4 (one date: 120 matches between them) share 7 to 14 verified matches with each of
     views 0-2: no pair alone reaches 15, together (46) they pass three times 15, so the group

@@ -1,0 +1,85 @@
+"""The appearance similarity that ranks a reference's sources (satsweep.dense.similarity):
+from the metadata, from the sparse stage's probe matches, and which decided each pair."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from satsweep.dense.similarity import (
+    SEASON_SCALE_DAYS,
+    SUN_SCALE_DEG,
+    appearance_similarity,
+    metadata_similarity,
+    similarity_from_matches,
+)
+from satsweep.io.metadata import AcquisitionMetadata
+
+NAN = float("nan")
+# Float64 arithmetic on counts of a few hundred: exact to rounding.
+EXACT = 1e-12
+
+
+def _reference_from_matches(counts: np.ndarray) -> np.ndarray:
+    """similarity_from_matches by loops: count / largest; unprobed pairs through one third view
+    (the largest of the smaller similarities of the two legs); NaN where none."""
+    n = len(counts)
+    top = max(counts[i, j] for i in range(n) for j in range(n) if i != j and not math.isnan(counts[i, j]))
+    s = np.full((n, n), NAN)
+    for i in range(n):
+        for j in range(n):
+            s[i, j] = 1.0 if i == j else counts[i, j] / top
+    out = s.copy()
+    for i in range(n):
+        for j in range(n):
+            if math.isnan(s[i, j]):
+                legs = [min(s[i, k], s[k, j]) for k in range(n)
+                        if not math.isnan(s[i, k]) and not math.isnan(s[k, j])]
+                out[i, j] = max(legs) if legs and max(legs) > 0 else NAN
+    return out
+
+
+def test_similarity_from_probe_matches_groups_the_dates():
+    """Views 0-1 of one date (120 probe matches), 2-3 of another (90), 10-30 between dates; the
+    pairs 1-3 and 0-4 were not probed, view 4 was probed with view 2 only. Each count over the
+    largest; an unprobed pair through its best third view, against a loop reference."""
+    c = np.full((5, 5), NAN)
+    for (i, j), k in {(0, 1): 120, (2, 3): 90, (0, 2): 20, (0, 3): 30, (1, 2): 10,
+                      (2, 4): 60}.items():
+        c[i, j] = c[j, i] = k
+    s = similarity_from_matches(c)
+    np.testing.assert_allclose(s, _reference_from_matches(c), atol=EXACT)
+    assert s[0, 1] == 1.0 and abs(s[2, 3] - 0.75) < EXACT
+    assert abs(s[1, 3] - 0.25) < EXACT  # through view 0: min(1.0, 30 / 120)
+    assert abs(s[3, 4] - 0.5) < EXACT  # through view 2: min(0.75, 60 / 120)
+    # Nothing probed: nothing known but the diagonal
+    none = similarity_from_matches(np.full((3, 3), NAN))
+    assert np.isnan(none[~np.eye(3, dtype=bool)]).all() and (np.diag(none) == 1.0).all()
+
+
+def test_metadata_then_tie_points_decide_each_pair():
+    """Views 0-1 of one pass (metadata: 1), view 2 without metadata: its pairs come from the
+    probe matches. Every pair decided, so the images are not measured (none are given)."""
+    t0 = "2019-06-01T10:31:12Z"
+    acq = [AcquisitionMetadata(acquisition_time_utc=t0, sun_azimuth_deg=150.0, sun_elevation_deg=60.0),
+           AcquisitionMetadata(acquisition_time_utc="2019-06-01T10:31:40Z", sun_azimuth_deg=150.0,
+                               sun_elevation_deg=60.0),
+           None]
+    c = np.array([[NAN, 10.0, 40.0], [10.0, NAN, 80.0], [40.0, 80.0, NAN]])
+    sim, source = appearance_similarity(acq, [None] * 3, None, None, 0.0, matches=c)
+    assert source[0, 1] == "metadata" and sim[0, 1] == 1.0
+    assert source[0, 2] == source[2, 1] == "tie points"
+    assert abs(sim[0, 2] - 0.5) < EXACT and abs(sim[1, 2] - 1.0) < EXACT
+
+
+def test_metadata_similarity_of_two_dates():
+    """Sun directions 15 degrees apart at one elevation and 45 days apart: exp(-1/2) each."""
+    a = AcquisitionMetadata(acquisition_time_utc="2019-06-01T10:30:00Z", sun_azimuth_deg=150.0,
+                            sun_elevation_deg=90.0 - 1e-9)
+    b = AcquisitionMetadata(acquisition_time_utc="2019-07-16T10:30:00Z", sun_azimuth_deg=150.0,
+                            sun_elevation_deg=90.0 - SUN_SCALE_DEG)
+    s = metadata_similarity(a, b)
+    assert abs(s - math.exp(-1.0)) < 1e-6, s
+    assert SEASON_SCALE_DAYS == 45.0
+    assert metadata_similarity(a, None) is None
