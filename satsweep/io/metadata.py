@@ -16,7 +16,9 @@ later source that disagrees adds a warning naming both files (its value is not u
    ``YYYY-MM-DD HH:MM:SS``, UTC; ISO-8601 is read too), ``SATELLITEID``, ``CLOUDCOVER`` (percent,
    999 = not available), and ``SUN_AZIMUTH`` / ``SUN_ELEVATION`` items. Items of the IMAGERY
    domain win over items without a domain; band items (with a ``sample`` attribute) are not
-   read. The image's own tag comes first for the reason its RPC tag does
+   read. Where those keys are missing, the items GDAL copies from a NITF delivery into a GeoTIFF
+   converted from it: ``NITF_IDATIM`` (``CCYYMMDDhhmmss``, UTC) and ``NITF_USE00A_SUN_AZ`` /
+   ``NITF_USE00A_SUN_EL``. The image's own tag comes first for the reason its RPC tag does
    (``RPCModel.from_image``): it cannot be separated from the pixels, a sidecar can.
 2. GDAL's PAM sidecar ``IMAGE.tif.aux.xml``: ``<Metadata domain="IMAGERY"><MDI key="...">``,
    the same keys.
@@ -251,13 +253,29 @@ class _Source:
 
 
 # -- GDAL metadata (TIFF tag, PAM) ---------------------------------------------------------------
+def _nitf_idatim(text: str | None) -> str | None:
+    """NITF 2.1's image date-time ``CCYYMMDDhhmmss`` (UTC) as ISO-8601; other texts as they are
+    (the time parser then says what is wrong); None for an empty one."""
+    value = (text or "").strip()
+    if re.fullmatch(r"\d{14}", value):
+        return (f"{value[0:4]}-{value[4:6]}-{value[6:8]}T{value[8:10]}:{value[10:12]}:"
+                f"{value[12:14]}Z")
+    return value or None
+
+
 def _gdal_items(source: _Source, items: dict[str, str]) -> None:
-    """GDAL's IMAGERY keys (upper-cased) -> values."""
+    """GDAL's IMAGERY keys (upper-cased) -> values; then the NITF items that GDAL copies into a
+    GeoTIFF converted from a NITF delivery (WorldView's, the IARPA and DFC2019 stacks):
+    ``NITF_IDATIM`` (image date-time) and the USE00A TRE's ``NITF_USE00A_SUN_AZ`` /
+    ``NITF_USE00A_SUN_EL``, where the IMAGERY keys do not say."""
     source.time("ACQUISITIONDATETIME", items.get("ACQUISITIONDATETIME"))
     source.text("satellite", items.get("SATELLITEID"))
     source.angle("sun_azimuth_deg", "SUN_AZIMUTH", items.get("SUN_AZIMUTH"))
     source.angle("sun_elevation_deg", "SUN_ELEVATION", items.get("SUN_ELEVATION"))
     source.cloud("CLOUDCOVER", items.get("CLOUDCOVER"), fraction=False)
+    source.time("NITF_IDATIM", _nitf_idatim(items.get("NITF_IDATIM")))
+    source.angle("sun_azimuth_deg", "NITF_USE00A_SUN_AZ", items.get("NITF_USE00A_SUN_AZ"))
+    source.angle("sun_elevation_deg", "NITF_USE00A_SUN_EL", items.get("NITF_USE00A_SUN_EL"))
 
 
 def _parse_xml(source: _Source, data: bytes | str) -> ElementTree.Element | None:

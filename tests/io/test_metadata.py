@@ -83,6 +83,27 @@ def test_synthetic_gdal_metadata_tag(tmp_path):
     assert "GDAL_METADATA" in meta.source_of("acquisition_time_utc") and meta.warnings == ()
 
 
+def test_nitf_items_of_a_geotiff_converted_from_nitf(tmp_path):
+    """gdal_translate of a WorldView NITF copies its default-domain items into the GeoTIFF's
+    GDAL_METADATA tag (no domain): the image date-time NITF_IDATIM (CCYYMMDDhhmmss, UTC) and the
+    USE00A TRE's sun angles. They give the date and sun where no IMAGERY key does; an IMAGERY
+    key, when present, wins; a malformed NITF_IDATIM is a warning naming the key."""
+    nitf = ('<GDALMetadata><Item name="NITF_IDATIM">20150219160412</Item>'
+            '<Item name="NITF_USE00A_SUN_AZ">153.7</Item><Item name="NITF_USE00A_SUN_EL">38.9</Item>'
+            '<Item name="NITF_IID2">15FEB19160412-P1BS-500648062030_01_P001</Item></GDALMetadata>')
+    meta = read_acquisition_metadata(_tiff(tmp_path / "n.tif", nitf))
+    assert meta.acquisition_time_utc == "2015-02-19T16:04:12Z"
+    assert (meta.sun_azimuth_deg, meta.sun_elevation_deg) == (153.7, 38.9)
+    assert meta.warnings == ()
+    both = nitf.replace("</GDALMetadata>", '<Item name="SUN_AZIMUTH" domain="IMAGERY">150.0</Item>'
+                        "</GDALMetadata>")
+    assert read_acquisition_metadata(_tiff(tmp_path / "b.tif", both)).sun_azimuth_deg == 150.0
+    bad = nitf.replace("20150219160412", "2015021916")
+    meta = read_acquisition_metadata(_tiff(tmp_path / "bad.tif", bad))
+    assert meta.acquisition_time_utc is None
+    assert any("NITF_IDATIM" in w for w in meta.warnings), meta.warnings
+
+
 def test_tag_and_sidecar_together_merge_field_by_field(tmp_path):
     image = _tiff(tmp_path / "v.tif", SYNTH_TAG)
     (tmp_path / "V.imd").write_text(SYNTH_IMD)  # stems match case-insensitively
