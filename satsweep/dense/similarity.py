@@ -147,11 +147,12 @@ def similarity_from_matches(counts: np.ndarray) -> np.ndarray:
     n = c.shape[0]
     off = ~np.eye(n, dtype=bool)
     finite = np.isfinite(c) & off
-    if not finite.any() or np.nanmax(c[finite]) <= 0.0:
+    top = float(np.max(c[finite])) if finite.any() else 0.0
+    if top <= 0.0:
         out = np.full((n, n), np.nan)
         np.fill_diagonal(out, 1.0)
         return out
-    s = np.where(finite, np.clip(c / np.max(c[finite]), 0.0, 1.0), np.nan)
+    s = np.where(finite, np.clip(c / top, 0.0, 1.0), np.nan)
     np.fill_diagonal(s, 1.0)
     known = np.nan_to_num(s, nan=0.0)
     via = np.max(np.minimum(known[:, :, None], known[None, :, :]), axis=1)

@@ -229,16 +229,16 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     u_range = enu_height_range(cameras.frame, job.aoi, alt)
     mid = 0.5 * (u_range[0] + u_range[1])
     with rep.stage("select"):
-        similarity = known = None
+        similarity = similarity_source = None
         if len(cameras.views) >= MIN_VIEWS_FOR_SIMILARITY:
             from satsweep.dense.similarity import appearance_similarity
 
-            similarity, known = appearance_similarity(
+            similarity, similarity_source = appearance_similarity(
                 [s.acquisition for s in sources], images, cameras, job.aoi, mid,
                 matches=None if sparse is None else sparse.match_counts([v.path for v in views]))
         selection = select_views([v.camera for v in cameras.views], mid_height=mid,
                                  options=config.views, names=names, similarity=similarity,
-                                 similarity_source=known)
+                                 similarity_source=similarity_source)
         for w in selection.warnings:
             rep.warn(w)
     sweeps = sweep_references(ctx.device, cameras, images, selection, u_range, config, rep,

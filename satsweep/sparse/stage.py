@@ -579,13 +579,17 @@ class SparseResult:
         c = self.corrections_px[list(self.kept)]
         return float(np.abs(c).max(initial=0.0))
 
+    def _indices(self, paths: Sequence[str | os.PathLike]) -> list[int | None]:
+        """Each path's index among the views given to the stage (None: not given), the files
+        compared by their real paths."""
+        index = {os.path.realpath(p): v for v, p in enumerate(self.paths)}
+        return [index.get(os.path.realpath(os.fspath(p))) for p in paths]
+
     def corrections_for(self, paths: Sequence[str | os.PathLike]) -> list[tuple[float, float]]:
         """The corrections of the given images (kept views only), in their order: the shifts to
         pass to ``shift_principal_points`` for a CameraSet of those images."""
-        index = {os.path.realpath(p): v for v, p in enumerate(self.paths)}
         out = []
-        for p in paths:
-            v = index.get(os.path.realpath(os.fspath(p)))
+        for p, v in zip(paths, self._indices(paths)):
             if v is None or v not in self.kept:
                 raise InputError(p, "no pointing correction: the sparse stage did not tie this view")
             out.append((float(self.corrections_px[v, 0]), float(self.corrections_px[v, 1])))
@@ -597,8 +601,7 @@ class SparseResult:
         (verified matches among the strongest features), or, in a stack small enough that every
         pair was matched without a probe, the pairs' verified matches; NaN for pairs without
         either and for views the stage was not given."""
-        index = {os.path.realpath(p): k for k, p in enumerate(self.paths)}
-        where = [index.get(os.path.realpath(p)) for p in paths]
+        where = self._indices(paths)
         probes = {(c.i, c.j): c.probe for c in self.tied.graph.candidates if c.probe >= 0}
         if not probes:
             probes = dict(self.tied.matches)
