@@ -5,7 +5,8 @@ Each seed's scene (``satsweep synth --acquisitions``) holds the most views asked
 default), grouped into passes of 1-3 views on about half as many dates over 13 months: sun,
 shadows, vegetation, transients and radiometry differ between dates, viewing azimuths come from
 all around, and a quarter of the views carry pointing errors of half to all of ``--large-bias``
-pixels (50 by default) on top of ``--bias`` (2). Every view has its acquisition metadata
+pixels (50 by default) on top of ``--bias`` (2); ``--dates N`` sets the number of dates (as
+many as views: one view per date, so no same-date pair). Every view has its acquisition metadata
 (``.IMD`` sidecar) unless ``--no-metadata``. ``--product rgb8`` writes them as 8-bit RGB
 stretched per image, as pansharpened deliveries are (the real stacks' form).
 
@@ -55,16 +56,18 @@ TARGET_GAIN_POINTS = 5.0
 
 
 def scene_options(seed: int, n_views: int, size: int, bias: float, large_bias: float,
-                  metadata: bool, product: str = "dn16") -> SynthOptions:
+                  metadata: bool, product: str = "dn16", dates: int | None = None) -> SynthOptions:
     return SynthOptions(seed=seed, n_views=n_views, size_px=size, gsd_m=0.5, bias_px=bias,
-                        acquisitions=max(1, n_views // 2), large_bias_px=large_bias,
+                        acquisitions=dates or max(1, n_views // 2), large_bias_px=large_bias,
                         write_metadata=metadata, product=product)
 
 
 def get_scene(cache: Path, options: SynthOptions, log) -> Scene:
     name = (f"s{options.seed}_v{options.n_views}_px{options.size_px}_b{options.bias_px:g}"
             f"_l{options.large_bias_px:g}_m{int(bool(options.write_metadata))}"
-            + ("" if options.product == "dn16" else f"_{options.product}"))
+            + ("" if options.product == "dn16" else f"_{options.product}")
+            + ("" if options.acquisitions == max(1, options.n_views // 2)
+               else f"_d{options.acquisitions}"))
     folder = cache / name
     if (folder / "scene.json").is_file():
         return Scene.load(folder)
@@ -132,6 +135,9 @@ def main(argv=None) -> int:
     p.add_argument("--product", choices=("dn16", "rgb8"), default="dn16",
                    help="the views' images (satsweep synth --product): rgb8 = 8-bit RGB stretched per "
                    "image, as WorldView-3 and Pleiades pansharpened deliveries are")
+    p.add_argument("--dates", type=int, default=None,
+                   help="acquisition dates of the scene (default: half its views, in passes of 1-3 "
+                   "views); as many as views: one view per date, as most real stacks are")
     p.add_argument("--given-range", action="store_true",
                    help="give the truth's altitude range (widened by 5 m) instead of none")
     p.add_argument("--no-pairs", action="store_true", help="skip the same-date pairs")
@@ -161,7 +167,7 @@ def main(argv=None) -> int:
         for seed in args.seeds:
             scene = get_scene(cache, scene_options(seed, max(args.views), args.size, args.bias,
                                                    args.large_bias, not args.no_metadata,
-                                                   args.product), log)
+                                                   args.product, args.dates), log)
             for k in args.views:
                 views = subset(len(scene.views), k)
                 row = run(scene, views, Path(tmp) / f"s{seed}_k{k}", args, config)

@@ -39,6 +39,9 @@ class SparseOptions(Options):
     altitude_max_error_px: float = 1.0  # tie points reprojected farther (px) do not bound heights
     altitude_min_points: int = 20  # fewest usable tie points that bound the heights
     altitude_floor_views: int = 3  # the lowest end comes from tie points of this many views
+    altitude_floor_fewer_fraction: float = 0.05  # ... or from those of fewer views, where this
+    # fraction of them share an altitude below that floor's margin (a ground that few views tie,
+    # as on stacks of one view per date); 0: never
     altitude_support: int = 2  # tie points that must share an end's altitude within support_m
     altitude_support_fraction: float = 0.001  # ... or this fraction of them, when more
     altitude_support_m: float = 3.0  # height window (m) of that support
@@ -52,7 +55,8 @@ class SparseOptions(Options):
                 "mutual", "geometric_model", "ransac_threshold_px", "ransac_iterations", "seed",
                 "pair_min_overlap", "pair_bh_range", "pair_probe_features", "pair_repair",
                 "camera_grid", "altitude_max_error_px", "altitude_min_points",
-                "altitude_floor_views", "altitude_support", "altitude_support_fraction",
+                "altitude_floor_views", "altitude_floor_fewer_fraction", "altitude_support",
+                "altitude_support_fraction",
                 "altitude_support_m", "altitude_margin_below_m", "altitude_margin_above_m",
                 "altitude_aoi_margin_m")
 
@@ -92,6 +96,9 @@ class SparseOptions(Options):
         self._require(self.altitude_min_points >= 2, "altitude_min_points", "must be at least 2")
         self._require(self.altitude_floor_views >= 2, "altitude_floor_views", "must be at least 2")
         self._require(self.altitude_support >= 1, "altitude_support", "must be at least 1")
+        self._require(math.isfinite(self.altitude_floor_fewer_fraction)
+                      and 0.0 <= self.altitude_floor_fewer_fraction <= 1.0,
+                      "altitude_floor_fewer_fraction", "must be a fraction in [0, 1] (0: never)")
         self._require(math.isfinite(self.altitude_support_fraction)
                       and 0.0 <= self.altitude_support_fraction < 0.5,
                       "altitude_support_fraction", "must be a fraction in [0, 0.5)")

@@ -45,6 +45,11 @@ REFINE_HALF_M = 50.0
 MIN_TIE_POINTS = 20
 # Points above the supported top that are checked against the views, highest first.
 MAX_CONFIRM_CANDIDATES = 16
+# Fewest points of fewer than altitude_floor_views views that can set the floor (with the
+# fraction altitude_floor_fewer_fraction of them): wrong two-view matches agree in twos and
+# threes by chance (a 5-view multi-date stack: two of 136 within 3 m of each other at 11 m, 89 m
+# under the ground), a ground seen by two views at a time in dozens.
+FEWER_VIEWS_MIN_SUPPORT = 5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,6 +171,15 @@ def supported_extremes(alt: np.ndarray, support: int, window_m: float) -> tuple[
     return float(lo), float(hi)
 
 
+def lowest_supported(alt: np.ndarray, support: int, window_m: float) -> float | None:
+    """The lowest altitude ``a`` with at least ``support`` values in ``[a, a + window_m]``, or
+    None when no altitude has that support."""
+    a = np.sort(np.asarray(alt, np.float64))
+    above = np.searchsorted(a, a + window_m, side="right") - np.arange(len(a))
+    ok = np.flatnonzero(above >= support)
+    return float(a[ok[0]]) if ok.size else None
+
+
 def _near_aoi(points: np.ndarray, frame, aoi: AOI, margin_m: float) -> np.ndarray:
     """Which ENU ``points`` lie within ``margin_m`` of the AOI (its ENU bounding box, grown)."""
     lon, lat = aoi.boundary()
@@ -185,7 +199,10 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     corrected cameras; ``options``: SparseOptions. The points used lie inside the AOI grown by
     ``altitude_aoi_margin_m`` with every error within ``altitude_max_error_px``. The range runs
     from the lowest altitude of the points seen by ``altitude_floor_views`` views or more (all
-    points when fewer than ``altitude_min_points`` are) to the highest of all, each the lowest
+    points when fewer than ``altitude_min_points`` are; or that of the points of fewer views,
+    when it lies more than ``altitude_margin_below_m`` lower and ``altitude_floor_fewer_fraction``
+    of them, and FEWER_VIEWS_MIN_SUPPORT at least, share it within ``altitude_support_m``) to
+    the highest of all, each the lowest
     or highest altitude supported by ``altitude_support`` points (or
     ``altitude_support_fraction`` of them) within ``altitude_support_m``
     (:func:`supported_extremes`); ``confirm(i)``, when given, is asked about the points above
@@ -234,6 +251,19 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
         return max(o.altitude_support, math.ceil(o.altitude_support_fraction * n))
 
     lo = supported_extremes(alt[floor], support(int(floor.sum())), o.altitude_support_m)[0]
+    fewer = use & ~floor
+    if fewer.any() and o.altitude_floor_fewer_fraction > 0.0:
+        # A ground that few views tie (each date's texture differs: one view per date) leaves
+        # the points of many views on the roofs; the points of fewer views then show it where a
+        # good share of them agree on its height (wrong matches scatter theirs), below what the
+        # margin adds to the floor of the points of many views.
+        need = max(FEWER_VIEWS_MIN_SUPPORT,
+                   math.ceil(o.altitude_floor_fewer_fraction * fewer.sum()))
+        low = lowest_supported(alt[fewer], need, o.altitude_support_m)
+        if low is not None and low < lo - o.altitude_margin_below_m:
+            record["floor_from_fewer_views"] = {"altitude_m": low, "points": int(fewer.sum()),
+                                                "support": need}
+            lo = low
     hi = supported_extremes(a, support(a.size), o.altitude_support_m)[1]
     record["supported_extremes_m"] = [lo, hi]
     if confirm is not None:

@@ -3,6 +3,8 @@ altitude range that reconstruct sweeps when the user gives none."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -170,6 +172,36 @@ def test_adjusted_range_takes_its_floor_from_points_of_three_views():
     rng, _ = altitude_range_from_points(points, obs, err, _Frame, aoi, o,
                                         within=AltitudeRange(99.0, 150.5))
     assert rng == AltitudeRange(99.0, 151.0)
+
+
+def test_adjusted_range_takes_a_ground_of_two_view_points_under_that_of_three():
+    """One view per date: the ground's texture changes, so its tie points are of two views
+    (60 at 100-101 m) while the roofs' are of three or more (30 at 120 m, 30 at 150 m). The
+    floor is the two-view ground's, not the lower roof's; a handful of two-view points agreeing
+    lower (4 at 60 m, fewer than FEWER_VIEWS_MIN_SUPPORT) does not set it, nor does a two-view
+    ground within the margin under the three-view floor."""
+    from satsweep.sparse.tiepoints import FEWER_VIEWS_MIN_SUPPORT
+
+    o = SparseOptions()
+    ground = list(np.linspace(100.0, 101.0, 60))
+    roofs = [120.0 + 0.01 * k for k in range(30)] + [150.0 + 0.01 * k for k in range(30)]
+    wrong = [60.0, 60.5, 61.0, 61.5][:FEWER_VIEWS_MIN_SUPPORT - 1]
+    alts = ground + roofs + wrong
+    views = [2] * 60 + [3] * 60 + [2] * len(wrong)
+    points, obs, err, aoi = _adjusted(alts, views, [0.2] * len(alts))
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert rng.min == 100.0 - o.altitude_margin_below_m
+    assert record["floor_from_fewer_views"]["altitude_m"] == 100.0
+    assert record["floor_from_fewer_views"]["points"] == 60 + len(wrong)
+    # switched off: the floor of the three-view points
+    off = dataclasses.replace(o, altitude_floor_fewer_fraction=0.0)
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, off)
+    assert rng.min == 120.0 - o.altitude_margin_below_m and "floor_from_fewer_views" not in record
+    # a two-view ground within the margin under the three-view floor leaves it
+    near = [a + 17.0 for a in ground] + roofs + wrong  # 117-118 m against 120 m
+    points, obs, err, aoi = _adjusted(near, views, [0.2] * len(near))
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert rng.min == 120.0 - o.altitude_margin_below_m and "floor_from_fewer_views" not in record
 
 
 def test_adjusted_range_needs_enough_points_near_the_aoi():
