@@ -161,14 +161,11 @@ def supported_extremes(alt: np.ndarray, support: int, window_m: float) -> tuple[
     own, while the ground and each roof hold several tie points at nearly the same height.
     Falls back to the extremes when no altitude has that support (fewer values than it)."""
     a = np.sort(np.asarray(alt, np.float64))
-    n = len(a)
-    k = np.arange(n)
-    below = k - np.searchsorted(a, a - window_m, side="left") + 1
-    above = np.searchsorted(a, a + window_m, side="right") - k
-    lo_ok, hi_ok = np.flatnonzero(above >= support), np.flatnonzero(below >= support)
-    lo = a[lo_ok[0]] if lo_ok.size else a[0]
+    below = np.arange(len(a)) - np.searchsorted(a, a - window_m, side="left") + 1
+    hi_ok = np.flatnonzero(below >= support)
+    lo = lowest_supported(a, support, window_m)
     hi = a[hi_ok[-1]] if hi_ok.size else a[-1]
-    return float(lo), float(hi)
+    return float(a[0] if lo is None else lo), float(hi)
 
 
 def lowest_supported(alt: np.ndarray, support: int, window_m: float) -> float | None:
