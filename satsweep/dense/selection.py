@@ -20,7 +20,8 @@ Rules (documented in the report):
 - appearance: sources are ranked by their distance to ``target_b_over_h`` (relative to it)
   plus ``similarity_weight`` times (1 - their appearance similarity with the reference, from the
   acquisition metadata or measured from the images: ``satsweep.dense.similarity``); sources
-  less similar than ``min_similarity`` are left out when the reference keeps a better one;
+  less similar than ``min_similarity`` are left out when the reference keeps a better one,
+  unless the metadata say that every source is of another date (``CLOSE_SIMILARITY``);
 - references are taken by incidence plus ``REFERENCE_DISSIMILARITY_DEG`` times (1 - the mean
   similarity of its best sources): a view that sees the AOI steeply but only from other dates
   comes after one that has sources of its own date.
@@ -44,6 +45,17 @@ MIN_STEREO_B_OVER_H = 0.01
 # weighs when the references are ordered: a reference whose sources are all of other dates
 # counts as 30 degrees more oblique.
 REFERENCE_DISSIMILARITY_DEG = 30.0
+# Metadata similarity from which a source counts as taken in the reference's conditions: its pass
+# (1), or a sun within about 7 degrees in the same season (similarity.metadata_similarity). When
+# the metadata say that no source is, min_similarity leaves none out: all are of other dates, and
+# the lowest costs of several (the sweep's n_best_sources) outvote the shadows and seasons of
+# each better than one or two sources do. One view per date (tools/bench_multidate.py --dates
+# 10, seeds 0-5): 85.35 -> 87.27% within 1 m, DFC MAE 1.511 -> 1.493 m; held-out seeds 6-9
+# 81.72 -> 83.67%, 1.749 -> 1.567 m; 10 of 20 views (v20 seeds 0-3) 83.95 -> 85.83%; the
+# 10-view stacks of passes (seeds 0-5) 92.13 -> 92.18%, their 5-view subsets 71.05 -> 76.83%.
+# Not applied to similarities measured from tie points or images, whose values do not tell a
+# pass from a date of like conditions (a pass's pairs score 0.52-1.0, other dates' up to 0.83).
+CLOSE_SIMILARITY = 0.9
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,7 +105,8 @@ RULES = [
     "pair, with a warning), no pair under B/H 0.01",
     "sources ranked by |B/H - target_b_over_h| / target_b_over_h + similarity_weight x "
     "(1 - similarity), then incidence; those under min_similarity dropped if a better one "
-    "remains; at most max_sources",
+    "remains, unless the metadata say that every source is of another date (similarity under "
+    f"{CLOSE_SIMILARITY:g} to all: then none is); at most max_sources",
     "similarity: from the acquisition metadata when both views have it (1 within one pass, else "
     "sun-direction and season terms), else from the sparse stage's tie points (each pair's "
     "matches among the strongest features over the stack's largest), else measured (gradient "
@@ -219,6 +232,14 @@ def select_views(cameras: Sequence, *, mid_height: float,
         best = cands[:o.max_sources] or [1.0]
         return geometry[r].incidence_deg + REFERENCE_DISSIMILARITY_DEG * (1.0 - float(np.mean(best)))
 
+    def _all_other_dates(r: int, sources: Sequence[int]) -> bool:
+        """Whether the metadata say that none of ``sources`` shares the reference's conditions
+        (see CLOSE_SIMILARITY)."""
+        if similarity_source is None or not sources:
+            return False
+        return all(similarity_source[r, j] == "metadata" and sim[r, j] < CLOSE_SIMILARITY
+                   for j in sources)
+
     warnings: list[str] = []
     order = sorted(range(n), key=lambda r: (reference_cost(r), geometry[r].incidence_deg))
     references: list[int] = []
@@ -244,8 +265,9 @@ def select_views(cameras: Sequence, *, mid_height: float,
                             "not used as a reference")
             continue
         good.sort(key=lambda j: source_cost(r, j))
-        similar = [j for j in good if sim[r, j] >= o.min_similarity]
-        good = similar or good[:1]
+        if not _all_other_dates(r, good):
+            similar = [j for j in good if sim[r, j] >= o.min_similarity]
+            good = similar or good[:1]
         sources[r] = tuple(good[: o.max_sources])
         references.append(r)
         if len(references) == o.max_references:

@@ -105,3 +105,40 @@ def test_a_copy_of_a_view_is_no_stereo_pair():
 def test_options_are_checked():
     with pytest.raises(OptionsError, match="min_b_over_h"):
         ViewSelectionOptions(min_b_over_h=0.6, max_b_over_h=0.5)
+
+
+def _similar_stack(labels: str):
+    """View 0 near nadir, views 1-3 around it at 12 degrees (all in B/H range); view 0's
+    similarity to them 0.5, 0.1 and 0.05 (the others' to each other 0.05), from ``labels``."""
+    cams = [satellite(2, 0), satellite(12, 90), satellite(12, 180), satellite(12, 270)]
+    sim = np.full((4, 4), 0.05)
+    np.fill_diagonal(sim, 1.0)
+    sim[0, 1:] = sim[1:, 0] = [0.5, 0.1, 0.05]
+    return cams, sim, np.full((4, 4), labels, dtype=object)
+
+
+def test_dissimilar_sources_left_out_beside_a_close_one():
+    """With a source of the reference's conditions (view 1 at similarity 1: its pass) the
+    sources under min_similarity are left out."""
+    cams, sim, labels = _similar_stack("metadata")
+    sim[0, 1] = sim[1, 0] = 1.0
+    sel = select_views(cams, mid_height=0.0, similarity=sim, similarity_source=labels)
+    assert sel.sources[0] == (1,)
+
+
+def test_sources_all_of_other_dates_are_all_kept():
+    """The metadata say that no source shares the reference's conditions (all under
+    CLOSE_SIMILARITY): none is left out, the most similar first; similarities from tie points
+    (which do not tell a pass from a like date) keep the cut."""
+    from satsweep.dense.selection import CLOSE_SIMILARITY
+
+    cams, sim, labels = _similar_stack("metadata")
+    assert sim[0, 1:].max() < CLOSE_SIMILARITY
+    sel = select_views(cams, mid_height=0.0, similarity=sim, similarity_source=labels)
+    assert sel.sources[0][0] == 1 and sorted(sel.sources[0]) == [1, 2, 3]
+    cams, sim, labels = _similar_stack("tie points")
+    sel = select_views(cams, mid_height=0.0, similarity=sim, similarity_source=labels)
+    assert sel.sources[0] == (1,)
+    # and without labels (similarity measured from the images, or given bare) likewise
+    sel = select_views(cams, mid_height=0.0, similarity=sim)
+    assert sel.sources[0] == (1,)
