@@ -17,7 +17,8 @@ later source that disagrees adds a warning naming both files (its value is not u
    999 = not available), and ``SUN_AZIMUTH`` / ``SUN_ELEVATION`` items. Items of the IMAGERY
    domain win over items without a domain; band items (with a ``sample`` attribute) are not
    read. Where those keys are missing, the items GDAL copies from a NITF delivery into a GeoTIFF
-   converted from it: ``NITF_IDATIM`` (``CCYYMMDDhhmmss``, UTC) and ``NITF_USE00A_SUN_AZ`` /
+   converted from it: ``NITF_IDATIM`` (``CCYYMMDDhhmmss``, UTC; else the STDIDC TRE's
+   ``NITF_STDIDC_ACQUISITION_DATE``) and ``NITF_USE00A_SUN_AZ`` /
    ``NITF_USE00A_SUN_EL``. The image's own tag comes first for the reason its RPC tag does
    (``RPCModel.from_image``): it cannot be separated from the pixels, a sidecar can.
 2. GDAL's PAM sidecar ``IMAGE.tif.aux.xml``: ``<Metadata domain="IMAGERY"><MDI key="...">``,
@@ -266,7 +267,8 @@ def _nitf_idatim(text: str | None) -> str | None:
 def _gdal_items(source: _Source, items: dict[str, str]) -> None:
     """GDAL's IMAGERY keys (upper-cased) -> values; then the NITF items that GDAL copies into a
     GeoTIFF converted from a NITF delivery (WorldView's, the IARPA and DFC2019 stacks):
-    ``NITF_IDATIM`` (image date-time) and the USE00A TRE's ``NITF_USE00A_SUN_AZ`` /
+    ``NITF_IDATIM`` (image date-time; else the STDIDC TRE's ``NITF_STDIDC_ACQUISITION_DATE``,
+    also ``CCYYMMDDhhmmss``) and the USE00A TRE's ``NITF_USE00A_SUN_AZ`` /
     ``NITF_USE00A_SUN_EL``, where the IMAGERY keys do not say."""
     source.time("ACQUISITIONDATETIME", items.get("ACQUISITIONDATETIME"))
     source.text("satellite", items.get("SATELLITEID"))
@@ -274,6 +276,8 @@ def _gdal_items(source: _Source, items: dict[str, str]) -> None:
     source.angle("sun_elevation_deg", "SUN_ELEVATION", items.get("SUN_ELEVATION"))
     source.cloud("CLOUDCOVER", items.get("CLOUDCOVER"), fraction=False)
     source.time("NITF_IDATIM", _nitf_idatim(items.get("NITF_IDATIM")))
+    source.time("NITF_STDIDC_ACQUISITION_DATE",
+                _nitf_idatim(items.get("NITF_STDIDC_ACQUISITION_DATE")))
     source.angle("sun_azimuth_deg", "NITF_USE00A_SUN_AZ", items.get("NITF_USE00A_SUN_AZ"))
     source.angle("sun_elevation_deg", "NITF_USE00A_SUN_EL", items.get("NITF_USE00A_SUN_EL"))
 

@@ -102,6 +102,16 @@ def test_nitf_items_of_a_geotiff_converted_from_nitf(tmp_path):
     meta = read_acquisition_metadata(_tiff(tmp_path / "bad.tif", bad))
     assert meta.acquisition_time_utc is None
     assert any("NITF_IDATIM" in w for w in meta.warnings), meta.warnings
+    # without NITF_IDATIM, the STDIDC TRE's acquisition date (as the Sat-NeRF tools read the
+    # DFC2019 crops); with both, the image subheader's
+    stdidc = nitf.replace('name="NITF_IDATIM">20150219160412',
+                          'name="NITF_STDIDC_ACQUISITION_DATE">20150219160413')
+    meta = read_acquisition_metadata(_tiff(tmp_path / "s.tif", stdidc))
+    assert meta.acquisition_time_utc == "2015-02-19T16:04:13Z" and meta.warnings == ()
+    both = nitf.replace("</GDALMetadata>", '<Item name="NITF_STDIDC_ACQUISITION_DATE">'
+                        "20150219160413</Item></GDALMetadata>")
+    meta = read_acquisition_metadata(_tiff(tmp_path / "i.tif", both))
+    assert meta.acquisition_time_utc == "2015-02-19T16:04:12Z"
 
 
 def test_tag_and_sidecar_together_merge_field_by_field(tmp_path):
