@@ -138,6 +138,28 @@ _TIME = re.compile(
 )
 
 
+def with_computed_sun(meta: AcquisitionMetadata | None, *, lon: float,
+                      lat: float) -> AcquisitionMetadata | None:
+    """``meta`` with the sun angles it lacks computed from its date-time at (``lon``, ``lat``)
+    (:func:`satsweep.geometry.sun.solar_position`; its sources say so), when it has a date-time;
+    otherwise ``meta`` as it is. Crops converted from NITF may keep the image's date and lose
+    the USE00A TRE that holds the sun's angles."""
+    if meta is None or meta.acquisition_datetime is None or (
+            meta.sun_azimuth_deg is not None and meta.sun_elevation_deg is not None):
+        return meta
+    from satsweep.geometry.sun import solar_position  # noqa: PLC0415
+
+    elevation, azimuth = solar_position(lon=lon, lat=lat, when=meta.acquisition_datetime)
+    where = f"computed from the acquisition time at ({lon:.5f}, {lat:.5f})"
+    values: dict[str, float] = {}
+    if meta.sun_azimuth_deg is None:
+        values["sun_azimuth_deg"] = round(azimuth, 2)
+    if meta.sun_elevation_deg is None:
+        values["sun_elevation_deg"] = round(elevation, 2)
+    return dataclasses.replace(meta, **values,
+                               sources=meta.sources + tuple((k, where) for k in values))
+
+
 def parse_utc_time(text: str) -> _dt.datetime:
     """A date-time as written by the formats above -> an aware UTC datetime; ValueError if not.
 

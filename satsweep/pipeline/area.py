@@ -20,6 +20,7 @@ import numpy as np
 
 from satsweep.errors import CameraError, InputError, SatsweepError
 from satsweep.geometry.altitude import AltitudeRange, enu_height_range
+from satsweep.io.metadata import with_computed_sun
 from satsweep.pipeline.altitude import AltitudeChoice, choose_altitude_range, prior_altitude_range
 from satsweep.pipeline.forecast import program_forecast
 from satsweep.pipeline.prepare import (
@@ -228,13 +229,16 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
 
     u_range = enu_height_range(cameras.frame, job.aoi, alt)
     mid = 0.5 * (u_range[0] + u_range[1])
+    # The sun's angles where the metadata give a date-time without them (reported as computed).
+    lon, lat = job.aoi.center
+    acquisitions = [with_computed_sun(s.acquisition, lon=lon, lat=lat) for s in sources]
     with rep.stage("select"):
         similarity = similarity_source = None
         if len(cameras.views) >= MIN_VIEWS_FOR_SIMILARITY:
             from satsweep.dense.similarity import appearance_similarity
 
             similarity, similarity_source = appearance_similarity(
-                [s.acquisition for s in sources], images, cameras, job.aoi, mid,
+                acquisitions, images, cameras, job.aoi, mid,
                 matches=None if sparse is None else sparse.match_counts([v.path for v in views]))
         selection = select_views([v.camera for v in cameras.views], mid_height=mid,
                                  options=config.views, names=names, similarity=similarity,
@@ -249,8 +253,7 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     record = AreaRecord(altitude=altitude,
                         crops=[(v.path, (int(v.x0), int(v.y0), int(v.width), int(v.height)))
                                for v in views],
-                        acquisitions=[None if s.acquisition is None else s.acquisition.to_dict()
-                                      for s in sources],
+                        acquisitions=[None if a is None else a.to_dict() for a in acquisitions],
                         cameras=cameras, adjustment=adjustment,
                         sparse=None if sparse is None else sparse.to_dict(), selection=selection,
                         sweeps=sweeps, rasters=rasters)

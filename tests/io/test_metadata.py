@@ -3,6 +3,7 @@ sidecars, written here with known values, and the real Maxar XML deliveries in .
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import json
 import math
@@ -322,3 +323,26 @@ def test_malformed_dimap_in_the_folder_is_a_warning(tmp_path):
     assert isinstance(meta, AcquisitionMetadata) and meta.satellite is None
     assert len(meta.warnings) == 1 and "DIM_broken.XML: malformed XML" in meta.warnings[0]
     assert "cannot tell whether it describes img_a.tif" in meta.warnings[0]
+
+
+def test_sun_computed_from_the_date_where_the_metadata_lack_it():
+    """A date-time without sun angles (a crop that lost its USE00A TRE): both computed at the
+    place given, and the sources say so; a given angle is kept; no date-time, nothing."""
+    from satsweep.geometry.sun import solar_position
+    from satsweep.io.metadata import AcquisitionMetadata, with_computed_sun
+
+    dated = AcquisitionMetadata(acquisition_time_utc="2015-02-19T16:04:12Z",
+                                sources=(("acquisition_time_utc", "v.tif: GDAL_METADATA"),))
+    meta = with_computed_sun(dated, lon=-81.66, lat=30.33)
+    el, az = solar_position(lon=-81.66, lat=30.33, when=dated.acquisition_datetime)
+    assert (meta.sun_elevation_deg, meta.sun_azimuth_deg) == (round(el, 2), round(az, 2))
+    assert 30.0 < meta.sun_elevation_deg < 50.0 and 120.0 < meta.sun_azimuth_deg < 180.0  # winter morning
+    assert "computed from the acquisition time" in meta.source_of("sun_azimuth_deg")
+    assert meta.source_of("acquisition_time_utc") == "v.tif: GDAL_METADATA"
+    half = dataclasses.replace(dated, sun_azimuth_deg=150.0)
+    meta = with_computed_sun(half, lon=-81.66, lat=30.33)
+    assert meta.sun_azimuth_deg == 150.0 and meta.sun_elevation_deg == round(el, 2)
+    assert meta.source_of("sun_azimuth_deg") is None
+    undated = AcquisitionMetadata(satellite="WV03")
+    assert with_computed_sun(undated, lon=0.0, lat=0.0) is undated
+    assert with_computed_sun(None, lon=0.0, lat=0.0) is None
