@@ -232,7 +232,7 @@ def select_views(cameras: Sequence, *, mid_height: float,
         best = cands[:o.max_sources] or [1.0]
         return geometry[r].incidence_deg + REFERENCE_DISSIMILARITY_DEG * (1.0 - float(np.mean(best)))
 
-    def _all_other_dates(r: int, sources: Sequence[int]) -> bool:
+    def all_other_dates(r: int, sources: Sequence[int]) -> bool:
         """Whether the metadata say that none of ``sources`` shares the reference's conditions
         (see CLOSE_SIMILARITY)."""
         if similarity_source is None or not sources:
@@ -265,7 +265,7 @@ def select_views(cameras: Sequence, *, mid_height: float,
                             "not used as a reference")
             continue
         good.sort(key=lambda j: source_cost(r, j))
-        if not _all_other_dates(r, good):
+        if not all_other_dates(r, good):
             similar = [j for j in good if sim[r, j] >= o.min_similarity]
             good = similar or good[:1]
         sources[r] = tuple(good[: o.max_sources])
