@@ -557,6 +557,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Terminated as exc:
         print(f"satsweep: terminated ({signal.Signals(exc.signum).name})", file=sys.stderr)
         return 128 + exc.signum
+    except Exception as exc:
+        # A signal that lands while Python builds a class (a module's import: type.__new__
+        # calls __set_name__) comes back as a RuntimeError caused by ``Terminated``.
+        terminated = terminated_cause(exc)
+        if terminated is None:
+            raise
+        print(f"satsweep: terminated ({signal.Signals(terminated.signum).name})", file=sys.stderr)
+        return 128 + terminated.signum
+
+
+def terminated_cause(exc: BaseException) -> Terminated | None:
+    """The ``Terminated`` in ``exc``'s chain of causes and contexts, or None."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, Terminated):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 # The host's linear algebra works on small matrices (camera fits, 3x3 solves, bundle

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from satsweep import cli
 from satsweep.cli import EXIT_DOUBTFUL, build_parser, main
 from satsweep.config import PipelineConfig
 from satsweep.errors import OptionsError
@@ -360,3 +361,22 @@ def test_pleiades_with_zeros_over_a_third_of_one_view(pleiades_pair, tmp_path):
     first = pleiades_pair / "img_01.tif"
     _compare_no_data_run([first, holed], [first, pleiades_pair / "img_02.tif"], aoi,
                          AltitudeRange(2260, 2390), pleiades_pair / "s2p_dsm.tif", tmp_path)
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGTERM"), reason="no SIGTERM on this platform")
+def test_a_signal_during_a_class_definition_still_terminates(monkeypatch, capsys):
+    """A SIGTERM that lands while Python builds a class (as in a module's import: CI saw one
+    inside tifffile's) comes back from type.__new__ as a RuntimeError caused by the handler's
+    exception (Python 3.11); the command still exits with 128 + the signal's number."""
+
+    class SendsTerm:
+        def __set_name__(self, owner, name):
+            os.kill(os.getpid(), signal.SIGTERM)  # the handler runs before this returns
+
+    def handler(args):
+        type("Built", (), {"attribute": SendsTerm()})
+        return 0
+
+    monkeypatch.setattr(cli, "_cmd_devices", handler)
+    assert cli.main(["devices"]) == 128 + signal.SIGTERM
+    assert "terminated (SIGTERM)" in capsys.readouterr().err
