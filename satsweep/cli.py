@@ -331,6 +331,10 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         except ValueError:
             raise OptionsError(f"--location {args.location}: expected LON,LAT in degrees") from None
         given["location"] = (lon, lat)
+    if args.gsd is not None:
+        # The true surface must be sampled at half the GSD or finer (SynthOptions.cell_m's
+        # check): a WorldView-3 GSD of 0.3 m needs cells of 0.15 m, not the default 0.25.
+        given["cell_m"] = min(SynthOptions.cell_m, args.gsd / 2.0)
     options = SynthOptions(**{k: v for k, v in given.items() if v is not None})
     scene = generate_scene(args.out, options, overwrite=args.overwrite, log=print)
     a = scene.aoi

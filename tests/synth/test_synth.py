@@ -355,6 +355,16 @@ def test_cli_writes_a_scene_and_refuses_a_non_empty_folder(tmp_path, capsys):
     assert not (tmp_path / "bad").exists()
 
 
+def test_cli_samples_the_surface_finely_enough_for_a_fine_gsd(tmp_path, capsys):
+    """--gsd 0.3 (WorldView-3) runs: the true surface's cells follow the GSD down (0.15 m), where
+    the default 0.25 m cells would fail SynthOptions' check."""
+    out = tmp_path / "wv3"
+    assert cli_main(["synth", "--out", str(out), "--views", "2", "--size", "96", "--gsd", "0.3"]) == 0
+    capsys.readouterr()
+    doc = json.loads((out / SCENE_FILE).read_text())
+    assert doc["options"]["gsd_m"] == 0.3 and doc["options"]["cell_m"] == pytest.approx(0.15)
+
+
 # -- options and scene content -------------------------------------------------------------------
 def test_options_are_checked_naming_the_field():
     with pytest.raises(OptionsError, match="size_px"):
