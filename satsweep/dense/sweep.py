@@ -87,6 +87,10 @@ class SweepOptions(Options):
     # bilinearly warped source, or the source's own codes at the nearest warped pixel
     ad_truncation: float = 0.15  # intensity difference (image in [0, 1]) at which AD saturates
     grad_weight: float = 0.0  # census bits the truncated gradient difference adds; 0: none
+    consensus_grad_weight: float | None = 8.0  # ... in an area whose DSM is the consensus of
+    # many reference views' height maps (as mrf.sgm_consensus_gf_radius: 6 or more), where the
+    # costs hold intensities (cost_mode "warped_census", a census window of 3 x 3 or more);
+    # None: grad_weight
     grad_truncation: float = 0.1  # gradient difference at which the gradient term saturates
     prefilter_sigma_px: float = 0.0  # Gaussian blur (px) of the images before the census; 0: none
     n_best_sources: int | None = None  # cost = mean of the k lowest source costs; None: half the
@@ -112,7 +116,8 @@ class SweepOptions(Options):
     window_max_fraction: float = 0.6  # coarse_to_fine: sweep every plane when the windows would
     # hold more than this fraction of them
 
-    ADVANCED = ("census_window", "cost_mode", "ad_truncation", "grad_weight", "grad_truncation",
+    ADVANCED = ("census_window", "cost_mode", "ad_truncation", "grad_weight",
+                "consensus_grad_weight", "grad_truncation",
                 "prefilter_sigma_px", "n_best_sources", "cost_filter", "gf_radius", "gf_eps",
                 "box_radius", "subplane", "reject_range_edges", "lr_check", "lr_tolerance_planes",
                 "max_planes_per_batch", "census_kernel", "work_group", "coarse_plane_stride",
@@ -136,6 +141,9 @@ class SweepOptions(Options):
             self._require(math.isfinite(t) and t > 0, trunc, "must be > 0 (intensity units)")
         self._require(self.grad_weight == 0 or min(self.census_window) >= 3, "grad_weight",
                       "the gradient term needs a census window of at least 3x3: set grad_weight = 0")
+        w = self.consensus_grad_weight
+        self._require(w is None or (math.isfinite(w) and 0 <= w <= 64), "consensus_grad_weight",
+                      "must be in [0, 64] census bits (or None)")
         self._require(math.isfinite(self.prefilter_sigma_px) and 0 <= self.prefilter_sigma_px <= 5,
                       "prefilter_sigma_px", "must be in [0, 5] pixels")
         self._require(math.isfinite(self.step_px) and self.step_px > 0, "step_px", "must be > 0")
@@ -195,6 +203,14 @@ class SweepOptions(Options):
         to the tile, and the reference codes of a tile are computed from the whole image.
         """
         return {"guided": 2 * self.gf_radius, "box": self.box_radius, "none": 0}[self.cost_filter]
+
+    def for_consensus(self) -> "SweepOptions":
+        """The options of an area whose DSM is a consensus of many height maps: the gradient
+        term weighs ``consensus_grad_weight`` where the costs can hold it (see its comment)."""
+        w = self.consensus_grad_weight
+        if w is None or self.cost_mode != "warped_census" or min(self.census_window) < 3:
+            return self
+        return self.replace(grad_weight=float(w))
 
     def best_k(self, n_sources: int) -> int:
         """The number of lowest source costs averaged per pixel for ``n_sources`` sources."""

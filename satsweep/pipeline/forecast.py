@@ -7,7 +7,7 @@ from __future__ import annotations
 from satsweep.config import PipelineConfig
 from satsweep.dense.tiled import coarse_pass_planes, mrf_sweep_options, mrf_sweep_wants_wta
 from satsweep.errors import SatsweepError
-from satsweep.pipeline.sweeps import area_mrf_options
+from satsweep.pipeline.sweeps import area_mrf_options, area_sweep_options
 
 
 def program_forecast(device, cameras, u_range: tuple[float, float],
@@ -33,12 +33,13 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
         selection = select_views(cams,
                                  mid_height=0.5 * (u_range[0] + u_range[1]), options=config.views)
         mrf = area_mrf_options(config, len(selection.references))
+        sweep = area_sweep_options(config, len(selection.references))
         method = mrf.method
         if method == "none":
-            engine, wta = PlaneSweep(device, config.sweep), True
+            engine, wta = PlaneSweep(device, sweep), True
         else:
-            engine = PlaneSweep(device, mrf_sweep_options(config.sweep, mrf))
-            wta = mrf_sweep_wants_wta(config.sweep, mrf)
+            engine = PlaneSweep(device, mrf_sweep_options(sweep, mrf))
+            wta = mrf_sweep_wants_wta(sweep, mrf)
         requests = []
         for r in selection.references:
             srcs = list(selection.sources[r])
@@ -46,11 +47,11 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
             if method == "sgm":
                 shape = (cams[r].height, cams[r].width)
                 heights = plane_heights(projections[r], [projections[s] for s in srcs], u_range,
-                                        config.sweep.step_px, ref_shape=shape)
+                                        sweep.step_px, ref_shape=shape)
                 # A coarse-to-fine search's windows are refined by the full search's program
                 # (sgm_refine builds SGM for every plane); its coarse pass has its own planes.
                 counts = [heights.size]
-                n_coarse = coarse_pass_planes(config.sweep, mrf, shape, heights.size)
+                n_coarse = coarse_pass_planes(sweep, mrf, shape, heights.size)
                 if n_coarse:
                     counts.append(n_coarse)
                 for n in counts:

@@ -12,6 +12,7 @@ import numpy as np
 
 from satsweep.config import PipelineConfig
 from satsweep.dense.mrf import MRFOptions
+from satsweep.dense.sweep import SweepOptions
 from satsweep.dense.tiled import mrf_sweep_options, sweep_refine_tiled
 from satsweep.errors import InputError
 from satsweep.geometry.altitude import AltitudeRange
@@ -32,6 +33,9 @@ REFERENCE_CONTEXT_PX = 8
 # filter erodes crowns and roof edges. tools/bench_multidate.py (384 px, seeds 0-5; within 1 m
 # % / DFC MAE m, means): 8 references 90.7 / 0.790 -> 91.9 / 0.725, 7 references 85.6 / 1.088
 # -> 86.1 / 1.022, but 5 of 10 views (4-5 references) 68.4 -> 66.6% (docs/measurements.md).
+# Such an area's sweep also adds the gradient term (``sweep.consensus_grad_weight``): seeds 0-5,
+# 10 views of passes 92.18 / 0.734 -> 92.66 / 0.699, one view per date 87.26 / 1.493 -> 88.08 /
+# 1.390; on 2-3 views (tools/bench_e2e.py) it moved the medians by -0.003 to +0.012 m.
 NARROW_FILTER_MIN_REFERENCES = 6
 
 
@@ -115,13 +119,26 @@ class ReferenceHeights:
                 "at_range_ends": list(self.at_range_ends)}
 
 
+def _many_make_a_consensus(config: PipelineConfig, n_references: int) -> bool:
+    """Whether at least ``NARROW_FILTER_MIN_REFERENCES`` height maps make the area's consensus."""
+    return (n_references >= NARROW_FILTER_MIN_REFERENCES
+            and config.dsm.fusion_for(n_references) == "consensus")
+
+
 def area_mrf_options(config: PipelineConfig, n_references: int) -> MRFOptions:
     """The MRF options of an area of ``n_references`` reference views: ``mrf.for_consensus()``
     where at least ``NARROW_FILTER_MIN_REFERENCES`` height maps make a consensus, else as given."""
-    if (n_references >= NARROW_FILTER_MIN_REFERENCES
-            and config.dsm.fusion_for(n_references) == "consensus"):
+    if _many_make_a_consensus(config, n_references):
         return config.mrf.for_consensus()
     return config.mrf
+
+
+def area_sweep_options(config: PipelineConfig, n_references: int) -> SweepOptions:
+    """The sweep options of an area of ``n_references`` reference views: ``sweep.for_consensus()``
+    under the same rule as ``area_mrf_options``, else as given."""
+    if _many_make_a_consensus(config, n_references):
+        return config.sweep.for_consensus()
+    return config.sweep
 
 
 def sweep_references(device, cameras, images, selection, u_range, config: PipelineConfig,
@@ -147,7 +164,8 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
     progress = rep.progress("sweep", len(selection.references))
     with_mrf = config.mrf.method != "none"
     mrf = area_mrf_options(config, len(selection.references))
-    swept = mrf_sweep_options(config.sweep, mrf)  # the sweep options as run
+    sweep = area_sweep_options(config, len(selection.references))
+    swept = mrf_sweep_options(sweep, mrf)  # the sweep options as run
     for k, r in enumerate(selection.references):
         srcs = list(selection.sources[r])
         ref_proj = cameras.views[r].projection
@@ -158,7 +176,7 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
         x0, y0, x1, y1 = window
         mrf_info = None
         with rep.stage("sweep"):
-            heights = plane_heights(ref_proj, src_projs, u_range, config.sweep.step_px,
+            heights = plane_heights(ref_proj, src_projs, u_range, sweep.step_px,
                                     ref_shape=shape)
             shift = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
             hom = view_homographies(ref_proj, src_projs, heights) @ shift
@@ -167,15 +185,16 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             if with_mrf:
                 _check_sgm_labels(heights, config)
                 result, seconds = sweep_refine_tiled(
-                    device, ref_image, src_images, hom, heights, config.sweep, mrf,
+                    device, ref_image, src_images, hom, heights, sweep, mrf,
                     progress=rep.progress("sweep tiles", 1).callback(names[r]))
             else:
-                result = PlaneSweep(device, config.sweep).height_map(ref_image, src_images, hom,
-                                                                      heights)
+                result = PlaneSweep(device, sweep).height_map(ref_image, src_images, hom,
+                                                               heights)
         if with_mrf:
             rep.move_time("sweep", "mrf", seconds)
             mrf_info = {"method": mrf.method, "seconds": seconds,
                         "sweep_gf_radius": int(swept.gf_radius),
+                        "sweep_grad_weight": float(swept.grad_weight),
                         "tiles": int(result.split.n_tiles),
                         "valid_fraction": float(np.mean(result.valid))}
         progress.update(k + 1, names[r])

@@ -85,10 +85,24 @@ def _errors(res, truth):
                                          ("n_best_sources", 0), ("memory_fraction", 1.5),
                                          ("cost_filter", "median"), ("work_group", (64, 64)),
                                          ("prefilter_sigma_px", -0.5),
-                                         ("prefilter_sigma_px", float("nan"))])
+                                         ("prefilter_sigma_px", float("nan")),
+                                         ("consensus_grad_weight", -1.0),
+                                         ("consensus_grad_weight", 65.0)])
 def test_bad_options_name_the_field(field, value):
     with pytest.raises(OptionsError, match=field):
         SweepOptions(**{field: value})
+
+
+def test_consensus_options_change_only_the_gradient_weight():
+    """for_consensus() sets grad_weight to consensus_grad_weight, where the costs hold
+    intensities for the gradient term (warped census, a window of 3 x 3 or more)."""
+    o = SweepOptions(grad_weight=0.0, consensus_grad_weight=8.0)
+    assert o.for_consensus() == o.replace(grad_weight=8.0)
+    assert o.replace(consensus_grad_weight=None).for_consensus() == o.replace(consensus_grad_weight=None)
+    codes = o.replace(cost_mode="sampled_codes", ad_weight=0.0)
+    assert codes.for_consensus() == codes
+    narrow = o.replace(census_window=(1, 9))
+    assert narrow.for_consensus() == narrow
 
 
 def test_defaults_and_derived_sizes():

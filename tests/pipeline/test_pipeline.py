@@ -13,10 +13,15 @@ import rasterio
 from satsweep.cli import main
 from satsweep.config import PipelineConfig
 from satsweep.dense.mrf import MRFOptions
+from satsweep.dense.sweep import SweepOptions
 from satsweep.errors import InputError, OptionsError, OutputExistsError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.pipeline.run import reconstruct
-from satsweep.pipeline.sweeps import NARROW_FILTER_MIN_REFERENCES, area_mrf_options
+from satsweep.pipeline.sweeps import (
+    NARROW_FILTER_MIN_REFERENCES,
+    area_mrf_options,
+    area_sweep_options,
+)
 from satsweep.products.ply import read_ply
 
 # A small camera-fit grid keeps the test fast; the approximation error stays far below 0.01 px.
@@ -691,6 +696,11 @@ def test_many_references_of_a_consensus_are_swept_with_the_narrower_filter(n_ref
     want = config.mrf.sgm_consensus_gf_radius if narrow else config.mrf.sgm_sweep_gf_radius
     assert mrf == config.mrf.replace(sgm_sweep_gf_radius=want)
     assert config.mrf.sgm_consensus_gf_radius != config.mrf.sgm_sweep_gf_radius
+    # and the gradient term of the consensus (area_sweep_options), under the same rule
+    sweep = area_sweep_options(config, n_references)
+    weight = config.sweep.consensus_grad_weight if narrow else config.sweep.grad_weight
+    assert sweep == config.sweep.replace(grad_weight=weight)
+    assert config.sweep.consensus_grad_weight != config.sweep.grad_weight
 
 
 def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
@@ -700,6 +710,7 @@ def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
     assert result.report["dsm"]["fusion"] == "consensus"
     # a consensus of 3 references: too few for the narrower filter (area_mrf_options)
     assert all(v["mrf"]["sweep_gf_radius"] == MRFOptions().sgm_sweep_gf_radius
+               and v["mrf"]["sweep_grad_weight"] == SweepOptions().grad_weight
                for v in result.report["sweep"])
     out = result.out_dir
     with rasterio.open(out / "count.tif") as c, rasterio.open(out / "interpolated.tif") as m:
