@@ -88,9 +88,8 @@ class SweepOptions(Options):
     ad_truncation: float = 0.15  # intensity difference (image in [0, 1]) at which AD saturates
     grad_weight: float = 0.0  # census bits the truncated gradient difference adds; 0: none
     consensus_grad_weight: float | None = 8.0  # ... in an area whose DSM is the consensus of
-    # many reference views' height maps (as mrf.sgm_consensus_gf_radius: 6 or more), where the
-    # costs hold intensities (cost_mode "warped_census", a census window of 3 x 3 or more);
-    # None: grad_weight
+    # the reference views' height maps ([dsm] fusion), where the costs hold intensities
+    # (cost_mode "warped_census", a census window of 3 x 3 or more); None: grad_weight
     grad_truncation: float = 0.1  # gradient difference at which the gradient term saturates
     prefilter_sigma_px: float = 0.0  # Gaussian blur (px) of the images before the census; 0: none
     n_best_sources: int | None = None  # cost = mean of the k lowest source costs; None: half the

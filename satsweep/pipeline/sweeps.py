@@ -33,9 +33,11 @@ REFERENCE_CONTEXT_PX = 8
 # filter erodes crowns and roof edges. tools/bench_multidate.py (384 px, seeds 0-5; within 1 m
 # % / DFC MAE m, means): 8 references 90.7 / 0.790 -> 91.9 / 0.725, 7 references 85.6 / 1.088
 # -> 86.1 / 1.022, but 5 of 10 views (4-5 references) 68.4 -> 66.6% (docs/measurements.md).
-# Such an area's sweep also adds the gradient term (``sweep.consensus_grad_weight``): seeds 0-5,
-# 10 views of passes 92.18 / 0.734 -> 92.66 / 0.699, one view per date 87.26 / 1.493 -> 88.08 /
-# 1.390; on 2-3 views (tools/bench_e2e.py) it moved the medians by -0.003 to +0.012 m.
+# Any area fused by the consensus (4 references or more by default) sweeps with the gradient
+# term (``sweep.consensus_grad_weight``, ``area_sweep_options``): seeds 0-5, 10 views of passes
+# 92.18 / 0.734 -> 92.66 / 0.699, one view per date 87.26 / 1.493 -> 88.08 / 1.390, 5 views
+# (seeds 0-2, 4-5) 82.94 / 1.317 -> 83.92 / 1.300; on 2-3 views (tools/bench_e2e.py, median
+# fusion) it moved the medians by -0.003 to +0.012 m.
 NARROW_FILTER_MIN_REFERENCES = 6
 
 
@@ -119,24 +121,19 @@ class ReferenceHeights:
                 "at_range_ends": list(self.at_range_ends)}
 
 
-def _many_make_a_consensus(config: PipelineConfig, n_references: int) -> bool:
-    """Whether at least ``NARROW_FILTER_MIN_REFERENCES`` height maps make the area's consensus."""
-    return (n_references >= NARROW_FILTER_MIN_REFERENCES
-            and config.dsm.fusion_for(n_references) == "consensus")
-
-
 def area_mrf_options(config: PipelineConfig, n_references: int) -> MRFOptions:
     """The MRF options of an area of ``n_references`` reference views: ``mrf.for_consensus()``
     where at least ``NARROW_FILTER_MIN_REFERENCES`` height maps make a consensus, else as given."""
-    if _many_make_a_consensus(config, n_references):
+    if (n_references >= NARROW_FILTER_MIN_REFERENCES
+            and config.dsm.fusion_for(n_references) == "consensus"):
         return config.mrf.for_consensus()
     return config.mrf
 
 
 def area_sweep_options(config: PipelineConfig, n_references: int) -> SweepOptions:
     """The sweep options of an area of ``n_references`` reference views: ``sweep.for_consensus()``
-    under the same rule as ``area_mrf_options``, else as given."""
-    if _many_make_a_consensus(config, n_references):
+    where their height maps make a consensus ([dsm] fusion), else as given."""
+    if config.dsm.fusion_for(n_references) == "consensus":
         return config.sweep.for_consensus()
     return config.sweep
 

@@ -685,20 +685,22 @@ def test_preloading_imports_the_listed_modules():
     assert all(name in sys.modules for name in PRELOADED_MODULES)
 
 
-@pytest.mark.parametrize("n_references,fusion,narrow", [
-    (NARROW_FILTER_MIN_REFERENCES, "auto", True), (NARROW_FILTER_MIN_REFERENCES - 1, "auto", False),
-    (NARROW_FILTER_MIN_REFERENCES, "median", False), (12, "consensus", True),
+@pytest.mark.parametrize("n_references,fusion,narrow,gradient", [
+    (NARROW_FILTER_MIN_REFERENCES, "auto", True, True),
+    (NARROW_FILTER_MIN_REFERENCES - 1, "auto", False, True),
+    (NARROW_FILTER_MIN_REFERENCES, "median", False, False), (12, "consensus", True, True),
+    (3, "auto", False, False), (3, "consensus", False, True),
 ])
 def test_many_references_of_a_consensus_are_swept_with_the_narrower_filter(n_references, fusion,
-                                                                          narrow):
+                                                                          narrow, gradient):
     config = PipelineConfig().override("dsm", fusion=fusion)
     mrf = area_mrf_options(config, n_references)
     want = config.mrf.sgm_consensus_gf_radius if narrow else config.mrf.sgm_sweep_gf_radius
     assert mrf == config.mrf.replace(sgm_sweep_gf_radius=want)
     assert config.mrf.sgm_consensus_gf_radius != config.mrf.sgm_sweep_gf_radius
-    # and the gradient term of the consensus (area_sweep_options), under the same rule
+    # and the gradient term of any area the consensus fuses (area_sweep_options)
     sweep = area_sweep_options(config, n_references)
-    weight = config.sweep.consensus_grad_weight if narrow else config.sweep.grad_weight
+    weight = config.sweep.consensus_grad_weight if gradient else config.sweep.grad_weight
     assert sweep == config.sweep.replace(grad_weight=weight)
     assert config.sweep.consensus_grad_weight != config.sweep.grad_weight
 
@@ -708,9 +710,10 @@ def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
     reference views, as count.tif says; the others have no height or an interpolated one."""
     result = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "dsm": {"fusion": "consensus"}})
     assert result.report["dsm"]["fusion"] == "consensus"
-    # a consensus of 3 references: too few for the narrower filter (area_mrf_options)
+    # a consensus of 3 references: too few for the narrower filter (area_mrf_options), but
+    # swept with the consensus's gradient term (area_sweep_options)
     assert all(v["mrf"]["sweep_gf_radius"] == MRFOptions().sgm_sweep_gf_radius
-               and v["mrf"]["sweep_grad_weight"] == SweepOptions().grad_weight
+               and v["mrf"]["sweep_grad_weight"] == SweepOptions().consensus_grad_weight
                for v in result.report["sweep"])
     out = result.out_dir
     with rasterio.open(out / "count.tif") as c, rasterio.open(out / "interpolated.tif") as m:
