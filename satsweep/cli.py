@@ -558,12 +558,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("satsweep: interrupted", file=sys.stderr)
         return 130
-    except Terminated as exc:
-        print(f"satsweep: terminated ({signal.Signals(exc.signum).name})", file=sys.stderr)
-        return 128 + exc.signum
-    except Exception as exc:
-        # A signal that lands while Python builds a class (a module's import: type.__new__
-        # calls __set_name__) comes back as a RuntimeError caused by ``Terminated``.
+    except (Terminated, Exception) as exc:
+        # SIGTERM or SIGHUP; one that lands while Python builds a class (a module's import:
+        # type.__new__ calls __set_name__) comes back as a RuntimeError caused by ``Terminated``.
         terminated = terminated_cause(exc)
         if terminated is None:
             raise

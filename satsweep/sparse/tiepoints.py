@@ -160,12 +160,10 @@ def supported_extremes(alt: np.ndarray, support: int, window_m: float) -> tuple[
     ``hi`` the highest with as many in ``[a - window_m, a]``: a wrong match has a height of its
     own, while the ground and each roof hold several tie points at nearly the same height.
     Falls back to the extremes when no altitude has that support (fewer values than it)."""
-    a = np.sort(np.asarray(alt, np.float64))
-    below = np.arange(len(a)) - np.searchsorted(a, a - window_m, side="left") + 1
-    hi_ok = np.flatnonzero(below >= support)
+    a = np.asarray(alt, np.float64)
     lo = lowest_supported(a, support, window_m)
-    hi = a[hi_ok[-1]] if hi_ok.size else a[-1]
-    return float(a[0] if lo is None else lo), float(hi)
+    neg_hi = lowest_supported(-a, support, window_m)  # the highest, seen upside down
+    return float(a.min() if lo is None else lo), float(a.max() if neg_hi is None else -neg_hi)
 
 
 def lowest_supported(alt: np.ndarray, support: int, window_m: float) -> float | None:
