@@ -717,14 +717,14 @@ def tie_point_confirmer(tied: TiedViews, images: Sequence[np.ndarray]):
     """A function of a point index of ``tied.points``: whether views outside its track see it
     where the track puts it (:mod:`satsweep.sparse.verify`), with the corrected cameras of
     ``tied`` and the views' tonemapped ``images``."""
-    from satsweep.sparse.verify import MIN_OTHER_VIEWS, confirming_views
+    from satsweep.sparse.verify import point_evidence
 
     P = {v: np.asarray(shift_principal_point(tied.cameras[v], tied.shifts[v]).P, np.float64)
          for v in tied.kept}
 
     def confirm(i: int) -> bool:
         track = tied.obs.view[tied.obs.point == i]
-        return confirming_views(tied.points[i], track, images, P)[0] >= MIN_OTHER_VIEWS
+        return point_evidence(tied.points[i], track, images, P).confirmed
 
     return confirm
 
