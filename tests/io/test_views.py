@@ -84,6 +84,22 @@ def test_footprint_clips_to_image_and_warns(caplog):
     assert "img.tif" in caplog.text and "only about" in caplog.text
 
 
+def test_footprint_past_the_edge_by_a_sliver_does_not_warn(caplog):
+    """An image whose last column's centre lies half a pixel short of the footprint's edge
+    sees all but a sliver of it (over 99.5%): no warning; a few columns short, one."""
+    box = AOI(10.001, 19.9985, 10.002, 19.999)
+    c0, r0, c1, r1 = sv.projected_aoi_box(CAM.projection, box, ALT)
+    width = int(np.floor(c1 + 0.5))  # the edge (width - 0.5) at most half a pixel short of c1
+    seen = (width - 0.5 - c0) / (c1 - c0)
+    assert sv.PARTIAL_AOI_WARN_FRACTION <= seen < 1.0, seen  # the case this test is about
+    with caplog.at_level(logging.WARNING, logger="satsweep.io.views"):
+        sv.aoi_footprint(CAM, box, ALT, (400, width), path="img.tif")
+    assert "only about" not in caplog.text
+    with caplog.at_level(logging.WARNING, logger="satsweep.io.views"):
+        sv.aoi_footprint(CAM, box, ALT, (400, width - 3), path="img.tif")
+    assert "img.tif" in caplog.text and "only about 9" in caplog.text
+
+
 def test_footprint_outside_image_names_the_image():
     far = AOI(10.01, 19.98, 10.02, 19.99)  # thousands of pixels away
     with pytest.raises(AOIError, match="img_07.tif.*does not see the AOI"):
