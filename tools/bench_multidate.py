@@ -23,6 +23,9 @@ compares the 10-view result with: at least 5 points more completeness within 1 m
     python tools/bench_multidate.py --views 2 5 10 --size 256 --seeds 0
     python tools/bench_multidate.py --given-range --no-metadata --json out.json
     python tools/bench_multidate.py --views 10 --seeds 0 1 2 3 4 5 --product rgb8 --no-pairs
+    # stacks in the issue's form (WorldView-3: 0.3 m, 8-bit RGB, 19 views on 13 dates):
+    python tools/bench_multidate.py --seeds 7 12 --views 19 --dates 13 --size 850 --gsd 0.3 \
+        --product rgb8 --bias 3 --large-bias 36 --location=-81.66,30.32 --no-pairs
 """
 
 from __future__ import annotations
@@ -56,10 +59,14 @@ TARGET_GAIN_POINTS = 5.0
 
 
 def scene_options(seed: int, n_views: int, size: int, bias: float, large_bias: float,
-                  metadata: bool, product: str = "dn16", dates: int | None = None) -> SynthOptions:
-    return SynthOptions(seed=seed, n_views=n_views, size_px=size, gsd_m=0.5, bias_px=bias,
+                  metadata: bool, product: str = "dn16", dates: int | None = None,
+                  gsd: float = 0.5, location: tuple[float, float] | None = None) -> SynthOptions:
+    extra = {} if location is None else {"location": location}
+    return SynthOptions(seed=seed, n_views=n_views, size_px=size, gsd_m=gsd, bias_px=bias,
                         acquisitions=dates or max(1, n_views // 2), large_bias_px=large_bias,
-                        write_metadata=metadata, product=product)
+                        write_metadata=metadata, product=product,
+                        # the true surface sampled at half the GSD or finer (as satsweep synth)
+                        cell_m=min(SynthOptions.cell_m, gsd / 2.0), **extra)
 
 
 def get_scene(cache: Path, options: SynthOptions, log) -> Scene:
@@ -67,7 +74,10 @@ def get_scene(cache: Path, options: SynthOptions, log) -> Scene:
             f"_l{options.large_bias_px:g}_m{int(bool(options.write_metadata))}"
             + ("" if options.product == "dn16" else f"_{options.product}")
             + ("" if options.acquisitions == max(1, options.n_views // 2)
-               else f"_d{options.acquisitions}"))
+               else f"_d{options.acquisitions}")
+            + ("" if options.gsd_m == 0.5 else f"_g{options.gsd_m:g}")
+            + ("" if options.location == SynthOptions.location
+               else f"_at{options.location[0]:g},{options.location[1]:g}"))
     folder = cache / name
     if (folder / "scene.json").is_file():
         return Scene.load(folder)
@@ -127,7 +137,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--views", type=int, nargs="+", default=[2, 5, 10, 20])
-    p.add_argument("--size", type=int, default=384, help="view side (pixels, 0.5 m)")
+    p.add_argument("--size", type=int, default=384, help="view side (pixels)")
+    p.add_argument("--gsd", type=float, default=0.5,
+                   help="ground sample distance (m; WorldView-3: 0.3); the DSM stays at 0.5 m")
+    p.add_argument("--location", default=None, metavar="LON,LAT",
+                   help="scene centre in degrees (satsweep synth's default: Paris); write "
+                   "--location=-81.66,30.32 when the longitude is negative")
     p.add_argument("--bias", type=float, default=2.0, help="pointing error of every view (px)")
     p.add_argument("--large-bias", type=float, default=50.0,
                    help="largest extra pointing error of a quarter of the views (px)")
@@ -147,6 +162,14 @@ def main(argv=None) -> int:
     p.add_argument("--json", default=None, help="also write every figure to this file")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
+    location = None
+    if args.location is not None:
+        try:
+            location = tuple(float(v) for v in args.location.split(","))
+        except ValueError:
+            p.error(f"--location {args.location}: expected LON,LAT in degrees")
+        if len(location) != 2:
+            p.error(f"--location {args.location}: expected LON,LAT in degrees")
 
     config = PipelineConfig()
     for item in args.set:
@@ -167,7 +190,8 @@ def main(argv=None) -> int:
         for seed in args.seeds:
             scene = get_scene(cache, scene_options(seed, max(args.views), args.size, args.bias,
                                                    args.large_bias, not args.no_metadata,
-                                                   args.product, args.dates), log)
+                                                   args.product, args.dates, args.gsd,
+                                                   location), log)
             for k in args.views:
                 views = subset(len(scene.views), k)
                 row = run(scene, views, Path(tmp) / f"s{seed}_k{k}", args, config)
