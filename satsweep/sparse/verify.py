@@ -22,18 +22,19 @@ single confirming view). Seed 0 of 10 views: the one tie point on its lone 156.6
 m to 95..165 m (the prior's top), and the tower from 0% to 99.7% of its cells within 1 m.
 A three-view stack has one view outside a two-view track: its top is never raised.
 
-A view *contradicts* the point when its patch correlates as well (``min_ncc`` or more) at another
-altitude, at least ``PEAK_EXCLUSION_PX`` pixels of parallax away: it sees the reference's patch
-elsewhere. The point is confirmed when at least ``MIN_OTHER_VIEWS`` views outside its track
-confirm it and more confirm it than contradict it. Without that second condition a 19-view
-stack of 0.3 m, 8-bit multi-date views (``satsweep synth --views 19 --acquisitions 13 --gsd
-0.3 --product rgb8``, seed 7) raised its altitude range's top to 222 m (the truth's top: 154
-m, the supported top 159 m): a two-view match 68 m above the roofs, in a patch of smooth shading whose broad
-correlation curves peaked by chance near the point in three views (0.70-0.73), while three
-others correlated at 0.82-0.95 elsewhere. Over the 43 points that the range asked about on
-34 multi-date scenes (tools/bench_multidate.py's v10, v20, one view per date and 8-bit scenes,
-0.3 m scenes and that one), the rule confirms the same 2 of the 6 that lie within 3 m of the
-truth's altitudes (the lone tower among them) and none of the 37 beyond, against 2 before.
+A view *contradicts* the point when its patch correlates as well (``min_ncc`` or more) at
+another altitude, at least ``PEAK_EXCLUSION_PX`` pixels of parallax away: it sees the
+reference's patch elsewhere. The point is confirmed when at least ``MIN_OTHER_VIEWS`` views
+outside its track confirm it and more confirm it than contradict it. Without that second
+condition a 19-view stack of 0.3 m, 8-bit multi-date views (``satsweep synth --views 19
+--acquisitions 13 --gsd 0.3 --product rgb8``, seed 7) raised its altitude range's top to 222 m
+(the truth's top: 154 m, the supported top 159 m): a two-view match 68 m above the roofs, in a
+patch of smooth shading whose broad correlation curves peaked by chance near the point in three
+views (0.70-0.73), while three others correlated at 0.82-0.95 elsewhere. Over the 43 points
+that the range asked about on 34 multi-date scenes (tools/bench_multidate.py's v10, v20, one
+view per date and 8-bit scenes, 0.3 m scenes and that one), the rule confirms the same 2 of the
+6 that lie within 3 m of the truth's altitudes (the lone tower among them) and none of the 37
+beyond, against 2 before.
 """
 
 from __future__ import annotations
