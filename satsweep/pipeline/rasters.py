@@ -56,10 +56,12 @@ class AreaRasters:
     cross_check: dict | None  # tolerance, views and kept fraction per view; None: no check
     per_view_filled_fraction: list[float]
     enu_to_map: dict  # whether the polynomial ENU -> map fit was used, and its error
+    per_view_raster: list[str] = dataclasses.field(default_factory=list)  # max, upper_quartile
 
     def to_report(self) -> dict:
         return {"fusion": self.fusion, "cross_check": self.cross_check,
                 "per_view_filled_fraction": self.per_view_filled_fraction,
+                "per_view_raster": self.per_view_raster,
                 "enu_to_map": self.enu_to_map}
 
 
@@ -76,6 +78,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         flat_cells,
         fuse_dsms,
         rasterise_max_cells,
+        rasterise_quantile_cells,
         visibility_check_heights,
     )
     from satsweep.products.ortho import match_radiometry, value_at_highest
@@ -112,13 +115,16 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
-        rasters, conf_rasters, orthos, clouds = [], [], [], []
+        rasters, conf_rasters, orthos, clouds, view_rules = [], [], [], [], []
         for pv, centre, height, keep in zip(per_view, centres, heights, checked):
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
                 centre, height, keep, cameras.views[pv.index].camera.P, to_map,
                 subsamples=d.subsamples)
             cells = flat_cells(sx, sy, grid)
-            rasters.append(rasterise_max_cells(cells, sz, grid))
+            rule = d.view_raster_for(flat_cells(x, y, grid))
+            view_rules.append(rule)
+            rasterise = rasterise_quantile_cells if rule == "upper_quartile" else rasterise_max_cells
+            rasters.append(rasterise(cells, sz, grid))
             if pv.confidence is not None:
                 conf_rasters.append(rasterise_max_cells(cells, np.ravel(pv.confidence)[spix],
                                                         grid))
@@ -167,5 +173,6 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                        count=np.minimum(count, 255).astype(np.uint8), clouds=clouds,
                        fusion=fusion, cross_check=check,
                        per_view_filled_fraction=[float(np.isfinite(a).mean()) for a in rasters],
+                       per_view_raster=view_rules,
                        enu_to_map={"polynomial": to_map.accurate,
                                    "max_error_m": to_map.max_error_m})

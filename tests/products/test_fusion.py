@@ -267,6 +267,61 @@ def test_rasterise_max_cells_shares_the_cells_of_rasterise_max():
     np.testing.assert_array_equal(dsm.rasterise_max(x, y, z, grid), ref)
 
 
+@pytest.mark.parametrize("quantile", [0.0, 0.5, 0.75, 1.0])
+def test_rasterise_quantile_cells_matches_a_python_loop(quantile):
+    """Per cell the round(quantile (n - 1))-th of its n values in ascending order (halves
+    rounded up), points outside the grid and NaN values ignored, NaN where a cell holds none;
+    quantile 1 is rasterise_max_cells."""
+    grid = dsm_grid.DSMGrid(epsg=32740, x_min=100.0, y_max=50.0, resolution=0.5, width=30, height=20)
+    rng = np.random.default_rng(11)
+    x, y = rng.uniform(95.0, 120.0, 4000), rng.uniform(35.0, 55.0, 4000)
+    z = rng.normal(size=4000)
+    z[::97] = np.nan
+    z[100:110] = z[110:120]  # ties
+    cells = dsm.flat_cells(x, y, grid)
+    per_cell: dict[int, list[float]] = {}
+    for c, v in zip(cells, z):
+        if c >= 0 and np.isfinite(v):
+            per_cell.setdefault(int(c), []).append(float(v))
+    ref = np.full(grid.width * grid.height, np.nan)
+    for c, vals in per_cell.items():
+        ref[c] = sorted(vals)[math.floor(quantile * (len(vals) - 1) + 0.5)]
+    got = dsm.rasterise_quantile_cells(cells, z, grid, quantile)
+    assert got.dtype == np.float32 and got.shape == grid.shape
+    np.testing.assert_array_equal(got, ref.reshape(grid.shape).astype(np.float32))
+    assert np.isnan(got).any() and max(len(v) for v in per_cell.values()) >= 4
+    if quantile == 1.0:
+        np.testing.assert_array_equal(got, dsm.rasterise_max_cells(cells, z, grid))
+    with pytest.raises(ValueError):
+        dsm.rasterise_quantile_cells(cells[:-1], z, grid, quantile)
+    with pytest.raises(ValueError):
+        dsm.rasterise_quantile_cells(cells, z, grid, 1.5)
+
+
+def test_view_raster_rule_follows_the_pixels_per_cell():
+    """auto: the upper quartile where a view puts DENSE_CENTRES_PER_CELL pixel centres or more
+    in the cells it fills (a 0.3 m view on 0.5 m cells), the highest point where fewer (0.5 m)."""
+    grid = dsm_grid.DSMGrid(epsg=32740, x_min=0.0, y_max=50.0, resolution=0.5, width=100, height=100)
+
+    def centres(gsd):  # pixel centres of a nadir view of ground sample distance gsd (m)
+        g = np.arange(0.5 * gsd, 50.0, gsd)
+        x, y = np.meshgrid(g, 50.0 - g)
+        return dsm.flat_cells(x.ravel(), y.ravel(), grid)
+
+    fine, coarse = centres(0.3), centres(0.5)
+    assert dsm.centres_per_cell(fine) == pytest.approx((0.5 / 0.3) ** 2, rel=0.05)
+    assert dsm.centres_per_cell(coarse) == pytest.approx(1.0)
+    assert dsm.centres_per_cell(np.array([-1, -1])) == 0.0
+    auto = dsm.DSMOptions()
+    assert auto.view_raster == "auto"
+    assert auto.view_raster_for(fine) == "upper_quartile"
+    assert auto.view_raster_for(coarse) == "max"
+    assert dsm.DSMOptions(view_raster="max").view_raster_for(fine) == "max"
+    assert dsm.DSMOptions(view_raster="upper_quartile").view_raster_for(coarse) == "upper_quartile"
+    with pytest.raises(OptionsError, match="view_raster"):
+        dsm.DSMOptions(view_raster="median")
+
+
 # The polynomial ENU -> UTM map must reproduce pyproj to this (m) over an AOI-sized box.
 ENU_MAP_CHECK_TOL_M = 1e-6
 
