@@ -106,7 +106,7 @@ class DSMOptions(Options):
         self._require(self.consensus_min_views >= 1, "consensus_min_views", "must be >= 1")
 
     def view_raster_for(self, centre_cells: np.ndarray) -> str:
-        """The rule (\"max\" or \"upper_quartile\") of a view's raster whose pixel centres
+        """The rule (``"max"`` or ``"upper_quartile"``) of a view's raster whose pixel centres
         fall in ``centre_cells`` (``flat_cells``, -1 outside the grid)."""
         if self.view_raster != "auto":
             return self.view_raster
@@ -274,7 +274,8 @@ def rasterise_quantile_cells(cells: np.ndarray, values, grid: DSMGrid,
     c = np.asarray(cells, np.int64).ravel()
     z = np.asarray(values, np.float64).ravel()
     if c.size != z.size:
-        raise ValueError(f"rasterise_quantile: lengths differ ({c.size} cells, {z.size} values)")
+        raise ValueError(f"rasterise_quantile_cells: lengths differ ({c.size} cells, "
+                         f"{z.size} values)")
     ok = np.isfinite(z) & (c >= 0)
     c, z = c[ok], z[ok]
     out = np.full(grid.width * grid.height, np.nan)
