@@ -82,8 +82,8 @@ class DSMOptions(Options):
     # at most the views there are)
     view_raster: Literal["auto", "max", "upper_quartile"] = "auto"  # a reference view's height
     # in a cell: the highest of its points there, or their upper quartile; auto = the quartile
-    # where the view has DENSE_CENTRES_PER_CELL pixel centres per filled cell or more (finer
-    # pixels than cells: WorldView-3's 0.3 m on 0.5 m cells), else the highest
+    # where the view has 2 pixel centres per filled cell or more (DENSE_CENTRES_PER_CELL: finer
+    # pixels than cells, as WorldView-3's 0.3 m on 0.5 m cells), else the highest
 
     ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
                 "fill_method", "fill_border_holes", "consensus_tolerance_m", "consensus_min_views",
