@@ -103,8 +103,8 @@ from satsweep.sparse.tracks import (
 )
 from satsweep.sparse.triangulation import project, projection_stack, triangulate_observations
 
-__all__ = ["DroppedView", "SparseResult", "TiedViews", "sparse_stage", "tie_point_confirmer",
-           "tie_views"]
+__all__ = ["DroppedView", "SparseResult", "TiedViews", "corrected_projections", "sparse_stage",
+           "tie_point_confirmer", "tie_views"]
 
 # The coarse tie points' altitudes bound the cube over which the fine cameras are fitted: their
 # 1% and 99% quantiles widened by this margin (m). The coarse points carry the keypoints' noise
@@ -713,14 +713,19 @@ def fit_cameras(views: Sequence[Any], aoi: Any, alt: Any, grid_size: tuple[int, 
     return frame, cams, failed
 
 
+def corrected_projections(tied: TiedViews) -> dict[int, np.ndarray]:
+    """Per kept view of ``tied``, its corrected 3x4 camera (ENU -> pixels, float64)."""
+    return {v: np.asarray(shift_principal_point(tied.cameras[v], tied.shifts[v]).P, np.float64)
+            for v in tied.kept}
+
+
 def tie_point_confirmer(tied: TiedViews, images: Sequence[np.ndarray]):
     """A function of a point index of ``tied.points``: whether views outside its track see it
     where the track puts it (:mod:`satsweep.sparse.verify`), with the corrected cameras of
     ``tied`` and the views' tonemapped ``images``."""
     from satsweep.sparse.verify import point_evidence
 
-    P = {v: np.asarray(shift_principal_point(tied.cameras[v], tied.shifts[v]).P, np.float64)
-         for v in tied.kept}
+    P = corrected_projections(tied)
 
     def confirm(i: int) -> bool:
         track = tied.obs.view[tied.obs.point == i]

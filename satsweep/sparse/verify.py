@@ -115,9 +115,14 @@ def _ncc(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 class PointEvidence:
     """What the views say of one tie point (module docstring)."""
 
+    track: tuple[int, ...]  # the views of the point's track (its first: the reference)
     confirming: tuple[int, ...]  # views whose patch correlates best at the point's altitude
     contradicting: tuple[int, ...]  # views outside the track that correlate as well elsewhere
-    outside: int  # the confirming views outside the point's track
+
+    @property
+    def outside(self) -> int:
+        """The confirming views outside the point's track."""
+        return sum(1 for v in self.confirming if v not in self.track)
 
     @property
     def confirmed(self) -> bool:
@@ -133,8 +138,8 @@ def point_evidence(X: np.ndarray, track_views: Sequence[int], images: Sequence[n
     ``images``: the views' tonemapped images (indexed as the views); ``P``: per view tried, its
     corrected 3x4 camera (ENU -> that image's pixels). The track's first view is the reference.
     """
-    ref = int(track_views[0])
-    track = set(int(t) for t in track_views)
+    track = tuple(int(t) for t in track_views)
+    ref = track[0]
     heights = np.arange(-SEARCH_HALF_M, SEARCH_HALF_M + 0.5 * SEARCH_STEP_M, SEARCH_STEP_M)
     offsets = _ground_patch(P[ref], X)
     S = offsets.shape[0]
@@ -152,7 +157,7 @@ def point_evidence(X: np.ndarray, track_views: Sequence[int], images: Sequence[n
 
     reference = patches(ref)
     if reference is None:
-        return PointEvidence(confirming=(), contradicting=(), outside=0)
+        return PointEvidence(track=track, confirming=(), contradicting=())
     confirming, contradicting = [], []
     for v in sorted(P):
         if v == ref:
@@ -171,6 +176,5 @@ def point_evidence(X: np.ndarray, track_views: Sequence[int], images: Sequence[n
         elif (v not in track
               and abs(heights[best]) * _parallax_px_per_m(P[ref], P[v], X) >= PEAK_EXCLUSION_PX):
             contradicting.append(v)
-    outside = sum(1 for v in confirming if v not in track)
-    return PointEvidence(confirming=tuple(confirming), contradicting=tuple(contradicting),
-                         outside=outside)
+    return PointEvidence(track=track, confirming=tuple(confirming),
+                         contradicting=tuple(contradicting))

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from satsweep.io.images import tonemap
-from satsweep.sparse.stage import sparse_stage, tie_point_confirmer
+from satsweep.sparse.stage import corrected_projections, sparse_stage, tie_point_confirmer
 from satsweep.sparse.verify import MIN_OTHER_VIEWS, _parallax_px_per_m, point_evidence
 from tests.sparse.test_stage import SIZE_PX, _motion, _views
 
@@ -47,6 +47,13 @@ def _right_points(scene, result) -> np.ndarray:
     return np.flatnonzero(ok & (result.tied.point_error <= 1.0))
 
 
+def _moved(P_ref: np.ndarray, X: np.ndarray, dz: float) -> np.ndarray:
+    """ENU point ``X`` moved by ``dz`` m of altitude along the line of sight of the camera
+    ``P_ref`` (3x4) through it: that view sees the same pixel."""
+    ray = X - (-np.linalg.solve(P_ref[:, :3], P_ref[:, 3]))
+    return X + ray * (dz / ray[2])
+
+
 def test_right_points_are_confirmed_and_moved_ones_are_not(six_views):
     scene, result, images = six_views
     tied = result.tied
@@ -57,18 +64,11 @@ def test_right_points_are_confirmed_and_moved_ones_are_not(six_views):
     # Many right points lie by walls or in cast shadows that other dates see differently: not
     # all are confirmed, but the range needs only its highest.
     assert len(confirmed) >= 0.2 * right.size
-    from satsweep.sparse.bundle import shift_principal_point
-
-    P = {v: np.asarray(shift_principal_point(tied.cameras[v], tied.shifts[v]).P, np.float64)
-         for v in tied.kept}
+    P = corrected_projections(tied)
     for i in confirmed:
         track = tied.obs.view[tied.obs.point == i]
-        ref = P[int(track[0])]
-        M, p4 = ref[:, :3], ref[:, 3]
-        centre = -np.linalg.solve(M, p4)
-        ray = tied.points[i] - centre
         for dz in MOVE_M:
-            moved = tied.points[i] + ray * (dz / ray[2])
+            moved = _moved(P[int(track[0])], tied.points[i], dz)
             evidence = point_evidence(moved, track, images, P)
             assert evidence.outside < MIN_OTHER_VIEWS, (i, dz, evidence)
             assert not evidence.confirmed
@@ -109,18 +109,14 @@ def test_parallax_rate_is_the_motion_along_the_reference_line_of_sight(six_views
     image of it does not move)."""
     scene, result, images = six_views
     tied = result.tied
-    from satsweep.sparse.bundle import shift_principal_point
     from satsweep.sparse.triangulation import project
 
-    P = {v: np.asarray(shift_principal_point(tied.cameras[v], tied.shifts[v]).P, np.float64)
-         for v in tied.kept}
+    P = corrected_projections(tied)
     i = int(_right_points(scene, result)[0])
     X = tied.points[i]
     ref = int(tied.obs.view[tied.obs.point == i][0])
-    centre = -np.linalg.solve(P[ref][:, :3], P[ref][:, 3])
-    ray = (X - centre) / (X - centre)[2]
     for v in P:
-        ends = np.stack([X - 0.5 * ray, X + 0.5 * ray])
+        ends = np.stack([_moved(P[ref], X, -0.5), _moved(P[ref], X, 0.5)])
         xy, _ = project(P[v][None], np.zeros(2, np.int64), ends)
         expected = float(np.hypot(*(xy[1] - xy[0])))
         assert _parallax_px_per_m(P[ref], P[v], X) == pytest.approx(expected, rel=1e-6, abs=1e-9)
@@ -137,13 +133,11 @@ def test_a_point_moved_within_the_search_is_contradicted_where_it_really_is(six_
     """A view contradicts a point when the reference's patch correlates best at another
     altitude, at least PEAK_EXCLUSION_PX of parallax away: move a confirmed right point by +-6 m
     and the views that see its true altitude say so."""
-    from satsweep.sparse.bundle import shift_principal_point
     from satsweep.sparse.verify import PEAK_EXCLUSION_PX, TOLERANCE_M
 
     scene, result, images = six_views
     tied = result.tied
-    P = {v: np.asarray(shift_principal_point(tied.cameras[v], tied.shifts[v]).P, np.float64)
-         for v in tied.kept}
+    P = corrected_projections(tied)
     confirm = tie_point_confirmer(tied, images)
     confirmed = [int(i) for i in _right_points(scene, result) if confirm(int(i))]
     assert len(confirmed) >= 20
@@ -152,9 +146,7 @@ def test_a_point_moved_within_the_search_is_contradicted_where_it_really_is(six_
         for i in confirmed:
             track = tied.obs.view[tied.obs.point == i]
             ref = P[int(track[0])]
-            centre = -np.linalg.solve(ref[:, :3], ref[:, 3])
-            ray = tied.points[i] - centre
-            moved = tied.points[i] + ray * (dz / ray[2])
+            moved = _moved(ref, tied.points[i], dz)
             evidence = point_evidence(moved, track, images, P)
             assert not evidence.confirmed, (i, dz, evidence)
             assert not set(evidence.contradicting) & set(int(t) for t in track)
