@@ -18,7 +18,7 @@ import warnings
 from typing import Callable, Sequence
 
 from satsweep import __version__
-from satsweep.errors import SatsweepError
+from satsweep.errors import RetiredOptionWarning, SatsweepError
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -132,7 +132,8 @@ def _add_image_inputs(p) -> None:
     p.add_argument("--aoi", required=True, help="LON_MIN,LAT_MIN,LON_MAX,LAT_MAX (degrees) or a GeoJSON file")
     p.add_argument("--alt-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=None,
                    help="heights in metres above the WGS84 ellipsoid (default: from --dem, else "
-                   "from SIFT tie points triangulated with the RPCs inside the AOI)")
+                   "from the SIFT tie points between the views, triangulated with the adjusted "
+                   "cameras, near the AOI)")
     p.add_argument("--dem", default=None, metavar="FILE", help="DEM GeoTIFF giving the altitude range")
 
 
@@ -188,8 +189,11 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
         config = config.override("camera", grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
     sources = open_sources(args.images)
-    alt = choose_altitude_range(sources, aoi, alt_range=_cli_altitude_range(args), dem=args.dem,
-                                config=config).range
+    choice = choose_altitude_range(sources, aoi, alt_range=_cli_altitude_range(args),
+                                   dem=args.dem, config=config)
+    alt = choice.range
+    if choice.doubt:
+        print(f"satsweep: warning: {choice.doubt}", file=sys.stderr)
     views, tonemapped = crop_views(sources, aoi, alt, config)
     cameras = fit_cameras(views, aoi, alt, config)
     images = None
@@ -210,7 +214,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     cameras = write_cameras(args.out, cameras, images)
     f = cameras.frame
     print(f"ENU origin: lon {f.lon0:.7f}, lat {f.lat0:.7f}, alt {f.alt0:.2f} m; UTM EPSG:{cameras.utm_epsg}; "
-          f"AOI {aoi}, altitudes {alt}; parallax plane u = {cameras.d:.2f} m")
+          f"AOI {aoi}, altitudes {alt} ({choice.source}); parallax plane u = {cameras.d:.2f} m")
     print(cameras.table())
     print(f"wrote {args.out}/cameras.json" + (f" and {len(images)} images in {args.out}/images/" if images else ""))
     for warning in cameras.warnings:
@@ -551,6 +555,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             # numpy's RuntimeWarnings (a degenerate determinant, an empty mean) come from inputs
             # whose consequences satsweep checks and reports itself, in the user's terms.
             warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"numpy(\.|$)")
+            warnings.showwarning = _show_warning
             return int(args.handler(args) or 0)
     except SatsweepError as exc:
         print(f"satsweep: error: {exc}", file=sys.stderr)
@@ -566,6 +571,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"satsweep: terminated ({signal.Signals(terminated.signum).name})", file=sys.stderr)
         return 128 + terminated.signum
+
+
+_python_showwarning = warnings.showwarning
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """satsweep's own warnings (a retired option in a config file) as ``satsweep: warning:``
+    lines, the others as Python shows them."""
+    if issubclass(category, RetiredOptionWarning):
+        print(f"satsweep: warning: {message}", file=sys.stderr)
+    else:
+        _python_showwarning(message, category, filename, lineno, file, line)
 
 
 def terminated_cause(exc: BaseException) -> Terminated | None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import types
 from typing import Any, Literal, Mapping
 
 from satsweep.dense.mrf import MRFOptions
@@ -47,9 +48,6 @@ class ReconstructOptions(Options):
     max_dsm_cells: float = 4e9  # a DSM grid of more cells than this is refused before any work
     skew_correct: bool = True  # shear the images so that K has no skew before the sweep
     crop_margin_px: int = 32  # margin (px) kept around the AOI footprint in each image's crop
-    tie_altitude_quantile: float = 0.01  # without --alt-range or --dem, the tie points'
-    # altitudes between this quantile and 1 minus it are swept
-    tie_altitude_margin_m: float = 20.0  # ... widened by this (m) on each side
     tile_overlap_m: float = 50.0  # context (m) each tile is reconstructed with beyond its cells
     tile_max_error_px: float = 0.1  # an area whose cameras are further than this (px) from
     # their RPCs is cut again in 2 x 2, down to tiles of 50 m; 0: never
@@ -61,8 +59,15 @@ class ReconstructOptions(Options):
     worker_memory_gb: float = 0.0  # memory limit (GiB) of each local Dask worker; 0: from the
     # tile size (satsweep.pipeline.cluster.worker_memory_bytes)
 
-    ADVANCED = ("warn_filled_below", "max_aoi_km2", "max_dsm_cells", "skew_correct", "crop_margin_px", "tie_altitude_quantile",
-                "tie_altitude_margin_m", "tile_overlap_m", "tile_max_error_px", "worker_memory_gb")
+    ADVANCED = ("warn_filled_below", "max_aoi_km2", "max_dsm_cells", "skew_correct", "crop_margin_px",
+                "tile_overlap_m", "tile_max_error_px", "worker_memory_gb")
+    # The altitude range without --alt-range or --dem came from quantiles of tie points
+    # triangulated with the raw RPCs until the sparse stage's adjusted tie points replaced them
+    # everywhere (wrong matches among many views widened those quantiles by tens of metres).
+    RETIRED = types.MappingProxyType({
+        key: "the altitude range now comes from the sparse stage's adjusted tie points; "
+             "[sparse] altitude_margin_below_m and altitude_margin_above_m set its margins"
+        for key in ("tie_altitude_quantile", "tie_altitude_margin_m")})
     # How the tiles are run, not what they compute: left out of the finished tiles'
     # fingerprints, so that a run resumed with other workers reuses them.
     EXECUTION = ("workers", "scheduler", "worker_memory_gb")
@@ -71,10 +76,6 @@ class ReconstructOptions(Options):
         self._require(self.device is None or bool(self.device.strip()), "device",
                       "must be auto|cpu|gpu|PLATFORM:DEVICE")
         self._require(0 <= self.crop_margin_px <= 4096, "crop_margin_px", "must be in [0, 4096]")
-        self._require(0.0 <= self.tie_altitude_quantile < 0.5, "tie_altitude_quantile",
-                      "must be in [0, 0.5)")
-        self._require(math.isfinite(self.tie_altitude_margin_m) and self.tie_altitude_margin_m >= 0.0,
-                      "tie_altitude_margin_m", "must be a finite number of metres >= 0")
         self._require(self.tile_m == 0.0 or (math.isfinite(self.tile_m)
                                              and self.tile_m >= MIN_TILE_M),
                       "tile_m", f"must be 0 (no tiling) or at least {MIN_TILE_M:g} metres")

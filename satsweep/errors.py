@@ -59,3 +59,9 @@ class CameraError(SatsweepError):
 
 class OutputExistsError(SatsweepError):
     """An output folder is not empty and --overwrite was not given."""
+
+
+class RetiredOptionWarning(FutureWarning):
+    """A configuration file gives an option that satsweep no longer reads (an older run's
+    config.toml): the file still loads, the key is ignored, and the warning says what replaced
+    it. The command line prints it as a ``satsweep: warning:`` line."""

@@ -4,7 +4,9 @@ Each pipeline stage declares its options as a frozen dataclass deriving from ``O
 field has a default with a one-sentence comment giving its meaning and unit, and a ``check()``
 method that raises ``OptionsError`` naming the field. Construction runs the check, so an options
 object that exists is valid. ``from_mapping`` builds one from a (TOML) mapping and rejects
-unknown keys.
+unknown keys; the keys a class lists in ``RETIRED`` (options it no longer has) are ignored with
+a ``RetiredOptionWarning`` saying what replaced them, so that an older run's config.toml still
+loads.
 
 The fields a class lists in ``ADVANCED`` are tuning knobs (their defaults were measured, see
 docs/measurements.md): a configuration file gives them in the stage's ``advanced`` sub-table
@@ -20,10 +22,12 @@ import dataclasses
 import functools
 import os
 import tomllib
+import types
 import typing
+import warnings
 from typing import Any, ClassVar, Mapping, TypeVar
 
-from satsweep.errors import InputError, OptionsError
+from satsweep.errors import InputError, OptionsError, RetiredOptionWarning
 
 T = TypeVar("T", bound="Options")
 
@@ -36,6 +40,8 @@ class Options:
     ADVANCED: ClassVar[tuple[str, ...]] = ()
     # The sub-table of a stage's table that holds its advanced options.
     ADVANCED_TABLE: ClassVar[str] = "advanced"
+    # Keys of options the class no longer has -> what replaced them (see the module docstring).
+    RETIRED: ClassVar[Mapping[str, str]] = types.MappingProxyType({})
 
     def __post_init__(self) -> None:
         self._check_types()
@@ -71,7 +77,7 @@ class Options:
             if not isinstance(nested, Mapping):
                 raise OptionsError(f"{source}: '{cls.ADVANCED_TABLE}' must be a table of "
                                    f"advanced options")
-            misplaced = sorted(set(nested) - set(cls.ADVANCED))
+            misplaced = sorted(set(nested) - set(cls.ADVANCED) - set(cls.RETIRED))
             if misplaced:
                 known = ", ".join(cls.ADVANCED) or "none"
                 raise OptionsError(f"{source}: {', '.join(misplaced)} not advanced option(s) of "
@@ -82,6 +88,10 @@ class Options:
                 raise OptionsError(f"{source}: {', '.join(twice)} given both in the table and in "
                                    f"its '{cls.ADVANCED_TABLE}' sub-table")
             data.update(nested)
+        for key in sorted(set(data) & set(cls.RETIRED)):
+            del data[key]
+            warnings.warn(f"{source}: {key} is no longer read ({cls.RETIRED[key]}); remove it",
+                          RetiredOptionWarning, stacklevel=2)
         unknown = sorted(set(data) - names)
         if unknown:
             raise OptionsError(

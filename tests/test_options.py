@@ -124,3 +124,38 @@ def test_every_advanced_name_is_a_field():
 
     for options in SECTIONS.values():
         assert set(options.ADVANCED) <= {f.name for f in dataclasses.fields(options)}
+
+
+def test_a_retired_key_is_ignored_with_a_warning_naming_the_file_and_its_replacement(tmp_path):
+    """An older run's config.toml (which wrote every option) still loads: a key satsweep no
+    longer reads is dropped with a RetiredOptionWarning, in the table or its advanced
+    sub-table; the rest of the file still applies, and unknown keys are still errors."""
+    from satsweep.config import PipelineConfig, ReconstructOptions
+    from satsweep.errors import RetiredOptionWarning
+
+    assert {"tie_altitude_quantile", "tie_altitude_margin_m"} <= set(ReconstructOptions.RETIRED)
+    path = tmp_path / "old.toml"
+    path.write_text("[reconstruct]\ntile_m = 500.0\n[reconstruct.advanced]\n"
+                    "tie_altitude_quantile = 0.01\ntie_altitude_margin_m = 20.0\n")
+    with pytest.warns(RetiredOptionWarning) as caught:
+        config = PipelineConfig.from_toml(path)
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 2 and all(str(path) in m and "sparse stage" in m for m in messages)
+    assert config == PipelineConfig().override("reconstruct", tile_m=500.0)
+    with pytest.warns(RetiredOptionWarning, match="tie_altitude_margin_m is no longer read"):
+        PipelineConfig.from_mapping({"reconstruct": {"tie_altitude_margin_m": 5.0}})
+    with pytest.raises(OptionsError, match="unknown key"):
+        PipelineConfig.from_mapping({"reconstruct": {"tie_altitude_typo": 5.0}})
+
+
+def test_the_command_line_prints_a_retired_key_as_a_satsweep_warning(tmp_path, capsys):
+    from satsweep.cli import main
+
+    path = tmp_path / "old.toml"
+    path.write_text("[reconstruct]\ntie_altitude_quantile = 0.01\n")
+    assert main(["config", "--config", str(path)]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"satsweep: warning: {path} [reconstruct]: tie_altitude_quantile is no longer "
+                   "read (the altitude range now comes from the sparse stage's adjusted tie "
+                   "points; [sparse] altitude_margin_below_m and altitude_margin_above_m set its "
+                   "margins); remove it"]

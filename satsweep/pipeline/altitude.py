@@ -1,8 +1,11 @@
 """The altitude range of a run or of one of its areas: one policy, used by every stage.
 
 In this order: the range the user gives (``--alt-range``), else a DEM's heights over the area
-plus a margin (``--dem``), else SIFT tie points between the views triangulated with their RPCs
-(``satsweep.sparse.tiepoints``, as S2P takes its disparity range from SIFT matches).
+plus a margin (``--dem``), else the sparse stage's tie points (as S2P takes its disparity range
+from SIFT matches): matched between the views cropped at the RPCs' wide range, triangulated
+with the cameras that the adjustment corrects, those that reproject within a pixel bounding the
+heights (``satsweep.sparse.stage``, ``satsweep.sparse.tiepoints.altitude_range_from_points``).
+``satsweep reconstruct`` and ``satsweep cameras`` get the same range from the same views.
 
 ``prior_altitude_range`` is the cheaper question of which images can see an area at all: the
 user's range or the DEM's, else the RPCs' common height range (kilometres wide, so that no image
@@ -15,6 +18,7 @@ import dataclasses
 import os
 from typing import TYPE_CHECKING, Any, Sequence
 
+from satsweep.errors import CameraError, InputError
 from satsweep.geometry.altitude import (
     AltitudeRange,
     altitude_range_from_rpcs,
@@ -25,6 +29,16 @@ if TYPE_CHECKING:  # pragma: no cover
     from satsweep.config import PipelineConfig
     from satsweep.geometry.aoi import AOI
     from satsweep.io.sources import ImageSource
+    from satsweep.pipeline.report import RunReport
+    from satsweep.sparse.stage import SparseResult
+
+# A tie-point range that shares less than this fraction of its span with the RPCs' range: the
+# corrected cameras put the scene where the RPCs do not (v20 multi-date stacks, same-date pairs
+# one view of which is tens of pixels off: -65..-25 m, 148..184 m, 253..294 m against 95..165
+# m, DSMs 11-51% within 1 m; pairs that hold the truth share 92% or more).
+PRIOR_OVERLAP_MIN_FRACTION = 0.5
+# What the user can do when no range can be measured.
+_GIVE_A_RANGE = "give --alt-range MIN MAX or --dem FILE (alt_range= or dem= in the Python API)"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,6 +48,7 @@ class AltitudeChoice:
     range: AltitudeRange
     source: str  # "user", "dem" or "tie points"
     details: dict[str, Any] = dataclasses.field(default_factory=dict)  # the tie points' figures
+    doubt: str | None = None  # a doubtful warning about the tie points' range (range_outside_prior)
 
     def to_report(self) -> dict[str, Any]:
         return {"min": self.range.min, "max": self.range.max, "source": self.source,
@@ -52,16 +67,53 @@ def prior_altitude_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
 
 def choose_altitude_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
                           alt_range: AltitudeRange | None, dem: str | os.PathLike | None,
-                          config: "PipelineConfig") -> AltitudeChoice:
+                          config: "PipelineConfig",
+                          report: "RunReport | None" = None) -> AltitudeChoice:
     """The altitude range to sweep over ``aoi``: the user's, else the DEM's, else the tie
-    points' (see the module docstring)."""
+    points' (see the module docstring: the sparse stage runs on the views cropped at the RPCs'
+    range, timed in ``report`` when given). InputError when none can be had."""
     if alt_range is not None or dem is not None:
         rng = resolve_altitude_range(alt_range=alt_range, dem=dem, aoi=aoi)
         return AltitudeChoice(rng, "user" if alt_range is not None else "dem")
-    from satsweep.sparse.tiepoints import altitude_range_for_images
+    from satsweep.pipeline.prepare import tie_sources
 
-    r = config.reconstruct
-    rng, record = altitude_range_for_images(
-        sources, aoi, config.sparse, quantile=r.tie_altitude_quantile,
-        margin_m=r.tie_altitude_margin_m, crop_margin_px=r.crop_margin_px)
-    return AltitudeChoice(rng, "tie points", record)
+    prior = prior_altitude_range(sources, aoi, alt_range=None, dem=None)
+    try:
+        sparse = tie_sources(sources, aoi, prior, config, report=report)
+    except CameraError as exc:
+        raise untied_error(exc) from None
+    return tie_point_altitude(sparse, prior)
+
+
+def untied_error(exc: CameraError) -> InputError:
+    """The error of a run without a range whose views the sparse stage cannot tie (``exc``)."""
+    return InputError(None, f"no altitude range given and the views cannot be tied to find one "
+                            f"({exc}): {_GIVE_A_RANGE}")
+
+
+def tie_point_altitude(sparse: "SparseResult", prior: AltitudeRange) -> AltitudeChoice:
+    """The sparse stage's altitude range as an area's, with its record, and a doubt when it lies
+    mostly outside ``prior`` (the RPCs' range: :func:`range_outside_prior`). InputError when
+    its tie points bound none."""
+    if sparse.altitude_range is None:
+        raise InputError(None, f"no altitude range given and {sparse.altitude['reason']}: "
+                               f"{_GIVE_A_RANGE}")
+    return AltitudeChoice(sparse.altitude_range, "tie points", sparse.altitude,
+                          doubt=range_outside_prior(sparse.altitude_range, prior,
+                                                    len(sparse.kept_paths)))
+
+
+def range_outside_prior(rng: AltitudeRange, prior: AltitudeRange, n_views: int) -> str | None:
+    """A warning when the tie points' altitude range lies mostly outside the RPCs' (``prior``),
+    else None: the adjustment's unobservable motion has moved the whole scene, which with two
+    views (or views along one line) a pointing error along the epipolar lines does."""
+    overlap = max(0.0, min(rng.max, prior.max) - max(rng.min, prior.min))
+    span = max(rng.max - rng.min, 1e-9)
+    if overlap >= PRIOR_OVERLAP_MIN_FRACTION * span:
+        return None
+    why = ("with two views a pointing error along the epipolar lines is a height offset of the "
+           "whole scene" if n_views == 2 else "their pointing errors moved the whole scene")
+    return (f"the {n_views} views' adjusted tie points lie at {rng.min:.0f}..{rng.max:.0f} m, "
+            f"mostly outside the RPCs' altitude range {prior.min:.0f}..{prior.max:.0f} m ({why}): "
+            "the DSM's heights and position may be off by metres to tens of metres; give "
+            "--alt-range or --dem, or more views")

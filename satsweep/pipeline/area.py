@@ -18,10 +18,16 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from satsweep.errors import CameraError, InputError, SatsweepError
+from satsweep.errors import CameraError, SatsweepError
 from satsweep.geometry.altitude import AltitudeRange, enu_height_range
 from satsweep.io.metadata import with_computed_sun
-from satsweep.pipeline.altitude import AltitudeChoice, choose_altitude_range, prior_altitude_range
+from satsweep.pipeline.altitude import (
+    AltitudeChoice,
+    choose_altitude_range,
+    prior_altitude_range,
+    tie_point_altitude,
+    untied_error,
+)
 from satsweep.pipeline.forecast import program_forecast
 from satsweep.pipeline.prepare import (
     Adjustment,
@@ -168,9 +174,7 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
             sparse = tie_sources(sources, job.aoi, prior, config, report=rep)
         except CameraError as exc:
             if not given:
-                raise InputError(None, f"no altitude range given and the views cannot be tied "
-                                       f"to find one ({exc}): give --alt-range MIN MAX or --dem "
-                                       "FILE (alt_range= or dem= in the Python API)") from None
+                raise untied_error(exc) from None
             untied = exc
         else:
             kept = set(sparse.kept_paths)
@@ -179,14 +183,9 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
         altitude = choose_altitude_range(sources, job.aoi, alt_range=ctx.alt_range, dem=ctx.dem,
                                          config=config)
     else:
-        if sparse.altitude_range is None:
-            raise InputError(None, f"no altitude range given and {sparse.altitude['reason']}: "
-                                   "give --alt-range MIN MAX or --dem FILE (alt_range= or dem= "
-                                   "in the Python API)")
-        altitude = AltitudeChoice(sparse.altitude_range, "tie points", sparse.altitude)
-        outside = range_outside_prior(sparse.altitude_range, prior, len(sparse.kept_paths))
-        if outside:
-            rep.warn(outside, doubtful=True)
+        altitude = tie_point_altitude(sparse, prior)
+        if altitude.doubt:
+            rep.warn(altitude.doubt, doubtful=True)
         rep.log(f"altitude range {altitude.range.min:.1f}..{altitude.range.max:.1f} m from "
                 f"{sparse.altitude['tie_points']} adjusted tie points (give --alt-range or --dem, "
                 "alt_range= or dem= in the API, to set it)")
@@ -263,29 +262,6 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
                       record=record)
 
 
-# A tie-point range that shares less than this fraction of its span with the RPCs' range: the
-# corrected cameras put the scene where the RPCs do not (v20 multi-date stacks, same-date pairs
-# one view of which is tens of pixels off: -65..-25 m, 148..184 m, 253..294 m against 95..165
-# m, DSMs 11-51% within 1 m; pairs that hold the truth share 92% or more).
-PRIOR_OVERLAP_MIN_FRACTION = 0.5
-
-
-def range_outside_prior(rng: AltitudeRange, prior: AltitudeRange, n_views: int) -> str | None:
-    """A warning when the tie points' altitude range lies mostly outside the RPCs' (``prior``),
-    else None: the adjustment's unobservable motion has moved the whole scene, which with two
-    views (or views along one line) a pointing error along the epipolar lines does."""
-    overlap = max(0.0, min(rng.max, prior.max) - max(rng.min, prior.min))
-    span = max(rng.max - rng.min, 1e-9)
-    if overlap >= PRIOR_OVERLAP_MIN_FRACTION * span:
-        return None
-    why = ("with two views a pointing error along the epipolar lines is a height offset of the "
-           "whole scene" if n_views == 2 else "their pointing errors moved the whole scene")
-    return (f"the {n_views} views' adjusted tie points lie at {rng.min:.0f}..{rng.max:.0f} m, "
-            f"mostly outside the RPCs' altitude range {prior.min:.0f}..{prior.max:.0f} m ({why}): "
-            "the DSM's heights and position may be off by metres to tens of metres; give "
-            "--alt-range or --dem, or more views")
-
-
 # More pixels than this fraction of a reference's window at an end of the altitude range means
 # the surface extends beyond it. Measured with ranges that hold the surface: at most 0.26% on
 # tools/bench_e2e.py's four 512 px towns, 1.1% on the tests' 192 px town, 0.03% on the Pleiades
@@ -309,7 +285,7 @@ def _check_range_ends(sweeps: Sequence[ReferenceHeights], altitude: AltitudeChoi
     if altitude.source != "tie points":
         try:
             ties = choose_altitude_range(job.sources, job.aoi, alt_range=None, dem=None,
-                                         config=ctx.config)
+                                         config=ctx.config)  # at the RPCs' range, not the user's
             measured = (f"; tie points between the views put it within "
                         f"{ties.range.min:.0f}..{ties.range.max:.0f} m")
         except SatsweepError as exc:

@@ -1,48 +1,29 @@
-"""Altitude ranges from tie points: the scene's heights when the user gives none.
-
-Two ways. :func:`altitude_range_from_points` bounds the sparse stage's adjusted tie points
-(:mod:`satsweep.sparse.stage`): their reprojection errors with the corrected cameras weed out
-wrong matches across views, and the range is robust to those left (see its docstring). The
-older :func:`altitude_range_for_images` (what the pipeline's "altitude" stage calls until it
-moves to the sparse stage) triangulates every pair's matches with the raw RPCs, as follows.
+"""The altitude range of the sparse stage's adjusted tie points: the scene's heights when the
+user gives none.
 
 Without ``--alt-range`` or ``--dem``, the only prior on the scene's heights is the RPCs' height
 offset +- scale, which spans kilometres (-20..2610 m for the Pleiades pair, whose ground lies
 between about 2270 and 2376 m): thousands of planes. As S2P estimates its disparity range from
-SIFT matches, satsweep matches SIFT features between the views (cropped to the AOI over that
-coarse range), triangulates each verified match with the two RPCs, keeps the points inside the
-AOI, and sweeps between quantiles of their altitudes widened by a margin. On the Pleiades pair the
-480 tie points span 2273.1..2374.3 m (1% and 99% quantiles; 2271.9..2375.9 m in all), S2P's DSM
-2273.8..2373.2 m.
+SIFT matches, satsweep bounds the heights of the sparse stage's tie points
+(:mod:`satsweep.sparse.stage`: matched between the views cropped at that coarse range,
+triangulated with the cameras the adjustment corrects): their reprojection errors weed out wrong
+matches across views, and :func:`altitude_range_from_points` is robust to those left.
 
-Triangulation: the pixel of the first view is localised (``RPCModel.localization``) at a few
-altitudes and each ground point projected into the second view; a straight line fitted through
-those projections (a line of sight is nearly straight in the other image) gives the altitude at
-which it passes closest to the matched pixel, and the same fit over a bracket of
-``REFINE_HALF_M`` around that altitude refines it. The distance left between the line and the
-pixel is the point's residual (pointing errors, matching noise).
+(Until then the 1% and 99% quantiles of every pair's matches triangulated with the raw RPCs
+served: on issue 26's 19-view WorldView-3 stack, wrong matches among its 171 pairs spread those
+altitudes from -491 to +586 m, and the quantiles swept -82..+46 m for a scene of -27..+30 m.)
 """
 
 from __future__ import annotations
 
-import dataclasses
-import itertools
 import math
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 
-from satsweep.errors import InputError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.geometry.aoi import AOI
 
-# Altitudes sampled along a line of sight for the first, coarse fit, and for the refinement.
-COARSE_SAMPLES = 5
-REFINE_SAMPLES = 3
-# Half-width (m) of the bracket of the refinement around the coarse altitude.
-REFINE_HALF_M = 50.0
-# Fewer tie points than this inside the AOI cannot bound its heights.
-MIN_TIE_POINTS = 20
 # Points above the supported top that are checked against the views, highest first.
 MAX_CONFIRM_CANDIDATES = 16
 # Fewest points of fewer than altitude_floor_views views that can set the floor (with the
@@ -50,107 +31,6 @@ MAX_CONFIRM_CANDIDATES = 16
 # threes by chance (a 5-view multi-date stack: two of 136 within 3 m of each other at 11 m, 89 m
 # under the ground), a ground seen by two views at a time in dozens.
 FEWER_VIEWS_MIN_SUPPORT = 5
-
-
-@dataclasses.dataclass(frozen=True)
-class TiePoints:
-    """Triangulated tie points: geodetic coordinates and the residual of each (pixels)."""
-
-    lon: np.ndarray  # (N,) degrees
-    lat: np.ndarray  # (N,) degrees
-    alt: np.ndarray  # (N,) metres above the WGS84 ellipsoid
-    residual_px: np.ndarray  # (N,) distance in the second view between match and line of sight
-    pairs: tuple[tuple[int, int, int], ...]  # (view i, view j, verified matches) per pair
-
-
-def _fit_altitude(rpc1, rpc2, xy1: np.ndarray, xy2: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                  samples: int) -> tuple[np.ndarray, np.ndarray]:
-    """Altitude of closest approach of view 1's lines of sight to the pixels of view 2, searched
-    per point between ``lo`` and ``hi`` (arrays), and the distance (px) left there."""
-    t = np.linspace(0.0, 1.0, samples)
-    alts = lo[None, :] + t[:, None] * (hi - lo)[None, :]  # (samples, N)
-    proj = np.empty(alts.shape + (2,))
-    for k in range(samples):
-        lon, lat = rpc1.localization(col=xy1[:, 0], row=xy1[:, 1], alt=alts[k])
-        col, row = rpc2.projection(lon=lon, lat=lat, alt=alts[k])
-        proj[k, :, 0], proj[k, :, 1] = col, row
-    # Per point, the least-squares line proj = q0 + s q1 in s = (alt - mean) / span.
-    mid = alts.mean(axis=0)
-    span = np.maximum(hi - lo, 1e-9)
-    s = (alts - mid[None]) / span[None]
-    s2 = (s * s).sum(axis=0)
-    q0 = proj.mean(axis=0)
-    q1 = (s[:, :, None] * (proj - q0[None])).sum(axis=0) / s2[:, None]
-    d = xy2 - q0
-    along = (d * q1).sum(axis=1) / np.maximum((q1 * q1).sum(axis=1), 1e-30)
-    residual = np.linalg.norm(d - along[:, None] * q1, axis=1)
-    return mid + along * span, residual
-
-
-def triangulate_pair(rpc1, rpc2, xy1, xy2, alt_range: AltitudeRange
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(lon, lat, alt, residual_px) of matched pixels ``xy1`` (view 1) and ``xy2`` (view 2),
-    (N, 2) (col, row) arrays in each view's pixels, with altitudes searched over ``alt_range``."""
-    xy1 = np.asarray(xy1, np.float64).reshape(-1, 2)
-    xy2 = np.asarray(xy2, np.float64).reshape(-1, 2)
-    n = xy1.shape[0]
-    alt, _ = _fit_altitude(rpc1, rpc2, xy1, xy2, np.full(n, alt_range.min),
-                           np.full(n, alt_range.max), COARSE_SAMPLES)
-    alt, residual = _fit_altitude(rpc1, rpc2, xy1, xy2, alt - REFINE_HALF_M, alt + REFINE_HALF_M,
-                                  REFINE_SAMPLES)
-    lon, lat = rpc1.localization(col=xy1[:, 0], row=xy1[:, 1], alt=alt)
-    return np.asarray(lon, np.float64), np.asarray(lat, np.float64), alt, residual
-
-
-def tie_points(views: Sequence, aoi: AOI, alt_range: AltitudeRange, sparse_options) -> TiePoints:
-    """SIFT tie points of every pair of views (RANSAC-verified matches, no cameras needed),
-    triangulated with the views' RPCs over ``alt_range``; only the points inside the AOI."""
-    from satsweep.io.images import tonemap
-    from satsweep.sparse.features import detect_features, feature_scale_for
-    from satsweep.sparse.matching import match_pair
-
-    o = sparse_options
-    feats = [detect_features(tonemap(v.image), max_features=o.max_features,
-                             contrast_threshold=o.contrast_threshold,
-                             scale=feature_scale_for(np.shape(v.image), o))
-             for v in views]
-    parts, pairs = [], []
-    for i, j in itertools.combinations(range(len(views)), 2):
-        (xy_i, d_i), (xy_j, d_j) = feats[i], feats[j]
-        if len(xy_i) < 2 or len(xy_j) < 2:
-            pairs.append((i, j, 0))
-            continue
-        a, b = match_pair(d_i, d_j, xy_i, xy_j, o)
-        pairs.append((i, j, int(a.size)))
-        if a.size:
-            parts.append(triangulate_pair(views[i].rpc, views[j].rpc, xy_i[a], xy_j[b], alt_range))
-    if parts:
-        lon, lat, alt, res = (np.concatenate(c) for c in zip(*parts))
-    else:
-        lon = lat = alt = res = np.zeros(0)
-    inside = ((lon >= aoi.lon_min) & (lon <= aoi.lon_max) & (lat >= aoi.lat_min)
-              & (lat <= aoi.lat_max) & np.isfinite(alt))
-    return TiePoints(lon=lon[inside], lat=lat[inside], alt=alt[inside], residual_px=res[inside],
-                     pairs=tuple(pairs))
-
-
-def altitude_range_from_tie_points(points: TiePoints, *, quantile: float, margin_m: float,
-                                   within: AltitudeRange | None = None,
-                                   names: Sequence[str] = ()) -> AltitudeRange:
-    """The altitudes between the ``quantile`` and ``1 - quantile`` quantiles of the tie points,
-    widened by ``margin_m`` on each side and kept ``within`` a range (the RPCs' heights) when they
-    overlap it. InputError when there are too few points."""
-    if points.alt.size < MIN_TIE_POINTS:
-        which = ", ".join(names) if names else "the images"
-        raise InputError(None, f"no altitude range given and only {points.alt.size} tie points "
-                               f"between {which} fall inside the AOI (at least {MIN_TIE_POINTS} "
-                               "are needed to bound its heights): give --alt-range MIN MAX or "
-                               "--dem FILE (alt_range= or dem= in the Python API)")
-    lo, hi = np.quantile(points.alt, [quantile, 1.0 - quantile])
-    lo, hi = float(lo) - margin_m, float(hi) + margin_m
-    if within is not None and max(lo, within.min) < min(hi, within.max):
-        lo, hi = max(lo, within.min), min(hi, within.max)
-    return AltitudeRange(lo, hi)
 
 
 def supported_extremes(alt: np.ndarray, support: int, window_m: float) -> tuple[float, float]:
@@ -294,31 +174,3 @@ def _within_prior(lo: float, hi: float, below_m: float, above_m: float,
     if prior is None or not max(out_lo, prior.min) < min(out_hi, prior.max):
         return out_lo, out_hi
     return max(out_lo, min(prior.min, lo)), min(out_hi, max(prior.max, hi))
-
-
-def altitude_range_for_images(images: Sequence, aoi: AOI, sparse_options, *, quantile: float,
-                              margin_m: float, crop_margin_px: int) -> tuple[AltitudeRange, dict]:
-    """The altitude range of images that come with no range nor DEM: their RPCs' coarse range
-    (``altitude_range_from_rpcs``), narrowed by tie points between crops of that range.
-    ``images``: paths or ``ImageSource`` objects. Returns the range and a record for
-    report.json."""
-    from satsweep.geometry.altitude import altitude_range_from_rpcs
-    from satsweep.io.sources import open_sources
-    from satsweep.io.views import load_views
-
-    sources = open_sources(images)
-    names = [s.name for s in sources]
-    coarse = altitude_range_from_rpcs([s.rpc for s in sources], warn=False)
-    # Over the RPCs' kilometres of heights the footprints overflow the images: not worth a warning.
-    views = load_views(sources, aoi, coarse, margin_px=crop_margin_px, warn_partial=False)
-    ties = tie_points(views, aoi, coarse, sparse_options)
-    alt = altitude_range_from_tie_points(ties, quantile=quantile, margin_m=margin_m,
-                                         within=coarse, names=names)
-    record = {
-        "min": alt.min, "max": alt.max, "source": "tie points",
-        "rpc_range": [coarse.min, coarse.max], "tie_points": int(ties.alt.size),
-        "tie_point_altitudes_m": [float(a) for a in np.quantile(ties.alt, [0.0, 0.5, 1.0])],
-        "matches_per_pair": [{"views": [names[i], names[j]], "matches": n} for i, j, n in ties.pairs],
-        "median_residual_px": float(np.median(ties.residual_px)),
-    }
-    return alt, record

@@ -469,6 +469,28 @@ def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
     _check_accuracy(res)  # the bounds of the run given the range
 
 
+def test_cameras_and_reconstruct_take_one_range_from_the_tie_points(scene, tmp_path, capsys):
+    """Without a range, ``choose_altitude_range`` (what ``satsweep cameras`` and the range-end
+    warning ask) runs the sparse stage over the RPCs' range as reconstruct does: the same range,
+    reported as the tie points', no longer quantiles of pairs triangulated with the raw RPCs."""
+    from satsweep.io.sources import open_sources
+    from satsweep.pipeline.altitude import choose_altitude_range, prior_altitude_range
+    from satsweep.pipeline.prepare import tie_sources
+
+    config = PipelineConfig()
+    sources = open_sources([v.image for v in scene.views])
+    choice = choose_altitude_range(sources, scene.aoi, alt_range=None, dem=None, config=config)
+    prior = prior_altitude_range(sources, scene.aoi, alt_range=None, dem=None)
+    sparse = tie_sources(sources, scene.aoi, prior, config)
+    assert choice.source == "tie points" and choice.range == sparse.altitude_range
+    assert choice.details["tie_points"] == sparse.altitude["tie_points"] >= 20
+    assert choice.doubt is None and choice.range.min <= scene.alt_range[0]
+    rc = main(["cameras", *map(str, (v.image for v in scene.views)), "--aoi", _aoi_arg(scene),
+               "--out", str(tmp_path / "cams"), "--grid", "10", "10", "4"])
+    out = capsys.readouterr().out
+    assert rc == 0 and f"altitudes {choice.range} (tie points)" in out
+
+
 @pytest.mark.parametrize("mrf, search", [("sgm", "coarse_to_fine"), ("sgm", "full"),
                                          ("none", "full")])
 def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, tmp_path,
@@ -729,7 +751,7 @@ def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
     ((89.0, 161.0), False), ((95.0, 165.0), False), ((100.0, 140.0), False),
 ])
 def test_a_tie_point_range_outside_the_rpcs_is_a_doubtful_warning(tie_range, warned):
-    from satsweep.pipeline.area import range_outside_prior
+    from satsweep.pipeline.altitude import range_outside_prior
 
     prior = AltitudeRange(95.0, 165.0)
     message = range_outside_prior(AltitudeRange(*tie_range), prior, 2)

@@ -1,112 +1,15 @@
-"""Tie points triangulated with RPCs (satsweep.sparse.tiepoints): exact on synthetic views, and the
-altitude range that reconstruct sweeps when the user gives none."""
+"""The altitude range of the sparse stage's adjusted tie points (satsweep.sparse.tiepoints): the
+range that reconstruct and cameras sweep when the user gives none."""
 
 from __future__ import annotations
 
 import dataclasses
 
 import numpy as np
-import pytest
 
-from satsweep.errors import InputError
 from satsweep.geometry.altitude import AltitudeRange
-from satsweep.io.views import load_views
 from satsweep.sparse.options import SparseOptions
-from satsweep.sparse.tiepoints import (
-    MIN_TIE_POINTS,
-    TiePoints,
-    altitude_range_from_points,
-    altitude_range_from_tie_points,
-    supported_extremes,
-    tie_points,
-    triangulate_pair,
-)
-
-# Exact RPCs and exact pixel projections: the triangulated altitude comes back to within the
-# RPC localisation's tolerance and the straight-line fit of a line of sight over REFINE_HALF_M.
-TRIANGULATION_TOL_M = 0.01
-TRIANGULATION_RESIDUAL_TOL_PX = 1e-3
-# Tie points of the rendered scene: SIFT keypoints are good to a few tenths of a pixel, i.e. a
-# metre or two of height at this scene's 0.4 px of parallax per metre.
-TIE_ALTITUDE_TOL_M = 3.0
-
-
-@pytest.fixture(scope="module")
-def scene(small_town):
-    return small_town
-
-
-# The search range of the tests: a kilometre beyond the scene's relief on each side, as coarse
-# as an RPC's height offset +- scale (the synthetic RPCs are fitted over the relief alone).
-COARSE_EXTRA_M = 1000.0
-
-
-@pytest.fixture(scope="module")
-def coarse_views(scene):
-    lo, hi = scene.alt_range
-    coarse = AltitudeRange(lo - COARSE_EXTRA_M, hi + COARSE_EXTRA_M)
-    return load_views([v.image for v in scene.views], scene.aoi, coarse), coarse
-
-
-def test_triangulation_recovers_exact_points(coarse_views, scene):
-    views, coarse = coarse_views
-    rng = np.random.default_rng(0)
-    a = scene.aoi
-    lon = rng.uniform(a.lon_min, a.lon_max, 200)
-    lat = rng.uniform(a.lat_min, a.lat_max, 200)
-    lo, hi = scene.alt_range
-    alt = rng.uniform(lo - 30.0, hi + 30.0, 200)
-    xy = [np.stack(v.rpc.projection(lon=lon, lat=lat, alt=alt), axis=1) for v in views]
-    got_lon, got_lat, got_alt, residual = triangulate_pair(views[0].rpc, views[1].rpc, xy[0], xy[1],
-                                                           coarse)
-    np.testing.assert_allclose(got_alt, alt, atol=TRIANGULATION_TOL_M, rtol=0)
-    assert residual.max() < TRIANGULATION_RESIDUAL_TOL_PX
-    # the ground point too: 0.01 m of height is at most a few millimetres across
-    np.testing.assert_allclose(got_lon, lon, atol=1e-7, rtol=0)
-    np.testing.assert_allclose(got_lat, lat, atol=1e-7, rtol=0)
-
-
-def test_tie_points_lie_on_the_true_surface(coarse_views, scene):
-    views, coarse = coarse_views
-    pts = tie_points(views, scene.aoi, coarse, SparseOptions())
-    assert pts.alt.size >= MIN_TIE_POINTS and pts.pairs[0][:2] == (0, 1)
-    truth = scene.surface_altitude(lon=pts.lon, lat=pts.lat, grid=scene.surface())
-    err = np.abs(pts.alt - truth)
-    assert np.median(err) < TIE_ALTITUDE_TOL_M
-    a = scene.aoi
-    assert ((pts.lon >= a.lon_min) & (pts.lon <= a.lon_max) & (pts.lat >= a.lat_min)
-            & (pts.lat <= a.lat_max)).all()
-    # The swept range holds the true surface under (nearly) every tie point. (It need not hold
-    # the whole scene: the plain synthetic roofs have no keypoints, so their heights can be
-    # missed; the README says so.)
-    rng = altitude_range_from_tie_points(pts, quantile=0.01, margin_m=20.0)
-    inside = (truth >= rng.min) & (truth <= rng.max)
-    assert inside.mean() >= 0.98
-    lo, hi = scene.alt_range
-    assert rng.max - rng.min < (hi - lo) + 2 * COARSE_EXTRA_M  # far narrower than the search
-
-
-def _points(alts):
-    a = np.asarray(alts, float)
-    z = np.zeros_like(a)
-    return TiePoints(lon=z, lat=z, alt=a, residual_px=z, pairs=((0, 1, a.size),))
-
-
-def test_range_is_between_quantiles_widened_by_the_margin():
-    alts = np.concatenate([np.linspace(100.0, 200.0, 998), [-500.0, 5000.0]])  # two blunders
-    rng = altitude_range_from_tie_points(_points(alts), quantile=0.01, margin_m=20.0)
-    lo, hi = np.quantile(alts, [0.01, 0.99])
-    assert rng == AltitudeRange(lo - 20.0, hi + 20.0)
-    assert 75.0 < rng.min < 85.0 and 215.0 < rng.max < 225.0  # the blunders do not widen it
-    # kept within a range that it overlaps (the RPCs' heights); one it misses is ignored
-    assert altitude_range_from_tie_points(_points(alts), quantile=0.01, margin_m=20.0,
-                                          within=AltitudeRange(90.0, 400.0)) \
-        == AltitudeRange(90.0, hi + 20.0)
-    assert altitude_range_from_tie_points(_points(alts), quantile=0.01, margin_m=20.0,
-                                          within=AltitudeRange(1000.0, 2000.0)) == rng
-    with pytest.raises(InputError, match="tie points between a.tif, b.tif.*--alt-range"):
-        altitude_range_from_tie_points(_points(alts[:MIN_TIE_POINTS - 1]), quantile=0.01,
-                                       margin_m=20.0, names=("a.tif", "b.tif"))
+from satsweep.sparse.tiepoints import altitude_range_from_points, supported_extremes
 
 
 # -- the range of the sparse stage's adjusted tie points ---------------------------------------
