@@ -145,7 +145,8 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             distinct = min(d.consensus_min_distinct_views, len(set().union(*view_sets)))
             fused, count, members = consensus_dsms(
                 rasters, tolerance_m=d.consensus_tolerance_m, min_views=d.consensus_min_views,
-                view_sets=view_sets, min_distinct_views=distinct)
+                view_sets=view_sets, min_distinct_views=distinct,
+                min_share=d.consensus_min_share)
             # The confidence of the views that agree on the cell's height.
             conf = _nanmean_stack([np.where(m, c, np.nan) for m, c in zip(members, conf_rasters)],
                                   grid.shape)

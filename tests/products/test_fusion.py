@@ -586,9 +586,11 @@ def test_match_radiometry_fits_gain_and_offset_robustly():
     assert match_radiometry(ref, few) is few
 
 
-def _consensus_reference(values: list[float], tolerance: float, min_views: int):
+def _consensus_reference(values: list[float], tolerance: float, min_views: int,
+                         min_share: float = 0.0):
     """Plain-Python consensus of one cell: the largest group within a window of 2 * tolerance
-    (the lowest on a tie), its median and size."""
+    (the lowest on a tie), its median and size; none when it holds fewer than min_views values
+    or than min_share of the cell's values."""
     v = sorted(x for x in values if np.isfinite(x))
     best = (0, None)
     for i, lo in enumerate(v):
@@ -596,13 +598,14 @@ def _consensus_reference(values: list[float], tolerance: float, min_views: int):
         if len(group) > best[0]:
             best = (len(group), group)
     size, group = best
-    if size < min_views or group is None:
+    if size < min_views or group is None or size < min_share * len(v):
         return np.nan, 0
     return float(np.median(group)), size
 
 
-@pytest.mark.parametrize("seed", range(3))
-def test_consensus_matches_a_plain_reference(seed):
+@pytest.mark.parametrize("seed, min_share", [(0, 0.0), (1, 0.0), (2, 0.0), (0, 0.5), (1, 0.5),
+                                             (2, 0.7)])
+def test_consensus_matches_a_plain_reference(seed, min_share):
     from satsweep.products.fusion import consensus_dsms
 
     rng = np.random.default_rng(seed)
@@ -615,11 +618,12 @@ def test_consensus_matches_a_plain_reference(seed):
         d[blunders] += rng.choice([-30.0, 15.0, 40.0], blunders.sum())
         d[rng.random(shape) < 0.2] = np.nan
         dsms.append(d.astype(np.float32))
-    fused, count, members = consensus_dsms(dsms, tolerance_m=1.0, min_views=2)
+    fused, count, members = consensus_dsms(dsms, tolerance_m=1.0, min_views=2,
+                                           min_share=min_share)
     for i in range(shape[0]):
         for j in range(shape[1]):
             values = [float(d[i, j]) for d in dsms]
-            expected, size = _consensus_reference(values, 1.0, 2)
+            expected, size = _consensus_reference(values, 1.0, 2, min_share)
             assert count[i, j] == size, (i, j, values)
             if size:
                 assert fused[i, j] == pytest.approx(expected, abs=1e-4)
@@ -637,6 +641,23 @@ def test_consensus_never_keeps_a_lone_view():
     fused, count, _ = consensus_dsms([a, b], tolerance_m=1.0, min_views=2)
     assert fused[0, 0] == pytest.approx(10.2) and count[0, 0] == 2
     assert np.isnan(fused[0, 1]) and np.isnan(fused[1, 1]) and count[1, 1] == 0
+
+
+def test_consensus_needs_half_of_the_cells_heights_with_min_share():
+    """Two agreeing heights among four make a cell's height with min_share = 0.5, among five
+    they do not (the others scatter: no height for that cell, and no member)."""
+    from satsweep.products.fusion import consensus_dsms
+
+    four = [np.full((1, 1), v, np.float32) for v in (10.0, 10.3, 25.0, 40.0)]
+    fused, count, _ = consensus_dsms(four, tolerance_m=1.0, min_views=2, min_share=0.5)
+    assert fused[0, 0] == pytest.approx(10.15) and count[0, 0] == 2
+    five = four + [np.full((1, 1), 60.0, np.float32)]
+    fused, count, members = consensus_dsms(five, tolerance_m=1.0, min_views=2, min_share=0.5)
+    assert np.isnan(fused[0, 0]) and count[0, 0] == 0 and not members.any()
+    fused, count, _ = consensus_dsms(five, tolerance_m=1.0, min_views=2)  # no such rule
+    assert fused[0, 0] == pytest.approx(10.15) and count[0, 0] == 2
+    with pytest.raises(OptionsError, match="min_share"):
+        consensus_dsms(five, tolerance_m=1.0, min_views=2, min_share=1.5)
 
 
 def test_consensus_ties_go_to_the_lower_group():
