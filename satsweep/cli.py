@@ -162,9 +162,11 @@ def _add_cameras(sub) -> None:
     _add_image_inputs(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (cameras.json, images/)")
     p.add_argument("--adjust", action="store_true",
-                   help="correct RPC pointing errors: match SIFT features, triangulate and "
-                   "bundle-adjust the principal points; cameras.json gets the adjusted cameras "
-                   "and a 'ba' section")
+                   help="correct RPC pointing errors as reconstruct does (the sparse stage: "
+                   "SIFT matches over a graph of pairs, a coarse translation per view, then the "
+                   "bundle adjustment of the principal points); cameras.json gets the adjusted "
+                   "cameras and a 'ba' section, and views that cannot be tied are left out "
+                   "with a warning")
     p.add_argument("--skew-correct", action="store_true",
                    help="shear the images so that K has no skew; write them to DIR/images/")
     p.add_argument("--grid", nargs=3, type=int, metavar=("NE", "NN", "NU"), default=None,
@@ -174,47 +176,56 @@ def _add_cameras(sub) -> None:
 
 
 def _cmd_cameras(args: argparse.Namespace) -> int:
+    import dataclasses
+    import math
+
     from satsweep.config import PipelineConfig
     from satsweep.geometry.aoi import parse_aoi
     from satsweep.geometry.camera import write_cameras
     from satsweep.geometry.skew import skew_correct_set
     from satsweep.io.atomic import check_output_dir
     from satsweep.io.sources import open_sources
-    from satsweep.pipeline.altitude import choose_altitude_range
-    from satsweep.pipeline.prepare import adjust_cameras, crop_views, fit_cameras
+    from satsweep.pipeline.altitude import tie_views
+    from satsweep.pipeline.prepare import crop_views, fit_cameras
+    from satsweep.sparse.bundle import shift_principal_points
 
     check_output_dir(args.out, overwrite=args.overwrite)
     config = PipelineConfig().override("reconstruct", adjust="on")
     if args.grid is not None:
         config = config.override("camera", grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
-    sources = open_sources(args.images)
-    choice = choose_altitude_range(sources, aoi, alt_range=_cli_altitude_range(args),
-                                   dem=args.dem, config=config)
-    alt = choice.range
-    if choice.doubt:
-        print(f"satsweep: warning: {choice.doubt}", file=sys.stderr)
-    views, tonemapped = crop_views(sources, aoi, alt, config)
+    # The views, their pointing corrections and the altitude range as reconstruct takes them.
+    tied = tie_views(open_sources(args.images), aoi, alt_range=_cli_altitude_range(args),
+                     dem=args.dem, config=config, adjust=args.adjust)
+    sparse, alt = tied.sparse, tied.altitude.range
+    if args.adjust and sparse is None:
+        raise tied.untied
+    if tied.altitude.doubt:
+        print(f"satsweep: warning: {tied.altitude.doubt}", file=sys.stderr)
+    # With corrections the crops are widened by the largest, to hold the AOI's content.
+    extra = int(math.ceil(sparse.max_correction_px)) if args.adjust else 0
+    views, _ = crop_views(tied.sources, aoi, alt, config, extra_margin_px=extra)
     cameras = fit_cameras(views, aoi, alt, config)
     images = None
     if args.adjust:
-        import dataclasses
-
-        cameras, adjustment = adjust_cameras(cameras, tonemapped, config,
-                                             names=[v.name for v in views])
-        ba = adjustment.bundle
-        cameras = dataclasses.replace(cameras, ba=ba.to_dict())
-        before, after = ba.reproj_before_px[0], ba.reproj_after_px[0]
-        print(f"bundle adjustment: {ba.n_points} points, median reprojection error "
-              f"{before:.3f} -> {after:.3f} px")
-        for name, shift in zip(ba.names, ba.principal_point_shift_px):
-            print(f"  {name}: principal point shift ({shift[0]:+.3f}, {shift[1]:+.3f}) px")
+        shifts = sparse.corrections_for([v.path for v in views])
+        fine = sparse.to_dict()["fine"] or {}
+        ba = {"method": "sparse stage", "points": fine.get("points"),
+              "reprojection_error_px": fine.get("reprojection_error_px"),
+              "principal_point_shift_px": {v.name: list(s) for v, s in zip(views, shifts)}}
+        cameras = dataclasses.replace(shift_principal_points(cameras, shifts), ba=ba)
+        if ba["reprojection_error_px"]:
+            e = ba["reprojection_error_px"]
+            print(f"bundle adjustment: {ba['points']} points, median reprojection error "
+                  f"{e['before']['median']:.3f} -> {e['after']['median']:.3f} px")
+        for v, shift in zip(views, shifts):
+            print(f"  {v.name}: principal point shift ({shift[0]:+.3f}, {shift[1]:+.3f}) px")
     if args.skew_correct:  # the images written are the crops' own values, sheared
         cameras, images = skew_correct_set(cameras, [v.image for v in views])
     cameras = write_cameras(args.out, cameras, images)
     f = cameras.frame
     print(f"ENU origin: lon {f.lon0:.7f}, lat {f.lat0:.7f}, alt {f.alt0:.2f} m; UTM EPSG:{cameras.utm_epsg}; "
-          f"AOI {aoi}, altitudes {alt} ({choice.source}); parallax plane u = {cameras.d:.2f} m")
+          f"AOI {aoi}, altitudes {alt} ({tied.altitude.source}); parallax plane u = {cameras.d:.2f} m")
     print(cameras.table())
     print(f"wrote {args.out}/cameras.json" + (f" and {len(images)} images in {args.out}/images/" if images else ""))
     for warning in cameras.warnings:

@@ -27,6 +27,11 @@ MAX_ERROR_PX = 0.05
 SMALL_GRID = ["--grid", "5", "5", "3"]
 # Float64 identities between JSON matrices (K[R|t] = P, det R, P4 vs P; JSON keeps every bit).
 ROUND_REL_TOL = 1e-12
+# A camera fitted on a crop moved by whole pixels: the same K but its principal point, to float64
+# rounding of the normalised DLT (measured: up to 3e-7 px and 1e-12 relative; the bounds leave
+# room for other BLAS builds, and stay far below the corrections, tenths of a pixel here).
+CROP_MOVE_TOL_PX = 1e-5
+CROP_MOVE_RTOL = 1e-9
 # The skew warp (a shear by about 0.012) changes pixel distances by about 1 %.
 WARPED_ERROR_FACTOR = 1.1
 # The shear of the pair (about 0.012 and 0.03 of the rows) opens empty triangles at the left and
@@ -212,9 +217,11 @@ def test_cameras_on_the_pleiades_pair(capsys, tmp_path, pair_images):
 
 
 def test_cameras_adjust_on_the_pleiades_pair(capsys, tmp_path, pair_images):
-    """--adjust writes the adjusted cameras and a 'ba' section whose figures are consistent with
-    them: each view's principal point moved by exactly its reported shift, and the adjustment
-    reduced the median reprojection error of the tie points."""
+    """--adjust writes the adjusted cameras (the sparse stage's corrections, as reconstruct
+    applies them) and a 'ba' section whose figures are consistent with them: each view's
+    principal point moved by exactly its reported shift (in the full image: the adjusted crops
+    are widened by the largest correction), and the adjustment reduced the median reprojection
+    error of the tie points."""
     plain, adjusted = tmp_path / "plain", tmp_path / "adjusted"
     common = [*pair_images, "--aoi", AOI, "--alt-range", *ALT, "--grid", "30", "30", "10"]
     rc, _, err = _run(capsys, [*common, "--out", plain])
@@ -232,5 +239,40 @@ def test_cameras_adjust_on_the_pleiades_pair(capsys, tmp_path, pair_images):
         name = vb["image"].rsplit("/", 1)[-1]
         shift = np.array(ba["principal_point_shift_px"][name])
         Ka, Kb = np.array(va["K"]), np.array(vb["K"])
-        np.testing.assert_allclose(Kb[:2, 2] - Ka[:2, 2], shift, rtol=0, atol=1e-9)
-        np.testing.assert_array_equal(np.delete(Kb.ravel(), [2, 5]), np.delete(Ka.ravel(), [2, 5]))
+        # principal points in full-image pixels: the crop's (column, row) offset added
+        pa = Ka[:2, 2] + np.array(va["crop_offset"])
+        pb = Kb[:2, 2] + np.array(vb["crop_offset"])
+        assert ba["method"] == "sparse stage" and np.abs(shift).max() > 0.0
+        np.testing.assert_allclose(pb - pa, shift, rtol=0, atol=CROP_MOVE_TOL_PX)
+        np.testing.assert_allclose(np.delete(Kb.ravel(), [2, 5]), np.delete(Ka.ravel(), [2, 5]),
+                                   rtol=CROP_MOVE_RTOL, atol=0)
+
+
+def test_cameras_adjust_leaves_out_a_blank_view_with_a_warning(capsys, caplog, tmp_path,
+                                                               small_town):
+    """--adjust ties the views as reconstruct does: a blank view (the town's RPC, no content) is
+    dropped with a warning naming its file, and the others' cameras are written, adjusted."""
+    from satsweep.geometry.rpc import RPCModel
+    from satsweep.geometry.rpc_formats import rpc_tiff_extratag
+    from satsweep.io.geotiff import write_tiff
+    from satsweep.io.images import read_image
+
+    first = small_town.views[0].image
+    blank = tmp_path / "blank.tif"
+    write_tiff(blank, np.full(read_image(first).shape, 1000, np.uint16),
+               extratags=[rpc_tiff_extratag(RPCModel.from_image(first))])
+    a = small_town.aoi
+    lo, hi = small_town.alt_range
+    out = tmp_path / "out"
+    with caplog.at_level("WARNING"):
+        rc, stdout, err = _run(capsys, [*(v.image for v in small_town.views), blank, "--aoi",
+                                        f"{a.lon_min},{a.lat_min},{a.lon_max},{a.lat_max}",
+                                        "--alt-range", lo - 5.0, hi + 5.0, "--out", out,
+                                        "--adjust", *SMALL_GRID])
+    assert rc == 0, err
+    warned = [r.getMessage() for r in caplog.records] + err.splitlines()
+    assert any(str(blank) in m and "dropped by the sparse stage" in m for m in warned), warned
+    written = json.loads((out / "cameras.json").read_text())
+    assert [v["image"] for v in written["views"]] == [str(v.image) for v in small_town.views]
+    assert set(written["ba"]["principal_point_shift_px"]) == {
+        v.image.name for v in small_town.views}

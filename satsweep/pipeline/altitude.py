@@ -85,6 +85,49 @@ def choose_altitude_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
     return tie_point_altitude(sparse, prior)
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class TiedViews:
+    """What :func:`tie_views` found: the sparse stage's result (None when it did not run, or
+    ``untied`` when it could not tie the views although a range was given), the area's altitude
+    range, and the sources the sparse stage kept (all of them when it did not run)."""
+
+    sparse: "SparseResult | None"
+    untied: CameraError | None
+    altitude: AltitudeChoice
+    sources: list["ImageSource"]
+
+
+def tie_views(sources: Sequence["ImageSource"], aoi: "AOI", *, alt_range: AltitudeRange | None,
+              dem: str | os.PathLike | None, config: "PipelineConfig", adjust: bool,
+              report: "RunReport | None" = None) -> TiedViews:
+    """The sparse stage where the run needs it, and the altitude range: ``reconstruct`` and
+    ``satsweep cameras`` both start here. Without a range (``alt_range``, ``dem``) the sparse
+    stage runs over the RPCs' range and gives it (InputError when it cannot); with one, it runs
+    over that range only when the pointing is to be corrected (``adjust``)."""
+    given = alt_range is not None or dem is not None
+    sources = list(sources)
+    sparse, untied = None, None
+    if not given or adjust:
+        from satsweep.pipeline.prepare import tie_sources
+
+        prior = prior_altitude_range(sources, aoi, alt_range=alt_range, dem=dem)
+        try:
+            sparse = tie_sources(sources, aoi, prior, config, report=report)
+        except CameraError as exc:
+            if not given:
+                raise untied_error(exc) from None
+            untied = exc
+        else:
+            kept = set(sparse.kept_paths)
+            sources = [src for src in sources if src.path in kept]
+    if given:
+        altitude = choose_altitude_range(sources, aoi, alt_range=alt_range, dem=dem,
+                                         config=config)
+    else:
+        altitude = tie_point_altitude(sparse, prior)
+    return TiedViews(sparse=sparse, untied=untied, altitude=altitude, sources=sources)
+
+
 def untied_error(exc: CameraError) -> InputError:
     """The error of a run without a range whose views the sparse stage cannot tie (``exc``)."""
     return InputError(None, f"no altitude range given and the views cannot be tied to find one "

@@ -18,16 +18,10 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from satsweep.errors import CameraError, SatsweepError
+from satsweep.errors import SatsweepError
 from satsweep.geometry.altitude import AltitudeRange, enu_height_range
 from satsweep.io.metadata import with_computed_sun
-from satsweep.pipeline.altitude import (
-    AltitudeChoice,
-    choose_altitude_range,
-    prior_altitude_range,
-    tie_point_altitude,
-    untied_error,
-)
+from satsweep.pipeline.altitude import AltitudeChoice, choose_altitude_range, tie_views
 from satsweep.pipeline.forecast import program_forecast
 from satsweep.pipeline.prepare import (
     Adjustment,
@@ -36,7 +30,6 @@ from satsweep.pipeline.prepare import (
     ortho_values,
     skew_correct_masks,
     skew_correct_views,
-    tie_sources,
     unadjusted,
 )
 from satsweep.pipeline.rasters import AreaRasters, area_rasters
@@ -163,27 +156,10 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     """Every stage from the altitude range to the DSM rasters, for one area on its grid."""
     config, rep = ctx.config, ctx.report
     r = config.reconstruct
-    given = ctx.alt_range is not None or ctx.dem is not None
-    sources = list(job.sources)
-    sparse, untied = None, None
-    if not given or r.adjust != "off":
-        # One sparse stage over the views cropped at the prior range gives the pointing
-        # corrections, the views that can be tied, and (without a range) the altitude range.
-        prior = prior_altitude_range(sources, job.aoi, alt_range=ctx.alt_range, dem=ctx.dem)
-        try:
-            sparse = tie_sources(sources, job.aoi, prior, config, report=rep)
-        except CameraError as exc:
-            if not given:
-                raise untied_error(exc) from None
-            untied = exc
-        else:
-            kept = set(sparse.kept_paths)
-            sources = [src for src in sources if src.path in kept]
-    if given:
-        altitude = choose_altitude_range(sources, job.aoi, alt_range=ctx.alt_range, dem=ctx.dem,
-                                         config=config)
-    else:
-        altitude = tie_point_altitude(sparse, prior)
+    tied = tie_views(job.sources, job.aoi, alt_range=ctx.alt_range, dem=ctx.dem, config=config,
+                     adjust=r.adjust != "off", report=rep)
+    sparse, untied, altitude, sources = tied.sparse, tied.untied, tied.altitude, tied.sources
+    if altitude.source == "tie points":
         if altitude.doubt:
             rep.warn(altitude.doubt, doubtful=True)
         rep.log(f"altitude range {altitude.range.min:.1f}..{altitude.range.max:.1f} m from "
