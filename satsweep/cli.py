@@ -186,8 +186,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     from satsweep.io.atomic import check_output_dir
     from satsweep.io.sources import open_sources
     from satsweep.pipeline.altitude import tie_views
-    from satsweep.pipeline.prepare import crop_views, fit_cameras
-    from satsweep.sparse.bundle import shift_principal_points
+    from satsweep.pipeline.prepare import correct_pointing, crop_views, fit_cameras
 
     check_output_dir(args.out, overwrite=args.overwrite)
     config = PipelineConfig().override("reconstruct", adjust="on")
@@ -198,22 +197,22 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     tied = tie_views(open_sources(args.images), aoi, alt_range=_cli_altitude_range(args),
                      dem=args.dem, config=config, adjust=args.adjust)
     sparse, alt = tied.sparse, tied.altitude.range
-    if args.adjust and sparse is None:
-        raise tied.untied
     if tied.altitude.doubt:
         print(f"satsweep: warning: {tied.altitude.doubt}", file=sys.stderr)
     # With corrections the crops are widened by the largest, to hold the AOI's content.
-    extra = int(math.ceil(sparse.max_correction_px)) if args.adjust else 0
+    extra = int(math.ceil(sparse.max_correction_px)) if args.adjust and sparse else 0
     views, _ = crop_views(tied.sources, aoi, alt, config, extra_margin_px=extra)
     cameras = fit_cameras(views, aoi, alt, config)
     images = None
-    if args.adjust:
-        shifts = sparse.corrections_for([v.path for v in views])
+    if args.adjust:  # ([reconstruct] adjust = on: views that cannot be tied are an error)
+        cameras, adjustment = correct_pointing(cameras, views, sparse, tied.untied, config)
+        shifts = list(adjustment.sparse_shifts.values())
         fine = sparse.to_dict()["fine"] or {}
         ba = {"method": "sparse stage", "points": fine.get("points"),
               "reprojection_error_px": fine.get("reprojection_error_px"),
-              "principal_point_shift_px": {v.name: list(s) for v, s in zip(views, shifts)}}
-        cameras = dataclasses.replace(shift_principal_points(cameras, shifts), ba=ba)
+              "principal_point_shift_px": {n: list(s)
+                                           for n, s in adjustment.sparse_shifts.items()}}
+        cameras = dataclasses.replace(cameras, ba=ba)
         if ba["reprojection_error_px"]:
             e = ba["reprojection_error_px"]
             print(f"bundle adjustment: {ba['points']} points, median reprojection error "

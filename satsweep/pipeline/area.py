@@ -25,16 +25,15 @@ from satsweep.pipeline.altitude import AltitudeChoice, choose_altitude_range, ti
 from satsweep.pipeline.forecast import program_forecast
 from satsweep.pipeline.prepare import (
     Adjustment,
+    correct_pointing,
     crop_views,
     fit_cameras,
     ortho_values,
     skew_correct_masks,
     skew_correct_views,
-    unadjusted,
 )
 from satsweep.pipeline.rasters import AreaRasters, area_rasters
 from satsweep.pipeline.sweeps import ReferenceHeights, sweep_references
-from satsweep.sparse.bundle import shift_principal_points
 
 if TYPE_CHECKING:  # pragma: no cover
     from satsweep.config import PipelineConfig
@@ -180,19 +179,13 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     # The kernels the sweep stage will need, built in the background meanwhile.
     ctx.device.prebuild(program_forecast(ctx.device, cameras,
                                          enu_height_range(cameras.frame, job.aoi, alt), config))
-    if r.adjust == "off":
-        adjustment = Adjustment(skipped="reconstruct.adjust = off")
-    elif sparse is not None:
-        shifts = sparse.corrections_for([v.path for v in views])
-        cameras = shift_principal_points(cameras, shifts)
-        adjustment = Adjustment(sparse_shifts={v.name: s for v, s in zip(views, shifts)})
-    else:
-        borrowed = (None if job.borrowed_shifts is None
-                    else [job.borrowed_shifts[v.path] for v in views])
-        cameras, adjustment = unadjusted(cameras, untied, config, borrowed_shifts=borrowed,
-                                         may_wait=job.may_wait, report=rep)
-        if adjustment.postponed is not None:
-            return Wait(adjustment.postponed)
+    borrowed = (None if job.borrowed_shifts is None
+                else [job.borrowed_shifts[v.path] for v in views])
+    cameras, adjustment = correct_pointing(cameras, views, sparse, untied, config,
+                                           borrowed_shifts=borrowed, may_wait=job.may_wait,
+                                           report=rep)
+    if adjustment.postponed is not None:
+        return Wait(adjustment.postponed)
     ortho_images = ortho_values(views) if config.reconstruct.write_ortho else None
     masks = [v.valid for v in views]
     if config.reconstruct.skew_correct:

@@ -7,8 +7,9 @@ timed as a stage of the run's report when one is given:
   views    each image cropped to the footprint of the AOI cube, tonemapped
            (``satsweep.io.views``, ``satsweep.io.images.tonemap``)
   cameras  the perspective approximation of every RPC over the cube (``satsweep.geometry.camera``)
-  adjust   the bundle adjustment of the principal points (``satsweep.sparse.bundle``), per
-           ``[reconstruct] adjust``; an ``Adjustment`` says what was done
+  adjust   the principal points moved by the sparse stage's pointing corrections
+           (``satsweep.sparse.stage``, run by ``pipeline.altitude.tie_views`` before the crops),
+           per ``[reconstruct] adjust``; an ``Adjustment`` says what was done
   skew     the images sheared so that K has no skew (``satsweep.geometry.skew``)
 
 The images handed to the sweep are the tonemapped crops; the orthophoto's are the crops' own
@@ -35,6 +36,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from satsweep.io.views import View
     from satsweep.pipeline.report import RunReport
     from satsweep.sparse.bundle import BundleReport
+    from satsweep.sparse.stage import SparseResult
 
 
 log = logging.getLogger(__name__)
@@ -156,30 +158,25 @@ def fit_cameras(views: Sequence["View"], aoi: "AOI", alt_range: "AltitudeRange",
     return cameras
 
 
-def adjust_cameras(cameras: "CameraSet", images: Sequence[np.ndarray], config: "PipelineConfig",
-                   *, names: Sequence[str] | None = None,
-                   borrowed_shifts: Sequence[Sequence[float]] | None = None,
-                   may_wait: bool = False, report: "RunReport | None" = None
-                   ) -> tuple["CameraSet", Adjustment]:
-    """The "adjust" step, per ``[reconstruct] adjust``: the bundle adjustment of the principal
-    points. When the views match too poorly for it: the principal points are moved by
-    ``borrowed_shifts`` (per view, other tiles' corrections) if given; else the adjustment is
-    postponed if ``may_wait`` (``Adjustment.postponed``; the cameras are returned unchanged);
-    else it is skipped with 2 views under ``adjust = auto``, and the CameraError raised
-    otherwise."""
-    from satsweep.sparse import bundle
-
-    mode = config.reconstruct.adjust
-    if mode == "off":
+def correct_pointing(cameras: "CameraSet", views: Sequence["View"], sparse: "SparseResult | None",
+                     untied: CameraError | None, config: "PipelineConfig", *,
+                     borrowed_shifts: Sequence[Sequence[float]] | None = None,
+                     may_wait: bool = False, report: "RunReport | None" = None
+                     ) -> tuple["CameraSet", Adjustment]:
+    """The "adjust" step, per ``[reconstruct] adjust``: the principal points moved by the sparse
+    stage's corrections (``sparse``, from ``pipeline.altitude.tie_views``; the ``views`` cropped
+    with room for them); when it could not tie the views (``untied``), the rules of
+    :func:`unadjusted`."""
+    if config.reconstruct.adjust == "off":
         return cameras, Adjustment(skipped="reconstruct.adjust = off")
-    with _stage(report, "adjust"):
-        try:
-            adjusted, result = bundle.adjust_principal_points(cameras, images, config.bundle,
-                                                              config.sparse, names=names)
-            return adjusted, Adjustment(bundle=result)
-        except CameraError as exc:
-            return unadjusted(cameras, exc, config, borrowed_shifts=borrowed_shifts,
-                              may_wait=may_wait, report=report)
+    if sparse is not None:
+        from satsweep.sparse.bundle import shift_principal_points
+
+        shifts = sparse.corrections_for([v.path for v in views])
+        return (shift_principal_points(cameras, shifts),
+                Adjustment(sparse_shifts={v.name: s for v, s in zip(views, shifts)}))
+    return unadjusted(cameras, untied, config, borrowed_shifts=borrowed_shifts,
+                      may_wait=may_wait, report=report)
 
 
 def unadjusted(cameras: "CameraSet", exc: CameraError, config: "PipelineConfig", *,
@@ -282,16 +279,26 @@ def ortho_values(views: Sequence["View"]) -> list[np.ndarray]:
 def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
                   alt_range: "AltitudeRange", config: "PipelineConfig | None" = None, *,
                   report: "RunReport | None" = None) -> PreparedViews:
-    """Every step in order: crops, cameras, the adjustment per ``[reconstruct] adjust`` (with
-    the rules of ``adjust_cameras``, without waiting), the skew correction per ``[reconstruct]
-    skew_correct``. ``sources``: ``ImageSource`` objects or image paths."""
+    """Every step in order, as a reconstruction takes them over ``alt_range``: the sparse stage
+    (per ``[reconstruct] adjust``; the views it cannot tie left out with a warning), crops,
+    cameras, their pointing correction (``correct_pointing``, without waiting), the skew
+    correction per ``[reconstruct] skew_correct``. ``sources``: ``ImageSource`` objects or image
+    paths."""
+    import math
+
     from satsweep.config import PipelineConfig
+    from satsweep.io.sources import open_sources
+    from satsweep.pipeline.altitude import tie_views
 
     config = config if config is not None else PipelineConfig()
-    views, images = crop_views(sources, aoi, alt_range, config, report=report)
+    tied = tie_views(open_sources(sources), aoi, alt_range=alt_range, dem=None, config=config,
+                     adjust=config.reconstruct.adjust != "off", report=report)
+    extra = 0 if tied.sparse is None else int(math.ceil(tied.sparse.max_correction_px))
+    views, images = crop_views(tied.sources, aoi, alt_range, config, report=report,
+                               extra_margin_px=extra)
     cameras = fit_cameras(views, aoi, alt_range, config, report=report)
-    cameras, adjustment = adjust_cameras(cameras, images, config,
-                                         names=[v.name for v in views], report=report)
+    cameras, adjustment = correct_pointing(cameras, views, tied.sparse, tied.untied, config,
+                                           report=report)
     ortho = ortho_values(views) if config.reconstruct.write_ortho else None
     masks = [v.valid for v in views]
     if config.reconstruct.skew_correct:
