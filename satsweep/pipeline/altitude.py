@@ -86,7 +86,7 @@ def choose_altitude_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class TiedViews:
+class TiedSources:
     """What :func:`tie_views` found: the sparse stage's result (None when it did not run, or
     ``untied`` when it could not tie the views although a range was given), the area's altitude
     range, and the sources the sparse stage kept (all of them when it did not run)."""
@@ -99,7 +99,7 @@ class TiedViews:
 
 def tie_views(sources: Sequence["ImageSource"], aoi: "AOI", *, alt_range: AltitudeRange | None,
               dem: str | os.PathLike | None, config: "PipelineConfig", adjust: bool,
-              report: "RunReport | None" = None) -> TiedViews:
+              report: "RunReport | None" = None) -> TiedSources:
     """The sparse stage where the run needs it, and the altitude range: ``reconstruct`` and
     ``satsweep cameras`` both start here. Without a range (``alt_range``, ``dem``) the sparse
     stage runs over the RPCs' range and gives it (InputError when it cannot); with one, it runs
@@ -125,7 +125,7 @@ def tie_views(sources: Sequence["ImageSource"], aoi: "AOI", *, alt_range: Altitu
                                          config=config)
     else:
         altitude = tie_point_altitude(sparse, prior)
-    return TiedViews(sparse=sparse, untied=untied, altitude=altitude, sources=sources)
+    return TiedSources(sparse=sparse, untied=untied, altitude=altitude, sources=sources)
 
 
 def untied_error(exc: CameraError) -> InputError:
