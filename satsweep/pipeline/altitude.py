@@ -75,14 +75,8 @@ def choose_altitude_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
     if alt_range is not None or dem is not None:
         rng = resolve_altitude_range(alt_range=alt_range, dem=dem, aoi=aoi)
         return AltitudeChoice(rng, "user" if alt_range is not None else "dem")
-    from satsweep.pipeline.prepare import tie_sources
-
-    prior = prior_altitude_range(sources, aoi, alt_range=None, dem=None)
-    try:
-        sparse = tie_sources(sources, aoi, prior, config, report=report)
-    except CameraError as exc:
-        raise untied_error(exc) from None
-    return tie_point_altitude(sparse, prior)
+    return tie_views(sources, aoi, alt_range=None, dem=None, config=config, adjust=False,
+                     report=report).altitude
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -100,8 +94,8 @@ class TiedSources:
 def tie_views(sources: Sequence["ImageSource"], aoi: "AOI", *, alt_range: AltitudeRange | None,
               dem: str | os.PathLike | None, config: "PipelineConfig", adjust: bool,
               report: "RunReport | None" = None) -> TiedSources:
-    """The sparse stage where the run needs it, and the altitude range: ``reconstruct`` and
-    ``satsweep cameras`` both start here. Without a range (``alt_range``, ``dem``) the sparse
+    """The sparse stage where the run needs it, and the altitude range: ``reconstruct``,
+    ``satsweep cameras`` and ``prepare_views`` start here. Without a range (``alt_range``, ``dem``) the sparse
     stage runs over the RPCs' range and gives it (InputError when it cannot); with one, it runs
     over that range only when the pointing is to be corrected (``adjust``)."""
     given = alt_range is not None or dem is not None
