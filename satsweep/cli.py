@@ -185,7 +185,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     from satsweep.geometry.skew import skew_correct_set
     from satsweep.io.atomic import check_output_dir
     from satsweep.io.sources import open_sources
-    from satsweep.pipeline.altitude import tie_views
+    from satsweep.pipeline.altitude import tie_and_range
     from satsweep.pipeline.prepare import correct_pointing, crop_views, fit_cameras
 
     check_output_dir(args.out, overwrite=args.overwrite)
@@ -194,8 +194,8 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
         config = config.override("camera", grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
     # The views, their pointing corrections and the altitude range as reconstruct takes them.
-    tied = tie_views(open_sources(args.images), aoi, alt_range=_cli_altitude_range(args),
-                     dem=args.dem, config=config, adjust=args.adjust)
+    tied = tie_and_range(open_sources(args.images), aoi, alt_range=_cli_altitude_range(args),
+                         dem=args.dem, config=config, adjust=args.adjust)
     sparse, alt = tied.sparse, tied.altitude.range
     if tied.altitude.doubt:
         print(f"satsweep: warning: {tied.altitude.doubt}", file=sys.stderr)
@@ -206,19 +206,16 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     images = None
     if args.adjust:  # ([reconstruct] adjust = on: views that cannot be tied are an error)
         cameras, adjustment = correct_pointing(cameras, views, sparse, tied.untied, config)
-        shifts = list(adjustment.sparse_shifts.values())
         fine = sparse.to_dict()["fine"] or {}
-        ba = {"method": "sparse stage", "points": fine.get("points"),
-              "reprojection_error_px": fine.get("reprojection_error_px"),
-              "principal_point_shift_px": {n: list(s)
-                                           for n, s in adjustment.sparse_shifts.items()}}
+        ba = {**adjustment.to_report(), "method": "sparse stage", "points": fine.get("points"),
+              "reprojection_error_px": fine.get("reprojection_error_px")}
         cameras = dataclasses.replace(cameras, ba=ba)
         if ba["reprojection_error_px"]:
             e = ba["reprojection_error_px"]
             print(f"bundle adjustment: {ba['points']} points, median reprojection error "
                   f"{e['before']['median']:.3f} -> {e['after']['median']:.3f} px")
-        for v, shift in zip(views, shifts):
-            print(f"  {v.name}: principal point shift ({shift[0]:+.3f}, {shift[1]:+.3f}) px")
+        for name, shift in adjustment.sparse_shifts.items():
+            print(f"  {name}: principal point shift ({shift[0]:+.3f}, {shift[1]:+.3f}) px")
     if args.skew_correct:  # the images written are the crops' own values, sheared
         cameras, images = skew_correct_set(cameras, [v.image for v in views])
     cameras = write_cameras(args.out, cameras, images)

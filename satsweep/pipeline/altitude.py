@@ -75,13 +75,13 @@ def choose_altitude_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
     if alt_range is not None or dem is not None:
         rng = resolve_altitude_range(alt_range=alt_range, dem=dem, aoi=aoi)
         return AltitudeChoice(rng, "user" if alt_range is not None else "dem")
-    return tie_views(sources, aoi, alt_range=None, dem=None, config=config, adjust=False,
-                     report=report).altitude
+    return tie_and_range(sources, aoi, alt_range=None, dem=None, config=config, adjust=False,
+                         report=report).altitude
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TiedSources:
-    """What :func:`tie_views` found: the sparse stage's result (None when it did not run, or
+    """What :func:`tie_and_range` found: the sparse stage's result (None when it did not run, or
     ``untied`` when it could not tie the views although a range was given), the area's altitude
     range, and the sources the sparse stage kept (all of them when it did not run)."""
 
@@ -91,9 +91,10 @@ class TiedSources:
     sources: list["ImageSource"]
 
 
-def tie_views(sources: Sequence["ImageSource"], aoi: "AOI", *, alt_range: AltitudeRange | None,
-              dem: str | os.PathLike | None, config: "PipelineConfig", adjust: bool,
-              report: "RunReport | None" = None) -> TiedSources:
+def tie_and_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
+                  alt_range: AltitudeRange | None, dem: str | os.PathLike | None,
+                  config: "PipelineConfig", adjust: bool,
+                  report: "RunReport | None" = None) -> TiedSources:
     """The sparse stage where the run needs it, and the altitude range: ``reconstruct``,
     ``satsweep cameras`` and ``prepare_views`` start here. Without a range (``alt_range``, ``dem``) the sparse
     stage runs over the RPCs' range and gives it (InputError when it cannot); with one, it runs

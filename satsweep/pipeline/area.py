@@ -21,7 +21,7 @@ import numpy as np
 from satsweep.errors import SatsweepError
 from satsweep.geometry.altitude import AltitudeRange, enu_height_range
 from satsweep.io.metadata import with_computed_sun
-from satsweep.pipeline.altitude import AltitudeChoice, choose_altitude_range, tie_views
+from satsweep.pipeline.altitude import AltitudeChoice, choose_altitude_range, tie_and_range
 from satsweep.pipeline.forecast import program_forecast
 from satsweep.pipeline.prepare import (
     Adjustment,
@@ -155,8 +155,8 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     """Every stage from the altitude range to the DSM rasters, for one area on its grid."""
     config, rep = ctx.config, ctx.report
     r = config.reconstruct
-    tied = tie_views(job.sources, job.aoi, alt_range=ctx.alt_range, dem=ctx.dem, config=config,
-                     adjust=r.adjust != "off", report=rep)
+    tied = tie_and_range(job.sources, job.aoi, alt_range=ctx.alt_range, dem=ctx.dem,
+                         config=config, adjust=r.adjust != "off", report=rep)
     sparse, untied, altitude, sources = tied.sparse, tied.untied, tied.altitude, tied.sources
     if altitude.source == "tie points":
         if altitude.doubt:

@@ -8,7 +8,8 @@ timed as a stage of the run's report when one is given:
            (``satsweep.io.views``, ``satsweep.io.images.tonemap``)
   cameras  the perspective approximation of every RPC over the cube (``satsweep.geometry.camera``)
   adjust   the principal points moved by the sparse stage's pointing corrections
-           (``satsweep.sparse.stage``, run by ``pipeline.altitude.tie_views`` before the crops),
+           (``satsweep.sparse.stage``, run by ``pipeline.altitude.tie_and_range`` before the
+           crops),
            per ``[reconstruct] adjust``; an ``Adjustment`` says what was done
   skew     the images sheared so that K has no skew (``satsweep.geometry.skew``)
 
@@ -164,8 +165,8 @@ def correct_pointing(cameras: "CameraSet", views: Sequence["View"], sparse: "Spa
                      may_wait: bool = False, report: "RunReport | None" = None
                      ) -> tuple["CameraSet", Adjustment]:
     """The "adjust" step, per ``[reconstruct] adjust``: the principal points moved by the sparse
-    stage's corrections (``sparse``, from ``pipeline.altitude.tie_views``; the ``views`` cropped
-    with room for them); when it could not tie the views (``untied``), the rules of
+    stage's corrections (``sparse``, from ``pipeline.altitude.tie_and_range``; the ``views``
+    cropped with room for them); when it could not tie the views (``untied``), the rules of
     :func:`unadjusted`."""
     if config.reconstruct.adjust == "off":
         return cameras, Adjustment(skipped="reconstruct.adjust = off")
@@ -288,11 +289,12 @@ def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
 
     from satsweep.config import PipelineConfig
     from satsweep.io.sources import open_sources
-    from satsweep.pipeline.altitude import tie_views
+    from satsweep.pipeline.altitude import tie_and_range
 
     config = config if config is not None else PipelineConfig()
-    tied = tie_views(open_sources(sources), aoi, alt_range=alt_range, dem=None, config=config,
-                     adjust=config.reconstruct.adjust != "off", report=report)
+    tied = tie_and_range(open_sources(sources), aoi, alt_range=alt_range, dem=None,
+                         config=config, adjust=config.reconstruct.adjust != "off",
+                         report=report)
     extra = 0 if tied.sparse is None else int(math.ceil(tied.sparse.max_correction_px))
     views, images = crop_views(tied.sources, aoi, alt_range, config, report=report,
                                extra_margin_px=extra)

@@ -100,8 +100,7 @@ class DSMOptions(Options):
     ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
                 "fill_method", "fill_border_holes", "consensus_tolerance_m", "consensus_min_views",
                 "consensus_min_share", "consensus_min_distinct_views", "visibility_check",
-                "visibility_far_m",
-                "view_raster")
+                "visibility_far_m", "view_raster")
 
     def check(self) -> None:
         self._require(math.isfinite(self.resolution) and self.resolution > 0.0, "resolution", "must be > 0 metres")
