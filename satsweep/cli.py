@@ -9,13 +9,14 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import logging
 import os
 import re
 import signal
 import sys
 import threading
 import warnings
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 from satsweep import __version__
 from satsweep.errors import RetiredOptionWarning, SatsweepError
@@ -558,7 +559,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        with _termination_raises(), warnings.catch_warnings():
+        with _termination_raises(), warnings.catch_warnings(), _warnings_logged():
             # numpy's RuntimeWarnings (a degenerate determinant, an empty mean) come from inputs
             # whose consequences satsweep checks and reports itself, in the user's terms.
             warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"numpy(\.|$)")
@@ -581,6 +582,31 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 _python_showwarning = warnings.showwarning
+
+
+class _WarningLines(logging.Handler):
+    """The warnings satsweep's modules log (logger ``satsweep.*``) while no run report takes
+    them (``satsweep cameras``, ``synth``, ``evaluate``) as ``satsweep: warning:`` lines on
+    stderr; other loggers' warnings as Python's last-resort handler prints them."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        message = record.getMessage()
+        if record.name == "satsweep" or record.name.startswith("satsweep."):
+            message = f"satsweep: warning: {message}"
+        print(message, file=sys.stderr, flush=True)
+
+
+@contextlib.contextmanager
+def _warnings_logged() -> Iterator[None]:
+    """While inside: :class:`_WarningLines` on the root logger (a run report's capture stops
+    satsweep's records before they reach it)."""
+    root = logging.getLogger()
+    handler = _WarningLines(level=logging.WARNING)
+    root.addHandler(handler)
+    try:
+        yield
+    finally:
+        root.removeHandler(handler)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -272,6 +272,8 @@ def test_cameras_adjust_leaves_out_a_blank_view_with_a_warning(capsys, caplog, t
     assert rc == 0, err
     warned = [r.getMessage() for r in caplog.records] + err.splitlines()
     assert any(str(blank) in m and "dropped by the sparse stage" in m for m in warned), warned
+    assert any(line.startswith("satsweep: warning: ") and str(blank) in line
+               for line in err.splitlines()), err
     written = json.loads((out / "cameras.json").read_text())
     assert [v["image"] for v in written["views"]] == [str(v.image) for v in small_town.views]
     assert set(written["ba"]["principal_point_shift_px"]) == {

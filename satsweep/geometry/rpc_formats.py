@@ -308,6 +308,8 @@ def _read_tiff_rpc_tag(path: Path) -> np.ndarray | None:
     """
     import tifffile
 
+    from satsweep.io.images import quiet_tifffile
+
     try:
         size = path.stat().st_size
         with open(path, "rb") as f:
@@ -319,7 +321,7 @@ def _read_tiff_rpc_tag(path: Path) -> np.ndarray | None:
     if magic not in _TIFF_MAGICS:
         raise ImageFormatError(path, f"not a TIFF file (starts with {magic!r})")
     try:
-        with tifffile.TiffFile(path) as tif:
+        with quiet_tifffile(), tifffile.TiffFile(path) as tif:
             if not tif.pages:
                 raise ImageFormatError(path, "truncated or corrupt TIFF (no image directory)")
             page = tif.pages[0]

@@ -34,7 +34,7 @@ _TIFF_READ_ERRORS = (ValueError, OSError, EOFError, IndexError, KeyError, struct
 
 
 @contextlib.contextmanager
-def _quiet_tifffile() -> Iterator[None]:
+def quiet_tifffile() -> Iterator[None]:
     """Silence tifffile's own log lines while opening a file: a corrupt file is reported once, by
     the ImageFormatError that names it, not also by a library log line above it."""
     logger = logging.getLogger("tifffile")
@@ -85,11 +85,11 @@ def _open_tiff(path: str | os.PathLike):
     if os.path.isdir(path):
         raise ImageFormatError(path, "is a folder, not an image")
     try:
-        with _quiet_tifffile():
+        with quiet_tifffile():
             tif = tifffile.TiffFile(path)
     except _TIFF_READ_ERRORS as exc:
         raise ImageFormatError(path, _not_a_tiff(path, exc)) from None
-    with tif, _quiet_tifffile():
+    with tif, quiet_tifffile():
         try:
             pages = tif.pages
             page = pages.first if len(pages) else None
