@@ -265,16 +265,22 @@ def flat_cells(points_x, points_y, grid: DSMGrid) -> np.ndarray:
     return np.where(inside, i * grid.width + j, -1).astype(np.int64)
 
 
-def rasterise_max_cells(cells: np.ndarray, values, grid: DSMGrid) -> np.ndarray:
-    """``rasterise_max`` of points whose cells (``flat_cells``) are already known: several value
-    sets over the same points (heights, confidences) share them."""
+def _points_in_grid(cells: np.ndarray, values, caller: str) -> tuple[np.ndarray, np.ndarray]:
+    """The cells (``flat_cells``) and values of the points with a finite value inside the grid."""
     c = np.asarray(cells, np.int64).ravel()
     z = np.asarray(values, np.float64).ravel()
     if c.size != z.size:
-        raise ValueError(f"rasterise_max: lengths differ ({c.size} cells, {z.size} values)")
+        raise ValueError(f"{caller}: lengths differ ({c.size} cells, {z.size} values)")
     ok = np.isfinite(z) & (c >= 0)
+    return c[ok], z[ok]
+
+
+def rasterise_max_cells(cells: np.ndarray, values, grid: DSMGrid) -> np.ndarray:
+    """``rasterise_max`` of points whose cells (``flat_cells``) are already known: several value
+    sets over the same points (heights, confidences) share them."""
+    c, z = _points_in_grid(cells, values, "rasterise_max")
     out = np.full(grid.width * grid.height, -np.inf)
-    np.maximum.at(out, c[ok], z[ok])
+    np.maximum.at(out, c, z)
     out[np.isneginf(out)] = np.nan
     return out.reshape(grid.shape).astype(np.float32)
 
@@ -286,13 +292,7 @@ def rasterise_quantile_cells(cells: np.ndarray, values, grid: DSMGrid,
     ``rasterise_max_cells``."""
     if not 0.0 <= quantile <= 1.0:
         raise ValueError(f"rasterise_quantile_cells: quantile = {quantile!r}, must be in [0, 1]")
-    c = np.asarray(cells, np.int64).ravel()
-    z = np.asarray(values, np.float64).ravel()
-    if c.size != z.size:
-        raise ValueError(f"rasterise_quantile_cells: lengths differ ({c.size} cells, "
-                         f"{z.size} values)")
-    ok = np.isfinite(z) & (c >= 0)
-    c, z = c[ok], z[ok]
+    c, z = _points_in_grid(cells, values, "rasterise_quantile_cells")
     out = np.full(grid.width * grid.height, np.nan)
     if c.size:
         order = np.lexsort((z, c))
