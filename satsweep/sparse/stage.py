@@ -74,7 +74,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from typing import Any, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -115,6 +116,12 @@ _FINE_CUBE_MARGIN_M = 30.0
 # Of each pair of views, the fine adjustment keeps at least this many of the best registered tie
 # points (refine_keep_fraction of a few dozen would leave too few to tie small views).
 _MIN_BEST_REGISTERED = 50
+# Threads that tonemap the views and detect their features at once (each holds a view's image
+# and its SIFT pyramid: more would cost memory on machines of many cores for little more speed).
+# 20 views of 1000^2 px on 2 cores: tonemap 0.33 -> 0.17 s, features 1.7 -> 1.3 s, the same
+# features. Matching stays sequential: its matrix products already use every core (threads made
+# it 20% slower).
+SPARSE_THREADS_MAX = 4
 # A group of views tied among themselves by pairs of min_matches or more (one date's views) but
 # by none to the largest group is linked to it by its weaker pairs into it: pairs of at least
 # this many verified matches (each pair's offset then rests on several matches: on the 384 px
@@ -184,12 +191,22 @@ class TiedViews:
     # a group of views to the others (_weak_links)
 
 
+def _in_threads(function: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]:
+    """``[function(x) for x in items]``, run by up to SPARSE_THREADS_MAX threads (OpenCV's SIFT
+    and numpy release the GIL); each result is the sequential one's, in the items' order."""
+    workers = max(1, min(len(items), os.cpu_count() or 1, SPARSE_THREADS_MAX))
+    if workers == 1:
+        return [function(x) for x in items]
+    with ThreadPoolExecutor(workers, thread_name_prefix="satsweep-sparse") as pool:
+        return list(pool.map(function, items))
+
+
 def _detect(images: Sequence[np.ndarray], options: SparseOptions) -> list[tuple[np.ndarray, np.ndarray]]:
     """SIFT features of every image (strongest first)."""
-    return [detect_features(im, max_features=options.max_features,
-                            contrast_threshold=options.contrast_threshold,
-                            scale=feature_scale_for(np.shape(im), options))
-            for im in images]
+    return _in_threads(lambda im: detect_features(im, max_features=options.max_features,
+                                                  contrast_threshold=options.contrast_threshold,
+                                                  scale=feature_scale_for(np.shape(im), options)),
+                       images)
 
 
 def _camera_error(cam: Any) -> float:
@@ -757,7 +774,7 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
     names = tuple(os.path.basename(p) for p in paths) if names is None else tuple(names)
     t0 = time.perf_counter()
     if images is None:
-        images = [tonemap(v.image) for v in views]
+        images = _in_threads(lambda v: tonemap(v.image), views)
     seconds["tonemap"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     frame, prior_cams, failed = fit_cameras(views, aoi, prior, options.camera_grid)

@@ -84,6 +84,20 @@ def test_pointing_errors_of_50_px_are_recovered(biased, biased_result):
     json.dumps(d)  # JSON-ready for report.json
 
 
+def test_threads_give_the_sequential_result(biased, biased_result, monkeypatch):
+    """The views tonemapped and their features detected in threads: the same corrections, tie
+    points and range as one thread gives (the tasks are independent; order is kept)."""
+    import satsweep.sparse.stage as stage
+
+    result, views = biased_result
+    monkeypatch.setattr(stage, "SPARSE_THREADS_MAX", 1)
+    alone = sparse_stage(views, biased.aoi, _prior(biased))
+    np.testing.assert_array_equal(alone.corrections_px, result.corrections_px)
+    np.testing.assert_array_equal(alone.tied.points, result.tied.points)
+    assert alone.tied.n_features == result.tied.n_features
+    assert alone.altitude_range == result.altitude_range
+
+
 def test_the_altitude_range_holds_the_surface_the_corrected_cameras_see(biased, biased_result):
     result, _ = biased_result
     _, dX = _motion(result, biased)
