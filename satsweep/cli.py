@@ -178,7 +178,6 @@ def _add_cameras(sub) -> None:
 
 def _cmd_cameras(args: argparse.Namespace) -> int:
     import dataclasses
-    import math
 
     from satsweep.config import PipelineConfig
     from satsweep.geometry.aoi import parse_aoi
@@ -200,9 +199,8 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     sparse, alt = tied.sparse, tied.altitude.range
     if tied.altitude.doubt:
         print(f"satsweep: warning: {tied.altitude.doubt}", file=sys.stderr)
-    # With corrections the crops are widened by the largest, to hold the AOI's content.
-    extra = int(math.ceil(sparse.max_correction_px)) if args.adjust and sparse else 0
-    views, _ = crop_views(tied.sources, aoi, alt, config, extra_margin_px=extra)
+    views, _ = crop_views(tied.sources, aoi, alt, config,
+                          extra_margin_px=tied.correction_margin_px if args.adjust else 0)
     cameras = fit_cameras(views, aoi, alt, config)
     images = None
     if args.adjust:  # ([reconstruct] adjust = on: views that cannot be tied are an error)

@@ -15,6 +15,7 @@ is left out for want of a range).
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from typing import TYPE_CHECKING, Any, Sequence
 
@@ -90,15 +91,22 @@ class TiedSources:
     altitude: AltitudeChoice
     sources: list["ImageSource"]
 
+    @property
+    def correction_margin_px(self) -> int:
+        """Pixels the views' crops need beyond the AOI's footprint to hold its content once the
+        sparse stage's corrections move them (its largest, rounded up; 0 when it did not run)."""
+        return 0 if self.sparse is None else int(math.ceil(self.sparse.max_correction_px))
+
 
 def tie_and_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
                   alt_range: AltitudeRange | None, dem: str | os.PathLike | None,
                   config: "PipelineConfig", adjust: bool,
                   report: "RunReport | None" = None) -> TiedSources:
     """The sparse stage where the run needs it, and the altitude range: ``reconstruct``,
-    ``satsweep cameras`` and ``prepare_views`` start here. Without a range (``alt_range``, ``dem``) the sparse
-    stage runs over the RPCs' range and gives it (InputError when it cannot); with one, it runs
-    over that range only when the pointing is to be corrected (``adjust``)."""
+    ``satsweep cameras`` and ``prepare_views`` start here. Without a range (``alt_range``,
+    ``dem``) the sparse stage runs over the RPCs' range and gives it (InputError when it
+    cannot); with one, it runs over that range only when the pointing is to be corrected
+    (``adjust``)."""
     given = alt_range is not None or dem is not None
     sources = list(sources)
     sparse, untied = None, None

@@ -12,7 +12,6 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 from typing import TYPE_CHECKING, Any, Sequence
 
@@ -165,9 +164,8 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
                 f"{sparse.altitude['tie_points']} adjusted tie points (give --alt-range or --dem, "
                 "alt_range= or dem= in the API, to set it)")
     alt = altitude.range
-    # The crops are widened by the largest correction, so that they hold the AOI's content.
-    extra = 0 if sparse is None else int(math.ceil(sparse.max_correction_px))
-    views, images = crop_views(sources, job.aoi, alt, config, report=rep, extra_margin_px=extra)
+    views, images = crop_views(sources, job.aoi, alt, config, report=rep,
+                               extra_margin_px=tied.correction_margin_px)
     kept = {v.path for v in views}  # the views holding data over the area
     sources = [src for src in sources if src.path in kept]
     names = [v.name for v in views]

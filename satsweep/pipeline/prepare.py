@@ -9,8 +9,7 @@ timed as a stage of the run's report when one is given:
   cameras  the perspective approximation of every RPC over the cube (``satsweep.geometry.camera``)
   adjust   the principal points moved by the sparse stage's pointing corrections
            (``satsweep.sparse.stage``, run by ``pipeline.altitude.tie_and_range`` before the
-           crops),
-           per ``[reconstruct] adjust``; an ``Adjustment`` says what was done
+           crops), per ``[reconstruct] adjust``; an ``Adjustment`` says what was done
   skew     the images sheared so that K has no skew (``satsweep.geometry.skew``)
 
 The images handed to the sweep are the tonemapped crops; the orthophoto's are the crops' own
@@ -285,8 +284,6 @@ def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
     cameras, their pointing correction (``correct_pointing``, without waiting), the skew
     correction per ``[reconstruct] skew_correct``. ``sources``: ``ImageSource`` objects or image
     paths."""
-    import math
-
     from satsweep.config import PipelineConfig
     from satsweep.io.sources import open_sources
     from satsweep.pipeline.altitude import tie_and_range
@@ -295,9 +292,8 @@ def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
     tied = tie_and_range(open_sources(sources), aoi, alt_range=alt_range, dem=None,
                          config=config, adjust=config.reconstruct.adjust != "off",
                          report=report)
-    extra = 0 if tied.sparse is None else int(math.ceil(tied.sparse.max_correction_px))
     views, images = crop_views(tied.sources, aoi, alt_range, config, report=report,
-                               extra_margin_px=extra)
+                               extra_margin_px=tied.correction_margin_px)
     cameras = fit_cameras(views, aoi, alt_range, config, report=report)
     cameras, adjustment = correct_pointing(cameras, views, tied.sparse, tied.untied, config,
                                            report=report)

@@ -74,7 +74,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -103,6 +102,7 @@ from satsweep.sparse.tracks import (
     register_observations,
 )
 from satsweep.sparse.triangulation import project, projection_stack, triangulate_observations
+from satsweep.threads import map_in_threads
 
 __all__ = ["DroppedView", "SparseResult", "TiedViews", "corrected_projections", "sparse_stage",
            "tie_point_confirmer", "tie_views"]
@@ -192,13 +192,9 @@ class TiedViews:
 
 
 def _in_threads(function: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]:
-    """``[function(x) for x in items]``, run by up to SPARSE_THREADS_MAX threads (OpenCV's SIFT
-    and numpy release the GIL); each result is the sequential one's, in the items' order."""
-    workers = max(1, min(len(items), os.cpu_count() or 1, SPARSE_THREADS_MAX))
-    if workers == 1:
-        return [function(x) for x in items]
-    with ThreadPoolExecutor(workers, thread_name_prefix="satsweep-sparse") as pool:
-        return list(pool.map(function, items))
+    """``[function(x) for x in items]`` by up to SPARSE_THREADS_MAX threads (OpenCV's SIFT and
+    numpy release the GIL). Read at each call, so that a test can set it to 1."""
+    return map_in_threads(function, items, max_threads=SPARSE_THREADS_MAX, name="sparse")
 
 
 def _detect(images: Sequence[np.ndarray], options: SparseOptions) -> list[tuple[np.ndarray, np.ndarray]]:
