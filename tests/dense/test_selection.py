@@ -142,3 +142,46 @@ def test_sources_all_of_other_dates_are_all_kept():
     # and without labels (similarity measured from the images, or given bare) likewise
     sel = select_views(cams, mid_height=0.0, similarity=sim)
     assert sel.sources[0] == (1,)
+
+
+def _one_sided_stack():
+    """Five views from the west (azimuths 240-300, incidence 10-18 degrees) and two steeper
+    ones from the east: the lowest incidences are all on one side."""
+    west = [satellite(10, 240), satellite(12, 300), satellite(14, 270), satellite(16, 250),
+            satellite(18, 290)]
+    return west + [satellite(25, 90), satellite(27, 110)]
+
+
+def test_references_see_every_side_that_some_view_sees():
+    """By incidence alone the three references all look from the west, and the ground in front
+    of every east-facing wall is hidden from all of them; side_coverage = 1 takes the best view
+    from the east for the last slot."""
+    from satsweep.dense.selection import SIDE_HALF_ANGLE_DEG, SIDES_DEG
+
+    cams = _one_sided_stack()
+    alone = select_views(cams, mid_height=0.0,
+                         options=ViewSelectionOptions(max_references=3, side_coverage=0))
+    assert alone.references == (0, 1, 2)
+    sel = select_views(cams, mid_height=0.0,
+                       options=ViewSelectionOptions(max_references=3, side_coverage=1))
+    assert sel.references == (0, 1, 5)
+    # Every side that one of the views sees is seen by a reference.
+    az = np.array([g.azimuth_deg for g in sel.geometry])
+
+    def seeing(side, views):
+        return [v for v in views
+                if abs((az[v] - side + 180.0) % 360.0 - 180.0) <= SIDE_HALF_ANGLE_DEG]
+
+    for side in SIDES_DEG:
+        assert bool(seeing(side, range(len(cams)))) == bool(seeing(side, sel.references)), side
+    # With room for every view the rule changes nothing but the order.
+    every = select_views(cams, mid_height=0.0, options=ViewSelectionOptions(max_references=7))
+    assert sorted(every.references) == list(range(7))
+
+
+def test_a_near_nadir_reference_sees_every_side():
+    from satsweep.dense.selection import NADIR_DEG
+
+    cams = [satellite(NADIR_DEG / 2, 270)] + _one_sided_stack()
+    sel = select_views(cams, mid_height=0.0, options=ViewSelectionOptions(max_references=3))
+    assert sel.references == (0, 1, 2)
