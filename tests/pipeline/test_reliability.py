@@ -22,12 +22,16 @@ from satsweep.geometry.altitude import AltitudeRange
 from satsweep.io.atomic import RESUME_CACHE as TILE_CACHE
 from satsweep.io.atomic import STAGING_OWNER, STAGING_PREFIX
 from satsweep.pipeline.run import reconstruct
-from tests.pipeline.test_pipeline import ALT_MARGIN_M, _alt, _aoi_arg
+from tests.pipeline.test_pipeline import ALT_MARGIN_M, MIN_COMPLETENESS_1M, _alt, _aoi_arg
 
 # A fast camera fit for the small town (its 96 m AOI needs no dense grid).
 FAST = {"camera": {"grid_size": [20, 20, 6]}}
 # A range that starts this far above the town's lowest ground cuts the ground off.
 CUT_GROUND_M = 8.0
+# Completeness within 1 m that sweeping the cut-off ground again must win back at least: about
+# half of the small town's pixels lie under the cut range (51% of a reference's at its floor),
+# and the cut DSM has 2% of its cells within 1 m, the widened one 81%.
+MIN_GROUND_REGAINED = 0.5
 # How long the SIGTERM test waits for the run to create its staging folder (a run takes ~5 s
 # on 2 cores; the first launch also imports and builds kernels).
 STAGING_WAIT_S = 60.0
@@ -380,3 +384,85 @@ def test_a_signal_during_a_class_definition_still_terminates(monkeypatch, capsys
     monkeypatch.setattr(cli, "_cmd_devices", handler)
     assert cli.main(["devices"]) == 128 + signal.SIGTERM
     assert "terminated (SIGTERM)" in capsys.readouterr().err
+
+
+def _cut_tie_point_range(monkeypatch, scene) -> AltitudeRange:
+    """Make the tie points' range start CUT_GROUND_M above the scene's lowest ground (as when no
+    tie point holds the ground); returns that range."""
+    import dataclasses
+
+    import satsweep.pipeline.area as area
+
+    lo, hi = scene.alt_range
+    cut = AltitudeRange(lo + CUT_GROUND_M, hi + ALT_MARGIN_M)
+    measured = area.tie_and_range
+
+    def cutting(*args, **kwargs):
+        tied = measured(*args, **kwargs)
+        assert tied.altitude.source == "tie points"
+        return dataclasses.replace(tied, altitude=dataclasses.replace(tied.altitude, range=cut))
+
+    monkeypatch.setattr(area, "tie_and_range", cutting)
+    return cut
+
+
+def test_a_tie_point_range_that_cuts_the_ground_off_is_widened(small_town, tmp_path,
+                                                                 monkeypatch):
+    """Both references pile up at the floor of a range measured from tie points: the floor is
+    lowered and the area swept again, so that the DSM holds the ground the range cut off."""
+    import satsweep.pipeline.area as area
+
+    cut = _cut_tie_point_range(monkeypatch, small_town)
+    config = PipelineConfig.from_mapping(FAST)
+    images = [v.image for v in small_town.views]
+    widened = reconstruct(images, small_town.aoi, tmp_path / "widened", config=config,
+                          truth=small_town.truth_dsm, verbose=False)
+    rng = widened.report["altitude_range"]
+    assert rng["source"] == "tie points"
+    assert rng["min"] <= cut.min - area.RANGE_WIDEN_M and rng["max"] == cut.max
+    assert rng["widened"][0]["end"] == "floor"
+    assert rng["widened"][0]["references_at_end"] == len(widened.report["sweep"])
+    assert any("swept again over" in w["message"] for w in widened.report["warnings"])
+    # No longer piled up at the floor: the end check has nothing left to say.
+    assert not any("matched best at the lower end" in w["message"]
+                   for w in widened.report["warnings"])
+
+    monkeypatch.setattr(area, "RANGE_WIDENINGS", 0)
+    kept = reconstruct(images, small_town.aoi, tmp_path / "kept", config=config,
+                       truth=small_town.truth_dsm, verbose=False)
+    assert kept.report["altitude_range"]["min"] == cut.min
+    before = kept.evaluation["aligned"]["completeness_1m"]
+    after = widened.evaluation["aligned"]["completeness_1m"]
+    assert after >= before + MIN_GROUND_REGAINED, (before, after)
+    assert after >= MIN_COMPLETENESS_1M, (before, after)
+
+
+def test_widened_range_needs_most_references_at_one_end():
+    from types import SimpleNamespace
+
+    from satsweep.pipeline.area import (
+        RANGE_WIDEN_FRACTION,
+        RANGE_WIDEN_M,
+        widened_range,
+    )
+
+    rng = AltitudeRange(100.0, 140.0)
+    high, low = RANGE_WIDEN_FRACTION * 1.5, RANGE_WIDEN_FRACTION * 0.5
+
+    def sweeps(*ends):
+        return [SimpleNamespace(at_range_ends=e) for e in ends]
+
+    # Half of four at the top: widened there, by the larger of the step and half the span.
+    wider, end, hits = widened_range(rng, sweeps((0, high), (0, high), (0, low), (0, 0)))
+    assert (end, hits) == (1, 2)
+    assert (wider.min, wider.max) == (100.0, 140.0 + max(RANGE_WIDEN_M, 20.0))
+    wide = AltitudeRange(0.0, 100.0)
+    wider, end, _ = widened_range(wide, sweeps((high, 0), (high, 0)))
+    assert end == 0 and (wider.min, wider.max) == (-max(RANGE_WIDEN_M, 50.0), 100.0)
+    # One of four (a view of another date matching its shadows at the floor), or one of two:
+    # not enough; a lone reference decides alone.
+    assert widened_range(rng, sweeps((high, 0), (low, 0), (0, 0), (0, 0))) is None
+    assert widened_range(rng, sweeps((high, 0), (low, 0))) is None
+    assert widened_range(rng, sweeps((0, high)))[1:] == (1, 1)
+    assert widened_range(rng, sweeps((low, low), (low, low))) is None
+    assert widened_range(rng, []) is None
