@@ -133,8 +133,12 @@ class RunReport:
     def warn(self, message: str, *, doubtful: bool = False) -> None:
         """A warning: always printed, and kept in the report's ``warnings``. ``doubtful``: the
         warning says the result itself may be wrong (``satsweep reconstruct --strict`` then
-        exits non-zero)."""
-        self.data["warnings"].append({"message": message, "doubtful": bool(doubtful)})
+        exits non-zero). A warning already given (the same words: another tile, or an area swept
+        again over a widened altitude range) is not repeated."""
+        entry = {"message": message, "doubtful": bool(doubtful)}
+        if entry in self.data["warnings"]:
+            return
+        self.data["warnings"].append(entry)
         print(f"warning: {message}", file=self.stream, flush=True)
 
     @property

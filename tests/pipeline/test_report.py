@@ -26,6 +26,17 @@ def test_stage_timings_accumulate_and_json_is_strict():
     assert stream.getvalue().count("[sweep] done") == 2
 
 
+def test_a_warning_is_given_once():
+    stream = io.StringIO()
+    rep = RunReport("test", stream=stream)
+    rep.warn("view_01.tif: the image sees only about 90% of the AOI footprint")
+    rep.warn("view_01.tif: the image sees only about 90% of the AOI footprint")
+    rep.warn("view_01.tif: the image sees only about 90% of the AOI footprint", doubtful=True)
+    assert stream.getvalue().count("warning: view_01.tif") == 2
+    assert [w["doubtful"] for w in rep.data["warnings"]] == [False, True]
+    assert rep.doubtful
+
+
 def test_progress_throttles_but_always_prints_the_end():
     stream = io.StringIO()
     p = Progress("tiles", 100, stream=stream, interval_s=3600)
