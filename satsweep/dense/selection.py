@@ -88,8 +88,9 @@ class ViewSelectionOptions(Options):
     # its relative distance to target_b_over_h when sources are ranked
     min_similarity: float = 0.2  # sources less similar than this are left out when the
     # reference keeps another
-    side_coverage: int = 1  # references wanted that see each side (north, east, south, west)
-    # of the AOI's buildings, where views do (SIDE_HALF_ANGLE_DEG); 0: no such rule
+    side_coverage: int = 1  # references wanted that see each side of the buildings (north,
+    # east, south, west: the views looking from within 60 degrees of it, and those within 6
+    # degrees of nadir), where some view does; 0: no such rule
 
     ADVANCED = ("min_b_over_h", "max_b_over_h", "target_b_over_h", "min_overlap",
                 "similarity_weight", "min_similarity", "side_coverage")
