@@ -79,6 +79,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         fuse_dsms,
         rasterise_max_cells,
         rasterise_quantile_cells,
+        step_edge_pixels,
         visibility_check_heights,
     )
     from satsweep.products.ortho import match_radiometry, value_at_highest
@@ -120,9 +121,18 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
                 centre, height, keep, cameras.views[pv.index].camera.P, to_map,
                 subsamples=d.subsamples)
-            cells = flat_cells(sx, sy, grid)
             rule = d.view_raster_for(flat_cells(x, y, grid))
             view_rules.append(rule)
+            if (rule == "upper_quartile" and d.edge_min_confidence > 0.0
+                    and pv.confidence is not None):
+                # Pixels finer than the cells: those on the high side of a step that matched
+                # poorly are edges and facades at the roof's height (points in the air).
+                drop = (step_edge_pixels(height)
+                        & (np.asarray(pv.confidence) < d.edge_min_confidence)).ravel()
+                kept_centres, kept_samples = ~drop[pixel], ~drop[spix]
+                x, y, z, pixel = (a[kept_centres] for a in (x, y, z, pixel))
+                sx, sy, sz, spix = (a[kept_samples] for a in (sx, sy, sz, spix))
+            cells = flat_cells(sx, sy, grid)
             rasterise = rasterise_quantile_cells if rule == "upper_quartile" else rasterise_max_cells
             rasters.append(rasterise(cells, sz, grid))
             if pv.confidence is not None:

@@ -766,3 +766,26 @@ def test_visibility_check_drops_a_facade_two_views_agree_on_when_one_sees_far_pa
     assert dropped == [{20, 21, 22, 23, 34}, {20, 21, 22, 33}, set()], dropped
     with pytest.raises(OptionsError, match="far_m"):
         dsm.visibility_check_heights(heights, projections, tolerance_m=2.0, far_m=-1.0)
+
+
+def test_step_edge_pixels_are_the_high_side_of_steps():
+    """A 10 m box on flat ground, a 1 m kerb and an unknown pixel: the box's outer ring of
+    pixels (each with a ground neighbour, diagonals included) and nothing else."""
+    h = np.zeros((12, 12))
+    h[3:9, 4:10] = 10.0  # the box
+    h[:, 0] = 1.0  # a kerb under EDGE_STEP_M
+    h[0, 11] = np.nan  # unknown: never an edge, and no neighbour of one
+    edges = dsm.step_edge_pixels(h)
+    ring = np.zeros_like(edges)
+    ring[3:9, 4:10] = True
+    ring[4:8, 5:9] = False
+    assert np.array_equal(edges, ring)
+    # A step of exactly the threshold is no step; a lower threshold finds the kerb.
+    assert not dsm.step_edge_pixels(np.array([[0.0, dsm.EDGE_STEP_M]])).any()
+    assert dsm.step_edge_pixels(h, step_m=0.5)[:, 0].all()
+
+
+def test_edge_min_confidence_is_checked():
+    with pytest.raises(OptionsError, match="edge_min_confidence"):
+        dsm.DSMOptions(edge_min_confidence=1.5)
+    assert dsm.DSMOptions(edge_min_confidence=0.0).edge_min_confidence == 0.0
