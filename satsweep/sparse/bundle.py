@@ -63,8 +63,15 @@ from satsweep.sparse.matching import fundamental_from_cameras, match_pair
 from satsweep.sparse.options import SparseOptions
 from satsweep.sparse.tracks import Observations
 from satsweep.sparse.triangulation import (
+    SYM3,
+    jacobian_entries,
+    observation_entries,
+    project_entries,
     projection_jacobian,
     projection_stack,
+    sum_by,
+    sym3_apply,
+    sym3_inverse,
     triangulate_observations,
 )
 
@@ -223,92 +230,94 @@ _SCREEN_FTOL = 1e-6
 _SCREEN_XTOL = 1e-3
 
 
-def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Sum rows of ``values`` (M, ...) into (n, ...) by ``index`` (M,) (bincount per component,
-    several times faster than np.add.at)."""
-    flat = values.reshape(len(index), -1)
-    out = np.empty((n, flat.shape[1]))
-    for c in range(flat.shape[1]):
-        out[:, c] = np.bincount(index, weights=flat[:, c], minlength=n)
-    return out.reshape((n,) + values.shape[1:])
-
-
-def _inverse_spd3(U: np.ndarray) -> np.ndarray:
-    """Inverses of symmetric positive-definite 3 x 3 blocks ``U`` (N, 3, 3), by their adjugates
-    (a third of ``np.linalg.inv``'s time on thousands of blocks). Raises LinAlgError, as
-    ``np.linalg.inv`` does, when a block is singular (a determinant that is not positive)."""
-    a, b, c = U[:, 0, 0], U[:, 0, 1], U[:, 0, 2]
-    d, e, f = U[:, 1, 1], U[:, 1, 2], U[:, 2, 2]
-    out = np.empty_like(U)
-    out[:, 0, 0] = d * f - e * e
-    out[:, 0, 1] = out[:, 1, 0] = c * e - b * f
-    out[:, 0, 2] = out[:, 2, 0] = b * e - c * d
-    out[:, 1, 1] = a * f - c * c
-    out[:, 1, 2] = out[:, 2, 1] = b * c - a * e
-    out[:, 2, 2] = a * d - b * b
-    det = a * out[:, 0, 0] + b * out[:, 0, 1] + c * out[:, 0, 2]
+def _inverse_spd3(U: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Inverses (6 entries in SYM3 order, each (N,)) of symmetric positive-definite 3 x 3 blocks
+    given by their 6 entries ``U``, by their adjugates. Raises LinAlgError, as ``np.linalg.inv``
+    does, when a block is singular (a determinant that is not positive)."""
+    det, adj = sym3_inverse(U)
     if not np.all(det > 0.0):
         raise np.linalg.LinAlgError("a point's 3 x 3 normal block is singular")
-    out /= det[:, None, None]
-    return out
+    return [a / det for a in adj]
 
 
-def _reduced_hessian(V: int, obs: Observations, J: np.ndarray, wr: np.ndarray, point_diag: np.ndarray,
-                     damping: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The shifts' normal matrix with the points eliminated (Schur complement), (V, V, 2, 2).
+@dataclasses.dataclass
+class _Linearised:
+    """The adjustment's residuals and Jacobians at one estimate, per observation as rows."""
 
-    ``J`` (M, 2, 3): d(pixel)/d(point) per observation; ``wr`` (M, 2): weights of the residuals;
-    ``point_diag`` (N, 3): added to each point's 3 x 3 block (the anchors' weight);
-    ``damping``: Marquardt's, the diagonals scaled by (1 + damping). Also returns the points'
-    inverse blocks ``Uinv`` (N, 3, 3), ``CA`` = W_k A_k (M, 2, 3) and ``G`` = C_k U_p^-1.
+    p: np.ndarray  # (12, M) each observation's camera (triangulation.observation_entries)
+    col: np.ndarray  # (M,) projected column of the point, before the view's shift
+    row: np.ndarray  # (M,) projected row
+    w: np.ndarray  # (M,) depth
+    rc: np.ndarray  # (M,) column residual (projection + shift - observation), px
+    rr: np.ndarray  # (M,) row residual, px
+
+    def jacobians(self) -> tuple[np.ndarray, np.ndarray]:
+        return jacobian_entries(self.p, self.col, self.row, self.w)
+
+
+def _reduced_hessian(V: int, obs: Observations, ju: np.ndarray, jv: np.ndarray, wc: np.ndarray,
+                     wr: np.ndarray, point_diag: np.ndarray, damping: float):
+    """The shifts' normal matrix with the points eliminated (Schur complement), (2V, 2V), row
+    and column ``2 v + a`` for view v's column (a = 0) and row (a = 1) shift.
+
+    ``ju``, ``jv`` (3, M): d(column)/d(point) and d(row)/d(point) per observation; ``wc``, ``wr``
+    (M,): weights of the column and row residuals; ``point_diag`` (N, 3): added to each point's
+    3 x 3 block (the anchors' weight); ``damping``: Marquardt's, the diagonals scaled by
+    (1 + damping). Also returns the points' inverse blocks ``Uinv`` (6 entries in SYM3 order,
+    each (N,)), ``cu``, ``cv`` = W_k A_k (each (3, M)) and ``gu``, ``gv`` = C_k U_p^-1.
 
     The fill-in ``sum_p sum_(k, k' of p) G_k CA_k'^T`` is one dense product of two 2V x 3N
     matrices holding the blocks ``G_k`` and ``CA_k`` (view rows, point columns): O(V^2 N)
     arithmetic in BLAS, where summing the blocks pair by pair costs the square of each track's
-    length (20 views: 4 times faster). The blocks are written through flat indices and the
-    small products are batched matrix products (einsum and 3-D fancy indexing took twice as
-    long: 20 views, 18 000 observations, 9-12 ms -> 5-9 ms a call).
+    length (20 views: 4 times faster).
     """
     N = obs.n_points
-    CA = wr[:, :, None] * J  # W_k A_k (M, 2, 3): the shift-point blocks of J^T W J
-    U = _sum_by(obs.point, J.transpose(0, 2, 1) @ CA, N)
-    diagonal = [0, 1, 2]
-    U[:, diagonal, diagonal] += point_diag
-    S = _sum_by(obs.view, wr, V)
-    # Marquardt's damping: the diagonal scaled by (1 + damping).
-    U[:, diagonal, diagonal] *= 1.0 + damping
-    S = S * (1.0 + damping)
+    cu, cv = wc * ju, wr * jv  # W_k A_k: the shift-point blocks of J^T W J
+    U = [sum_by(obs.point, ju[i] * cu[j] + jv[i] * cv[j], N) for i, j in SYM3]
+    for k, i in ((0, 0), (3, 1), (5, 2)):  # the diagonal, then Marquardt's damping
+        U[k] = (U[k] + point_diag[:, i]) * (1.0 + damping)
+    S = np.stack([sum_by(obs.view, wc, V), sum_by(obs.view, wr, V)], axis=1).ravel() * (1.0 + damping)
     Uinv = _inverse_spd3(U)
-    G = CA @ Uinv[obs.point]  # C_k U_p^-1 (M, 2, 3)
+    Ui = [u[obs.point] for u in Uinv]
+    gu = sym3_apply(Ui, cu).T  # C_k U_p^-1, each (3, M) (U_p^-1 is symmetric)
+    gv = sym3_apply(Ui, cv).T
     # Entry (2 view + a, 3 point + i) of the 2V x 3N matrices, flat; a track sees each view
     # once, so no two blocks share an entry.
-    flat = (((2 * obs.view)[:, None, None] + np.arange(2)[None, :, None]) * (3 * N)
-            + (3 * obs.point)[:, None, None] + np.arange(3)[None, None, :]).ravel()
+    base = (2 * obs.view) * (3 * N) + 3 * obs.point
+    flat = np.concatenate([base + i for i in range(3)] + [base + 3 * N + i for i in range(3)])
     Gd = np.zeros(6 * V * N)
     Cd = np.zeros(6 * V * N)
-    Gd[flat] = G.ravel()
-    Cd[flat] = CA.ravel()
+    Gd[flat] = np.concatenate([gu.ravel(), gv.ravel()])
+    Cd[flat] = np.concatenate([cu.ravel(), cv.ravel()])
     H = -(Gd.reshape(2 * V, 3 * N) @ Cd.reshape(2 * V, 3 * N).T)
-    H[np.arange(2 * V), np.arange(2 * V)] += S.ravel()
-    Hs = H.reshape(V, 2, V, 2).transpose(0, 2, 1, 3)
-    return Hs, Uinv, CA, G
+    H[np.arange(2 * V), np.arange(2 * V)] += S
+    return H, Uinv, cu, cv, gu, gv
 
 
-def _normal_step(V: int, obs: Observations, J: np.ndarray, r: np.ndarray, a: np.ndarray,
+def _normal_step(V: int, obs: Observations, lin: _Linearised, a: np.ndarray, wc: np.ndarray,
                  wr: np.ndarray, wa: np.ndarray, sqrt_lambda: float,
                  damping: float) -> tuple[np.ndarray, np.ndarray]:
     """The damped Gauss-Newton step (shifts (V, 2), points (N, 3)) of the weighted problem, the
     points eliminated per point (Schur complement): a 2V x 2V system for the V views' shifts."""
     N = obs.n_points
-    lam = sqrt_lambda ** 2
-    Hs, Uinv, CA, G = _reduced_hessian(V, obs, J, wr, lam * wa, damping)
-    gX = _sum_by(obs.point, np.einsum("mai,ma->mi", CA, r), N) + sqrt_lambda * wa * a
-    gs = _sum_by(obs.view, wr * r, V)
-    bs = _sum_by(obs.view, np.einsum("mai,mi->ma", G, gX[obs.point]), V) - gs
-    ds = np.linalg.solve(Hs.transpose(0, 2, 1, 3).reshape(2 * V, 2 * V), bs.ravel()).reshape(V, 2)
-    rhs = -gX - _sum_by(obs.point, np.einsum("mai,ma->mi", CA, ds[obs.view]), N)
-    dX = np.einsum("nij,nj->ni", Uinv, rhs)
-    return ds, dX
+    ju, jv = lin.jacobians()
+    H, Uinv, cu, cv, gu, gv = _reduced_hessian(V, obs, ju, jv, wc, wr, sqrt_lambda ** 2 * wa, damping)
+    gX = [sum_by(obs.point, cu[i] * lin.rc + cv[i] * lin.rr, N) + sqrt_lambda * wa[:, i] * a[:, i]
+          for i in range(3)]
+    gXk = [g[obs.point] for g in gX]
+    bs = np.stack([sum_by(obs.view, gu[0] * gXk[0] + gu[1] * gXk[1] + gu[2] * gXk[2] - wc * lin.rc, V),
+                   sum_by(obs.view, gv[0] * gXk[0] + gv[1] * gXk[1] + gv[2] * gXk[2] - wr * lin.rr, V)],
+                  axis=1)
+    ds = np.linalg.solve(H, bs.ravel()).reshape(V, 2)
+    dsc, dsr = ds[obs.view, 0], ds[obs.view, 1]
+    rhs = [-gX[i] - sum_by(obs.point, cu[i] * dsc + cv[i] * dsr, N) for i in range(3)]
+    return ds, sym3_apply(Uinv, rhs)
+
+
+def _linearise(p: np.ndarray, obs: Observations, X: np.ndarray, s: np.ndarray) -> _Linearised:
+    col, row, w = project_entries(p, X[obs.point])
+    return _Linearised(p, col, row, w, col + s[obs.view, 0] - obs.xy[:, 0],
+                       row + s[obs.view, 1] - obs.xy[:, 1])
 
 
 def _solve(P: np.ndarray, obs: Observations, anchors: np.ndarray, shifts0: np.ndarray,
@@ -321,27 +330,28 @@ def _solve(P: np.ndarray, obs: Observations, anchors: np.ndarray, shifts0: np.nd
     rho, drho = _LOSSES[options.loss]
     sqrt_lambda = math.sqrt(options.regulariser)
     c2 = options.loss_scale_px ** 2
+    p = observation_entries(P, obs.view)
 
     def evaluate(s, X):
-        xy, _w, J = projection_jacobian(P, obs.view, X[obs.point])
-        r = xy + s[obs.view] - obs.xy
+        lin = _linearise(p, obs, X, s)
         a = sqrt_lambda * (X - anchors)
-        cost = 0.5 * c2 * (rho(r * r / c2).sum() + rho(a * a / c2).sum())
-        return cost, r, a, J
+        cost = 0.5 * c2 * (rho(lin.rc * lin.rc / c2).sum() + rho(lin.rr * lin.rr / c2).sum()
+                           + rho(a * a / c2).sum())
+        return cost, lin, a
 
     s, X = np.array(shifts0, np.float64), np.array(points0, np.float64)
-    cost, r, a, J = evaluate(s, X)
+    cost, lin, a = evaluate(s, X)
     evaluations, damping = 1, _LM_DAMPING0
     while evaluations < options.max_evaluations:
-        ds, dX = _normal_step(P.shape[0], obs, J, r, a, drho(r * r / c2), drho(a * a / c2),
-                              sqrt_lambda, damping)
+        ds, dX = _normal_step(P.shape[0], obs, lin, a, drho(lin.rc * lin.rc / c2),
+                              drho(lin.rr * lin.rr / c2), drho(a * a / c2), sqrt_lambda, damping)
         new = evaluate(s + ds, X + dX)
         evaluations += 1
         step = max(float(np.abs(ds).max(initial=0.0)), float(np.abs(dX).max(initial=0.0)))
         if np.isfinite(new[0]) and new[0] <= cost:  # else (too long a step): more damping
             decrease = cost - new[0]
             s, X = s + ds, X + dX
-            cost, r, a, J = new
+            cost, lin, a = new
             damping *= _LM_DOWN
             if decrease <= ftol * cost or step <= xtol:
                 break
@@ -360,8 +370,8 @@ def _shifted(P: np.ndarray, shifts: np.ndarray) -> np.ndarray:
 
 
 def _errors(P: np.ndarray, obs: Observations, X: np.ndarray, shifts: np.ndarray) -> np.ndarray:
-    xy, _w, _J = projection_jacobian(P, obs.view, X[obs.point])
-    return np.hypot(*(xy + shifts[obs.view] - obs.xy).T)
+    lin = _linearise(observation_entries(P, obs.view), obs, X, shifts)
+    return np.hypot(lin.rc, lin.rr)
 
 
 class TooFewObservations(CameraError):
@@ -635,13 +645,12 @@ def shift_uncertainty(cameras: Sequence[Any], obs: Observations, points: np.ndar
     """
     P = projection_stack(cameras)
     V = P.shape[0]
-    xy, _w, J = projection_jacobian(P, obs.view, points[obs.point])
-    r = xy + shifts[obs.view] - obs.xy
-    dof = 2 * len(r) - 3 * obs.n_points - (2 * V - 3)
-    sigma0 = math.sqrt(float((r * r).sum()) / dof) if dof > 0 else math.inf
+    lin = _linearise(observation_entries(P, obs.view), obs, points, shifts)
+    dof = 2 * len(lin.rc) - 3 * obs.n_points - (2 * V - 3)
+    sigma0 = math.sqrt(float((lin.rc ** 2).sum() + (lin.rr ** 2).sum()) / dof) if dof > 0 else math.inf
     # A tiny weight per point (1e-9 px^2/m^2) keeps the 3 x 3 blocks of degenerate tracks regular.
-    Hs = _reduced_hessian(V, obs, J, np.ones_like(r), np.full((obs.n_points, 3), 1e-9), 0.0)[0]
-    H = Hs.transpose(0, 2, 1, 3).reshape(2 * V, 2 * V)
+    ones = np.ones(len(lin.rc))
+    H = _reduced_hessian(V, obs, *lin.jacobians(), ones, ones, np.full((obs.n_points, 3), 1e-9), 0.0)[0]
     A = projection_jacobian(P, np.arange(V), np.tile(points.mean(axis=0), (V, 1)))[2]
     Q = np.linalg.svd(A.reshape(-1, 3), full_matrices=True)[0][:, 3:]  # complement of the gauge
     lam, U = np.linalg.eigh(Q.T @ H @ Q)

@@ -44,14 +44,74 @@ def projection_jacobian(P: np.ndarray, view: np.ndarray, X: np.ndarray) -> tuple
     return xy, w, J
 
 
-def _sum_by_point(values: np.ndarray, point: np.ndarray, n_points: int) -> np.ndarray:
-    """Sum (M, ...) values into (n_points, ...) by point index (a bincount per component,
-    several times faster than np.add.at)."""
-    flat = values.reshape(len(point), int(np.prod(values.shape[1:], dtype=np.int64)))
-    out = np.empty((n_points, flat.shape[1]), dtype=np.float64)
-    for c in range(flat.shape[1]):
-        out[:, c] = np.bincount(point, weights=flat[:, c], minlength=n_points)
-    return out.reshape((n_points,) + values.shape[1:])
+# -- per-observation arithmetic on whole rows -----------------------------------------------------
+# The loops over observations (tens of thousands on a stack of 20 views) run on one contiguous
+# array per camera entry and per coordinate: numpy's elementwise operations on (M,) rows are
+# several times faster than its broadcasting and einsum on (M, 3, 4) or (M, 2, 3) blocks (the
+# triangulations of a 20-view sparse stage: 0.42 s -> 0.11 s, equal to 1e-11 m).
+def observation_entries(P: np.ndarray, view: np.ndarray) -> np.ndarray:
+    """The entries of each observation's camera, (12, M): row ``4 i + j`` is ``P[view, i, j]``."""
+    return np.ascontiguousarray(P.reshape(len(P), 12).T[:, view])
+
+
+def project_entries(p: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Columns, rows and depths (M,) of points ``X`` (M, 3) through cameras ``p`` (12, M)."""
+    x, y, z = X[:, 0], X[:, 1], X[:, 2]
+    h0, h1, w = (p[4 * i] * x + p[4 * i + 1] * y + p[4 * i + 2] * z + p[4 * i + 3] for i in range(3))
+    return h0 / w, h1 / w, w
+
+
+def jacobian_entries(p: np.ndarray, col: np.ndarray, row: np.ndarray,
+                     w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """d(column)/dX and d(row)/dX, each (3, M), at projections ``col, row`` of depth ``w``."""
+    ju = np.empty((3, len(w)))
+    jv = np.empty((3, len(w)))
+    for j in range(3):
+        ju[j] = (p[j] - col * p[8 + j]) / w
+        jv[j] = (p[4 + j] - row * p[8 + j]) / w
+    return ju, jv
+
+
+# The 6 entries (i, j), i <= j, of a symmetric 3 x 3 matrix, in the order that solve_sym3 takes.
+SYM3 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Sums of ``values`` (M,) into (n,) by ``index`` (M,) (np.bincount: several times faster than
+    np.add.at)."""
+    return np.bincount(index, weights=values, minlength=n)
+
+
+def sym3_inverse(A: Sequence[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Determinants (N,) and adjugates (6 entries in SYM3 order, each (N,)) of symmetric 3 x 3
+    matrices given by their 6 entries ``A`` in SYM3 order: the inverse is adjugate / det."""
+    a, b, c, d, e, f = A
+    adj = [d * f - e * e, c * e - b * f, b * e - c * d, a * f - c * c, b * c - a * e, a * d - b * b]
+    return a * adj[0] + b * adj[1] + c * adj[2], adj
+
+
+def sym3_apply(M: Sequence[np.ndarray], x: Sequence[np.ndarray]) -> np.ndarray:
+    """(N, 3) products of symmetric matrices ``M`` (6 entries in SYM3 order) with ``x`` (3 x (N,))."""
+    m00, m01, m02, m11, m12, m22 = M
+    return np.stack([m00 * x[0] + m01 * x[1] + m02 * x[2],
+                     m01 * x[0] + m11 * x[1] + m12 * x[2],
+                     m02 * x[0] + m12 * x[1] + m22 * x[2]], axis=1)
+
+
+def _solve_sym3(A: Sequence[np.ndarray], b: Sequence[np.ndarray]) -> np.ndarray:
+    """Batched solve of symmetric (6 entries in SYM3 order) x = b (3 x (N,)), by the adjugate;
+    singular systems (|det| <= 1e-12 trace^3) give NaN rows."""
+    det, adj = sym3_inverse(A)
+    ok = np.abs(det) > 1e-12 * np.abs(A[0] + A[3] + A[5]) ** 3
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(ok, 1.0 / det, np.nan)
+    return sym3_apply(adj, b) * scale[:, None]
+
+
+def _normal_sums(u: np.ndarray, v: np.ndarray, point: np.ndarray, n: int) -> list[np.ndarray]:
+    """Per point, the 6 entries (SYM3) of the sums of u u^T + v v^T over its observations; ``u``
+    and ``v`` are (3 or more, M), their first 3 rows used."""
+    return [sum_by(point, u[i] * u[j] + v[i] * v[j], n) for i, j in SYM3]
 
 
 def triangulate_observations(obs: Observations, P: np.ndarray, *,
@@ -67,41 +127,30 @@ def triangulate_observations(obs: Observations, P: np.ndarray, *,
     Points whose normal equations are singular (all rays parallel) are NaN with errors inf.
     """
     n = obs.n_points
-    Pv = P[obs.view]
-    rows = np.concatenate([obs.xy[:, 0:1] * Pv[:, 2] - Pv[:, 0], obs.xy[:, 1:2] * Pv[:, 2] - Pv[:, 1]])
-    rows /= np.linalg.norm(rows[:, :3], axis=1, keepdims=True)
-    pts = np.concatenate([obs.point, obs.point])
-    A = _sum_by_point(rows[:, :3, None] * rows[:, None, :3], pts, n)
-    b = _sum_by_point(-rows[:, :3] * rows[:, 3:4], pts, n)
-    X = _solve3(A, b)
+    p = observation_entries(P, obs.view)
+    col, row = obs.xy[:, 0].copy(), obs.xy[:, 1].copy()
+    u = np.stack([col * p[8 + j] - p[j] for j in range(4)])
+    v = np.stack([row * p[8 + j] - p[4 + j] for j in range(4)])
+    u /= np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    v /= np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    X = _solve_sym3(_normal_sums(u, v, obs.point, n),
+                    [sum_by(obs.point, -(u[i] * u[3] + v[i] * v[3]), n) for i in range(3)])
     for _ in range(max(0, int(iterations))):
-        xy, _w, J = projection_jacobian(P, obs.view, X[obs.point])
-        r = xy - obs.xy
-        JtJ = _sum_by_point(np.einsum("mki,mkj->mij", J, J), obs.point, n)
-        Jtr = _sum_by_point(np.einsum("mki,mk->mi", J, r), obs.point, n)
-        step = _solve3(JtJ, Jtr)
+        pc, pr, w = project_entries(p, X[obs.point])
+        ju, jv = jacobian_entries(p, pc, pr, w)
+        rc, rr = pc - col, pr - row
+        step = _solve_sym3(_normal_sums(ju, jv, obs.point, n),
+                           [sum_by(obs.point, ju[i] * rc + jv[i] * rr, n) for i in range(3)])
         X = X - step
         with np.errstate(invalid="ignore"):
             if not np.nanmax(np.abs(step), initial=0.0) > REFINE_STEP_TOL_M:
                 break
-    xy, w = project(P, obs.view, X[obs.point])
-    err = np.hypot(*(xy - obs.xy).T)
+    pc, pr, w = project_entries(p, X[obs.point])
+    err = np.hypot(pc - col, pr - row)
     err[~np.isfinite(err)] = np.inf
-    front = np.ones(n, dtype=bool)
-    np.logical_and.at(front, obs.point, w > 0)
+    front = sum_by(obs.point, (~(w > 0)).astype(np.float64), n) == 0
     front &= np.all(np.isfinite(X), axis=1)
     return X, err, front
-
-
-def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Batched solve of (N, 3, 3) x = (N, 3); singular systems give NaN rows."""
-    out = np.full(b.shape, np.nan)
-    det = np.linalg.det(A)
-    scale = np.einsum("nii->n", A) ** 3
-    ok = np.abs(det) > 1e-12 * np.abs(scale)
-    if ok.any():
-        out[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
-    return out
 
 
 def triangulate(tracks: Sequence[np.ndarray], cameras: Sequence[Any],

@@ -444,3 +444,23 @@ def test_points_behind_the_cameras_are_rejected():
     tracks, xys = _observe(cams, X)
     _, err = triangulation.triangulate(tracks, cams, xys)
     assert np.isinf(err[2]) and np.all(np.isfinite(np.delete(err, 2)))
+
+
+def test_parallel_rays_give_no_point():
+    """A track whose rays coincide (one pixel of one view, twice) has singular normal equations:
+    its point is NaN, its errors inf, and it is not in front; the other points are unaffected."""
+    rng = np.random.default_rng(8)
+    cams = three_cameras()
+    X = scene_points(rng, 4)
+    xys = [project(c, X) for c in cams]
+    view = np.array([0, 1, 2, 0, 1, 2, 1, 1, 0, 2])
+    point = np.array([0, 0, 0, 1, 1, 2, 2, 3, 3, 3])
+    xy = np.array([xys[v][p] for v, p in zip(view, point)])
+    xy[6] = xy[5] = xys[1][2]
+    view[5] = 1
+    obs = sparse_tracks.Observations(point=point, view=view, xy=xy, n_points=4)
+    pts, err, front = triangulation.triangulate_observations(obs, triangulation.projection_stack(cams))
+    assert np.isnan(pts[2]).all() and np.isinf(err[5:7]).all() and not front[2]
+    keep = point != 2
+    assert np.abs(pts[[0, 1, 3]] - X[[0, 1, 3]]).max() < EXACT_POINT_TOL_M
+    assert err[keep].max() < EXACT_PIXEL_TOL_PX and front[[0, 1, 3]].all()
