@@ -463,7 +463,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             registered, residual, n_refine_dropped = register_observations(
                 coarse.obs, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
                 max_shift_px=o.refine_max_shift_px, keep_fraction=o.refine_keep_fraction,
-                at_least=_MIN_BEST_REGISTERED)
+                at_least=_MIN_BEST_REGISTERED, threads=SPARSE_THREADS_MAX)
             n_refine_contrast = int(np.sum(residual >= CONTRAST_RANK))
             seconds["refinement"] = seconds.get("refinement", 0.0) + time.perf_counter() - t0
         fine_obs = best_registered(registered, residual, o.refine_keep_fraction,

@@ -22,6 +22,7 @@ import numpy as np
 
 from satsweep.errors import CameraError
 from satsweep.sparse.features import _to_u8
+from satsweep.threads import map_in_threads
 
 
 # -- tracks --------------------------------------------------------------------------------------
@@ -195,7 +196,7 @@ def local_contrast_u8(grey_u8: np.ndarray) -> np.ndarray:
 
 def register_observations(obs: Observations, images: Sequence[np.ndarray], cameras: Sequence[Any], *,
                           window_px: int, max_shift_px: float, keep_fraction: float = 1.0,
-                          at_least: int = 0) -> tuple[Observations, np.ndarray, int]:
+                          at_least: int = 0, threads: int = 1) -> tuple[Observations, np.ndarray, int]:
     """Register each track's observations to its first one, to a fraction of a pixel.
 
     SIFT places a keypoint to ~0.3-0.5 px (~1 px at half resolution), and those errors reach the
@@ -217,7 +218,8 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     dropped. In the other pairs, what fails on the grey levels is registered again on local
     contrast where fewer registered than :func:`best_registered` with ``keep_fraction`` and
     ``at_least`` would keep (elsewhere it would keep none of them: they rank after) and at least
-    _CONTRAST_PAIR_FAILED of the pair failed. Returns the observations,
+    _CONTRAST_PAIR_FAILED of the pair failed. The pairs run in up to ``threads`` threads (the
+    same result as one). Returns the observations,
     the residual of each (mean absolute difference of the two windows' 8-bit grey levels after
     the registration, or of their local contrast plus CONTRAST_RANK; 0 for first observations)
     and the number of observations dropped.
@@ -257,27 +259,35 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
         xy[sel[ok]] = back[ok]
         residual[sel[ok]] = rank + err[ok]
 
-    grey = [_to_u8(im) for im in images]
-    contrast: dict[int, np.ndarray] = {}  # made only for the views that need it
+    grey = map_in_threads(_to_u8, images, max_threads=threads, name="register")
+    pairs = []  # (view of the first observations, other view, their observations)
     for w in np.unique(head_view):
         for v in np.unique(obs.view[(head_view == w) & ~first]):
-            pair = np.flatnonzero((head_view == w) & (obs.view == v) & ~first)
-            H = planes[v] @ np.linalg.inv(planes[w])  # view w pixels -> view v pixels
-            register(grey[w], grey[v], H, pair, 0.0)
-            done = np.isfinite(residual[pair])
-            if not done.any() or np.median(residual[pair[done]]) > _CONTRAST_PAIR_RESIDUAL:
-                again = pair  # the two views' grey levels differ: the whole pair on contrast
-                xy[pair], residual[pair] = obs.xy[pair], np.inf
-            else:
-                again = pair[~done]
-                wanted = max(int(np.ceil(keep_fraction * len(pair))), at_least)
-                if not (len(again) and len(pair) - len(again) < wanted
-                        and len(again) >= _CONTRAST_PAIR_FAILED * len(pair)):
-                    continue
-            for k in (w, v):
-                if k not in contrast:
-                    contrast[k] = local_contrast_u8(grey[k])
-            register(contrast[w], contrast[v], H, again, CONTRAST_RANK)
+            pairs.append((int(w), int(v), np.flatnonzero((head_view == w) & (obs.view == v) & ~first)))
+    # view w pixels -> view v pixels
+    homography = {(w, v): planes[v] @ np.linalg.inv(planes[w]) for w, v, _ in pairs}
+    # The pairs' observations are disjoint and each registration reads only the keypoints: the
+    # pairs run in any order, in threads, and give what one loop over them gives.
+    map_in_threads(lambda job: register(grey[job[0]], grey[job[1]], homography[job[:2]], job[2], 0.0),
+                   pairs, max_threads=threads, name="register")
+    again = []
+    for w, v, pair in pairs:
+        done = np.isfinite(residual[pair])
+        if not done.any() or np.median(residual[pair[done]]) > _CONTRAST_PAIR_RESIDUAL:
+            # the two views' grey levels differ: the whole pair on contrast
+            xy[pair], residual[pair] = obs.xy[pair], np.inf
+            again.append((w, v, pair))
+        else:
+            failed = pair[~done]
+            wanted = max(int(np.ceil(keep_fraction * len(pair))), at_least)
+            if (len(failed) and len(pair) - len(failed) < wanted
+                    and len(failed) >= _CONTRAST_PAIR_FAILED * len(pair)):
+                again.append((w, v, failed))
+    needed = sorted({k for w, v, _ in again for k in (w, v)})  # made only for the views that need it
+    contrast = dict(zip(needed, map_in_threads(lambda k: local_contrast_u8(grey[k]), needed,
+                                               max_threads=threads, name="register")))
+    map_in_threads(lambda job: register(contrast[job[0]], contrast[job[1]], homography[job[:2]], job[2],
+                                        CONTRAST_RANK), again, max_threads=threads, name="register")
     keep = np.isfinite(residual)
     registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
     index = registered.subset_index(keep)

@@ -85,8 +85,9 @@ def test_pointing_errors_of_50_px_are_recovered(biased, biased_result):
 
 
 def test_threads_give_the_sequential_result(biased, biased_result, monkeypatch):
-    """The views tonemapped and their features detected in threads: the same corrections, tie
-    points and range as one thread gives (the tasks are independent; order is kept)."""
+    """The views tonemapped, their features detected and their pairs' tie points registered in
+    threads: the same corrections, tie points and range as one thread gives (the tasks are
+    independent; order is kept)."""
     import satsweep.sparse.stage as stage
 
     result, views = biased_result
