@@ -45,6 +45,9 @@ class SparseOptions(Options):
     altitude_support: int = 2  # tie points that must share an end's altitude within support_m
     altitude_support_fraction: float = 0.001  # ... or this fraction of them, when more
     altitude_support_m: float = 3.0  # height window (m) of that support
+    altitude_support_radius_m: float = 30.0  # the highest end's support lies within this
+    # horizontal distance (m) of it, on one roof (two wrong matches share a height by chance
+    # anywhere over the AOI); 0: anywhere
     altitude_margin_below_m: float = 5.0  # margin (m) below the lowest end
     altitude_margin_above_m: float = 15.0  # margin (m) above the highest end
     altitude_aoi_margin_m: float = 25.0  # tie points this far (m) outside the AOI also bound its
@@ -57,7 +60,7 @@ class SparseOptions(Options):
                 "camera_grid", "altitude_max_error_px", "altitude_min_points",
                 "altitude_floor_views", "altitude_floor_fewer_fraction", "altitude_support",
                 "altitude_support_fraction",
-                "altitude_support_m", "altitude_margin_below_m", "altitude_margin_above_m",
+                "altitude_support_m", "altitude_support_radius_m", "altitude_margin_below_m", "altitude_margin_above_m",
                 "altitude_aoi_margin_m")
 
     def check(self) -> None:
@@ -104,7 +107,7 @@ class SparseOptions(Options):
                       "altitude_support_fraction", "must be a fraction in [0, 0.5)")
         self._require(math.isfinite(self.altitude_support_m) and self.altitude_support_m >= 0.0,
                       "altitude_support_m", "must be a finite number of metres >= 0")
-        for name in ("altitude_margin_below_m", "altitude_margin_above_m",
-                     "altitude_aoi_margin_m"):
+        for name in ("altitude_support_radius_m", "altitude_margin_below_m",
+                     "altitude_margin_above_m", "altitude_aoi_margin_m"):
             v = getattr(self, name)
             self._require(math.isfinite(v) and v >= 0.0, name, "must be a finite number of metres >= 0")

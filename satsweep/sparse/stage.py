@@ -45,7 +45,8 @@ wide one) gives everything the dense stages need from tie points:
    those inside the AOI whose reprojection errors are all within ``altitude_max_error_px``.
    The lowest end comes from the points of ``altitude_floor_views`` views or more, the highest
    from all, each an altitude that ``altitude_support`` points share within
-   ``altitude_support_m`` (a wrong match has a height of its own); the highest of the points
+   ``altitude_support_m`` (a wrong match has a height of its own), the highest's within
+   ``altitude_support_radius_m`` of each other horizontally (one roof); the highest of the points
    above that top that views outside its track see where it lies raises it (a lone tower's
    roof, :mod:`satsweep.sparse.verify`); widened by the margins, which the prior range cuts
    (an end past the prior stays: the corrected cameras may put the scene there).

@@ -55,6 +55,25 @@ def lowest_supported(alt: np.ndarray, support: int, window_m: float) -> float | 
     return float(a[ok[0]]) if ok.size else None
 
 
+def highest_supported_near(alt: np.ndarray, xy: np.ndarray, support: int, window_m: float,
+                           radius_m: float) -> float | None:
+    """The highest altitude ``a`` of a point with at least ``support`` points (itself included)
+    within ``window_m`` under it and within ``radius_m`` of it horizontally (``xy`` (N, 2)
+    metres; ``radius_m`` 0: anywhere), or None when no point has that support."""
+    a = np.asarray(alt, np.float64)
+    order = np.argsort(-a, kind="stable")
+    a, xy = a[order], np.asarray(xy, np.float64)[order]
+    # points k..end[k]-1 lie within window_m under point k (sorted by decreasing altitude)
+    end = np.searchsorted(-a, -(a - window_m), side="right")
+    for k in np.flatnonzero(end - np.arange(len(a)) >= support):
+        if radius_m <= 0.0:
+            return float(a[k])
+        d = np.hypot(*(xy[k:end[k]] - xy[k]).T)
+        if int((d <= radius_m).sum()) >= support:
+            return float(a[k])
+    return None
+
+
 def _near_aoi(points: np.ndarray, frame, aoi: AOI, margin_m: float) -> np.ndarray:
     """Which ENU ``points`` lie within ``margin_m`` of the AOI (its ENU bounding box, grown)."""
     lon, lat = aoi.boundary()
@@ -80,7 +99,10 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     the highest of all, each the lowest
     or highest altitude supported by ``altitude_support`` points (or
     ``altitude_support_fraction`` of them) within ``altitude_support_m``
-    (:func:`supported_extremes`); ``confirm(i)``, when given, is asked about the points above
+    (:func:`supported_extremes`), the highest's within ``altitude_support_radius_m`` of it
+    horizontally too (:func:`highest_supported_near`: the points of one roof; two-view wrong
+    matches share a height by chance anywhere: a 20-view stack's two at 163 and 161 m, 45 m
+    apart, over a town whose top is at 126 m); ``confirm(i)``, when given, is asked about the points above
     that top, highest first (at most ``MAX_CONFIRM_CANDIDATES``), and the first it accepts
     raises the top to its altitude (the sparse stage asks the views,
     :mod:`satsweep.sparse.verify`); both ends widened by ``altitude_margin_below_m`` and
@@ -139,7 +161,9 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
             record["floor_from_fewer_views"] = {"altitude_m": low, "points": int(fewer.sum()),
                                                 "support": need}
             lo = low
-    hi = supported_extremes(a, support(a.size), o.altitude_support_m)[1]
+    hi = highest_supported_near(a, points[use][:, :2], support(a.size), o.altitude_support_m,
+                                o.altitude_support_radius_m)
+    hi = float(a.max()) if hi is None else hi
     record["supported_extremes_m"] = [lo, hi]
     if confirm is not None:
         # The points above the supported top, highest first: the first that other views

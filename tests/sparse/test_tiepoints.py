@@ -6,10 +6,15 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.sparse.options import SparseOptions
-from satsweep.sparse.tiepoints import altitude_range_from_points, supported_extremes
+from satsweep.sparse.tiepoints import (
+    altitude_range_from_points,
+    highest_supported_near,
+    supported_extremes,
+)
 
 
 # -- the range of the sparse stage's adjusted tie points ---------------------------------------
@@ -24,6 +29,25 @@ def test_supported_extremes_ignore_lone_heights():
     assert supported_extremes(a, support=1, window_m=3.0) == (-400.0, 900.0)
     # fewer values than the support: the extremes
     assert supported_extremes(np.array([5.0]), support=3, window_m=1.0) == (5.0, 5.0)
+
+
+@pytest.mark.parametrize("radius", [0.0, 5.0, 20.0])
+def test_highest_supported_near_against_brute_force(radius):
+    """Against a loop over every point and every other: the highest point with ``support``
+    points (itself included) within the window under it and the radius around it."""
+    rng = np.random.default_rng(1)
+    alt = np.round(rng.uniform(0.0, 40.0, 300), 1)  # ties of altitude included
+    xy = rng.uniform(0.0, 100.0, (300, 2))
+    for support in (1, 2, 3, 5):
+        ref = None
+        for i in range(alt.size):
+            near = (alt <= alt[i]) & (alt >= alt[i] - 3.0)
+            if radius > 0.0:
+                near &= np.hypot(*(xy - xy[i]).T) <= radius
+            if near.sum() >= support and (ref is None or alt[i] > ref):
+                ref = float(alt[i])
+        assert highest_supported_near(alt, xy, support, 3.0, radius) == ref, (support, radius)
+    assert highest_supported_near(alt[:1], xy[:1], 2, 3.0, radius) is None
 
 
 class _Frame:
@@ -123,3 +147,21 @@ def test_adjusted_range_needs_enough_points_near_the_aoi():
     points, obs, err, aoi = _adjusted([100.0] * 25 + [90.0, 90.5], [2] * 27, [0.1] * 27)
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
     assert rng.min == 90.0 - o.altitude_margin_below_m and record["tie_points_for_the_lowest"] == 27
+
+
+def test_the_top_needs_its_support_on_one_roof():
+    """Two two-view wrong matches 1.7 m apart in height but far apart across the AOI (a 20-view
+    stack: 163 and 161 m, 45 m apart, over a town whose top is at 126 m) do not set the top;
+    a roof's two corners near each other do. With the radius 0 the chance pair sets it."""
+    alts = [100.0 + 0.1 * k for k in range(30)] + [126.0, 125.5] + [162.9, 161.2]
+    views = [3] * 30 + [2, 2] + [2, 2]
+    points, obs, err, aoi = _adjusted(alts, views, [0.2] * 34)
+    points[30:32, 0] = [0.50, 0.55]  # the roof's corners
+    points[32:34, 0] = [0.05, 0.95]  # the chance pair, across the AOI
+    o = dataclasses.replace(SparseOptions(), altitude_support_radius_m=0.3)  # AOI units
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert record["supported_extremes_m"][1] == 126.0
+    assert rng.max == 126.0 + o.altitude_margin_above_m
+    anywhere = dataclasses.replace(o, altitude_support_radius_m=0.0)
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, anywhere)
+    assert record["supported_extremes_m"][1] == 162.9
