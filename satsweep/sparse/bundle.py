@@ -256,7 +256,7 @@ class _Linearised:
 
 
 def _reduced_hessian(V: int, obs: Observations, ju: np.ndarray, jv: np.ndarray, wc: np.ndarray,
-                     wr: np.ndarray, point_diag: np.ndarray, damping: float):
+                     wr: np.ndarray, point_diag: np.ndarray, damping: float) -> tuple:
     """The shifts' normal matrix with the points eliminated (Schur complement), (2V, 2V), row
     and column ``2 v + a`` for view v's column (a = 0) and row (a = 1) shift.
 
@@ -276,7 +276,8 @@ def _reduced_hessian(V: int, obs: Observations, ju: np.ndarray, jv: np.ndarray, 
     U = [sum_by(obs.point, ju[i] * cu[j] + jv[i] * cv[j], N) for i, j in SYM3]
     for k, i in ((0, 0), (3, 1), (5, 2)):  # the diagonal, then Marquardt's damping
         U[k] = (U[k] + point_diag[:, i]) * (1.0 + damping)
-    S = np.stack([sum_by(obs.view, wc, V), sum_by(obs.view, wr, V)], axis=1).ravel() * (1.0 + damping)
+    S = np.stack([sum_by(obs.view, wc, V), sum_by(obs.view, wr, V)], axis=1).ravel()
+    S *= 1.0 + damping
     Uinv = _inverse_spd3(U)
     Ui = [u[obs.point] for u in Uinv]
     gu = sym3_apply(Ui, cu).T  # C_k U_p^-1, each (3, M) (U_p^-1 is symmetric)
@@ -301,13 +302,13 @@ def _normal_step(V: int, obs: Observations, lin: _Linearised, a: np.ndarray, wc:
     points eliminated per point (Schur complement): a 2V x 2V system for the V views' shifts."""
     N = obs.n_points
     ju, jv = lin.jacobians()
-    H, Uinv, cu, cv, gu, gv = _reduced_hessian(V, obs, ju, jv, wc, wr, sqrt_lambda ** 2 * wa, damping)
+    H, Uinv, cu, cv, gu, gv = _reduced_hessian(V, obs, ju, jv, wc, wr, sqrt_lambda ** 2 * wa,
+                                               damping)
     gX = [sum_by(obs.point, cu[i] * lin.rc + cv[i] * lin.rr, N) + sqrt_lambda * wa[:, i] * a[:, i]
           for i in range(3)]
     gXk = [g[obs.point] for g in gX]
-    bs = np.stack([sum_by(obs.view, gu[0] * gXk[0] + gu[1] * gXk[1] + gu[2] * gXk[2] - wc * lin.rc, V),
-                   sum_by(obs.view, gv[0] * gXk[0] + gv[1] * gXk[1] + gv[2] * gXk[2] - wr * lin.rr, V)],
-                  axis=1)
+    bs = np.stack([sum_by(obs.view, g[0] * gXk[0] + g[1] * gXk[1] + g[2] * gXk[2] - wt * r, V)
+                   for g, wt, r in ((gu, wc, lin.rc), (gv, wr, lin.rr))], axis=1)
     ds = np.linalg.solve(H, bs.ravel()).reshape(V, 2)
     dsc, dsr = ds[obs.view, 0], ds[obs.view, 1]
     rhs = [-gX[i] - sum_by(obs.point, cu[i] * dsc + cv[i] * dsr, N) for i in range(3)]
@@ -647,10 +648,12 @@ def shift_uncertainty(cameras: Sequence[Any], obs: Observations, points: np.ndar
     V = P.shape[0]
     lin = _linearise(observation_entries(P, obs.view), obs, points, shifts)
     dof = 2 * len(lin.rc) - 3 * obs.n_points - (2 * V - 3)
-    sigma0 = math.sqrt(float((lin.rc ** 2).sum() + (lin.rr ** 2).sum()) / dof) if dof > 0 else math.inf
+    squares = float((lin.rc ** 2).sum() + (lin.rr ** 2).sum())
+    sigma0 = math.sqrt(squares / dof) if dof > 0 else math.inf
     # A tiny weight per point (1e-9 px^2/m^2) keeps the 3 x 3 blocks of degenerate tracks regular.
     ones = np.ones(len(lin.rc))
-    H = _reduced_hessian(V, obs, *lin.jacobians(), ones, ones, np.full((obs.n_points, 3), 1e-9), 0.0)[0]
+    H = _reduced_hessian(V, obs, *lin.jacobians(), ones, ones, np.full((obs.n_points, 3), 1e-9),
+                         0.0)[0]
     A = projection_jacobian(P, np.arange(V), np.tile(points.mean(axis=0), (V, 1)))[2]
     Q = np.linalg.svd(A.reshape(-1, 3), full_matrices=True)[0][:, 3:]  # complement of the gauge
     lam, U = np.linalg.eigh(Q.T @ H @ Q)

@@ -59,9 +59,8 @@ class SparseOptions(Options):
                 "pair_min_overlap", "pair_bh_range", "pair_probe_features", "pair_repair",
                 "camera_grid", "altitude_max_error_px", "altitude_min_points",
                 "altitude_floor_views", "altitude_floor_fewer_fraction", "altitude_support",
-                "altitude_support_fraction",
-                "altitude_support_m", "altitude_support_radius_m", "altitude_margin_below_m", "altitude_margin_above_m",
-                "altitude_aoi_margin_m")
+                "altitude_support_fraction", "altitude_support_m", "altitude_support_radius_m",
+                "altitude_margin_below_m", "altitude_margin_above_m", "altitude_aoi_margin_m")
 
     def check(self) -> None:
         self._require(self.max_features >= 8, "max_features", "must be at least 8")

@@ -102,9 +102,9 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     (:func:`supported_extremes`), the highest's within ``altitude_support_radius_m`` of it
     horizontally too (:func:`highest_supported_near`: the points of one roof; two-view wrong
     matches share a height by chance anywhere: a 20-view stack's two at 163 and 161 m, 45 m
-    apart, over a town whose top is at 126 m); ``confirm(i)``, when given, is asked about the points above
-    that top, highest first (at most ``MAX_CONFIRM_CANDIDATES``), and the first it accepts
-    raises the top to its altitude (the sparse stage asks the views,
+    apart, over a town whose top is at 126 m); ``confirm(i)``, when given, is asked about the
+    points above that top, highest first (at most ``MAX_CONFIRM_CANDIDATES``), and the first it
+    accepts raises the top to its altitude (the sparse stage asks the views,
     :mod:`satsweep.sparse.verify`); both ends widened by ``altitude_margin_below_m`` and
     ``altitude_margin_above_m``, the margins kept ``within`` the prior range when they overlap
     it (an extreme past the prior is kept: :func:`_within_prior`).

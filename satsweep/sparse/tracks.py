@@ -196,7 +196,8 @@ def local_contrast_u8(grey_u8: np.ndarray) -> np.ndarray:
 
 def register_observations(obs: Observations, images: Sequence[np.ndarray], cameras: Sequence[Any], *,
                           window_px: int, max_shift_px: float, keep_fraction: float = 1.0,
-                          at_least: int = 0, threads: int = 1) -> tuple[Observations, np.ndarray, int]:
+                          at_least: int = 0,
+                          threads: int = 1) -> tuple[Observations, np.ndarray, int]:
     """Register each track's observations to its first one, to a fraction of a pixel.
 
     SIFT places a keypoint to ~0.3-0.5 px (~1 px at half resolution), and those errors reach the
@@ -263,13 +264,18 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     pairs = []  # (view of the first observations, other view, their observations)
     for w in np.unique(head_view):
         for v in np.unique(obs.view[(head_view == w) & ~first]):
-            pairs.append((int(w), int(v), np.flatnonzero((head_view == w) & (obs.view == v) & ~first)))
+            sel = np.flatnonzero((head_view == w) & (obs.view == v) & ~first)
+            pairs.append((int(w), int(v), sel))
     # view w pixels -> view v pixels
     homography = {(w, v): planes[v] @ np.linalg.inv(planes[w]) for w, v, _ in pairs}
+
+    def on(images_u8, rank):  # one pair's registration on these images
+        return lambda job: register(images_u8[job[0]], images_u8[job[1]], homography[job[:2]],
+                                    job[2], rank)
+
     # The pairs' observations are disjoint and each registration reads only the keypoints: the
     # pairs run in any order, in threads, and give what one loop over them gives.
-    map_in_threads(lambda job: register(grey[job[0]], grey[job[1]], homography[job[:2]], job[2], 0.0),
-                   pairs, max_threads=threads, name="register")
+    map_in_threads(on(grey, 0.0), pairs, max_threads=threads, name="register")
     again = []
     for w, v, pair in pairs:
         done = np.isfinite(residual[pair])
@@ -283,11 +289,10 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
             if (len(failed) and len(pair) - len(failed) < wanted
                     and len(failed) >= _CONTRAST_PAIR_FAILED * len(pair)):
                 again.append((w, v, failed))
-    needed = sorted({k for w, v, _ in again for k in (w, v)})  # made only for the views that need it
+    needed = sorted({k for w, v, _ in again for k in (w, v)})  # only the views that need it
     contrast = dict(zip(needed, map_in_threads(lambda k: local_contrast_u8(grey[k]), needed,
                                                max_threads=threads, name="register")))
-    map_in_threads(lambda job: register(contrast[job[0]], contrast[job[1]], homography[job[:2]], job[2],
-                                        CONTRAST_RANK), again, max_threads=threads, name="register")
+    map_in_threads(on(contrast, CONTRAST_RANK), again, max_threads=threads, name="register")
     keep = np.isfinite(residual)
     registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
     index = registered.subset_index(keep)

@@ -140,8 +140,9 @@ def test_inverse_of_the_point_blocks_against_numpy():
     A = rng.normal(size=(200, 3, 3))
     U = A @ A.transpose(0, 2, 1) + 1e-3 * np.eye(3)
     inverse = np.empty_like(U)
+    entries = bundle._inverse_spd3([U[:, i, j] for i, j in bundle.SYM3])
     for k, (i, j) in enumerate(bundle.SYM3):
-        inverse[:, i, j] = inverse[:, j, i] = bundle._inverse_spd3([U[:, i, j] for i, j in bundle.SYM3])[k]
+        inverse[:, i, j] = inverse[:, j, i] = entries[k]
     np.testing.assert_allclose(inverse, np.linalg.inv(U), rtol=SCHUR_RTOL,
                                atol=SCHUR_RTOL * np.abs(np.linalg.inv(U)).max())
     singular = U.copy()

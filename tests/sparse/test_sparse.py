@@ -459,7 +459,8 @@ def test_parallel_rays_give_no_point():
     xy[6] = xy[5] = xys[1][2]
     view[5] = 1
     obs = sparse_tracks.Observations(point=point, view=view, xy=xy, n_points=4)
-    pts, err, front = triangulation.triangulate_observations(obs, triangulation.projection_stack(cams))
+    P = triangulation.projection_stack(cams)
+    pts, err, front = triangulation.triangulate_observations(obs, P)
     assert np.isnan(pts[2]).all() and np.isinf(err[5:7]).all() and not front[2]
     keep = point != 2
     assert np.abs(pts[[0, 1, 3]] - X[[0, 1, 3]]).max() < EXACT_POINT_TOL_M
