@@ -38,6 +38,12 @@ if TYPE_CHECKING:  # pragma: no cover
 # one view of which is tens of pixels off: -65..-25 m, 148..184 m, 253..294 m against 95..165
 # m, DSMs 11-51% within 1 m; pairs that hold the truth share 92% or more).
 PRIOR_OVERLAP_MIN_FRACTION = 0.5
+# Corrections (px) past which two views tied alone leave the scene's position in doubt: which of
+# them is off, no measurement tells (a pointing error of either is a motion of the whole scene),
+# and the adjustment puts the scene where the smaller correction does. 5 of 20 views of a v20
+# multi-date stack (seed 0), three dropped: the two left were 31 and 42 px off, their
+# corrections (-41.7, 0.1) and (0.1, 0.0) px, the DSM 30 m high, 31% of it within 1 m.
+GAUGE_DOUBT_PX = 5.0
 # What the user can do when no range can be measured.
 _GIVE_A_RANGE = "give --alt-range MIN MAX or --dem FILE (alt_range= or dem= in the Python API)"
 
@@ -123,12 +129,44 @@ def tie_and_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
         else:
             kept = set(sparse.kept_paths)
             sources = [src for src in sources if src.path in kept]
+            doubt = pointing_gauge_doubt(sparse)
+            if doubt is not None and report is not None:
+                report.warn(doubt, doubtful=True)
     if given:
         altitude = choose_altitude_range(sources, aoi, alt_range=alt_range, dem=dem,
                                          config=config)
     else:
         altitude = tie_point_altitude(sparse, prior)
     return TiedSources(sparse=sparse, untied=untied, altitude=altitude, sources=sources)
+
+
+def pointing_gauge_doubt(sparse: "SparseResult") -> str | None:
+    """A warning when only two views are tied and their corrections reach GAUGE_DOUBT_PX, else
+    None. Moving the whole scene by ``dX`` while shifting each view by ``-A_v dX`` changes no
+    tie point (:mod:`satsweep.sparse.bundle`); with two views every member of that family fits,
+    so the scene may lie where either view's RPC is right: the motion named is the smallest that
+    takes the larger correction to zero (``A_v`` at the tie points' median)."""
+    import numpy as np
+
+    from satsweep.sparse.bundle import gauge_jacobians
+
+    kept = list(sparse.tied.kept)
+    if len(kept) != 2:
+        return None
+    s = np.asarray(sparse.corrections_px, np.float64)[kept]
+    worst = int(np.argmax(np.abs(s).max(axis=1)))
+    if not float(np.abs(s[worst]).max()) > GAUGE_DOUBT_PX:
+        return None
+    points = np.asarray(sparse.tied.points, np.float64)
+    centre = np.median(points, axis=0) if len(points) else np.zeros(3)
+    A = gauge_jacobians([sparse.tied.cameras[v] for v in kept], centre)
+    move = float(np.linalg.norm(np.linalg.pinv(A[worst]) @ s[worst]))
+    names = [os.path.basename(sparse.paths[v]) for v in kept]
+    return (f"only two views are tied ({names[0]}, {names[1]}) and {names[worst]}'s pointing "
+            f"correction is {s[worst, 0]:+.1f}, {s[worst, 1]:+.1f} px: two views cannot tell which "
+            "of them is off (either's error is a motion of the whole scene), so the DSM may lie "
+            f"{move:.0f} m or more from the ground the RPCs see (had {names[worst]}'s RPC been "
+            "right); give more views of the place, or RPCs corrected against ground control")
 
 
 def untied_error(exc: CameraError) -> InputError:

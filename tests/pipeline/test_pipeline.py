@@ -760,3 +760,45 @@ def test_a_tie_point_range_outside_the_rpcs_is_a_doubtful_warning(tie_range, war
         assert f"{tie_range[0]:.0f}..{tie_range[1]:.0f} m" in message and "95..165 m" in message
         assert "--alt-range" in message and "two views" in message
         assert "two views" not in range_outside_prior(AltitudeRange(*tie_range), prior, 5)
+
+
+def _stub_sparse(cameras, kept, corrections):
+    """What pointing_gauge_doubt reads of a SparseResult: the views kept, their corrections,
+    cameras and tie points (one, at the origin) and the paths."""
+    from types import SimpleNamespace
+
+    tied = SimpleNamespace(kept=tuple(kept), cameras=tuple(cameras), points=np.zeros((1, 3)))
+    return SimpleNamespace(tied=tied, corrections_px=np.asarray(corrections, float),
+                           paths=tuple(f"/data/view_{v}.tif" for v in range(len(cameras))))
+
+
+def test_two_views_far_off_leave_the_scene_in_doubt():
+    """Two tied views, one corrected by tens of pixels: a doubtful warning naming it, with the
+    smallest motion of the scene that would make its RPC right: the motion dX0 that made its
+    correction, less its part along the view's line of sight (which moves nothing in that
+    view), from finite differences of the camera, not the adjustment's Jacobians. Small
+    corrections, or three views (the gauge of most views), give none."""
+    from satsweep.pipeline.altitude import GAUGE_DOUBT_PX, pointing_gauge_doubt
+    from tests.synthetic_cameras import three_cameras
+
+    cams = three_cameras()
+
+    def project(P, X):
+        h = P @ np.append(X, 1.0)
+        return h[:2] / h[2]
+
+    P0 = np.asarray(cams[0].P)
+    A0 = np.column_stack([(project(P0, 1e-3 * e) - project(P0, -1e-3 * e)) / 2e-3
+                          for e in np.eye(3)])
+    dX0 = np.array([8.0, -6.0, 25.0])
+    s0 = A0 @ dX0
+    assert np.abs(s0).max() > GAUGE_DOUBT_PX
+    message = pointing_gauge_doubt(_stub_sparse(cams[:2], [0, 1], [s0, [0.0, 0.0]]))
+    ray = np.cross(A0[0], A0[1])  # the direction that view 0 does not see
+    ray /= np.linalg.norm(ray)
+    expected = np.linalg.norm(dX0 - (dX0 @ ray) * ray)
+    assert message is not None and "view_0.tif, view_1.tif" in message
+    assert f"view_0.tif's pointing correction is {s0[0]:+.1f}, {s0[1]:+.1f} px" in message
+    assert f"DSM may lie {expected:.0f} m or more" in message
+    assert pointing_gauge_doubt(_stub_sparse(cams[:2], [0, 1], [[2.0, -3.0], [1.0, 4.0]])) is None
+    assert pointing_gauge_doubt(_stub_sparse(cams, [0, 1, 2], [s0, [0.0, 0.0], [0.0, 0.0]])) is None
