@@ -131,6 +131,14 @@ def test_reduced_hessian_against_a_loop_over_the_tracks(n_views):
                 block = (wr[a][:, None] * J[a]) @ Uinv @ (wr[b][:, None] * J[b]).T
                 ref[2 * view[a]:2 * view[a] + 2, 2 * view[b]:2 * view[b] + 2] -= block
     np.testing.assert_allclose(H, ref, rtol=SCHUR_RTOL, atol=SCHUR_RTOL * np.abs(ref).max())
+    # A solve's layout, reused from step to step (its matrices rewritten in place): the same
+    # matrix after a step with other weights
+    fill = bundle._FillIn(n_views, obs)
+    args = (J[:, 0].T.copy(), J[:, 1].T.copy())
+    bundle._reduced_hessian(n_views, obs, *args, 2.0 * wr[:, 0], wr[:, 1].copy(), diag, 0.3, fill)
+    again = bundle._reduced_hessian(n_views, obs, *args, wr[:, 0].copy(), wr[:, 1].copy(), diag,
+                                    0.0, fill)[0]
+    np.testing.assert_array_equal(again, H)
 
 
 def test_inverse_of_the_point_blocks_against_numpy():
