@@ -15,6 +15,7 @@ is left out for want of a range).
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import os
 from typing import TYPE_CHECKING, Any, Sequence
@@ -132,6 +133,8 @@ def tie_and_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
             doubt = pointing_gauge_doubt(sparse)
             if doubt is not None and report is not None:
                 report.warn(doubt, doubtful=True)
+            elif doubt is not None:  # (satsweep cameras: no run report)
+                logging.getLogger(__name__).warning("%s", doubt)
     if given:
         altitude = choose_altitude_range(sources, aoi, alt_range=alt_range, dem=dem,
                                          config=config)
@@ -164,9 +167,10 @@ def pointing_gauge_doubt(sparse: "SparseResult") -> str | None:
     names = [os.path.basename(sparse.paths[v]) for v in kept]
     return (f"only two views are tied ({names[0]}, {names[1]}) and {names[worst]}'s pointing "
             f"correction is {s[worst, 0]:+.1f}, {s[worst, 1]:+.1f} px: two views cannot tell which "
-            "of them is off (either's error is a motion of the whole scene), so the DSM may lie "
-            f"{move:.0f} m or more from the ground the RPCs see (had {names[worst]}'s RPC been "
-            "right); give more views of the place, or RPCs corrected against ground control")
+            "of them is off (either's error is a motion of the whole scene), so the scene and its "
+            f"DSM may lie {move:.0f} m or more from the ground the RPCs see (had {names[worst]}'s "
+            "RPC been right); give more views of the place, or RPCs corrected against ground "
+            "control")
 
 
 def untied_error(exc: CameraError) -> InputError:

@@ -799,6 +799,6 @@ def test_two_views_far_off_leave_the_scene_in_doubt():
     expected = np.linalg.norm(dX0 - (dX0 @ ray) * ray)
     assert message is not None and "view_0.tif, view_1.tif" in message
     assert f"view_0.tif's pointing correction is {s0[0]:+.1f}, {s0[1]:+.1f} px" in message
-    assert f"DSM may lie {expected:.0f} m or more" in message
+    assert f"its DSM may lie {expected:.0f} m or more" in message
     assert pointing_gauge_doubt(_stub_sparse(cams[:2], [0, 1], [[2.0, -3.0], [1.0, 4.0]])) is None
     assert pointing_gauge_doubt(_stub_sparse(cams, [0, 1, 2], [s0, [0.0, 0.0], [0.0, 0.0]])) is None
