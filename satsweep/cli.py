@@ -196,9 +196,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     # The views, their pointing corrections and the altitude range as reconstruct takes them.
     tied = tie_and_range(open_sources(args.images), aoi, alt_range=_cli_altitude_range(args),
                          dem=args.dem, config=config, adjust=args.adjust)
-    sparse, alt = tied.sparse, tied.altitude.range
-    if tied.altitude.doubt:
-        print(f"satsweep: warning: {tied.altitude.doubt}", file=sys.stderr)
+    sparse, alt = tied.sparse, tied.altitude.range  # (doubts about them: logged warnings)
     views, _ = crop_views(tied.sources, aoi, alt, config,
                           extra_margin_px=tied.correction_margin_px if args.adjust else 0)
     cameras = fit_cameras(views, aoi, alt, config)

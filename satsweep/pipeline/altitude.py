@@ -27,6 +27,8 @@ from satsweep.geometry.altitude import (
     resolve_altitude_range,
 )
 
+log = logging.getLogger(__name__)
+
 if TYPE_CHECKING:  # pragma: no cover
     from satsweep.config import PipelineConfig
     from satsweep.geometry.aoi import AOI
@@ -79,12 +81,13 @@ def choose_altitude_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
                           report: "RunReport | None" = None) -> AltitudeChoice:
     """The altitude range to sweep over ``aoi``: the user's, else the DEM's, else the tie
     points' (see the module docstring: the sparse stage runs on the views cropped at the RPCs'
-    range, timed in ``report`` when given). InputError when none can be had."""
+    range, timed in ``report`` when given; its doubts are the caller's to give, from
+    ``AltitudeChoice.doubt``). InputError when none can be had."""
     if alt_range is not None or dem is not None:
         rng = resolve_altitude_range(alt_range=alt_range, dem=dem, aoi=aoi)
         return AltitudeChoice(rng, "user" if alt_range is not None else "dem")
     return tie_and_range(sources, aoi, alt_range=None, dem=None, config=config, adjust=False,
-                         report=report).altitude
+                         report=report, warn_doubts=False).altitude
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -108,12 +111,14 @@ class TiedSources:
 def tie_and_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
                   alt_range: AltitudeRange | None, dem: str | os.PathLike | None,
                   config: "PipelineConfig", adjust: bool,
-                  report: "RunReport | None" = None) -> TiedSources:
+                  report: "RunReport | None" = None, warn_doubts: bool = True) -> TiedSources:
     """The sparse stage where the run needs it, and the altitude range: ``reconstruct``,
     ``satsweep cameras`` and ``prepare_views`` start here. Without a range (``alt_range``,
     ``dem``) the sparse stage runs over the RPCs' range and gives it (InputError when it
     cannot); with one, it runs over that range only when the pointing is to be corrected
-    (``adjust``)."""
+    (``adjust``). With ``warn_doubts``, what puts the result in doubt (a tie-point range
+    outside the RPCs', two views tied alone far off) is a doubtful warning in ``report``, or a
+    logged one without a report."""
     given = alt_range is not None or dem is not None
     sources = list(sources)
     sparse, untied = None, None
@@ -130,17 +135,27 @@ def tie_and_range(sources: Sequence["ImageSource"], aoi: "AOI", *,
         else:
             kept = set(sparse.kept_paths)
             sources = [src for src in sources if src.path in kept]
-            doubt = pointing_gauge_doubt(sparse)
-            if doubt is not None and report is not None:
-                report.warn(doubt, doubtful=True)
-            elif doubt is not None:  # (satsweep cameras: no run report)
-                logging.getLogger(__name__).warning("%s", doubt)
+            if warn_doubts:
+                _warn_doubt(report, pointing_gauge_doubt(sparse))
     if given:
         altitude = choose_altitude_range(sources, aoi, alt_range=alt_range, dem=dem,
                                          config=config)
     else:
         altitude = tie_point_altitude(sparse, prior)
+        if warn_doubts:
+            _warn_doubt(report, altitude.doubt)
     return TiedSources(sparse=sparse, untied=untied, altitude=altitude, sources=sources)
+
+
+def _warn_doubt(report: "RunReport | None", doubt: str | None) -> None:
+    """A doubtful warning in the run's report; without one (``satsweep cameras``), a logged
+    warning; nothing for None."""
+    if doubt is None:
+        return
+    if report is not None:
+        report.warn(doubt, doubtful=True)
+    else:
+        log.warning("%s", doubt)
 
 
 def pointing_gauge_doubt(sparse: "SparseResult") -> str | None:

@@ -162,9 +162,7 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     tied = tie_and_range(job.sources, job.aoi, alt_range=ctx.alt_range, dem=ctx.dem,
                          config=config, adjust=r.adjust != "off", report=rep)
     sparse, altitude = tied.sparse, tied.altitude
-    if altitude.source == "tie points":
-        if altitude.doubt:
-            rep.warn(altitude.doubt, doubtful=True)
+    if altitude.source == "tie points":  # (a doubt about it: warned by tie_and_range)
         rep.log(f"altitude range {altitude.range.min:.1f}..{altitude.range.max:.1f} m from "
                 f"{sparse.altitude['tie_points']} adjusted tie points (give --alt-range or --dem, "
                 "alt_range= or dem= in the API, to set it)")

@@ -66,9 +66,9 @@ VIEW_RASTER_QUANTILE = 0.75
 # the other points 0.31-0.86). Leaving out a dense view's step pixels under
 # dsm.edge_min_confidence = 0.15, DFC MAE m on six such stacks (seeds 7, 8, 9, 11, 12, 13):
 # 0.931 0.875 0.984 1.510 0.834 1.159 -> 0.938 0.760 0.840 1.456 0.733 1.221 (mean 1.049 ->
-# 0.991), within 1 m 90.23% against 90.05% on average; dropping every pixel under that confidence opened roofs (seed 13: 1.305 m); 0.5 m
-# views (the highest point per cell) are left alone: there it lost on 4 of 6 v10 stacks
-# (docs/measurements.md).
+# 0.991), within 1 m 90.23% against 90.05% on average; dropping every pixel under that
+# confidence opened roofs (seed 13: 1.305 m); 0.5 m views (the highest point per cell) are left
+# alone: there it lost on 4 of 6 v10 stacks (docs/measurements.md).
 EDGE_STEP_M = 2.0
 
 

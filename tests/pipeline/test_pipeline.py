@@ -802,3 +802,47 @@ def test_two_views_far_off_leave_the_scene_in_doubt():
     assert f"its DSM may lie {expected:.0f} m or more" in message
     assert pointing_gauge_doubt(_stub_sparse(cams[:2], [0, 1], [[2.0, -3.0], [1.0, 4.0]])) is None
     assert pointing_gauge_doubt(_stub_sparse(cams, [0, 1, 2], [s0, [0.0, 0.0], [0.0, 0.0]])) is None
+
+
+def test_tie_and_range_gives_its_doubts_once_where_the_run_reports(scene, monkeypatch, caplog):
+    """A tie-point range outside the RPCs' is a doubtful warning given by tie_and_range itself:
+    in the run's report when there is one, logged without (satsweep cameras), and not at all
+    when choose_altitude_range only measures the range (the range-end warning's figure)."""
+    import dataclasses
+    import logging
+
+    import satsweep.pipeline.prepare as prepare
+    from satsweep.io.sources import open_sources
+    from satsweep.pipeline.altitude import choose_altitude_range, tie_and_range
+
+    real = prepare.tie_sources
+
+    def far_off(*args, **kwargs):  # the scene moved 5 km up by the adjustment's gauge
+        result = real(*args)  # (the stub report below times no stage)
+        rng = result.altitude_range
+        return dataclasses.replace(result, altitude_range=AltitudeRange(rng.min + 5e3,
+                                                                        rng.max + 5e3))
+
+    monkeypatch.setattr(prepare, "tie_sources", far_off)
+
+    class Report:
+        def __init__(self):
+            self.warnings = []
+
+        def warn(self, message, *, doubtful=False):
+            self.warnings.append((message, doubtful))
+
+    config = PipelineConfig()
+    sources = open_sources([v.image for v in scene.views])
+    report = Report()
+    tied = tie_and_range(sources, scene.aoi, alt_range=None, dem=None, config=config,
+                         adjust=False, report=None)
+    assert tied.altitude.doubt is not None
+    assert [r.getMessage() for r in caplog.records
+            if r.levelno == logging.WARNING] == [tied.altitude.doubt]
+    caplog.clear()
+    choice = choose_altitude_range(sources, scene.aoi, alt_range=None, dem=None, config=config)
+    assert choice.doubt == tied.altitude.doubt and not caplog.records
+    tied = tie_and_range(sources, scene.aoi, alt_range=None, dem=None, config=config,
+                         adjust=False, report=report)
+    assert report.warnings == [(tied.altitude.doubt, True)]
