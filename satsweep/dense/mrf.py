@@ -80,6 +80,13 @@ class MRFOptions(Options):
     sgm_consensus_gf_radius: int | None = 1  # ... in an area whose DSM is the consensus of many
     # reference views' height maps ([dsm] fusion; 6 or more): it rejects each map's blunders,
     # and a wider filter erodes crowns and roof edges; None: sgm_sweep_gf_radius
+    median_radius_m: float = 0.0  # an edge-aware weighted median of each height map, the
+    # reference image as guide (satsweep.dense.median): its window's radius (m); 0: none
+    consensus_median_radius_m: float = 1.2  # ... in an area whose DSM is the consensus of many
+    # reference views' height maps under SGM (as sgm_consensus_gf_radius): it removes the height
+    # noise of flat areas that the consensus keeps; 0: median_radius_m
+    median_sigma: float = 0.04  # guide difference (image in [0, 1]) at which a neighbour's weight
+    # in the median falls by exp(-1/2)
     sgm_paths: Literal[4, 8] = 8  # scanline directions aggregated
     sgm_p2_sigma: float = 0.05  # guide difference (image in [0, 1]) that halves P2; 0: no adaptation
     sgm_work_group: int = 0  # work-items per scanline (power of two); 0: 1 on CPUs, 32 on GPUs
@@ -101,17 +108,24 @@ class MRFOptions(Options):
     tile_overlap_px: int = 64  # pixels each reference tile is swept and refined past its kept part
 
     ADVANCED = ("sgm_p1", "sgm_p2", "sgm_sweep_gf_radius", "sgm_consensus_gf_radius",
+                "median_radius_m", "consensus_median_radius_m", "median_sigma",
                 "sgm_paths", "sgm_p2_sigma", "sgm_work_group", "sgm_scan", "sgm_subplane",
                 "gc_sweep_gf_radius", "gc_smoothness", "gc_truncation_labels", "gc_edge_sigma",
                 "gc_label_window", "gc_levels", "gc_tile", "gc_tile_overlap", "gc_iterations",
                 "tile_overlap_px")
 
     def for_consensus(self) -> "MRFOptions":
-        """The options of an area whose DSM is a consensus of many height maps: the sweep under
-        SGM filters with ``sgm_consensus_gf_radius`` (when set)."""
-        if self.method != "sgm" or self.sgm_consensus_gf_radius is None:
+        """The options of an area whose DSM is a consensus of many height maps: under SGM, the
+        sweep filters with ``sgm_consensus_gf_radius`` and the height maps take the median of
+        ``consensus_median_radius_m`` (each when set)."""
+        if self.method != "sgm":
             return self
-        return self.replace(sgm_sweep_gf_radius=self.sgm_consensus_gf_radius)
+        changes: dict = {}
+        if self.sgm_consensus_gf_radius is not None:
+            changes["sgm_sweep_gf_radius"] = self.sgm_consensus_gf_radius
+        if self.consensus_median_radius_m > 0.0:
+            changes["median_radius_m"] = self.consensus_median_radius_m
+        return self.replace(**changes) if changes else self
 
     def check(self) -> None:
         self._require(math.isfinite(self.sgm_p1) and self.sgm_p1 >= 0.0, "sgm_p1", "must be >= 0")
@@ -122,6 +136,12 @@ class MRFOptions(Options):
         self._require(self.sgm_consensus_gf_radius is None
                       or 0 <= self.sgm_consensus_gf_radius <= 64,
                       "sgm_consensus_gf_radius", "must be in [0, 64] (or None)")
+        for name in ("median_radius_m", "consensus_median_radius_m"):
+            value = getattr(self, name)
+            self._require(math.isfinite(value) and 0.0 <= value <= 100.0, name,
+                          "must be in [0, 100] metres (0: none)")
+        self._require(math.isfinite(self.median_sigma) and self.median_sigma > 0.0,
+                      "median_sigma", "must be > 0")
         self._require(self.gc_sweep_gf_radius is None or 0 <= self.gc_sweep_gf_radius <= 64,
                       "gc_sweep_gf_radius", "must be in [0, 64] (or None)")
         self._require(math.isfinite(self.sgm_p2_sigma) and self.sgm_p2_sigma >= 0.0,

@@ -74,6 +74,23 @@ def reference_window(camera, frame, aoi: AOI, alt_range: AltitudeRange, shape: t
     return x0, y0, x1, y1
 
 
+def ground_sample_distance(P: np.ndarray, u: float) -> float:
+    """Metres per pixel (the square root of a pixel's ground area) of the camera ``P`` (3 x 4,
+    ENU -> pixels) at the ENU origin's east and north, height ``u``."""
+    P = np.asarray(P, np.float64)
+    X = np.array([0.0, 0.0, u, 1.0])
+    s = P[2] @ X
+    xy = P[:2] @ X / s
+    J = (P[:2, :2] - np.outer(xy, P[2, :2])) / s  # d(pixel) / d(east, north)
+    return float(1.0 / np.sqrt(abs(np.linalg.det(J))))
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    """A view's image as one grey band (the mean of its bands)."""
+    image = np.asarray(image)
+    return image if image.ndim == 2 else image.mean(axis=2)
+
+
 def _placed(result, window: tuple[int, int, int, int], shape: tuple[int, int]):
     """The per-pixel maps of a sweep of the reference window ``window``, placed in full-size maps
     of ``shape`` (no height, invalid, zero confidence outside the window)."""
@@ -200,6 +217,17 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             _no_data_check(result, hom, [masks[s] for s in srcs], masks[r], window,
                            [images[s].shape for s in srcs], swept.census_radii)
         height, valid, confidence = _placed(result, window, shape)
+        if mrf.median_radius_m > 0.0:
+            from satsweep.dense.median import radius_px, weighted_median
+
+            with rep.stage("mrf"):
+                gsd = ground_sample_distance(cameras.views[r].camera.P, float(np.mean(u_range)))
+                radius = radius_px(mrf.median_radius_m, gsd)
+                height[y0:y1, x0:x1] = weighted_median(
+                    device, height[y0:y1, x0:x1], valid[y0:y1, x0:x1], _grey(ref_image),
+                    radius=radius, sigma=mrf.median_sigma)
+            if mrf_info is not None:
+                mrf_info["median_radius_px"] = radius
         index = np.asarray(result.plane_index)
         ends = (float(np.mean(index <= RANGE_END_PLANES)),
                 float(np.mean(index >= len(heights) - 1 - RANGE_END_PLANES)))

@@ -724,9 +724,10 @@ def test_bad_options_name_the_field(field, value):
         mrf.MRFOptions(**{field: value})
 
 
-def test_consensus_options_change_only_the_sgm_sweep_radius():
-    o = mrf.MRFOptions(sgm_sweep_gf_radius=4, sgm_consensus_gf_radius=1)
-    assert o.for_consensus() == o.replace(sgm_sweep_gf_radius=1)
+def test_consensus_options_change_only_the_sgm_sweep_radius_and_median():
+    o = mrf.MRFOptions(sgm_sweep_gf_radius=4, sgm_consensus_gf_radius=1,
+                       consensus_median_radius_m=1.5)
+    assert o.for_consensus() == o.replace(sgm_sweep_gf_radius=1, median_radius_m=1.5)
     assert o.replace(sgm_consensus_gf_radius=None).for_consensus().sgm_sweep_gf_radius == 4
     graphcut_options = o.replace(method="graphcut")
     assert graphcut_options.for_consensus() == graphcut_options

@@ -718,7 +718,9 @@ def test_many_references_of_a_consensus_are_swept_with_the_narrower_filter(n_ref
     config = PipelineConfig().override("dsm", fusion=fusion)
     mrf = area_mrf_options(config, n_references)
     want = config.mrf.sgm_consensus_gf_radius if narrow else config.mrf.sgm_sweep_gf_radius
-    assert mrf == config.mrf.replace(sgm_sweep_gf_radius=want)
+    # ... and the height maps' weighted median (satsweep.dense.median) there, none elsewhere
+    median = config.mrf.consensus_median_radius_m if narrow else 0.0
+    assert mrf == config.mrf.replace(sgm_sweep_gf_radius=want, median_radius_m=median)
     assert config.mrf.sgm_consensus_gf_radius != config.mrf.sgm_sweep_gf_radius
     # and the gradient term of any area the consensus fuses (area_sweep_options)
     sweep = area_sweep_options(config, n_references)

@@ -1,0 +1,120 @@
+"""An edge-aware weighted median of a reference's height map (``kernels/median.cl``).
+
+Each valid pixel takes the weighted median of the valid heights of the window around it, each
+weighing ``exp(-(g_q - g_p)^2 / (2 sigma^2) - |q - p|^2 / (2 r^2))`` (``g`` the reference image,
+``r`` the window's radius): the heights of the pixel's own surface (its grey level) decide,
+those across an image edge hardly count. It removes the height noise of flat roofs and ground
+that the consensus of many height maps, cell by cell, does not (each map's noise is its own, but
+the consensus takes the median of what agrees within a metre), and keeps the steps where the
+image has its edges. Applied under SGM to the references of an area fused by the consensus of
+many height maps (``MRFOptions.for_consensus``); measured in docs/measurements.md.
+
+:func:`weighted_median` runs the kernel; :func:`weighted_median_reference` is the same rule in
+numpy (float64), which the tests compare it with.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from satsweep.errors import OptionsError
+from satsweep.opencl.constants import SATSWEEP_INVALID
+
+# Largest window radius (px) of the kernel (MEDIAN_MAX_RADIUS in median.cl): a window of
+# (2 r + 1)^2 heights and weights sits in each work-item's private memory (169 at 6).
+MEDIAN_MAX_RADIUS_PX = 6
+
+
+def radius_px(radius_m: float, gsd_m: float) -> int:
+    """The window radius (px) of a ``radius_m`` window on pixels of ``gsd_m`` metres: rounded,
+    at least 1 and at most MEDIAN_MAX_RADIUS_PX."""
+    if not (math.isfinite(gsd_m) and gsd_m > 0.0):
+        raise OptionsError(f"median window: ground sample distance {gsd_m!r} m must be > 0")
+    return int(min(max(round(radius_m / gsd_m), 1), MEDIAN_MAX_RADIUS_PX))
+
+
+def _check(height: np.ndarray, valid: np.ndarray, guide: np.ndarray, radius: int,
+           sigma: float) -> None:
+    if height.ndim != 2 or valid.shape != height.shape or guide.shape != height.shape:
+        raise OptionsError(f"weighted median: height {height.shape}, valid {valid.shape} and "
+                           f"guide {guide.shape} must be one 2-D shape")
+    if not 1 <= radius <= MEDIAN_MAX_RADIUS_PX:
+        raise OptionsError(f"weighted median: radius {radius} px must lie in 1 .. "
+                           f"{MEDIAN_MAX_RADIUS_PX}")
+    if not (math.isfinite(sigma) and sigma > 0.0):
+        raise OptionsError(f"weighted median: sigma {sigma!r} must be > 0")
+
+
+def weighted_median(device, height: np.ndarray, valid: np.ndarray, guide: np.ndarray, *,
+                    radius: int, sigma: float) -> np.ndarray:
+    """The weighted median (module docstring) of ``height`` (H, W) where ``valid``, with the
+    reference image ``guide`` (H, W) in [0, 1], a window of radius ``radius`` px and a guide
+    scale ``sigma``, on ``device`` (a satsweep Device). Float64; ``height`` unchanged where not
+    ``valid``."""
+    import pyopencl as cl  # noqa: PLC0415
+
+    height = np.asarray(height)
+    valid = np.asarray(valid, bool)
+    guide = np.asarray(guide)
+    _check(height, valid, guide, radius, sigma)
+    h, w = height.shape
+    out = np.array(height, np.float64)
+    if not valid.any():
+        return out
+    heights = np.where(valid, height, SATSWEEP_INVALID).astype(np.float32)
+    grey = np.ascontiguousarray(guide, np.float32)
+    mf = cl.mem_flags
+    ctx, queue = device.context, device.queue
+    height_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=heights)
+    guide_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=grey)
+    out_buf = cl.Buffer(ctx, mf.WRITE_ONLY, heights.nbytes)
+    prg = device.build("median", {"MEDIAN_RADIUS": int(radius)})
+    local = (16, 16)
+    glob = tuple(-(-n // l) * l for n, l in zip((w, h), local))
+    device.kernel(prg, "weighted_median")(
+        queue, glob, None, height_buf, guide_buf, out_buf, np.int32(w), np.int32(h),
+        np.float32(1.0 / (2.0 * sigma * sigma)), np.float32(1.0 / (2.0 * radius * radius)))
+    result = np.empty_like(heights)
+    cl.enqueue_copy(queue, result, out_buf)
+    out[valid] = result[valid]
+    return out
+
+
+def weighted_median_reference(height: np.ndarray, valid: np.ndarray, guide: np.ndarray, *,
+                              radius: int, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`weighted_median` in numpy (float64), and per pixel how far the running sum of the
+    weights at the chosen height and at the one before lie from half the total (a fraction of
+    the total; where it is tiny, float32 sums may pick the neighbouring height)."""
+    height = np.asarray(height, np.float64)
+    valid = np.asarray(valid, bool)
+    guide = np.asarray(guide, np.float64)
+    _check(height, valid, guide, radius, sigma)
+    r = radius
+    H, W = height.shape
+    hp = np.pad(np.where(valid, height, np.nan), r, constant_values=np.nan)
+    gp = np.pad(guide, r, mode="edge")
+    hs, ws = [], []
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            hh = hp[r + dy:r + dy + H, r + dx:r + dx + W]
+            gg = gp[r + dy:r + dy + H, r + dx:r + dx + W]
+            wq = np.exp(-((gg - guide) ** 2) / (2.0 * sigma * sigma)
+                        - (dx * dx + dy * dy) / (2.0 * r * r))
+            ok = np.isfinite(hh)
+            hs.append(np.where(ok, hh, np.inf))
+            ws.append(np.where(ok, wq, 0.0))
+    hs, ws = np.stack(hs, -1), np.stack(ws, -1)
+    order = np.argsort(hs, axis=-1, kind="stable")
+    hs, ws = np.take_along_axis(hs, order, -1), np.take_along_axis(ws, order, -1)
+    run = np.cumsum(ws, -1)
+    total = run[..., -1:]
+    k = np.argmax(run >= 0.5 * total, axis=-1)[..., None]
+    out = np.where(valid, np.take_along_axis(hs, k, -1)[..., 0], height)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        above = (np.take_along_axis(run, k, -1) - 0.5 * total) / total
+        below = (0.5 * total - np.take_along_axis(run, np.maximum(k - 1, 0), -1)) / total
+        below = np.where(k > 0, below, np.inf)
+    margin = np.where(valid, np.minimum(above, below)[..., 0], np.inf)
+    return out, margin

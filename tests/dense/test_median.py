@@ -1,0 +1,100 @@
+"""The edge-aware weighted median of height maps (kernels/median.cl) against its numpy reference
+and an exact synthetic step, on every usable OpenCL device (the ``cl_device`` fixture)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from satsweep.dense.median import (MEDIAN_MAX_RADIUS_PX, radius_px, weighted_median,
+                                   weighted_median_reference)
+from satsweep.dense.mrf import MRFOptions
+from satsweep.errors import OptionsError
+from satsweep.pipeline.sweeps import ground_sample_distance
+
+# Where half the total weight lies this close (a fraction of the total) to the running sum at a
+# height, float32 sums of up to 169 weights in [0, 1] (relative error ~1e-5) may stop one
+# height earlier or later than the float64 reference: both are then the weighted median.
+SUM_MARGIN = 1e-4
+
+
+def _inputs(seed: int, shape=(37, 53)):
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    roof = (xx > w // 3) & (yy > h // 4)
+    guide = np.where(roof, 0.7, 0.3) + rng.normal(0.0, 0.03, shape)
+    height = np.where(roof, 12.0, 1.0) + rng.normal(0.0, 0.4, shape)
+    valid = rng.uniform(size=shape) > 0.15
+    return height, valid, guide, roof
+
+
+@pytest.mark.parametrize("radius", [1, 2, 4, MEDIAN_MAX_RADIUS_PX])
+def test_kernel_matches_numpy_reference(cl_device, radius):
+    height, valid, guide, _ = _inputs(radius)
+    got = weighted_median(cl_device, height, valid, guide, radius=radius, sigma=0.05)
+    want, margin = weighted_median_reference(height, valid, guide, radius=radius, sigma=0.05)
+    clear = valid & (margin > SUM_MARGIN)
+    assert clear.sum() > 0.9 * valid.sum()
+    np.testing.assert_allclose(got[clear], want[clear], rtol=0, atol=1e-5)  # float32 heights
+    np.testing.assert_array_equal(got[~valid], height[~valid])
+
+
+def test_step_kept_at_the_image_edge_and_noise_removed(cl_device):
+    height, valid, guide, roof = _inputs(7)
+    truth = np.where(roof, 12.0, 1.0)
+    got = weighted_median(cl_device, height, valid, guide, radius=3, sigma=0.05)
+    err_before = np.abs(height - truth)[valid]
+    err_after = np.abs(got - truth)[valid]
+    # every pixel stays on its own side of the step (the noise is 0.4 m, the step 11 m) ...
+    assert err_after.max() < 2.0
+    # ... and the median of the window's heights halves the noise at least
+    assert np.median(err_after) < 0.5 * np.median(err_before)
+
+
+def test_no_valid_pixel_leaves_the_map_as_it_is(cl_device):
+    height = np.full((8, 9), np.nan)
+    out = weighted_median(cl_device, height, np.zeros((8, 9), bool), np.zeros((8, 9)),
+                          radius=2, sigma=0.05)
+    assert np.isnan(out).all()
+
+
+def test_radius_in_pixels():
+    assert radius_px(1.2, 0.3) == 4
+    assert radius_px(1.2, 0.5) == 2
+    assert radius_px(1.2, 2.0) == 1
+    assert radius_px(1.2, 0.05) == MEDIAN_MAX_RADIUS_PX
+    with pytest.raises(OptionsError, match="ground sample distance"):
+        radius_px(1.2, 0.0)
+
+
+def test_bad_arguments_are_named(cl_device):
+    height, valid, guide, _ = _inputs(0)
+    with pytest.raises(OptionsError, match="radius"):
+        weighted_median(cl_device, height, valid, guide, radius=MEDIAN_MAX_RADIUS_PX + 1,
+                        sigma=0.05)
+    with pytest.raises(OptionsError, match="sigma"):
+        weighted_median(cl_device, height, valid, guide, radius=2, sigma=0.0)
+    with pytest.raises(OptionsError, match="shape"):
+        weighted_median(cl_device, height, valid, guide[:-1], radius=2, sigma=0.05)
+
+
+def test_options_check_and_consensus():
+    with pytest.raises(OptionsError, match="median_sigma"):
+        MRFOptions(median_sigma=0.0)
+    with pytest.raises(OptionsError, match="consensus_median_radius_m"):
+        MRFOptions(consensus_median_radius_m=-1.0)
+    assert MRFOptions().median_radius_m == 0.0  # none outside a consensus
+    assert MRFOptions().for_consensus().median_radius_m == MRFOptions().consensus_median_radius_m
+    assert MRFOptions(consensus_median_radius_m=0.0).for_consensus().median_radius_m == 0.0
+    assert MRFOptions(method="graphcut").for_consensus().median_radius_m == 0.0
+
+
+def test_ground_sample_distance_of_an_affine_and_a_perspective_camera():
+    affine = np.array([[2.0, 0.0, 0.3, 10.0], [0.0, -2.0, 0.1, 5.0], [0.0, 0.0, 0.0, 1.0]])
+    assert ground_sample_distance(affine, 7.0) == pytest.approx(0.5, rel=1e-12)
+    # a camera 1000 m up looking down, focal 2000 px: 0.5 m per pixel on the ground, 0.45 at 100 m
+    K = np.array([[2000.0, 0.0, 500.0], [0.0, -2000.0, 500.0], [0.0, 0.0, 1.0]])
+    Rt = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 1000.0]])
+    assert ground_sample_distance(K @ Rt, 0.0) == pytest.approx(0.5, rel=1e-12)
+    assert ground_sample_distance(K @ Rt, 100.0) == pytest.approx(0.45, rel=1e-12)
