@@ -129,13 +129,15 @@ class ReferenceHeights:
     mrf: dict | None  # the MRF's method, seconds, tiles and valid fraction; None without one
     at_range_ends: tuple[float, float]  # fractions of the window's pixels whose best plane is
     # within RANGE_END_PLANES of the lowest / the highest plane
+    median_radius_px: int | None = None  # the weighted median's window radius; None: no median
 
     def to_report(self) -> dict:
         return {"reference": self.reference, "sources": list(self.sources),
                 "planes": self.planes, "plane_step_m": self.plane_step_m,
                 "window": [int(v) for v in self.window], "valid_fraction": self.valid_fraction,
                 "tiles": self.tiles, "window_planes": self.window_planes, "mrf": self.mrf,
-                "at_range_ends": list(self.at_range_ends)}
+                "at_range_ends": list(self.at_range_ends),
+                "median_radius_px": self.median_radius_px}
 
 
 def area_mrf_options(config: PipelineConfig, n_references: int) -> MRFOptions:
@@ -217,17 +219,16 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             _no_data_check(result, hom, [masks[s] for s in srcs], masks[r], window,
                            [images[s].shape for s in srcs], swept.census_radii)
         height, valid, confidence = _placed(result, window, shape)
+        median_px = None
         if mrf.median_radius_m > 0.0:
             from satsweep.dense.median import radius_px, weighted_median
 
             with rep.stage("mrf"):
                 gsd = ground_sample_distance(cameras.views[r].camera.P, float(np.mean(u_range)))
-                radius = radius_px(mrf.median_radius_m, gsd)
+                median_px = radius_px(mrf.median_radius_m, gsd)
                 height[y0:y1, x0:x1] = weighted_median(
                     device, height[y0:y1, x0:x1], valid[y0:y1, x0:x1], _grey(ref_image),
-                    radius=radius, sigma=mrf.median_sigma)
-            if mrf_info is not None:
-                mrf_info["median_radius_px"] = radius
+                    radius=median_px, sigma=mrf.median_sigma)
         index = np.asarray(result.plane_index)
         ends = (float(np.mean(index <= RANGE_END_PLANES)),
                 float(np.mean(index >= len(heights) - 1 - RANGE_END_PLANES)))
@@ -238,7 +239,7 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             plane_step_m=float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
             window=tuple(int(v) for v in window), valid_fraction=float(np.mean(result.valid)),
             tiles=int(result.split.n_tiles), window_planes=result.split.window_planes,
-            mrf=mrf_info,
+            mrf=mrf_info, median_radius_px=median_px,
             at_range_ends=ends))
     return out
 
