@@ -171,7 +171,9 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
 
     ``valid_masks`` (per view, the pixels that hold data; None: all) make a reference pixel
     invalid where its matching window reads no-data pixels, or where at its plane no source
-    window holds data (``_no_data_check``).
+    window holds data (``_no_data_check``). With ``median_radius_m`` in the area's MRF options
+    (``area_mrf_options``: a consensus of many maps), each map then takes the weighted median of
+    that radius (``satsweep.dense.median``; timed as the "mrf" stage).
     """
     from satsweep.dense.planes import plane_heights, view_homographies
     from satsweep.dense.sweep import PlaneSweep
