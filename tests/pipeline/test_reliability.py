@@ -452,15 +452,16 @@ def test_widened_range_needs_most_references_at_one_end():
     def sweeps(*ends):
         return [SimpleNamespace(at_range_ends=e) for e in ends]
 
-    # Half of four at the top: widened there, by the larger of the step and half the span.
-    wider, end, hits = widened_range(rng, sweeps((0, high), (0, high), (0, low), (0, 0)))
-    assert (end, hits) == (1, 2)
+    # Three of four at the top: widened there, by the larger of the step and half the span.
+    wider, end, hits = widened_range(rng, sweeps((0, high), (0, high), (0, high), (0, 0)))
+    assert (end, hits) == (1, 3)
     assert (wider.min, wider.max) == (100.0, 140.0 + max(RANGE_WIDEN_M, 20.0))
     wide = AltitudeRange(0.0, 100.0)
     wider, end, _ = widened_range(wide, sweeps((high, 0), (high, 0)))
     assert end == 0 and (wider.min, wider.max) == (-max(RANGE_WIDEN_M, 50.0), 100.0)
-    # One of four (a view of another date matching its shadows at the floor), or one of two:
-    # not enough; a lone reference decides alone.
+    # Half of eight or one of four (views of other dates matching their shadows at the floor),
+    # or one of two: not enough; a lone reference decides alone.
+    assert widened_range(rng, sweeps(*[(high, 0)] * 4 + [(low, 0)] * 4)) is None
     assert widened_range(rng, sweeps((high, 0), (low, 0), (0, 0), (0, 0))) is None
     assert widened_range(rng, sweeps((high, 0), (low, 0))) is None
     assert widened_range(rng, sweeps((0, high)))[1:] == (1, 1)

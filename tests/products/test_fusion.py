@@ -523,6 +523,42 @@ def test_fill_small_holes(method, border_holes):
     assert zero == 0 and np.count_nonzero(np.isnan(same)) == np.count_nonzero(np.isnan(d))
 
 
+def _supported_min_reference(rim):
+    """The lowest rim value with max(RIM_SUPPORT_CELLS, RIM_SUPPORT_SHARE of the rim) values
+    within RIM_SUPPORT_M above it, by a plain loop; the minimum when none has."""
+    need = max(dsm.RIM_SUPPORT_CELLS, math.ceil(dsm.RIM_SUPPORT_SHARE * len(rim)))
+    ok = [v for v in rim if np.sum((rim >= v) & (rim <= v + dsm.RIM_SUPPORT_M)) >= need]
+    return min(ok) if ok else rim.min()
+
+
+@pytest.mark.parametrize("border_holes", [True, False])
+def test_fill_small_holes_supported_min(border_holes):
+    d = _holes_dsm()
+    filled, n = dsm.fill_small_holes(d, max_hole_cells=4, method="supported_min",
+                                     border_holes=border_holes)
+    assert n == (7 if border_holes else 5)
+    for hole in [[(5, 5), (5, 6), (6, 5), (6, 6)], [(9, 2)]]:
+        want = _supported_min_reference(_rim_values(d, hole))
+        for i, j in hole:
+            assert math.isclose(filled[i, j], np.float32(want), rel_tol=0, abs_tol=1e-4)
+
+
+def test_one_blunder_on_a_rim_does_not_set_the_hole():
+    """A hole beside a wall (roof at 20 m on one side, ground at 10 m on the others) with one rim
+    cell 30 m under the ground: "min" fills the hole with the blunder, "supported_min" with the
+    ground; a rim whose values all lie apart falls back to its minimum."""
+    d = np.full((12, 12), 10.0)
+    d[:, 8:] = 20.0  # the roof
+    d[3:9, 4:8] = np.nan  # the hole, against the wall
+    d[2, 5] = -20.0  # one blunder on its rim
+    plain, _ = dsm.fill_small_holes(d, max_hole_cells=100, method="min")
+    robust, n = dsm.fill_small_holes(d, max_hole_cells=100, method="supported_min")
+    assert n == 24 and np.all(plain[3:9, 4:8] == -20.0) and np.all(robust[3:9, 4:8] == 10.0)
+    lone = np.array([[1.0, 5.0, 9.0], [13.0, np.nan, 17.0], [21.0, 25.0, 29.0]])
+    single, _ = dsm.fill_small_holes(lone, max_hole_cells=1, method="supported_min")
+    assert single[1, 1] == 5.0  # rim 5, 13, 17, 25: no two within 1 m: the minimum
+
+
 def test_dsm_options_are_checked():
     assert dsm.DSMOptions().resolution == 0.5
     with pytest.raises(OptionsError, match="DSMOptions.resolution"):
