@@ -323,8 +323,7 @@ def _add_synth(sub) -> None:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    from satsweep.errors import OptionsError
-    from satsweep.synth.scene import SynthOptions, generate_scene
+    from satsweep.synth.scene import SynthOptions, generate_scene, parse_location
 
     views = args.views
     if views is None and args.acquisitions:
@@ -334,11 +333,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
              "start_date": args.start_date, "write_metadata": False if args.no_metadata else None,
              "product": args.product}
     if args.location is not None:
-        try:
-            lon, lat = (float(v) for v in args.location.split(","))
-        except ValueError:
-            raise OptionsError(f"--location {args.location}: expected LON,LAT in degrees") from None
-        given["location"] = (lon, lat)
+        given["location"] = parse_location(args.location)
     if args.gsd is not None:
         # The true surface must be sampled at half the GSD or finer (SynthOptions.cell_m's
         # check): a WorldView-3 GSD of 0.3 m needs cells of 0.15 m, not the default 0.25.

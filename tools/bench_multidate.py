@@ -49,7 +49,7 @@ from satsweep.errors import SatsweepError  # noqa: E402
 from satsweep.geometry.altitude import AltitudeRange  # noqa: E402
 from satsweep.pipeline.run import reconstruct  # noqa: E402
 from satsweep.products.evaluate import EvaluateOptions, evaluate_dsm  # noqa: E402
-from satsweep.synth.scene import Scene, SynthOptions, generate_scene  # noqa: E402
+from satsweep.synth.scene import Scene, SynthOptions, generate_scene, parse_location  # noqa: E402
 
 # Margin around the truth's altitude range when --given-range is asked for (m).
 ALT_MARGIN_M = 5.0
@@ -165,11 +165,9 @@ def main(argv=None) -> int:
     location = None
     if args.location is not None:
         try:
-            location = tuple(float(v) for v in args.location.split(","))
-        except ValueError:
-            p.error(f"--location {args.location}: expected LON,LAT in degrees")
-        if len(location) != 2:
-            p.error(f"--location {args.location}: expected LON,LAT in degrees")
+            location = parse_location(args.location)
+        except SatsweepError as exc:
+            p.error(str(exc))
 
     config = PipelineConfig()
     for item in args.set:

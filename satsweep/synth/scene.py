@@ -135,6 +135,17 @@ BIAS_CONVENTION = (
 )
 
 
+def parse_location(text: str) -> tuple[float, float]:
+    """``LON,LAT`` (degrees) as a scene centre for ``SynthOptions.location``; OptionsError
+    naming the text otherwise (the ranges are SynthOptions' check)."""
+    parts = str(text).split(",")
+    try:
+        lon, lat = (float(v) for v in parts)
+    except ValueError:
+        raise OptionsError(f"--location {text}: expected LON,LAT in degrees") from None
+    return lon, lat
+
+
 @dataclasses.dataclass(frozen=True)
 class SynthOptions(Options):
     """Options of a synthetic scene. Angles in degrees, lengths in metres, images in pixels."""

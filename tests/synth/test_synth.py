@@ -425,3 +425,12 @@ def test_rays_parallel_to_the_grid_axes_are_cast_exactly():
     p = hits.point
     assert np.max(np.abs(p[top, 2] - grid.height(e=p[top, 0], n=p[top, 1]))) < ON_PLANE_TOL_M
     assert np.all(_min_clearance(grid, p, -d, grid.max_height() + 0.1) > 0.0)
+
+
+def test_parse_location():
+    from satsweep.synth.scene import parse_location
+
+    assert parse_location("-81.66,30.32") == (-81.66, 30.32)
+    for bad in ("north", "1,2,3", "1", "1;2"):
+        with pytest.raises(OptionsError, match="LON,LAT"):
+            parse_location(bad)
