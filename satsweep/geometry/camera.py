@@ -180,6 +180,17 @@ def _backproject(P: np.ndarray, col, row, u) -> tuple[np.ndarray, np.ndarray]:
     return e, n
 
 
+def ground_sample_distance(P: np.ndarray, X) -> float:
+    """Metres per pixel (the square root of a pixel's ground area) of the 3 x 4 camera ``P``
+    (ENU -> pixels) on the horizontal plane through ENU point ``X``."""
+    P = np.asarray(P, np.float64)
+    Xh = np.append(np.asarray(X, np.float64), 1.0)
+    s = P[2] @ Xh
+    xy = P[:2] @ Xh / s
+    J = (P[:2, :2] - np.outer(xy, P[2, :2])) / s  # d(pixel) / d(east, north)
+    return float(1.0 / np.sqrt(max(abs(np.linalg.det(J)), 1e-12)))
+
+
 # -- the AOI grid --------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True, eq=False)
 class AOIGrid:

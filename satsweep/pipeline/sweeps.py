@@ -74,23 +74,6 @@ def reference_window(camera, frame, aoi: AOI, alt_range: AltitudeRange, shape: t
     return x0, y0, x1, y1
 
 
-def ground_sample_distance(P: np.ndarray, u: float) -> float:
-    """Metres per pixel (the square root of a pixel's ground area) of the camera ``P`` (3 x 4,
-    ENU -> pixels) at the ENU origin's east and north, height ``u``."""
-    P = np.asarray(P, np.float64)
-    X = np.array([0.0, 0.0, u, 1.0])
-    s = P[2] @ X
-    xy = P[:2] @ X / s
-    J = (P[:2, :2] - np.outer(xy, P[2, :2])) / s  # d(pixel) / d(east, north)
-    return float(1.0 / np.sqrt(abs(np.linalg.det(J))))
-
-
-def _grey(image: np.ndarray) -> np.ndarray:
-    """A view's image as one grey band (the mean of its bands)."""
-    image = np.asarray(image)
-    return image if image.ndim == 2 else image.mean(axis=2)
-
-
 def _placed(result, window: tuple[int, int, int, int], shape: tuple[int, int]):
     """The per-pixel maps of a sweep of the reference window ``window``, placed in full-size maps
     of ``shape`` (no height, invalid, zero confidence outside the window)."""
@@ -224,12 +207,14 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
         median_px = None
         if mrf.median_radius_m > 0.0:
             from satsweep.dense.median import radius_px, weighted_median
+            from satsweep.geometry.camera import ground_sample_distance
 
-            with rep.stage("mrf"):
-                gsd = ground_sample_distance(cameras.views[r].camera.P, float(np.mean(u_range)))
+            with rep.stage("mrf"):  # (the AOI's centre, mid-range)
+                gsd = ground_sample_distance(cameras.views[r].camera.P,
+                                             (0.0, 0.0, float(np.mean(u_range))))
                 median_px = radius_px(mrf.median_radius_m, gsd)
                 height[y0:y1, x0:x1] = weighted_median(
-                    device, height[y0:y1, x0:x1], valid[y0:y1, x0:x1], _grey(ref_image),
+                    device, height[y0:y1, x0:x1], valid[y0:y1, x0:x1], ref_image,
                     radius=median_px, sigma=mrf.median_sigma)
         index = np.asarray(result.plane_index)
         ends = (float(np.mean(index <= RANGE_END_PLANES)),

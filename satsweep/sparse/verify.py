@@ -45,6 +45,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from satsweep.geometry.camera import ground_sample_distance
 from satsweep.sparse.triangulation import project, projection_jacobian
 
 # Half-side of the ground patch, in ground samples of the reference view (a 9 x 9 patch): small,
@@ -69,13 +70,7 @@ MIN_STD = 1e-3
 
 def _ground_patch(P_ref: np.ndarray, X: np.ndarray) -> np.ndarray:
     """(S, 2) east/north offsets (m) of a square patch of the reference view's ground samples."""
-    J = np.empty((2, 2))
-    base = project(P_ref[None], np.zeros(1, np.int64), X[None])[0][0]
-    for k in range(2):
-        d = np.zeros(3)
-        d[k] = 1.0
-        J[:, k] = project(P_ref[None], np.zeros(1, np.int64), (X + d)[None])[0][0] - base
-    pixel_m = 1.0 / np.sqrt(max(abs(np.linalg.det(J)), 1e-12))
+    pixel_m = ground_sample_distance(P_ref, X)
     r = np.arange(-PATCH_RADIUS, PATCH_RADIUS + 1, dtype=np.float64) * pixel_m
     e, n = np.meshgrid(r, r)
     return np.stack([e.ravel(), n.ravel()], axis=1)

@@ -6,11 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from satsweep.dense.median import (MEDIAN_MAX_RADIUS_PX, radius_px, weighted_median,
-                                   weighted_median_reference)
+from satsweep.dense.median import MEDIAN_MAX_RADIUS_PX, radius_px, weighted_median
 from satsweep.dense.mrf import MRFOptions
 from satsweep.errors import OptionsError
-from satsweep.pipeline.sweeps import ground_sample_distance
+from tests.reference_median import weighted_median_reference
 
 # Where half the total weight lies this close (a fraction of the total) to the running sum at a
 # height, float32 sums of up to 169 weights in [0, 1] (relative error ~1e-5) may stop one
@@ -88,13 +87,3 @@ def test_options_check_and_consensus():
     assert MRFOptions().for_consensus().median_radius_m == MRFOptions().consensus_median_radius_m
     assert MRFOptions(consensus_median_radius_m=0.0).for_consensus().median_radius_m == 0.0
     assert MRFOptions(method="graphcut").for_consensus().median_radius_m == 0.0
-
-
-def test_ground_sample_distance_of_an_affine_and_a_perspective_camera():
-    affine = np.array([[2.0, 0.0, 0.3, 10.0], [0.0, -2.0, 0.1, 5.0], [0.0, 0.0, 0.0, 1.0]])
-    assert ground_sample_distance(affine, 7.0) == pytest.approx(0.5, rel=1e-12)
-    # a camera 1000 m up looking down, focal 2000 px: 0.5 m per pixel on the ground, 0.45 at 100 m
-    K = np.array([[2000.0, 0.0, 500.0], [0.0, -2000.0, 500.0], [0.0, 0.0, 1.0]])
-    Rt = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 1000.0]])
-    assert ground_sample_distance(K @ Rt, 0.0) == pytest.approx(0.5, rel=1e-12)
-    assert ground_sample_distance(K @ Rt, 100.0) == pytest.approx(0.45, rel=1e-12)

@@ -452,3 +452,15 @@ def test_build_cameras_and_json_round_trip(pair, tmp_path):
     assert [im.shape[1] for im in images] == [v.camera.width for v in sk.views]
     again = cam.CameraSet.from_json(sk.to_json())
     assert np.array_equal(again.views[0].warp, sk.views[0].warp)
+
+
+def test_ground_sample_distance_of_an_affine_and_a_perspective_camera():
+    from satsweep.geometry.camera import ground_sample_distance
+
+    affine = np.array([[2.0, 0.0, 0.3, 10.0], [0.0, -2.0, 0.1, 5.0], [0.0, 0.0, 0.0, 1.0]])
+    assert ground_sample_distance(affine, (0.0, 0.0, 7.0)) == pytest.approx(0.5, rel=1e-12)
+    # a camera 1000 m up looking down, focal 2000 px: 0.5 m per pixel on the ground, 0.45 at 100 m
+    K = np.array([[2000.0, 0.0, 500.0], [0.0, -2000.0, 500.0], [0.0, 0.0, 1.0]])
+    Rt = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 1000.0]])
+    assert ground_sample_distance(K @ Rt, (0.0, 0.0, 0.0)) == pytest.approx(0.5, rel=1e-12)
+    assert ground_sample_distance(K @ Rt, (0.0, 0.0, 100.0)) == pytest.approx(0.45, rel=1e-12)
