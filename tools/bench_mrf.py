@@ -4,8 +4,9 @@
 Runs both methods on the same synthetic cost volume (``mrf.synthetic_roof_volume``: textured
 terrain around a large weakly textured roof, known true plane per pixel) and prints, per method:
 wall time, time per megapixel per 100 planes, and the accuracy on the roof and on the terrain
-(median |error| and completeness = fraction of pixels within 1 m), next to winner-take-all.
-The last line is the ratio of SGM to graph-cut time measured in this run.
+(median |error| and completeness = fraction of pixels within 1 m), next to winner-take-all, and
+SGM followed by the height map's weighted median (kernels/median.cl). The last lines are the
+ratios of the median's time to SGM's and of SGM's to the graph cut's, measured in this run.
 
     python tools/bench_mrf.py                       # 256 x 256 pixels, 100 planes
     python tools/bench_mrf.py --size 1024 --planes 128 --repeats 3
@@ -28,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from satsweep.dense import graphcut, mrf  # noqa: E402
 from satsweep.dense import sgm as sgm_mod  # noqa: E402
+from satsweep.dense.median import weighted_median  # noqa: E402
 from satsweep.dense.volume import CostVolume  # noqa: E402
 from satsweep.opencl.device import open_device  # noqa: E402
 from tests import synthetic_volumes  # noqa: E402
@@ -78,6 +80,9 @@ def main(argv=None) -> int:
     p.add_argument("--gc-window", type=int, default=None,
                    help="override MRFOptions.gc_label_window")
     p.add_argument("--sgm-paths", type=int, choices=(4, 8), default=None)
+    p.add_argument("--median-radius", type=int, default=4,
+                   help="window radius (px) of the weighted median after SGM (default 4: 1.2 m "
+                   "at 0.3 m, the consensus areas' [mrf] consensus_median_radius_m)")
     args = p.parse_args(argv)
     rows, cols = (args.size * 2)[:2] if len(args.size) == 1 else args.size[:2]
 
@@ -114,6 +119,16 @@ def main(argv=None) -> int:
     rows_out.append((f"sgm ({opts.sgm_paths} paths, {form})", t_sgm,
                      _accuracy(sgm.height, sgm.valid, scene, scene.roof),
                      _accuracy(sgm.height, sgm.valid, scene, ~scene.roof)))
+    # The height map's weighted median after SGM (kernels/median.cl), its program built first.
+    def median():
+        return weighted_median(device, sgm.height, sgm.valid, scene.guide,
+                               radius=args.median_radius, sigma=opts.median_sigma)
+
+    median()
+    t_median, smoothed = _best_time(median, args.repeats)
+    rows_out.append((f"sgm + weighted median ({args.median_radius} px)", t_sgm + t_median,
+                     _accuracy(smoothed, sgm.valid, scene, scene.roof),
+                     _accuracy(smoothed, sgm.valid, scene, ~scene.roof)))
     # The other form of SGM's aggregation (MRFOptions.sgm_scan), in the same run (CPUs only:
     # GPUs run one work-group per scanline, which has no scan form).
     if sgm_mod.sgm_work_group(device, opts, args.planes) == 1:
@@ -146,6 +161,8 @@ def main(argv=None) -> int:
         print(f"| aexpansion_grid (full label range, global smoothness, timing only) | {t_ae:.3f} "
               f"| {t_ae / mpx_100:.2f} | | | |")
     print()
+    print(f"weighted median / SGM time ratio: {t_median / t_sgm:.3f} "
+          f"({t_median / (rows * cols / 1e6):.3f} s per Mpx)")
     print(f"SGM / graph-cut time ratio: {t_sgm / t_gc:.3f} "
           f"(SGM {t_sgm / mpx_100:.2f} s, graph cut {t_gc / mpx_100:.2f} s per Mpx per 100 planes)")
     return 0
