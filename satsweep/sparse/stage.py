@@ -26,10 +26,13 @@ wide one) gives everything the dense stages need from tie points:
 6. *Cameras for the fine adjustment*: the coarse tie points' altitudes bound the scene; the
    views' perspective cameras are fitted again over the AOI x that range (over the prior's
    kilometres an RPC is perspective to ~1 px only) and corrected by the coarse translations.
-7. *Fine adjustment* (:func:`satsweep.sparse.bundle.adjust_observations`): the tie points
-   registered to a fraction of a pixel (Lucas-Kanade after a ground-plane warp; on local
-   contrast in pairs of views whose grey levels differ, as another date's do; of each pair of
-   views the best registered ``refine_keep_fraction``), then the principal-point bundle
+7. *Fine adjustment* (:func:`satsweep.sparse.bundle.adjust_observations`): of the coarse tie
+   points, those that give each view ``fine_points_per_view`` observations, longest tracks
+   first (:func:`satsweep.sparse.tracks.thin_points`: a stack of many views gathers long tracks
+   and thousands of observations per view, which would make this step grow faster than the
+   number of views), registered to a fraction of a pixel (Lucas-Kanade after a ground-plane
+   warp; on local contrast in pairs of views whose grey levels differ, as another date's do; of
+   each pair of views the best registered ``refine_keep_fraction``), then the principal-point bundle
    adjustment with the anchor regulariser (0.01 px^2/m^2) and a robust loss whose quadratic
    zone ends at 0.3 px, its anchors triangulated with the coarsely corrected cameras.
    A view left with fewer than ``min_observations`` observations, or carrying the least
@@ -101,6 +104,7 @@ from satsweep.sparse.tracks import (
     connected_labels,
     observations_from_tracks,
     register_observations,
+    thin_points,
 )
 from satsweep.sparse.triangulation import project, projection_stack, triangulate_observations
 from satsweep.threads import map_in_threads
@@ -458,11 +462,12 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             fine_cams = list(fine_cameras(kept, coarse))
             seconds["cameras"] = seconds.get("cameras", 0.0) + time.perf_counter() - t0
         local_fine = [shift_principal_point(fine_cams[v], s) for v, s in zip(kept, coarse.shifts)]
-        registered, residual = coarse.obs, np.zeros(len(coarse.obs.view))
+        chosen = thin_points(coarse.obs, o.fine_points_per_view)
+        registered, residual = chosen, np.zeros(len(chosen.view))
         if o.refine_window_px:
             t0 = time.perf_counter()
             registered, residual, n_refine_dropped = register_observations(
-                coarse.obs, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
+                chosen, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
                 max_shift_px=o.refine_max_shift_px, keep_fraction=o.refine_keep_fraction,
                 at_least=_MIN_BEST_REGISTERED, threads=SPARSE_THREADS_MAX)
             n_refine_contrast = int(np.sum(residual >= CONTRAST_RANK))

@@ -146,6 +146,31 @@ def observations_from_tracks(tracks: Sequence[np.ndarray], xys: Sequence[np.ndar
     return Observations(point=point, view=flat[:, 0].copy(), xy=xy, n_points=len(tracks))
 
 
+def thin_points(obs: Observations, per_view: int) -> Observations:
+    """The tie points of ``obs`` that give every view at least ``per_view`` observations (all of
+    its own when it has fewer), with every observation of each point kept.
+
+    Each view ranks its points longest track first (ties in a fixed pseudo-random order, so
+    that no part of the image is preferred), and a point is kept when it is among the first
+    ``per_view`` of any of its views. A view's principal point has two unknowns: a few hundred
+    observations fix it to hundredths of a pixel, while a stack of many views gathers long
+    tracks, thousands of observations per view, that the registration and the fine adjustment
+    would pay for (see SparseOptions.fine_points_per_view). ``per_view`` 0: every point.
+    """
+    if per_view <= 0 or obs.xy.shape[0] == 0:
+        return obs
+    length = np.bincount(obs.point, minlength=obs.n_points)
+    # a multiplicative hash of the point number: a fixed order unrelated to the image position
+    scramble = (np.arange(obs.n_points, dtype=np.uint64) * np.uint64(2654435761)) % np.uint64(2**32)
+    order = np.lexsort((scramble[obs.point], -length[obs.point], obs.view))  # by view, best first
+    view_sorted = obs.view[order]
+    start = np.searchsorted(view_sorted, view_sorted, side="left")
+    rank = np.arange(len(order)) - start
+    chosen = np.zeros(obs.n_points, dtype=bool)
+    chosen[obs.point[order[rank < per_view]]] = True
+    return obs.subset(chosen[obs.point])
+
+
 # Lucas-Kanade of refine_observations: pyramid levels above full resolution (each halves the
 # image; 1 lets a window converge from a keypoint ~2 px off), iterations and the step (px) below
 # which it stops.

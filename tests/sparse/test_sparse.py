@@ -239,6 +239,54 @@ def test_subset_index_follows_subset():
     np.testing.assert_array_equal(sub.view, obs.view[index])
 
 
+def _random_tracks(rng, n_points, n_views):
+    """Observations of tracks of 2..n_views distinct views each, grouped by point."""
+    point, view = [], []
+    for p in range(n_points):
+        k = int(rng.integers(2, n_views + 1))
+        vs = np.sort(rng.choice(n_views, size=k, replace=False))
+        point += [p] * k
+        view += vs.tolist()
+    return sparse_tracks.Observations(point=np.array(point), view=np.array(view),
+                                      xy=rng.random((len(view), 2)), n_points=n_points)
+
+
+@pytest.mark.parametrize("per_view", [1, 7, 40, 1000])
+def test_thin_points_against_a_loop_over_the_views(per_view):
+    """Every view keeps at least min(per_view, its observations); a point kept keeps all its
+    observations; each view's choice is its longest tracks (checked by a plain loop)."""
+    rng = np.random.default_rng(3)
+    obs = _random_tracks(rng, 300, 9)
+    thin = sparse_tracks.thin_points(obs, per_view)
+    length = np.bincount(obs.point)
+    scramble = (np.arange(obs.n_points, dtype=np.uint64) * np.uint64(2654435761)) % np.uint64(2**32)
+    wanted = set()
+    for v in range(9):
+        mine = sorted(obs.point[obs.view == v].tolist(), key=lambda p: (-length[p], scramble[p]))
+        wanted.update(mine[:per_view])
+    expected = obs.subset(np.isin(obs.point, sorted(wanted)))
+    np.testing.assert_array_equal(thin.view, expected.view)
+    np.testing.assert_array_equal(thin.xy, expected.xy)
+    np.testing.assert_array_equal(thin.point, expected.point)
+    have, had = np.bincount(thin.view, minlength=9), np.bincount(obs.view, minlength=9)
+    assert (have >= np.minimum(per_view, had)).all()
+    # whole tracks: each kept point has as many observations as before
+    kept_points = np.unique(obs.point[np.isin(obs.point, sorted(wanted))])
+    np.testing.assert_array_equal(np.bincount(thin.point), length[kept_points])
+    if per_view >= had.max():
+        assert thin.view.shape == obs.view.shape
+
+
+def test_thin_points_prefers_long_tracks_and_zero_keeps_all():
+    rng = np.random.default_rng(4)
+    obs = _random_tracks(rng, 200, 6)
+    assert sparse_tracks.thin_points(obs, 0) is obs
+    thin = sparse_tracks.thin_points(obs, 5)
+    assert np.bincount(thin.point).mean() > np.bincount(obs.point).mean()
+    with pytest.raises(OptionsError, match="fine_points_per_view"):
+        options.SparseOptions(fine_points_per_view=-1)
+
+
 # -- matching ----------------------------------------------------------------------------------
 def test_ratio_test_and_mutual_check():
     """Ambiguous matches fail the ratio test; a one-way nearest neighbour fails the mutual check."""
