@@ -31,6 +31,18 @@ from satsweep.errors import InputError, OptionsError, RetiredOptionWarning
 
 T = TypeVar("T", bound="Options")
 
+# How a TOML file writes None for a field that takes a number or None (``sgm_sweep_gf_radius =
+# "none"``); a field that takes a string or None is left out for None (its default is None).
+NONE_IN_TOML = "none"
+
+
+def _none_as_string(expected: Any) -> bool:
+    """Whether None is written as NONE_IN_TOML for a field of this type: it admits None and no
+    string."""
+    args = typing.get_args(expected)
+    return type(None) in args and not any(a is str or typing.get_origin(a) is typing.Literal
+                                          for a in args)
+
 
 @dataclasses.dataclass(frozen=True)
 class Options:
@@ -108,6 +120,9 @@ class Options:
             # TOML integers are acceptable where a float is declared.
             if expected is float and isinstance(value, int) and not isinstance(value, bool):
                 value = float(value)
+            # TOML has no null: "none" stands for None where a field takes a number or None.
+            if value == NONE_IN_TOML and _none_as_string(expected):
+                value = None
             values[key] = value
         try:
             return cls(**values)
@@ -128,8 +143,12 @@ class Options:
         return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
 
     def to_tables(self) -> dict[str, Any]:
-        """``to_dict`` with the advanced options in their sub-table (the TOML layout)."""
+        """``to_dict`` with the advanced options in their sub-table (the TOML layout), and None
+        written as ``NONE_IN_TOML`` where a field takes a number or None (TOML has no null)."""
         flat = self.to_dict()
+        hints = typing.get_type_hints(type(self))
+        flat = {k: NONE_IN_TOML if v is None and _none_as_string(hints.get(k)) else v
+                for k, v in flat.items()}
         basic = {k: v for k, v in flat.items() if k not in self.ADVANCED}
         advanced = {k: flat[k] for k in flat if k in self.ADVANCED}
         return {**basic, self.ADVANCED_TABLE: advanced} if advanced else basic

@@ -97,8 +97,11 @@ def test_advanced_options_go_in_their_sub_table_and_round_trip(tmp_path):
     tables = tomllib.loads(text)
     for name, options in SECTIONS.items():
         advanced = tables[name].get("advanced", {})
-        unset = {k for k, v in getattr(config, name).to_dict().items() if v is None}
-        assert set(advanced) == set(options.ADVANCED) - unset  # TOML has no None: "unset"
+        # TOML has no null: None is "none" for a number option, left out for a string one
+        written = getattr(config, name).to_tables()
+        written.update(written.pop("advanced", {}))
+        unset = {k for k, v in written.items() if v is None}
+        assert set(advanced) == set(options.ADVANCED) - unset
         assert not set(options.ADVANCED) & (set(tables[name]) - {"advanced"})
     path = tmp_path / "c.toml"
     path.write_text(text, encoding="utf-8")
@@ -159,3 +162,23 @@ def test_the_command_line_prints_a_retired_key_as_a_satsweep_warning(tmp_path, c
                    "read (the altitude range now comes from the sparse stage's adjusted tie "
                    "points; [sparse] altitude_margin_below_m and altitude_margin_above_m set its "
                    "margins); remove it"]
+
+
+def test_none_of_a_number_option_round_trips_through_toml_as_the_string_none(tmp_path):
+    """TOML has no null: a run's config.toml must repeat an option set to None (whose default is
+    not None) instead of leaving it out and getting the default back."""
+    from satsweep.config import PipelineConfig
+
+    c = PipelineConfig()
+    c = dataclasses.replace(c, mrf=c.mrf.replace(sgm_sweep_gf_radius=None),
+                            sweep=c.sweep.replace(consensus_grad_weight=None))
+    assert PipelineConfig().mrf.sgm_sweep_gf_radius is not None  # else the test proves nothing
+    path = tmp_path / "run.toml"
+    path.write_text(c.to_toml())
+    assert 'sgm_sweep_gf_radius = "none"' in path.read_text()
+    back = PipelineConfig.from_toml(path)
+    assert back == c and back.mrf.sgm_sweep_gf_radius is None
+    # a string option keeps "none" as a string (and is refused where a choice is expected)
+    assert DemoOptions.from_mapping({"budget": "none"}).budget is None
+    with pytest.raises(OptionsError, match="mode"):
+        DemoOptions.from_mapping({"mode": "none"})
