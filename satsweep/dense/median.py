@@ -20,6 +20,7 @@ import math
 import numpy as np
 
 from satsweep.errors import OptionsError
+from satsweep.opencl.buffers import BufferSpec, DeviceMemory
 from satsweep.opencl.constants import SATSWEEP_INVALID
 
 # Largest window radius (px) of the kernel (MEDIAN_MAX_RADIUS in median.cl): a window of
@@ -47,12 +48,19 @@ def _check(height: np.ndarray, valid: np.ndarray, guide: np.ndarray, radius: int
         raise OptionsError(f"weighted median: sigma {sigma!r} must be > 0")
 
 
+# The median's buffers (names as median.cl's arguments), for a map of sizes (h, w).
+MEDIAN_BUFFERS = (BufferSpec("height", np.float32, lambda z: z[0] * z[1]),
+                  BufferSpec("guide", np.float32, lambda z: z[0] * z[1]),
+                  BufferSpec("out", np.float32, lambda z: z[0] * z[1]))
+
+
 def weighted_median(device, height: np.ndarray, valid: np.ndarray, guide: np.ndarray, *,
-                    radius: int, sigma: float) -> np.ndarray:
+                    radius: int, sigma: float, memory: DeviceMemory | None = None) -> np.ndarray:
     """The weighted median (module docstring) of ``height`` (H, W) where ``valid``, with the
     reference image ``guide`` (H, W) in [0, 1], a window of radius ``radius`` px and a guide
     scale ``sigma``, on ``device`` (a satsweep Device). Float64; ``height`` unchanged where not
-    ``valid``."""
+    ``valid``. ``memory``: the DeviceMemory that accounts for its buffers (a new one if None);
+    they are released on return."""
     import pyopencl as cl  # noqa: PLC0415
 
     height = np.asarray(height)
@@ -63,20 +71,19 @@ def weighted_median(device, height: np.ndarray, valid: np.ndarray, guide: np.nda
     out = np.array(height, np.float64)
     if not valid.any():
         return out
-    heights = np.where(valid, height, SATSWEEP_INVALID).astype(np.float32)
-    grey = np.ascontiguousarray(guide, np.float32)
-    mf = cl.mem_flags
-    ctx, queue = device.context, device.queue
-    height_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=heights)
-    guide_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=grey)
-    out_buf = cl.Buffer(ctx, mf.WRITE_ONLY, heights.nbytes)
+    host = {"height": np.where(valid, height, SATSWEEP_INVALID).astype(np.float32),
+            "guide": np.ascontiguousarray(guide, np.float32)}
+    memory = DeviceMemory(device.context) if memory is None else memory
+    queue = device.queue
     prg = device.build("median", {"MEDIAN_RADIUS": int(radius)})
     local = (16, 16)
     glob = tuple(-(-n // l) * l for n, l in zip((w, h), local))
-    device.kernel(prg, "weighted_median")(
-        queue, glob, None, height_buf, guide_buf, out_buf, np.int32(w), np.int32(h),
-        np.float32(1.0 / (2.0 * sigma * sigma)), np.float32(1.0 / (2.0 * radius * radius)))
-    result = np.empty_like(heights)
-    cl.enqueue_copy(queue, result, out_buf)
+    result = np.empty((h, w), np.float32)
+    with memory.allocate(MEDIAN_BUFFERS, (h, w), host=host) as bufs:
+        device.kernel(prg, "weighted_median")(
+            queue, glob, None, bufs["height"], bufs["guide"], bufs["out"], np.int32(w),
+            np.int32(h), np.float32(1.0 / (2.0 * sigma * sigma)),
+            np.float32(1.0 / (2.0 * radius * radius)))
+        cl.enqueue_copy(queue, result, bufs["out"])
     out[valid] = result[valid]
     return out

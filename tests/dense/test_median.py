@@ -39,6 +39,26 @@ def test_kernel_matches_numpy_reference(cl_device, radius):
     np.testing.assert_array_equal(got[~valid], height[~valid])
 
 
+def test_ties_and_equal_heights_give_the_reference_median(cl_device):
+    """Many equal heights (a quantised map: plane heights) put the selection's pivots on ties."""
+    height, valid, guide, _ = _inputs(11)
+    height = np.round(height * 2.0) / 2.0
+    got = weighted_median(cl_device, height, valid, guide, radius=3, sigma=0.05)
+    want, margin = weighted_median_reference(height, valid, guide, radius=3, sigma=0.05)
+    clear = valid & (margin > SUM_MARGIN)
+    assert clear.sum() > 0.9 * valid.sum()
+    np.testing.assert_allclose(got[clear], want[clear], rtol=0, atol=1e-5)
+
+
+def test_buffers_are_accounted_and_released(cl_device):
+    from satsweep.opencl.buffers import DeviceMemory
+
+    height, valid, guide, _ = _inputs(2)
+    memory = DeviceMemory(cl_device.context)
+    weighted_median(cl_device, height, valid, guide, radius=2, sigma=0.05, memory=memory)
+    assert memory.peak == 3 * height.size * 4 and memory.live == 0  # height, guide, out: float32
+
+
 def test_step_kept_at_the_image_edge_and_noise_removed(cl_device):
     height, valid, guide, roof = _inputs(7)
     truth = np.where(roof, 12.0, 1.0)
