@@ -758,6 +758,21 @@ def test_the_height_maps_median_is_applied_and_reported(scene, reconstruction, t
     _check_accuracy(result)
 
 
+def test_a_median_wider_than_the_kernel_says_so(scene, tmp_path):
+    """A median radius past the kernel's largest window (MEDIAN_MAX_RADIUS_PX) is not taken
+    silently: the report's warnings name each reference and the radius used."""
+    from satsweep.dense.median import MEDIAN_MAX_RADIUS_PX
+
+    wide = 2.0 * MEDIAN_MAX_RADIUS_PX * 0.5  # twice the kernel's reach on 0.5 m pixels
+    result = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "mrf": {"median_radius_m": wide}})
+    sweeps = result.report["sweep"]
+    assert [v["median_radius_px"] for v in sweeps] == [MEDIAN_MAX_RADIUS_PX] * len(sweeps)
+    said = [w["message"] for w in result.report["warnings"] if "weighted median" in w["message"]]
+    assert len(said) == len(sweeps)
+    assert all(f"reaches {MEDIAN_MAX_RADIUS_PX} px" in m for m in said)
+    assert {m.split(":")[0] for m in said} == {v["reference"] for v in sweeps}
+
+
 @pytest.mark.parametrize("tie_range,warned", [
     ((-65.0, -25.0), True), ((253.0, 294.0), True),
     ((148.0, 184.0), True),  # shares 17 of its 36 m with the RPCs' range
