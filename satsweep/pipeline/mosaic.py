@@ -153,7 +153,7 @@ class Filled:
 
 
 def fill_holes(dsm: RawBand, work: str | os.PathLike, *, max_hole_cells: int,
-               method: Literal["min", "median"], border_holes: bool = True,
+               method: Literal["min", "supported_min", "median"], border_holes: bool = True,
                block: int = FILL_BLOCK_CELLS) -> Filled:
     """``fill_small_holes`` of the whole band, block by block (see the module docstring)."""
     from satsweep.products.fusion import fill_small_holes

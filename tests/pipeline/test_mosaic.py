@@ -35,7 +35,7 @@ def _dsm_with_holes(seed: int, shape=(90, 110)) -> np.ndarray:
 
 
 @pytest.mark.parametrize("seed", range(4))
-@pytest.mark.parametrize("method", ["min", "median"])
+@pytest.mark.parametrize("method", ["min", "median", "supported_min"])
 @pytest.mark.parametrize("border_holes", [True, False])
 def test_blockwise_filling_is_the_whole_grid_filling(tmp_path, seed, method, border_holes):
     a = _dsm_with_holes(seed)
