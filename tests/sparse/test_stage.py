@@ -193,11 +193,22 @@ def test_views_of_other_dates_are_tied_through_local_contrast(synthetic_scene):
     assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
 
 
-def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_scene):
+def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_scene, monkeypatch):
     """Seed 1 of the same stack: views 0-3 (two dates) and views 4-5 (a third) share 7 tie
     points, which fix their relative motion along one direction only. The two views are
     dropped together, with that reason; dropping the view of largest uncertainty one at a time
-    ended with views 4 and 5 alone."""
+    ended with views 4 and 5 alone. The round after the drop restricts the first round's coarse
+    solution to views 0-3 rather than solving it again, and their corrections hold."""
+    import satsweep.sparse.stage as stage
+
+    calls = []
+
+    def counted(cameras, obs, options):
+        calls.append(len(cameras))
+        return adjust_coarse(cameras, obs, options)
+
+    adjust_coarse = stage.adjust_coarse
+    monkeypatch.setattr(stage, "adjust_coarse", counted)
     scene = synthetic_scene(**dict(MULTIDATE, seed=1))
     rpc = altitude_range_from_rpcs([v.rpc() for v in scene.views], warn=False)
     # Cropped at the RPCs' range +-30 m (at +-300 m all six views tie: which tie points there
@@ -209,8 +220,41 @@ def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_sce
     assert sorted(reasons) == [4, 5]
     assert all(r.startswith("not tied in every direction to the 4 views tied together")
                for r in reasons.values()), reasons
+    assert calls == [6]  # the six views' coarse solution, restricted to four for the next round
     resid, _ = _motion(result, scene)
     assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
+
+
+def test_a_coarse_solution_restricted_to_some_views():
+    """_coarse_for keeps the shifts of the views left, their observations (views renumbered)
+    and the points that two of them still see, with those points' errors."""
+    from satsweep.sparse.bundle import BundleSolution
+    from satsweep.sparse.stage import _coarse_for
+    from satsweep.sparse.tracks import Observations
+
+    # Views 3, 5, 8 (local 0, 1, 2); point 0 seen by all three, point 1 by 3 and 8, point 2 by
+    # 5 and 8, point 3 by 3 and 5.
+    point = np.array([0, 0, 0, 1, 1, 2, 2, 3, 3])
+    view = np.array([0, 1, 2, 0, 2, 1, 2, 0, 1])
+    xy = np.arange(18, dtype=float).reshape(9, 2)
+    obs = Observations(point=point, view=view, xy=xy, n_points=4)
+    points = np.arange(12, dtype=float).reshape(4, 3)
+    solution = BundleSolution(shifts=np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]),
+                              points=points, anchors=points + 100.0, obs=obs,
+                              errors_before=np.arange(9.0) + 10.0, errors_after=np.arange(9.0),
+                              evaluations=(7, 3))
+    left = _coarse_for(solution, [3, 5, 8], [3, 8])  # view 5 dropped
+    np.testing.assert_array_equal(left.shifts, [[1.0, 2.0], [5.0, 6.0]])
+    # points 0 (views 3, 8) and 1 (3, 8) remain; 2 and 3 keep one view each
+    assert left.obs.n_points == 2
+    np.testing.assert_array_equal(left.obs.point, [0, 0, 1, 1])
+    np.testing.assert_array_equal(left.obs.view, [0, 1, 0, 1])
+    np.testing.assert_array_equal(left.obs.xy, xy[[0, 2, 3, 4]])
+    np.testing.assert_array_equal(left.points, points[:2])
+    np.testing.assert_array_equal(left.anchors, points[:2] + 100.0)
+    np.testing.assert_array_equal(left.errors_after, [0.0, 2.0, 3.0, 4.0])
+    np.testing.assert_array_equal(left.errors_before, [10.0, 12.0, 13.0, 14.0])
+    assert left.evaluations == (7, 3)
 
 
 def test_a_blank_view_is_dropped(biased):
