@@ -37,9 +37,10 @@ wide one) gives everything the dense stages need from tie points:
    zone ends at 0.3 px, its anchors triangulated with the coarsely corrected cameras.
    A view left with fewer than ``min_observations`` observations, or carrying the least
    determined direction of the shifts when that is uncertain by more than
-   ``max_shift_sigma_px`` (a view tied along one direction only), is dropped, and 4-7 run again
-   without it (and without the views it alone tied to the others): no view is used with a
-   correction that the tie points do not fix. When that direction is the motion of some views
+   ``max_shift_sigma_px`` (a view tied along one direction only), is dropped, and 7 runs again
+   without it (and without the views it alone tied to the others), from the coarse solution
+   restricted to the views left (4-6 run again only after a drop at step 5): no view is used
+   with a correction that the tie points do not fix. When that direction is the motion of some views
    against the largest group of views tied in every direction by themselves (groups of
    different dates linked by a few tie points), those views are dropped together if that drops
    fewer than one view after another would.
