@@ -213,11 +213,12 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
                 gsd = ground_sample_distance(cameras.views[r].camera.P,
                                              (0.0, 0.0, float(np.mean(u_range))))
                 median_px = radius_px(mrf.median_radius_m, gsd)
-                if round(mrf.median_radius_m / gsd) > median_px:
+                wanted_px = round(mrf.median_radius_m / gsd)
+                if wanted_px > median_px:
                     rep.warn(f"{names[r]}: the height map's weighted median of radius "
                              f"{mrf.median_radius_m:g} m ([mrf] median_radius_m or "
                              f"consensus_median_radius_m) would be "
-                             f"{round(mrf.median_radius_m / gsd)} px at {gsd:.2f} m per pixel; "
+                             f"{wanted_px} px at {gsd:.2f} m per pixel; "
                              f"the kernel's window reaches {MEDIAN_MAX_RADIUS_PX} px: "
                              f"{median_px * gsd:.2f} m used")
                 height[y0:y1, x0:x1] = weighted_median(
