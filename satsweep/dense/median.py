@@ -28,12 +28,18 @@ from satsweep.opencl.constants import SATSWEEP_INVALID
 MEDIAN_MAX_RADIUS_PX = 6
 
 
+def wanted_radius_px(radius_m: float, gsd_m: float) -> int:
+    """The window radius (px) of a ``radius_m`` window on pixels of ``gsd_m`` metres, rounded,
+    before the kernel's bounds (``radius_px``)."""
+    if not (math.isfinite(gsd_m) and gsd_m > 0.0):
+        raise OptionsError(f"median window: ground sample distance {gsd_m!r} m must be > 0")
+    return int(round(radius_m / gsd_m))
+
+
 def radius_px(radius_m: float, gsd_m: float) -> int:
     """The window radius (px) of a ``radius_m`` window on pixels of ``gsd_m`` metres: rounded,
     at least 1 and at most MEDIAN_MAX_RADIUS_PX."""
-    if not (math.isfinite(gsd_m) and gsd_m > 0.0):
-        raise OptionsError(f"median window: ground sample distance {gsd_m!r} m must be > 0")
-    return int(min(max(round(radius_m / gsd_m), 1), MEDIAN_MAX_RADIUS_PX))
+    return min(max(wanted_radius_px(radius_m, gsd_m), 1), MEDIAN_MAX_RADIUS_PX)
 
 
 def _check(height: np.ndarray, valid: np.ndarray, guide: np.ndarray, radius: int,

@@ -206,14 +206,15 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
         height, valid, confidence = _placed(result, window, shape)
         median_px = None
         if mrf.median_radius_m > 0.0:
-            from satsweep.dense.median import MEDIAN_MAX_RADIUS_PX, radius_px, weighted_median
+            from satsweep.dense.median import (MEDIAN_MAX_RADIUS_PX, radius_px,
+                                                wanted_radius_px, weighted_median)
             from satsweep.geometry.camera import ground_sample_distance
 
             with rep.stage("mrf"):  # (the AOI's centre, mid-range)
                 gsd = ground_sample_distance(cameras.views[r].camera.P,
                                              (0.0, 0.0, float(np.mean(u_range))))
                 median_px = radius_px(mrf.median_radius_m, gsd)
-                wanted_px = round(mrf.median_radius_m / gsd)
+                wanted_px = wanted_radius_px(mrf.median_radius_m, gsd)
                 if wanted_px > median_px:
                     rep.warn(f"{names[r]}: the height map's weighted median of radius "
                              f"{mrf.median_radius_m:g} m ([mrf] median_radius_m or "

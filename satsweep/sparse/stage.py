@@ -336,17 +336,16 @@ def _coarse_for(coarse: BundleSolution, kept: Sequence[int],
     shifts by a small part of a pixel (that view carried few tie points, or tied them in one
     direction only), which the fine adjustment takes up; solving again cost each such round as
     much as the first (40 views dropping four: 1.45 of the 4.8 s of the sparse stage)."""
-    whole = _global(coarse.obs, kept)
-    index = np.full(max(kept) + 1, -1, dtype=np.int64)
-    index[list(left)] = np.arange(len(left))
-    rows = whole.subset_index(index[whole.view] >= 0)
-    alive = np.zeros(whole.n_points, dtype=bool)
-    alive[whole.point[rows]] = True
     position = {v: k for k, v in enumerate(kept)}
-    views = [position[v] for v in left]
+    views = [position[v] for v in left]  # the views left, in the solution's own numbering
+    index = np.full(len(kept), -1, dtype=np.int64)
+    index[views] = np.arange(len(views))
+    rows = coarse.obs.subset_index(index[coarse.obs.view] >= 0)  # those _local keeps
+    alive = np.zeros(coarse.obs.n_points, dtype=bool)
+    alive[coarse.obs.point[rows]] = True
     return dataclasses.replace(
         coarse, shifts=coarse.shifts[views], points=coarse.points[alive],
-        anchors=coarse.anchors[alive], obs=_local(whole, left),
+        anchors=coarse.anchors[alive], obs=_local(coarse.obs, views),
         errors_before=coarse.errors_before[rows], errors_after=coarse.errors_after[rows])
 
 
