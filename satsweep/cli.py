@@ -47,6 +47,12 @@ class Terminated(BaseException):
         self.signum = signum
 
 
+FIXED_VIEW_HELP = ("an image whose RPC is trusted (repeatable): the bundle adjustment holds its "
+                   "correction at zero and corrects the others to agree with it, as ASP's "
+                   "fixed cameras or S2P's reference image; an error if it cannot be tied "
+                   "(default: none, the corrections smallest on average)")
+
+
 @contextlib.contextmanager
 def _termination_raises():
     """While inside: SIGTERM and SIGHUP raise ``Terminated`` (as SIGINT raises
@@ -168,6 +174,8 @@ def _add_cameras(sub) -> None:
                    "bundle adjustment of the principal points); cameras.json gets the adjusted "
                    "cameras and a 'ba' section, and views that cannot be tied are left out "
                    "with a warning")
+    p.add_argument("--fixed-view", action="append", default=None, metavar="IMAGE",
+                   help=FIXED_VIEW_HELP + " (with --adjust)")
     p.add_argument("--skew-correct", action="store_true",
                    help="shear the images so that K has no skew; write them to DIR/images/")
     p.add_argument("--grid", nargs=3, type=int, metavar=("NE", "NN", "NU"), default=None,
@@ -180,6 +188,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     import dataclasses
 
     from satsweep.config import PipelineConfig
+    from satsweep.errors import OptionsError
     from satsweep.geometry.aoi import parse_aoi
     from satsweep.geometry.camera import write_cameras
     from satsweep.geometry.skew import skew_correct_set
@@ -188,8 +197,12 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     from satsweep.pipeline.altitude import tie_and_range
     from satsweep.pipeline.prepare import correct_pointing, crop_views, fit_cameras
 
+    if args.fixed_view and not args.adjust:
+        raise OptionsError("--fixed-view holds a view's pointing correction at zero: it needs "
+                           "--adjust")
     check_output_dir(args.out, overwrite=args.overwrite)
-    config = PipelineConfig().override("reconstruct", adjust="on")
+    config = _with_fixed_views(PipelineConfig().override("reconstruct", adjust="on"),
+                               args.fixed_view)
     if args.grid is not None:
         config = config.override("camera", grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
@@ -372,6 +385,8 @@ def _add_pipeline_options(p) -> None:
     p.add_argument("--adjust", choices=("auto", "on", "off"), default=None,
                    help="bundle adjustment of principal points (default auto: on with 3+ views, "
                    "and with 2 views when their features match)")
+    p.add_argument("--fixed-view", action="append", default=None, metavar="IMAGE",
+                   help=FIXED_VIEW_HELP)
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="run the tiles of a tiled AOI on a local Dask cluster of N worker "
                    "processes, each with its own device context (default: 1 on a CPU device, "
@@ -397,7 +412,13 @@ def _pipeline_config(args: argparse.Namespace):
     config = config.override("reconstruct", device=args.device, adjust=args.adjust,
                              workers=args.workers, scheduler=args.scheduler)
     config = config.override("mrf", method=args.mrf)
+    config = _with_fixed_views(config, args.fixed_view)
     return config.override("dsm", resolution=args.resolution)
+
+
+def _with_fixed_views(config, fixed_view):
+    """``config`` with the ``--fixed-view`` files (if any) as ``[bundle] fixed_views``."""
+    return config.override("bundle", fixed_views=tuple(fixed_view) if fixed_view else None)
 
 
 def _add_reconstruct(sub) -> None:

@@ -157,6 +157,17 @@ def test_fewer_than_two_images(capsys, tmp_path, pair_images):
                         tmp_path / "out", "at least 2 images")
 
 
+def test_a_fixed_view_needs_the_adjustment(capsys, tmp_path, pair_images):
+    _assert_input_error(capsys, [*pair_images, "--aoi", AOI, "--alt-range", *ALT,
+                                 "--fixed-view", "img_01.tif"], tmp_path / "out", "needs --adjust")
+
+
+def test_a_fixed_view_must_be_one_of_the_images(capsys, tmp_path, pair_images):
+    _assert_input_error(capsys, [*pair_images, "--aoi", AOI, "--alt-range", *ALT, "--adjust",
+                                 "--fixed-view", "img_03.tif"], tmp_path / "out",
+                        "fixed_views: 'img_03.tif' names none of the views given")
+
+
 def test_non_empty_output_folder_needs_overwrite(capsys, tmp_path, pair_images):
     out = tmp_path / "out"
     out.mkdir()

@@ -110,6 +110,9 @@ class BundleOptions(Options):
     max_evaluations: int = 200  # cost evaluations allowed to each solve
     max_shift_sigma_px: float = 0.3  # a view whose correction is more uncertain (px, 1 sigma) is
     # dropped by the sparse stage
+    fixed_views: tuple[str, ...] = ()  # views whose RPCs are trusted (file names as given, or
+    # paths): their corrections are held at zero and the others are corrected to agree with
+    # them (ASP's fixed cameras, S2P's reference image); (): the gauge of smallest corrections
 
     ADVANCED = ("loss", "loss_scale_px", "initial_threshold_px", "coarse_threshold_px",
                 "fine_threshold_px", "min_observations", "max_evaluations", "max_shift_sigma_px")
@@ -130,6 +133,10 @@ class BundleOptions(Options):
         self._require(self.max_evaluations >= 1, "max_evaluations", "must be at least 1")
         self._require(math.isfinite(self.max_shift_sigma_px) and self.max_shift_sigma_px > 0.0,
                       "max_shift_sigma_px", "must be a positive number of pixels")
+        self._require(all(isinstance(f, str) and f.strip() for f in self.fixed_views),
+                      "fixed_views", "must be a list of file names")
+        self._require(len(set(self.fixed_views)) == len(self.fixed_views), "fixed_views",
+                      "names a view twice")
 
 
 # -- the report ----------------------------------------------------------------------------------
@@ -504,9 +511,14 @@ _GAUGE_ITERATIONS = 30
 # and the fit of least Cauchy cost is taken.
 _GAUGE_CONSENSUS_PX = 3.0
 _GAUGE_STARTS = 8
+# Singular values of the fixed views' stacked Jacobians under this fraction of the largest are
+# taken as zero: the motions along them are left to the other views (one fixed view leaves the
+# motion along its line of sight).
+_FIXED_RANK_TOL = 1e-6
 
 
-def robust_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray) -> np.ndarray:
+def robust_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray,
+                 fixed: Sequence[int] = ()) -> np.ndarray:
     """The unobservable motion ``dX`` (m) that makes the shifts ``shifts - A_v dX`` smallest
     (a robust fit of ``A_v dX`` to ``shifts``, ``A_v`` the Jacobians at ``point``, ENU m).
 
@@ -516,11 +528,34 @@ def robust_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray) -> np.nda
     minimises Cauchy's cost (scale _GAUGE_SCALE_PX) from several starts (Huber's fit, and the
     motions that zero the shifts of the pairs of views most others agree with) and keeps the
     least costly: the largest group of views whose RPCs agree wins.
+
+    ``fixed``: views whose RPCs are trusted (``BundleOptions.fixed_views``): the motion zeroes
+    their shifts (least squares over them), and only what they leave free (the motion along the
+    line of sight of a single fixed view) is fitted to the others as above.
     """
     V = P.shape[0]
     A = projection_jacobian(P, np.arange(V), np.tile(np.asarray(point, np.float64), (V, 1)))[2]
     shifts = np.asarray(shifts, np.float64)
-    M, b = A.reshape(-1, 3), shifts.ravel()
+    fixed = sorted(set(int(v) for v in fixed))
+    if not fixed:
+        return _robust_motion(A, shifts)
+    Af = A[fixed].reshape(-1, 3)
+    x0 = np.linalg.lstsq(Af, shifts[fixed].ravel(), rcond=None)[0]
+    _, sv, vt = np.linalg.svd(Af)
+    rank = int(np.sum(sv > _FIXED_RANK_TOL * sv[0]))
+    free = vt[rank:].T  # (3, r): the motions that leave the fixed views' shifts as they are
+    others = [v for v in range(V) if v not in fixed]
+    if free.shape[1] == 0 or not others:
+        return x0
+    t = _robust_motion(A[others] @ free, shifts[others] - A[others] @ x0)
+    return x0 + free @ t
+
+
+def _robust_motion(A: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """The parameters ``t`` (r,) of the motion that makes ``shifts - A @ t`` smallest in
+    Cauchy's cost (``A`` (V, 2, r), ``shifts`` (V, 2)): :func:`robust_gauge`'s fit."""
+    V, r = A.shape[0], A.shape[2]
+    M, b = A.reshape(-1, r), shifts.ravel()
 
     def reweighted(dX: np.ndarray, weights: str) -> np.ndarray:
         for _ in range(_GAUGE_ITERATIONS):
@@ -544,7 +579,7 @@ def robust_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray) -> np.nda
     starts = [reweighted(np.linalg.lstsq(M, b, rcond=None)[0], "huber")]
     if V >= 3:
         v, w = np.triu_indices(V, 1)
-        Mp = np.concatenate([A[v], A[w]], axis=1)  # (pairs, 4, 3)
+        Mp = np.concatenate([A[v], A[w]], axis=1)  # (pairs, 4, r)
         bp = np.concatenate([shifts[v], shifts[w]], axis=1)  # (pairs, 4)
         MtM = np.einsum("pki,pkj->pij", Mp, Mp)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -572,8 +607,8 @@ def _sample_points(obs: Observations, per_view: int, seed: int) -> np.ndarray:
     return pick
 
 
-def adjust_coarse(cameras: Sequence[Any], obs: Observations, options: BundleOptions = BundleOptions()
-                  ) -> BundleSolution:
+def adjust_coarse(cameras: Sequence[Any], obs: Observations, options: BundleOptions = BundleOptions(),
+                  *, fixed: Sequence[int] = ()) -> BundleSolution:
     """Principal-point shifts of any size (tens of pixels) from raw tie points, robustly.
 
     Nothing here assumes the cameras are within a few pixels: the tracks are triangulated with
@@ -585,7 +620,8 @@ def adjust_coarse(cameras: Sequence[Any], obs: Observations, options: BundleOpti
     on a sample of the tracks (``_COARSE_POINTS_PER_VIEW`` per view: the shifts need a few
     hundred tie points per view, and long tracks cost the square of their length). The anchors
     weigh almost nothing (``_COARSE_REGULARISER``); the shifts are put in the gauge of smallest
-    corrections (:func:`robust_gauge`). Every track is then triangulated with the corrected
+    corrections (:func:`robust_gauge`; ``fixed``: the views whose shifts it holds at zero).
+    Every track is then triangulated with the corrected
     cameras, and its observations further than ``coarse_threshold_px`` are dropped: the
     solution's ``obs`` are those kept, its points their triangulation. The fine adjustment
     (:func:`adjust_observations`) follows, from cameras corrected by these shifts. Views left
@@ -627,7 +663,7 @@ def adjust_coarse(cameras: Sequence[Any], obs: Observations, options: BundleOpti
     if sub.n_points:
         centre = X.mean(axis=0)
         A = projection_jacobian(P, np.arange(V), np.tile(centre, (V, 1)))[2]
-        shifts = shifts - A @ robust_gauge(P, shifts, centre)
+        shifts = shifts - A @ robust_gauge(P, shifts, centre, fixed)
     # Every track, with the corrected cameras: the observations within the threshold.
     X = triangulate_observations(full, _shifted(P, shifts))[0]
     full = full.subset(_errors(P, full, X, shifts) <= floor)

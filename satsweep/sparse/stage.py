@@ -83,13 +83,14 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from satsweep.errors import CameraError, InputError
+from satsweep.errors import CameraError, InputError, OptionsError
 from satsweep.sparse.bundle import (
     BundleOptions,
     BundleSolution,
     TooFewObservations,
     adjust_coarse,
     adjust_observations,
+    robust_gauge,
     shift_principal_point,
     shift_uncertainty,
 )
@@ -107,7 +108,12 @@ from satsweep.sparse.tracks import (
     register_observations,
     thin_points,
 )
-from satsweep.sparse.triangulation import project, projection_stack, triangulate_observations
+from satsweep.sparse.triangulation import (
+    project,
+    projection_jacobian,
+    projection_stack,
+    triangulate_observations,
+)
 from satsweep.threads import map_in_threads
 
 __all__ = ["DroppedView", "SparseResult", "TiedViews", "corrected_projections", "sparse_stage",
@@ -259,6 +265,12 @@ def _weak_links(V: int, active: set[int], main: set[int], counts: dict[tuple[int
     return main, sorted(links)
 
 
+# Fixed views ([bundle] fixed_views) whose corrections no motion of the scene brings within
+# this (px) of zero together are an error: their RPCs disagree (tie points place views to a few
+# hundredths of a pixel, vendor RPCs refined against ground control agree to tenths).
+FIXED_AGREEMENT_PX = 1.0
+
+
 def _shared_points(obs: Observations, V: int) -> np.ndarray:
     """(V, V) int: the number of tie points (tracks) each pair of views shares."""
     seen = np.zeros((obs.n_points, V), dtype=np.int64)
@@ -340,12 +352,15 @@ def _coarse_for(coarse: BundleSolution, kept: Sequence[int],
     views = [position[v] for v in left]  # the views left, in the solution's own numbering
     index = np.full(len(kept), -1, dtype=np.int64)
     index[views] = np.arange(len(views))
-    rows = coarse.obs.subset_index(index[coarse.obs.view] >= 0)  # those _local keeps
+    rows = coarse.obs.subset_index(index[coarse.obs.view] >= 0)  # what _local would keep
     alive = np.zeros(coarse.obs.n_points, dtype=bool)
     alive[coarse.obs.point[rows]] = True
+    obs = Observations(point=(np.cumsum(alive) - 1)[coarse.obs.point[rows]],
+                       view=index[coarse.obs.view[rows]], xy=coarse.obs.xy[rows],
+                       n_points=int(alive.sum()))
     return dataclasses.replace(
         coarse, shifts=coarse.shifts[views], points=coarse.points[alive],
-        anchors=coarse.anchors[alive], obs=_local(coarse.obs, views),
+        anchors=coarse.anchors[alive], obs=obs,
         errors_before=coarse.errors_before[rows], errors_after=coarse.errors_after[rows])
 
 
@@ -365,7 +380,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
               options: SparseOptions = SparseOptions(),
               bundle_options: BundleOptions = BundleOptions(), *,
               samples: np.ndarray | None = None, fine_cameras: Any = None,
-              dropped: dict[int, str] | None = None) -> TiedViews:
+              dropped: dict[int, str] | None = None, fixed: Sequence[int] = ()) -> TiedViews:
     """Steps 1-7 of the module docstring on tonemapped ``images`` and their ``cameras``.
 
     ``cameras``: per view a PerspectiveCamera of its image (those of the prior range);
@@ -373,8 +388,10 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     for crops of one AOI; ``fine_cameras``: None to adjust finely with ``cameras`` too, else a
     callable ``(kept view indices, coarse solution over them) -> cameras of every view`` (the
     sparse stage fits them over the coarse tie points' altitudes); ``dropped``: views already
-    known to be unusable (camera None), with the reason. Views that cannot be tied are in the
-    result's ``dropped``; raises CameraError only for inputs of the wrong size.
+    known to be unusable (camera None), with the reason; ``fixed``: views whose corrections are
+    held at zero (``BundleOptions.fixed_views``; the gauge is the smallest corrections without
+    them). Views that cannot be tied are in the result's ``dropped``; raises CameraError for
+    inputs of the wrong size and for fixed views that disagree (``FIXED_AGREEMENT_PX``).
     """
     V = len(images)
     if len(cameras) != V or len(names) != V:
@@ -478,7 +495,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         if reused:
             coarse = _coarse_for(previous[1], previous[0], kept)
         else:
-            coarse = adjust_coarse(local_cams, obs, b)
+            coarse = adjust_coarse(local_cams, obs, b,
+                                   fixed=[k for k, v in enumerate(kept) if v in fixed])
         previous = None
         seconds["coarse"] = seconds.get("coarse", 0.0) + time.perf_counter() - t0
         count = np.bincount(coarse.obs.view, minlength=len(kept))
@@ -550,6 +568,24 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             previous = (kept, coarse)
             continue
         shifts[kept] = coarse.shifts + fine.shifts
+        held = [k for k, v in enumerate(kept) if v in fixed]
+        if held:
+            # The fine adjustment's anchors keep the coarse gauge to tenths of a pixel: the fixed
+            # views' corrections are made exactly zero by the motion no image sees (a shifted
+            # principal point leaves a camera's Jacobian as it is).
+            P = projection_stack(local_fine)
+            centre = fine.points.mean(axis=0)
+            A = projection_jacobian(P, np.arange(len(kept)), np.tile(centre, (len(kept), 1)))[2]
+            shifts[kept] -= A @ robust_gauge(P, shifts[kept], centre, held)
+            rows = [kept[k] for k in held]
+            left = np.hypot(*shifts[rows].T)
+            if left.max() > FIXED_AGREEMENT_PX:
+                raise CameraError(
+                    "the fixed views ([bundle] fixed_views) disagree: no motion of the scene "
+                    "zeroes all their corrections (left: " + ", ".join(
+                        f"{names[v]} {d:.2f} px" for v, d in zip(rows, left))
+                    + f", more than {FIXED_AGREEMENT_PX:g} px); their RPCs cannot all be right")
+            shifts[rows] = np.where(np.abs(shifts[rows]) < 1e-9, 0.0, shifts[rows])  # rounding
         coarse_shifts[kept] = coarse.shifts
         sigma[kept] = certainty.sigma
         tied = True
@@ -612,6 +648,7 @@ class SparseResult:
     frame: Any  # the ENU frame of tied.points (that of the fine adjustment's cameras)
     min_matches: int  # pairs with fewer verified matches were not used
     seconds: dict[str, float]
+    fixed_views: tuple[int, ...] = ()  # the views whose corrections were held at zero
 
     @property
     def kept(self) -> tuple[int, ...]:
@@ -721,7 +758,10 @@ class SparseResult:
             "convention": "correction_px: the view's content of ground point X lies at RPC(X) + "
                           "correction (image pixels, col/row); it moves the principal point of "
                           "any crop's camera; defined up to the motion of the whole scene, "
-                          "chosen to make the corrections smallest",
+                          "chosen to make the corrections smallest"
+                          + (" with those of the fixed views (bundle.fixed_views) held at zero"
+                             if self.fixed_views else ""),
+                          "fixed_views": [n[v] for v in self.fixed_views],
         }
 
 
@@ -788,6 +828,23 @@ def tie_point_confirmer(tied: TiedViews, images: Sequence[np.ndarray]):
     return confirm
 
 
+def fixed_view_indices(fixed_views: Sequence[str], paths: Sequence[str],
+                       names: Sequence[str]) -> list[int]:
+    """The indices of the views that ``fixed_views`` (``BundleOptions.fixed_views``) name, by
+    file name or by path; OptionsError naming an entry that matches no view or several."""
+    out = []
+    for entry in fixed_views:
+        real = os.path.realpath(entry)
+        hits = [v for v, (p, n) in enumerate(zip(paths, names))
+                if entry == n or os.path.basename(p) == entry or os.path.realpath(p) == real]
+        if len(hits) != 1:
+            raise OptionsError(
+                f"[bundle] fixed_views: {entry!r} names {'none' if not hits else 'several'} of "
+                f"the views given ({', '.join(names)})")
+        out.append(hits[0])
+    return out
+
+
 def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
                  options: SparseOptions = SparseOptions(),
                  bundle_options: BundleOptions = BundleOptions(), *,
@@ -841,12 +898,18 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
         fine_frame[0] = fine
         return cams
 
+    fixed = fixed_view_indices(bundle_options.fixed_views, paths, names)
     tied = tie_views(images, prior_cams, names, options, bundle_options, samples=samples,
-                     fine_cameras=refit, dropped=failed)
+                     fine_cameras=refit, dropped=failed, fixed=fixed)
     seconds.update({k: seconds.get(k, 0.0) + v for k, v in tied.seconds.items()})
     if len(tied.kept) < 2:
         why = "; ".join(f"{paths[d.index]}: {d.reason}" for d in tied.dropped) or "no view could be tied"
         raise CameraError(f"the sparse stage could not tie two views together: {why}")
+    lost = [d for d in tied.dropped if d.index in fixed]
+    if lost:
+        raise CameraError("; ".join(
+            f"{paths[d.index]}: a fixed view ([bundle] fixed_views) was dropped by the sparse "
+            f"stage: {d.reason}" for d in lost))
 
     t0 = time.perf_counter()
     frame = fine_frame[0]
@@ -860,6 +923,6 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
         paths=paths, names=names, corrections_px=tied.shifts, correction_sigma_px=tied.sigma,
         coarse_corrections_px=tied.coarse_shifts, dropped=dropped, prior_range=prior,
         altitude_range=altitude_range, altitude=altitude, tied=tied, frame=frame,
-        min_matches=options.min_matches, seconds=seconds)
+        min_matches=options.min_matches, seconds=seconds, fixed_views=tuple(fixed))
     return result
 

@@ -605,6 +605,19 @@ def test_cli_overrides_the_config_file(tmp_path):
     assert config.mrf.method == "none" and config.dsm.resolution == 1.0
 
 
+def test_fixed_views_from_the_command_line_or_the_config(tmp_path):
+    from satsweep.cli import _pipeline_config, build_parser
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[bundle]\nfixed_views = ["a.tif"]\n')
+    base = ["reconstruct", "a.tif", "b.tif", "c.tif", "--aoi", "0,0,1,1", "--out", "o"]
+    parse = build_parser().parse_args
+    assert _pipeline_config(parse(base + ["--config", str(cfg)])).bundle.fixed_views == ("a.tif",)
+    args = parse(base + ["--config", str(cfg), "--fixed-view", "b.tif", "--fixed-view", "c.tif"])
+    assert _pipeline_config(args).bundle.fixed_views == ("b.tif", "c.tif")
+    assert _pipeline_config(parse(base)).bundle.fixed_views == ()
+
+
 def test_cli_config_prints_the_explained_defaults(capsys):
     import tomllib
 

@@ -314,6 +314,43 @@ def test_the_gauge_of_smallest_corrections_ignores_an_outlying_view():
     assert np.abs(np.delete(shifts - A @ plain - b, 3, axis=0)).max() > 1.0
 
 
+def test_fixed_views_take_the_gauge():
+    """Two views whose RPCs are right (fixed) and four that are off alike (as if their RPCs
+    shared one error of the scene's position, 30 m), through a motion of the scene: the motion
+    that zeroes the fixed views' shifts gives every view its own bias back (no noise: to
+    rounding), where the gauge of smallest corrections follows the four."""
+    cams = _cameras(6)
+    P = triangulation.projection_stack(cams)
+    A = _numeric_jacobians(cams, point=(0.0, 0.0, 0.0))
+    b = A @ np.array([20.0, -15.0, 16.0])
+    b[[0, 2]] = 0.0
+    assert np.abs(b).max() > 10.0
+    shifts = b - A @ np.array([-9.0, 5.0, 42.0])
+    corrected = shifts - A @ bundle.robust_gauge(P, shifts, np.zeros(3), fixed=[0, 2])
+    np.testing.assert_allclose(corrected, b, atol=1e-6)
+    free = shifts - A @ bundle.robust_gauge(P, shifts, np.zeros(3))
+    # (the two right views, tens of pixels off in that gauge, still pull by a hundredth)
+    assert np.abs(free[[1, 3, 4, 5]]).max() < 0.05 and np.abs(free[[0, 2]]).min() > 10.0
+
+
+def test_one_fixed_view_leaves_its_line_of_sight_to_the_others():
+    """One fixed view zeroes only two of the motion's three components; the third (along its
+    line of sight, which moves no pixel of it) is fitted to the others as without fixed views:
+    five views right to hundredths of a pixel and one off by 36 px get their biases back."""
+    cams = _cameras(6)
+    P = triangulation.projection_stack(cams)
+    A = _numeric_jacobians(cams, point=(0.0, 0.0, 0.0))
+    rng = np.random.default_rng(5)
+    b = rng.normal(0.0, 0.02, (6, 2))
+    b[0] = 0.0
+    b[4] = [36.0, -2.0]
+    shifts = b - A @ np.array([7.0, -4.0, 55.0])
+    corrected = shifts - A @ bundle.robust_gauge(P, shifts, np.zeros(3), fixed=[0])
+    np.testing.assert_allclose(corrected[0], 0.0, atol=1e-9)
+    # one unknown fitted to 8 values of 0.02 px noise (the outlier weighs ~1e-3)
+    assert np.abs(corrected - b).max() < 0.05
+
+
 def test_the_gauge_keeps_the_largest_agreeing_group_when_most_views_are_off():
     """Seven views: three with RPCs right to hundredths of a pixel, four off by 36-51 px in four
     directions (the held-out 10-of-20 subset of tools/bench_multidate.py's v20 seed 3 kept such

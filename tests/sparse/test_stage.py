@@ -18,12 +18,12 @@ import json
 import numpy as np
 import pytest
 
-from satsweep.errors import CameraError, InputError
+from satsweep.errors import CameraError, InputError, OptionsError
 from satsweep.geometry.altitude import AltitudeRange, altitude_range_from_rpcs
 from satsweep.io.views import load_views
-from satsweep.sparse.bundle import gauge_jacobians
+from satsweep.sparse.bundle import BundleOptions, gauge_jacobians
 from satsweep.sparse.options import SparseOptions
-from satsweep.sparse.stage import sparse_stage
+from satsweep.sparse.stage import fixed_view_indices, sparse_stage
 
 SIZE_PX = 256  # small views: a scene in a few seconds on 2 cores
 BIAS_PX = 50.0  # the issue's largest pointing errors
@@ -203,9 +203,9 @@ def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_sce
 
     calls = []
 
-    def counted(cameras, obs, options):
+    def counted(cameras, obs, options, **kwargs):
         calls.append(len(cameras))
-        return adjust_coarse(cameras, obs, options)
+        return adjust_coarse(cameras, obs, options, **kwargs)
 
     adjust_coarse = stage.adjust_coarse
     monkeypatch.setattr(stage, "adjust_coarse", counted)
@@ -255,6 +255,62 @@ def test_a_coarse_solution_restricted_to_some_views():
     np.testing.assert_array_equal(left.errors_after, [0.0, 2.0, 3.0, 4.0])
     np.testing.assert_array_equal(left.errors_before, [10.0, 12.0, 13.0, 14.0])
     assert left.evaluations == (7, 3)
+
+
+def _line_of_sight_residual(result, scene, fixed: int) -> np.ndarray:
+    """(K, 2) the kept views' corrections minus their biases after the best motion along the
+    line of sight of view ``fixed`` (the one direction a single fixed view leaves free)."""
+    kept = list(result.kept)
+    biases = np.array([v.bias_px for v in scene.views])[kept]
+    A = gauge_jacobians([result.tied.cameras[v] for v in kept], result.tied.points.mean(axis=0))
+    free = np.linalg.svd(A[kept.index(fixed)])[2][-1]  # (3,): moves no pixel of that view
+    diff = result.corrections_px[kept] - biases
+    t = np.linalg.lstsq((A @ free).reshape(-1, 1), -diff.ravel(), rcond=None)[0]
+    return diff + (A @ free) * t[0]
+
+
+def test_a_fixed_view_keeps_its_rpc(biased):
+    """View 0 has no pointing error: fixed, its correction is zero and the others' are their
+    biases up to the motion along its line of sight (one unknown instead of three)."""
+    views, prior = _views(biased)
+    bundle = BundleOptions(fixed_views=(biased.views[0].image.name,))
+    result = sparse_stage(views, biased.aoi, prior, bundle_options=bundle)
+    assert result.kept == (0, 1, 2) and result.fixed_views == (0,)
+    np.testing.assert_array_equal(result.corrections_px[0], [0.0, 0.0])
+    residual = _line_of_sight_residual(result, biased, 0)
+    assert np.abs(residual).max() < SMALL_SCENE_TOL_PX
+    report = result.to_dict()
+    assert report["fixed_views"] == [biased.views[0].image.name]
+    assert "held at zero" in report["convention"]
+
+
+def test_a_fixed_view_that_cannot_be_tied_is_an_error(biased):
+    views, prior = _views(biased)
+    blank = np.full_like(views[1].image, 1000)
+    bundle = BundleOptions(fixed_views=(str(biased.views[1].image),))  # by its path
+    with pytest.raises(CameraError, match=r"view_01.*a fixed view .* too few SIFT features"):
+        sparse_stage(_with(views, 1, blank), biased.aoi, prior, bundle_options=bundle)
+
+
+def test_fixed_views_that_disagree_are_an_error(biased):
+    """Views 0 (no pointing error) and 2 (34, 45 px off) both fixed: no motion of the scene
+    zeroes both corrections, and forcing them would bend every tie point."""
+    views, prior = _views(biased)
+    bundle = BundleOptions(fixed_views=("view_00.tif", "view_02.tif"))
+    with pytest.raises(CameraError, match=r"fixed views .* disagree.*view_02.tif \d+\.\d+ px"):
+        sparse_stage(views, biased.aoi, prior, bundle_options=bundle)
+
+
+def test_fixed_views_name_given_views():
+    paths = ["/data/a/img_01.tif", "/data/b/img_02.tif"]
+    names = ["img_01.tif", "img_02.tif"]
+    assert fixed_view_indices(["img_02.tif", "/data/a/img_01.tif"], paths, names) == [1, 0]
+    with pytest.raises(OptionsError, match=r"fixed_views: 'img_03.tif' names none of the views"):
+        fixed_view_indices(["img_03.tif"], paths, names)
+    with pytest.raises(OptionsError, match="fixed_views: 'img.tif' names several"):
+        fixed_view_indices(["img.tif"], ["/a/img.tif", "/b/img.tif"], ["img.tif", "img.tif"])
+    with pytest.raises(OptionsError, match="fixed_views"):
+        BundleOptions(fixed_views=("a.tif", "a.tif"))
 
 
 def test_a_blank_view_is_dropped(biased):
