@@ -172,8 +172,8 @@ def _add_cameras(sub) -> None:
                    help="correct RPC pointing errors as reconstruct does (the sparse stage: "
                    "SIFT matches over a graph of pairs, a coarse translation per view, then the "
                    "bundle adjustment of the principal points); cameras.json gets the adjusted "
-                   "cameras and a 'ba' section, and views that cannot be tied are left out "
-                   "with a warning")
+                   "cameras and a 'ba' section, DIR/rpc/ each view's RPC with its correction "
+                   "folded in, and views that cannot be tied are left out with a warning")
     p.add_argument("--fixed-view", action="append", default=None, metavar="IMAGE",
                    help=FIXED_VIEW_HELP + " (with --adjust)")
     p.add_argument("--skew-correct", action="store_true",
@@ -195,6 +195,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     from satsweep.io.atomic import check_output_dir
     from satsweep.io.sources import open_sources
     from satsweep.pipeline.altitude import tie_and_range
+    from satsweep.pipeline.outputs import RPC_DIR, write_corrected_rpcs
     from satsweep.pipeline.prepare import correct_pointing, crop_views, fit_cameras
 
     if args.fixed_view and not args.adjust:
@@ -213,7 +214,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     views, _ = crop_views(tied.sources, aoi, alt, config,
                           extra_margin_px=tied.correction_margin_px if args.adjust else 0)
     cameras = fit_cameras(views, aoi, alt, config)
-    images = None
+    images, corrections = None, None
     if args.adjust:  # ([reconstruct] adjust = on: views that cannot be tied are an error)
         cameras, adjustment = correct_pointing(cameras, views, sparse, tied.untied, config)
         fine = sparse.to_dict()["fine"] or {}
@@ -226,6 +227,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
                   f"{e['before']['median']:.3f} -> {e['after']['median']:.3f} px")
         for name, shift in adjustment.sparse_shifts.items():
             print(f"  {name}: principal point shift ({shift[0]:+.3f}, {shift[1]:+.3f}) px")
+        corrections = {v.path: s for v, s in zip(views, adjustment.own_shifts)}
     if args.skew_correct:  # the images written are the crops' own values, sheared
         cameras, images = skew_correct_set(cameras, [v.image for v in views])
     cameras = write_cameras(args.out, cameras, images)
@@ -234,6 +236,9 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
           f"AOI {aoi}, altitudes {alt} ({tied.altitude.source}); parallax plane u = {cameras.d:.2f} m")
     print(cameras.table())
     print(f"wrote {args.out}/cameras.json" + (f" and {len(images)} images in {args.out}/images/" if images else ""))
+    if corrections is not None:  # the RPCs with the corrections folded in, for other tools
+        rpcs = write_corrected_rpcs(os.path.join(args.out, RPC_DIR), tied.sources, corrections)
+        print(f"wrote {len(rpcs)} corrected RPCs in {args.out}/{RPC_DIR}/")
     for warning in cameras.warnings:
         print(f"satsweep: warning: {warning}", file=sys.stderr)
     return 0
@@ -428,8 +433,9 @@ def _add_reconstruct(sub) -> None:
         description="Crop and tonemap the images, approximate their RPCs by perspective cameras, "
         "correct pointing errors by bundle adjustment, sweep planes on the OpenCL device, refine "
         "with an MRF, and fuse the height maps into a DSM on the UTM grid of the AOI. Writes "
-        "dsm.tif, confidence.tif, ortho.tif, cloud.ply, dsm.png, cameras.json, config.toml and "
-        "report.json into --out (all at the end: a failed run writes nothing). Negative "
+        "dsm.tif, confidence.tif, ortho.tif, cloud.ply, dsm.png, cameras.json, rpc/ (the "
+        "corrected RPCs), config.toml and report.json into --out (all at the end: a failed run "
+        "writes nothing). Negative "
         "coordinates may be written as they are: --aoi -70.5,-33.4,-70.4,-33.3.",
     )
     _add_image_inputs(p)

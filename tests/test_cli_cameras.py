@@ -257,6 +257,10 @@ def test_cameras_adjust_on_the_pleiades_pair(capsys, tmp_path, pair_images):
         np.testing.assert_allclose(pb - pa, shift, rtol=0, atol=CROP_MOVE_TOL_PX)
         np.testing.assert_allclose(np.delete(Kb.ravel(), [2, 5]), np.delete(Ka.ravel(), [2, 5]),
                                    rtol=CROP_MOVE_RTOL, atol=0)
+        # and folded into the RPC written beside cameras.json
+        rpc = RPCModel.from_file(adjusted / "rpc" / name.replace(".tif", "_RPC.TXT"))
+        assert rpc == RPCModel.from_image(vb["image"]).corrected(shift)
+    assert not (plain / "rpc").exists() and "wrote 2 corrected RPCs" in stdout
 
 
 def test_cameras_adjust_leaves_out_a_blank_view_with_a_warning(capsys, caplog, tmp_path,

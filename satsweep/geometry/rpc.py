@@ -369,6 +369,16 @@ class RPCModel:
         return self._replace(col_offset=self.col_offset - float(x0),
                              row_offset=self.row_offset - float(y0), source=src)
 
+    def corrected(self, shift: Sequence[float]) -> "RPCModel":
+        """The RPC of an image whose content of ground point X lies at this model's projection
+        of X plus ``shift`` = (col, row) pixels: a pointing correction (the sparse stage's
+        ``corrections_px``) folded into the offsets, exactly."""
+        dc, dr = (float(v) for v in shift)
+        src = (None if self.source is None
+               else f"{self.source} [corrected by {dc:+.4f}, {dr:+.4f} px]")
+        return self._replace(col_offset=self.col_offset + dc, row_offset=self.row_offset + dr,
+                             source=src)
+
     def _replace(self, **changes: Any) -> "RPCModel":
         kw = self._kwargs()
         kw.update(changes)

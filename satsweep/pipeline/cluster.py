@@ -360,6 +360,7 @@ def _run_tile(task: TileTask, report: "RunReport", device: "Device") -> TileOutc
     from satsweep.pipeline.altitude import prior_altitude_range
     from satsweep.pipeline.area import AreaJob, RunContext, Split, Wait, run_area, sources_seeing
     from satsweep.pipeline.mosaic import save_cloud_piece, save_piece
+    from satsweep.pipeline.outputs import RPC_DIR, write_corrected_rpcs
     from satsweep.pipeline.report import to_json
     from satsweep.pipeline.tiling import sub_grid
 
@@ -397,6 +398,8 @@ def _run_tile(task: TileTask, report: "RunReport", device: "Device") -> TileOutc
     points = save_cloud_piece(folder, area.clouds,
                               None if task.whole else sub_grid(task.grid, *tile.core))
     write_cameras(folder, result.cameras)
+    if result.shifts is not None:  # this area's own adjustment (not borrowed corrections)
+        write_corrected_rpcs(folder / RPC_DIR, sources, result.shifts)
     return TileOutcome(kind="done", core=tile.core, images=seen, names=result.record.names,
                        entry=json.loads(to_json(result.record.to_report())),
                        shifts=(None if result.shifts is None

@@ -23,11 +23,16 @@ class ReconstructResult:
     evaluation: dict | None
 
 
+# The folder (in the output folder, or in each tile's) of the views' RPCs with their pointing
+# corrections folded in.
+RPC_DIR = "rpc"
+
+
 # What a run may write into its output folder: with --overwrite, those of an earlier run that
 # this run does not write again are removed, so that the folder holds one run's outputs.
 PRODUCTS = ("dsm.tif", "confidence.tif", "ortho.tif", "count.tif", "interpolated.tif",
             "cloud.ply", "dsm.png", "cameras.json", "config.toml", "report.json", "evaluation",
-            "tiles", "images")
+            "tiles", "images", RPC_DIR)
 
 
 # The intermediate files' folder inside the staging folder (OutputFolder.work).
@@ -214,6 +219,32 @@ def write_products(bands: dict, cloud, grid, out: OutputFolder) -> Path:
     if cloud is not None:
         cloud.commit()
     return out.path("dsm.tif")
+
+
+def write_corrected_rpcs(folder: str | os.PathLike, sources, shifts) -> list[Path]:
+    """Each view's RPC with its pointing correction folded into the offsets
+    (``RPCModel.corrected``), as ``folder/<image stem>_RPC.TXT``: GDAL's sidecar format, which
+    S2P (rpcm), ASP and GDAL read, so that other tools start from this run's adjustment.
+
+    ``sources``: the views' ``ImageSource`` (``.path``, ``.rpc``); ``shifts``: per image path,
+    its correction (col, row) px, as the run applied it (views without one are skipped). Two
+    images of one stem in different folders get their index in ``sources`` as a prefix. The
+    correction holds over the AOI it was measured on (a translation of the image there).
+    """
+    from satsweep.geometry.rpc_formats import write_rpc_txt
+
+    folder = Path(folder)
+    stems = [Path(s.path).stem for s in sources]
+    written = []
+    for k, (source, stem) in enumerate(zip(sources, stems)):
+        shift = shifts.get(source.path)
+        if shift is None:
+            continue
+        name = f"{stem}_RPC.TXT" if stems.count(stem) == 1 else f"{k:02d}_{stem}_RPC.TXT"
+        folder.mkdir(parents=True, exist_ok=True)
+        write_rpc_txt(folder / name, source.rpc.corrected(shift))
+        written.append(folder / name)
+    return written
 
 
 def evaluate_products(dsm_path: Path, truth, out: OutputFolder, rep: RunReport) -> dict:

@@ -12,8 +12,8 @@ Stages (each timed in the report):
   dsm       height maps -> cross-check across the reference views (satsweep.products.fusion) ->
             points over each pixel's footprint (ENU -> UTM) -> per-view rasters -> fusion
             (satsweep.pipeline.rasters) -> the mosaic's holes filled
-  outputs   dsm.tif, confidence.tif, ortho.tif, cloud.ply, dsm.png, cameras.json, config.toml,
-            report.json (satsweep.pipeline.outputs)
+  outputs   dsm.tif, confidence.tif, ortho.tif, cloud.ply, dsm.png, cameras.json, rpc/,
+            config.toml, report.json (satsweep.pipeline.outputs)
 
 An AOI wider or taller than ``[reconstruct] tile_m`` runs every stage from the altitude range to
 the DSM's fusion tile by tile (``satsweep.pipeline.scheduler``, ``satsweep.pipeline.tiling``: each
@@ -41,6 +41,7 @@ from satsweep.errors import InputError, OptionsError, SatsweepError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.geometry.aoi import AOI
 from satsweep.pipeline.outputs import (
+    RPC_DIR,
     OutputFolder,
     ReconstructResult,
     evaluate_products,
@@ -220,14 +221,22 @@ def _finish(mosaic: Mosaic, settings, rep: RunReport, out: OutputFolder,
             raise
         if not mosaic.tiled:
             shutil.copyfile(mosaic.done[0].cameras_file, out.path("cameras.json"))
+            _copy_rpcs(mosaic.done[0].folder, out, RPC_DIR)
         for entry, area in zip(entries if mosaic.tiled else [], mosaic.done):
             shutil.copyfile(area.cameras_file, out.path(entry["cameras_file"]))
+            _copy_rpcs(area.folder, out, str(Path(entry["cameras_file"]).parent / RPC_DIR))
         out.path("config.toml").write_text(config.to_toml(), encoding="utf-8")
     evaluation = evaluate_products(dsm_path, truth, out, rep) if truth is not None else None
     report = rep.finish()
     out.path("report.json").write_text(rep.to_json() + "\n", encoding="utf-8")
     return ReconstructResult(out_dir=out.out_dir, dsm_path=out.out_dir / dsm_path.name,
                              report=report, evaluation=evaluation)
+
+
+def _copy_rpcs(area_folder: Path, out: OutputFolder, to: str) -> None:
+    """An area's corrected RPCs (``write_corrected_rpcs``), if it wrote any, into ``to``."""
+    for path in sorted((Path(area_folder) / RPC_DIR).glob("*_RPC.TXT")):
+        shutil.copyfile(path, out.path(f"{to}/{path.name}"))
 
 
 def _check_filled(fraction: float, mosaic: Mosaic, rep: RunReport,

@@ -86,6 +86,23 @@ def test_reconstruct_writes_every_output(reconstruction):
     assert not [n for n in names if n.startswith(".satsweep-partial")]
 
 
+def test_reconstruct_writes_the_corrected_rpcs(reconstruction, scene):
+    """rpc/<stem>_RPC.TXT: each view's RPC with the correction the run applied (report.json)
+    folded into its offsets, readable as a GDAL sidecar."""
+    from satsweep.geometry.rpc import RPCModel
+
+    shifts = reconstruction.report["ba"]["principal_point_shift_px"]
+    assert sorted(p.name for p in (reconstruction.out_dir / "rpc").iterdir()) == [
+        f"{v.image.stem}_RPC.TXT" for v in scene.views]
+    for v in scene.views:
+        written = RPCModel.from_file(reconstruction.out_dir / "rpc" / f"{v.image.stem}_RPC.TXT")
+        original = RPCModel.from_image(v.image)
+        dc, dr = shifts[v.image.name]
+        assert written.col_offset == original.col_offset + dc
+        assert written.row_offset == original.row_offset + dr
+        assert written == original.corrected((dc, dr))
+
+
 def test_dsm_georeferencing_read_by_gdal(reconstruction, scene):
     """rasterio (GDAL) reads dsm.tif with the scene's UTM CRS, its 0.5 m north-up transform on
     the same cell lattice as the truth, and NaN nodata."""
@@ -341,7 +358,10 @@ def test_aoi_tiles_each_with_their_cameras_make_one_dsm(scene, reconstruction, t
         assert {"views", "cameras", "ba", "view_selection", "sweep", "dsm"} <= set(tile)
         assert tile["cameras_file"] == f"tiles/tile_{k:02d}/cameras.json"
         assert (tiled.out_dir / tile["cameras_file"]).is_file()
-    assert not (tiled.out_dir / "cameras.json").exists()
+        # each tile's own corrections, folded into the RPCs beside its cameras
+        rpcs = sorted(p.name for p in (tiled.out_dir / f"tiles/tile_{k:02d}/rpc").iterdir())
+        assert rpcs == [f"{v.image.stem}_RPC.TXT" for v in scene.views]
+    assert not (tiled.out_dir / "cameras.json").exists() and not (tiled.out_dir / "rpc").exists()
 
     with rasterio.open(tiled.dsm_path) as a, rasterio.open(reconstruction.dsm_path) as b:
         t, w = a.read(1), b.read(1)

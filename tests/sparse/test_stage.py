@@ -39,6 +39,8 @@ TIE_HEIGHT_NOISE_M = 3.0
 # A later crop's corrected camera against the exact pushbroom camera: the perspective
 # approximation (< 0.01 px on these scenes) plus the corrections' error.
 REPROJECTION_TOL_PX = 0.15
+# A synthetic view's RPC against its exact camera (the fit's residuals, scene.json: < 1e-4 px).
+RPC_FIT_TOL_PX = 1e-3
 
 
 def _prior(scene) -> AltitudeRange:
@@ -138,6 +140,27 @@ def test_corrections_apply_to_the_cameras_of_any_later_crop(biased, biased_resul
         pc, pr = vc.camera.project(le, ln, lu)
         err = np.hypot(pc + view.x0 - col, pr + view.y0 - row)
         assert err.max() < REPROJECTION_TOL_PX, (view.path, err.max())
+
+
+def test_the_corrections_folded_into_the_rpcs_see_the_true_scene(biased, biased_result):
+    """Each view's RPC with its correction folded in (what reconstruct and cameras --adjust
+    write to rpc/) projects the points of the scene the corrections describe (the true one
+    moved by dX) where the image shows them; with the true bias, the true points."""
+    result, _ = biased_result
+    _, dX = _motion(result, biased)
+    rng = np.random.default_rng(1)
+    lon = rng.uniform(biased.aoi.lon_min, biased.aoi.lon_max, 50)
+    lat = rng.uniform(biased.aoi.lat_min, biased.aoi.lat_max, 50)
+    alt = biased.surface_altitude(lon=lon, lat=lat)
+    e, n, u = biased.frame.from_geodetic(lon=lon, lat=lat, alt=alt)
+    lon2, lat2, alt2 = biased.frame.to_geodetic(e=e + dX[0], n=n + dX[1], u=u + dX[2])
+    for v, sv in enumerate(biased.views):
+        col, row = sv.camera.project(e=e, n=n, u=u)  # where the image shows the true points
+        exact = sv.rpc().corrected(sv.bias_px).projection(lon=lon, lat=lat, alt=alt)
+        assert np.hypot(exact[0] - col, exact[1] - row).max() < RPC_FIT_TOL_PX
+        ours = sv.rpc().corrected(result.corrections_px[v]).projection(lon=lon2, lat=lat2,
+                                                                       alt=alt2)
+        assert np.hypot(ours[0] - col, ours[1] - row).max() < REPROJECTION_TOL_PX
 
 
 def test_more_views_match_a_graph_of_pairs(synthetic_scene):
