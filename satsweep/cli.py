@@ -196,7 +196,12 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     from satsweep.io.sources import open_sources
     from satsweep.pipeline.altitude import tie_and_range
     from satsweep.pipeline.outputs import RPC_DIR, write_corrected_rpcs
-    from satsweep.pipeline.prepare import correct_pointing, crop_views, fit_cameras
+    from satsweep.pipeline.prepare import (
+        check_fixed_views,
+        correct_pointing,
+        crop_views,
+        fit_cameras,
+    )
 
     if args.fixed_view and not args.adjust:
         raise OptionsError("--fixed-view holds a view's pointing correction at zero: it needs "
@@ -208,7 +213,9 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
         config = config.override("camera", grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
     # The views, their pointing corrections and the altitude range as reconstruct takes them.
-    tied = tie_and_range(open_sources(args.images), aoi, alt_range=_cli_altitude_range(args),
+    sources = open_sources(args.images)
+    check_fixed_views(sources, config)
+    tied = tie_and_range(sources, aoi, alt_range=_cli_altitude_range(args),
                          dem=args.dem, config=config, adjust=args.adjust)
     sparse, alt = tied.sparse, tied.altitude.range  # (doubts about them: logged warnings)
     views, _ = crop_views(tied.sources, aoi, alt, config,

@@ -218,8 +218,10 @@ def tie_sources(sources: Sequence["ImageSource"], aoi: "AOI", prior: "AltitudeRa
         # Over the RPCs' kilometres of heights the footprints overflow the images: no warning.
         views = load_views(sources, aoi, prior, margin_px=config.reconstruct.crop_margin_px,
                            warn_partial=False)
+        # (The fixed views were checked against the whole input: check_fixed_views.)
         result = sparse_stage(views, aoi, prior, config.sparse, config.bundle,
-                              images=[tonemap(v.image, valid=v.valid) for v in views])
+                              images=[tonemap(v.image, valid=v.valid) for v in views],
+                              fixed_absent_ok=True)
     for line in result.warnings:
         _warn(report, line)
     return result
@@ -270,6 +272,16 @@ def skew_correct_masks(cameras: "CameraSet", masks: Sequence[np.ndarray | None]
             for m, s in zip(masks, sheared)]
 
 
+def check_fixed_views(sources: Sequence["ImageSource"], config: "PipelineConfig") -> None:
+    """OptionsError naming a ``[bundle] fixed_views`` entry that names none of the run's
+    images (or several): checked once on the whole input, since a tile's sparse stage sees only
+    the images that see it."""
+    from satsweep.sparse.stage import fixed_view_indices
+
+    fixed_view_indices(config.bundle.fixed_views, [s.path for s in sources],
+                       [s.name for s in sources])
+
+
 def ortho_values(views: Sequence["View"]) -> list[np.ndarray]:
     """The orthophoto's grey levels: the crops' own values (sensor units, the same for every
     tile, where each tile's tonemap stretches its own crop)."""
@@ -289,7 +301,9 @@ def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
     from satsweep.pipeline.altitude import tie_and_range
 
     config = config if config is not None else PipelineConfig()
-    tied = tie_and_range(open_sources(sources), aoi, alt_range=alt_range, dem=None,
+    sources = open_sources(sources)
+    check_fixed_views(sources, config)
+    tied = tie_and_range(sources, aoi, alt_range=alt_range, dem=None,
                          config=config, adjust=config.reconstruct.adjust != "off",
                          report=report)
     views, images = crop_views(tied.sources, aoi, alt_range, config, report=report,

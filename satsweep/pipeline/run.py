@@ -99,6 +99,7 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
         resolve_device_spec,
         worker_device,
     )
+    from satsweep.pipeline.prepare import check_fixed_views
     from satsweep.pipeline.tiling import plan_tiles
     from satsweep.products.grid import dsm_grid_for_aoi
 
@@ -112,6 +113,7 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
                            alt_range=alt_range, dem=None if dem is None else os.fspath(dem),
                            verbose=verbose)
     sources = open_sources(paths)
+    check_fixed_views(sources, config)
     for source in sources:
         for problem in (source.acquisition.warnings if source.acquisition is not None else ()):
             rep.warn(problem)

@@ -649,6 +649,7 @@ class SparseResult:
     min_matches: int  # pairs with fewer verified matches were not used
     seconds: dict[str, float]
     fixed_views: tuple[int, ...] = ()  # the views whose corrections were held at zero
+    fixed_absent: tuple[str, ...] = ()  # fixed views asked for that were not among the views
 
     @property
     def kept(self) -> tuple[int, ...]:
@@ -660,8 +661,11 @@ class SparseResult:
 
     @property
     def warnings(self) -> tuple[str, ...]:
-        """One line per dropped view, naming its file."""
-        return tuple(f"{d.path}: dropped by the sparse stage: {d.reason}" for d in self.dropped)
+        """One line per dropped view, naming its file, and per fixed view not among them."""
+        return (tuple(f"{d.path}: dropped by the sparse stage: {d.reason}" for d in self.dropped)
+                + tuple(f"{entry}: a fixed view ([bundle] fixed_views) that does not see this "
+                        "area: the corrections here are the smallest on average instead"
+                        for entry in self.fixed_absent))
 
     @property
     def max_correction_px(self) -> float:
@@ -829,34 +833,43 @@ def tie_point_confirmer(tied: TiedViews, images: Sequence[np.ndarray]):
 
 
 def fixed_view_indices(fixed_views: Sequence[str], paths: Sequence[str],
-                       names: Sequence[str]) -> list[int]:
+                       names: Sequence[str], *, absent_ok: bool = False
+                       ) -> tuple[list[int], list[str]]:
     """The indices of the views that ``fixed_views`` (``BundleOptions.fixed_views``) name, by
-    file name or by path; OptionsError naming an entry that matches no view or several."""
-    out = []
+    file name or by path, and the entries that name none of them. OptionsError naming an entry
+    that matches several views, or none unless ``absent_ok`` (the views of one tile of a run,
+    whose inputs were checked whole: a fixed image need not see every tile)."""
+    out, absent = [], []
     for entry in fixed_views:
         real = os.path.realpath(entry)
         hits = [v for v, (p, n) in enumerate(zip(paths, names))
                 if entry == n or os.path.basename(p) == entry or os.path.realpath(p) == real]
-        if len(hits) != 1:
+        if len(hits) > 1 or not (hits or absent_ok):
             raise OptionsError(
                 f"[bundle] fixed_views: {entry!r} names {'none' if not hits else 'several'} of "
                 f"the views given ({', '.join(names)})")
-        out.append(hits[0])
-    return out
+        if hits:
+            out.append(hits[0])
+        else:
+            absent.append(entry)
+    return out, absent
 
 
 def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
                  options: SparseOptions = SparseOptions(),
                  bundle_options: BundleOptions = BundleOptions(), *,
                  names: Sequence[str] | None = None,
-                 images: Sequence[np.ndarray] | None = None) -> SparseResult:
+                 images: Sequence[np.ndarray] | None = None,
+                 fixed_absent_ok: bool = False) -> SparseResult:
     """The sparse stage (module docstring) on ``views`` cropped at the ``prior`` altitude range.
 
     ``views``: :class:`satsweep.io.views.View` (``load_views(paths, aoi, prior, margin_px=...)``);
     ``aoi``: the AOI; ``prior``: the AltitudeRange they were cropped at (the user's, a DEM's or
     the RPCs'); ``images``: their tonemapped images if already made; ``names``: for messages,
-    default the file names. Raises CameraError naming every view and why when fewer than two
-    views can be tied.
+    default the file names; ``fixed_absent_ok``: fixed views (``bundle_options.fixed_views``)
+    that are not among ``views`` are a warning (a tile they do not see) rather than an
+    OptionsError. Raises CameraError naming every view and why when fewer than two views can be
+    tied.
     """
     from satsweep.geometry.altitude import AltitudeRange
     from satsweep.io.images import tonemap
@@ -898,7 +911,8 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
         fine_frame[0] = fine
         return cams
 
-    fixed = fixed_view_indices(bundle_options.fixed_views, paths, names)
+    fixed, absent = fixed_view_indices(bundle_options.fixed_views, paths, names,
+                                       absent_ok=fixed_absent_ok)
     tied = tie_views(images, prior_cams, names, options, bundle_options, samples=samples,
                      fine_cameras=refit, dropped=failed, fixed=fixed)
     seconds.update({k: seconds.get(k, 0.0) + v for k, v in tied.seconds.items()})
@@ -923,6 +937,7 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
         paths=paths, names=names, corrections_px=tied.shifts, correction_sigma_px=tied.sigma,
         coarse_corrections_px=tied.coarse_shifts, dropped=dropped, prior_range=prior,
         altitude_range=altitude_range, altitude=altitude, tied=tied, frame=frame,
-        min_matches=options.min_matches, seconds=seconds, fixed_views=tuple(fixed))
+        min_matches=options.min_matches, seconds=seconds, fixed_views=tuple(fixed),
+        fixed_absent=tuple(absent))
     return result
 

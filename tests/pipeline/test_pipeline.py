@@ -638,6 +638,12 @@ def test_fixed_views_from_the_command_line_or_the_config(tmp_path):
     assert _pipeline_config(parse(base)).bundle.fixed_views == ()
 
 
+def test_a_fixed_view_among_no_input_stops_the_run_first(scene, tmp_path):
+    with pytest.raises(OptionsError, match="fixed_views: 'view_07.tif' names none of the views"):
+        _reconstruct(scene, tmp_path / "out", {"bundle": {"fixed_views": ["view_07.tif"]}})
+    assert not (tmp_path / "out").exists()
+
+
 def test_cli_config_prints_the_explained_defaults(capsys):
     import tomllib
 

@@ -324,12 +324,27 @@ def test_fixed_views_that_disagree_are_an_error(biased):
         sparse_stage(views, biased.aoi, prior, bundle_options=bundle)
 
 
+def test_a_fixed_view_that_does_not_see_the_area_is_a_warning(biased, biased_result):
+    """As in a tile that the fixed image does not see: the stage says so and keeps the gauge
+    of smallest corrections (the same corrections as without the option)."""
+    views, prior = _views(biased)
+    bundle = BundleOptions(fixed_views=("elsewhere.tif",))
+    result = sparse_stage(views, biased.aoi, prior, bundle_options=bundle, fixed_absent_ok=True)
+    assert result.fixed_views == () and result.fixed_absent == ("elsewhere.tif",)
+    assert any(w.startswith("elsewhere.tif: a fixed view") and "does not see this area" in w
+               for w in result.warnings)
+    np.testing.assert_array_equal(result.corrections_px, biased_result[0].corrections_px)
+
+
 def test_fixed_views_name_given_views():
     paths = ["/data/a/img_01.tif", "/data/b/img_02.tif"]
     names = ["img_01.tif", "img_02.tif"]
-    assert fixed_view_indices(["img_02.tif", "/data/a/img_01.tif"], paths, names) == [1, 0]
+    assert fixed_view_indices(["img_02.tif", "/data/a/img_01.tif"], paths, names) == ([1, 0], [])
     with pytest.raises(OptionsError, match=r"fixed_views: 'img_03.tif' names none of the views"):
         fixed_view_indices(["img_03.tif"], paths, names)
+    # a tile's views, the run's inputs checked whole: a fixed image need not see every tile
+    assert fixed_view_indices(["img_03.tif", "img_01.tif"], paths, names,
+                              absent_ok=True) == ([0], ["img_03.tif"])
     with pytest.raises(OptionsError, match="fixed_views: 'img.tif' names several"):
         fixed_view_indices(["img.tif"], ["/a/img.tif", "/b/img.tif"], ["img.tif", "img.tif"])
     with pytest.raises(OptionsError, match="fixed_views"):
