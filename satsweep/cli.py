@@ -142,6 +142,10 @@ def _add_image_inputs(p) -> None:
                    "from the SIFT tie points between the views, triangulated with the adjusted "
                    "cameras, near the AOI)")
     p.add_argument("--dem", default=None, metavar="FILE", help="DEM GeoTIFF giving the altitude range")
+    p.add_argument("--rpc-dir", default=None, metavar="DIR",
+                   help="take each image's RPC from DIR/<image stem>_RPC.TXT instead of its own "
+                   "(the rpc/ folder of an earlier run or of cameras --adjust, or another "
+                   "tool's adjusted RPCs); an image without one there is an error")
 
 
 def _cli_altitude_range(args: argparse.Namespace):
@@ -213,7 +217,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
         config = config.override("camera", grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
     # The views, their pointing corrections and the altitude range as reconstruct takes them.
-    sources = open_sources(args.images)
+    sources = open_sources(args.images, rpc_dir=args.rpc_dir)
     check_fixed_views(sources, config)
     tied = tie_and_range(sources, aoi, alt_range=_cli_altitude_range(args),
                          dem=args.dem, config=config, adjust=args.adjust)
@@ -466,7 +470,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     alt = _cli_altitude_range(args)
     result = reconstruct(args.images, aoi, args.out, alt_range=alt, dem=args.dem, config=config,
                          overwrite=args.overwrite, truth=args.truth, verbose=not args.quiet,
-                         resume=args.resume)
+                         resume=args.resume, rpc_dir=args.rpc_dir)
     _print_summary(result)
     return _exit_code(result, args)
 

@@ -66,23 +66,43 @@ class ImageSource:
         return True
 
 
-def open_source(path: str | os.PathLike) -> ImageSource:
-    """Read an image's header, RPC (tag or sidecar) and acquisition metadata (when there is
-    some); ImageFormatError / RPCError naming it."""
+def open_source(path: str | os.PathLike, *, rpc_file: str | os.PathLike | None = None
+                ) -> ImageSource:
+    """Read an image's header, RPC (tag or sidecar; ``rpc_file`` instead when given, in any
+    format ``RPCModel.from_file`` reads) and acquisition metadata (when there is some);
+    ImageFormatError / RPCError naming the file."""
     from satsweep.geometry.rpc import RPCModel
     from satsweep.io.images import image_nodata, image_shape
     from satsweep.io.metadata import read_acquisition_metadata
 
     path = os.fspath(path)
     shape = image_shape(path)
-    return ImageSource(path=path, rpc=RPCModel.from_image(path),
-                       shape=(int(shape[0]), int(shape[1])),
+    rpc = RPCModel.from_image(path) if rpc_file is None else RPCModel.from_file(rpc_file)
+    return ImageSource(path=path, rpc=rpc, shape=(int(shape[0]), int(shape[1])),
                        acquisition=read_acquisition_metadata(path), nodata=image_nodata(path))
 
 
-def open_sources(paths: Sequence[str | os.PathLike | ImageSource]) -> list[ImageSource]:
-    """``open_source`` of every path, in order (sources given as such are kept). InputError for
-    fewer than ``MIN_IMAGES`` images or for an image given twice."""
+def rpc_file_in(rpc_dir: str | os.PathLike, image: str | os.PathLike) -> str:
+    """The RPC of ``image`` in the folder ``rpc_dir``: ``<image stem>_RPC.TXT`` (the name
+    satsweep's rpc/ outputs and GDAL's sidecars use), matched case-insensitively. InputError
+    naming the folder or the image when there is none."""
+    folder = os.fspath(rpc_dir)
+    try:
+        names = {n.lower(): n for n in os.listdir(folder)}
+    except OSError as exc:
+        raise InputError(folder, f"cannot read the RPC folder ({exc.strerror or exc})") from None
+    wanted = f"{os.path.splitext(os.path.basename(os.fspath(image)))[0]}_RPC.TXT"
+    if wanted.lower() not in names:
+        raise InputError(image, f"no {wanted} in the RPC folder {folder}")
+    return os.path.join(folder, names[wanted.lower()])
+
+
+def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
+                 rpc_dir: str | os.PathLike | None = None) -> list[ImageSource]:
+    """``open_source`` of every path, in order (sources given as such are kept); with
+    ``rpc_dir``, each image's RPC is its ``rpc_file_in`` that folder (an adjustment's RPCs, as
+    satsweep writes to rpc/), not its own. InputError for fewer than ``MIN_IMAGES`` images, for
+    an image given twice or for one whose RPC the folder lacks."""
     items = [p if isinstance(p, ImageSource) else os.fspath(p) for p in paths]
     if len(items) < MIN_IMAGES:
         raise InputError(None, f"stereo needs at least {MIN_IMAGES} images, got {len(items)}")
@@ -93,4 +113,6 @@ def open_sources(paths: Sequence[str | os.PathLike | ImageSource]) -> list[Image
         if key in seen:
             raise InputError(path, f"image given twice (also as {seen[key]})")
         seen[key] = path
-    return [item if isinstance(item, ImageSource) else open_source(item) for item in items]
+    return [item if isinstance(item, ImageSource)
+            else open_source(item, rpc_file=None if rpc_dir is None else rpc_file_in(rpc_dir, item))
+            for item in items]

@@ -56,16 +56,20 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
                 alt_range: AltitudeRange | None = None, dem: str | os.PathLike | None = None,
                 config: PipelineConfig = PipelineConfig(), overwrite: bool = False,
                 truth: str | os.PathLike | None = None, verbose: bool = True,
-                command: str = "reconstruct", resume: bool = False) -> ReconstructResult:
+                command: str = "reconstruct", resume: bool = False,
+                rpc_dir: str | os.PathLike | None = None) -> ReconstructResult:
     """Run the whole pipeline; see the module docstring for the stages and outputs.
 
     ``aoi`` may be given as an ``AOI`` or as a string for ``parse_aoi``, ``alt_range`` as an
     ``AltitudeRange`` or a (min, max) pair. ``resume``: reuse the tiles that an interrupted or
-    failed run into ``out_dir`` finished (``satsweep.pipeline.cluster``). Every bad argument is
-    a ``SatsweepError``."""
+    failed run into ``out_dir`` finished (``satsweep.pipeline.cluster``). ``rpc_dir``: a folder
+    holding each image's RPC as ``<stem>_RPC.TXT`` (another run's rpc/, another tool's adjusted
+    RPCs), taken instead of the images' own. Every bad argument is a ``SatsweepError``."""
     # Everything that can be checked cheaply is checked before anything is written.
     paths, aoi, alt_range = _checked_arguments(images, aoi, alt_range, config)
     check_run_size(aoi, config)
+    if rpc_dir is not None and not os.path.isdir(rpc_dir):
+        raise InputError(rpc_dir, "the RPC folder does not exist")
     if truth is not None:
         check_truth_dsm(truth, aoi)
     out = None
@@ -73,7 +77,7 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
         # Inside the try: an interruption just after the folder is made still aborts it.
         out = OutputFolder(out_dir, overwrite=overwrite, resume=resume)
         result = _reconstruct(paths, aoi, out, alt_range=alt_range, dem=dem, config=config,
-                              truth=truth, verbose=verbose, command=command)
+                              truth=truth, verbose=verbose, command=command, rpc_dir=rpc_dir)
     except BaseException as exc:
         if out is None:  # refused before anything was written (OutputFolder cleans up itself)
             raise
@@ -90,7 +94,7 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
 
 
 def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: PipelineConfig,
-                 truth, verbose: bool, command: str) -> ReconstructResult:
+                 truth, verbose: bool, command: str, rpc_dir=None) -> ReconstructResult:
     from satsweep.geometry.geodesy import utm_epsg
     from satsweep.io.sources import open_sources
     from satsweep.pipeline.cluster import (
@@ -107,13 +111,15 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     rep = RunReport(command, verbose=verbose)
     rep["settings"] = config.to_dict()
     rep["inputs"] = {"images": paths, "aoi": dataclasses.asdict(aoi), "dem": dem and os.fspath(dem),
-                     "truth": truth and os.fspath(truth)}
+                     "truth": truth and os.fspath(truth), "rpc_dir": rpc_dir and os.fspath(rpc_dir)}
 
     settings = RunSettings(config=config, device=resolve_device_spec(config.reconstruct.device),
                            alt_range=alt_range, dem=None if dem is None else os.fspath(dem),
                            verbose=verbose)
-    sources = open_sources(paths)
+    sources = open_sources(paths, rpc_dir=rpc_dir)
     check_fixed_views(sources, config)
+    rep["inputs"]["rpcs"] = [None if s.rpc.source is None else os.fspath(s.rpc.source)
+                             for s in sources]  # where each image's RPC was read
     for source in sources:
         for problem in (source.acquisition.warnings if source.acquisition is not None else ()):
             rep.warn(problem)

@@ -38,6 +38,9 @@ MIN_COMPLETENESS_1M = 0.6
 # figure; the median bound only catches gross misplacement.
 MAX_ALIGNMENT_GAIN_M = 0.05
 MAX_ALIGNMENT_GAIN_COMPLETENESS = 0.01
+# A run from the corrected RPCs of another run of the same views: their corrections again,
+# the adjustment's precision on this 192 px pair (hundredths of a pixel).
+RPC_ROUND_TRIP_PX = 0.05
 # The synthetic scene's altitude range, widened so that the true surface is never at its edge.
 ALT_MARGIN_M = 5.0
 
@@ -101,6 +104,26 @@ def test_reconstruct_writes_the_corrected_rpcs(reconstruction, scene):
         assert written.col_offset == original.col_offset + dc
         assert written.row_offset == original.row_offset + dr
         assert written == original.corrected((dc, dr))
+
+
+def test_a_run_takes_the_rpcs_of_another_runs_rpc_folder(reconstruction, scene, tmp_path):
+    """--rpc-dir: a second run from the first run's rpc/ reads those RPCs (the report says
+    where each came from), needs corrections of hundredths of a pixel, and is as accurate."""
+    rpc_dir = reconstruction.out_dir / "rpc"
+    again = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
+                        alt_range=_alt(scene), config=PipelineConfig.from_mapping(FAST_CAMERA),
+                        truth=scene.truth_dsm, verbose=False, rpc_dir=rpc_dir)
+    _check_accuracy(again)
+    inputs = again.report["inputs"]
+    assert inputs["rpc_dir"] == str(rpc_dir)
+    assert inputs["rpcs"] == [str(rpc_dir / f"{v.image.stem}_RPC.TXT") for v in scene.views]
+    assert reconstruction.report["inputs"]["rpcs"] == [str(v.image) for v in scene.views]
+    shifts = np.array(list(again.report["ba"]["principal_point_shift_px"].values()))
+    assert np.abs(shifts).max() < RPC_ROUND_TRIP_PX
+    with pytest.raises(InputError, match="the RPC folder does not exist"):
+        reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out2",
+                    rpc_dir=tmp_path / "nowhere")
+    assert not (tmp_path / "out2").exists()
 
 
 def test_dsm_georeferencing_read_by_gdal(reconstruction, scene):

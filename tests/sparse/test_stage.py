@@ -163,6 +163,28 @@ def test_the_corrections_folded_into_the_rpcs_see_the_true_scene(biased, biased_
         assert np.hypot(ours[0] - col, ours[1] - row).max() < REPROJECTION_TOL_PX
 
 
+def test_the_corrected_rpcs_read_back_need_no_correction(biased, biased_result, tmp_path):
+    """The round trip of rpc/: the views opened with the corrected RPCs (``rpc_dir``) instead of
+    their own are tied with corrections of zero, to the adjustment's precision."""
+    from satsweep.io.sources import open_sources
+    from satsweep.pipeline.outputs import write_corrected_rpcs
+
+    result, views = biased_result
+    paths = [str(v.image) for v in biased.views]
+    sources = open_sources(paths)
+    write_corrected_rpcs(tmp_path, sources, dict(zip(paths, result.corrections_px.tolist())))
+    again = open_sources(paths, rpc_dir=tmp_path)
+    assert [str(s.rpc.source) for s in again] == [str(tmp_path / f"{v.image.stem}_RPC.TXT")
+                                                 for v in biased.views]
+    _, prior = _views(biased)
+    second = sparse_stage(load_views(again, biased.aoi, prior), biased.aoi, prior)
+    assert second.kept == (0, 1, 2)
+    assert np.abs(second.corrections_px).max() < SMALL_SCENE_TOL_PX
+    with pytest.raises(InputError, match=r"view_01.tif: no view_01_RPC.TXT in the RPC folder"):
+        (tmp_path / "view_01_RPC.TXT").unlink()
+        open_sources(paths, rpc_dir=tmp_path)
+
+
 def test_more_views_match_a_graph_of_pairs(synthetic_scene):
     scene = synthetic_scene(seed=2, n_views=6, size_px=SIZE_PX, bias_px=20.0)
     views, prior = _views(scene)
