@@ -63,6 +63,20 @@ def _motion(result, scene) -> tuple[np.ndarray, np.ndarray]:
     return diff + A @ dX, dX
 
 
+def _surface_points(scene, dX, *, seed: int, n: int = 50):
+    """``n`` random points of the true surface over the AOI: (lon, lat, alt), their ENU (e, n, u)
+    in the scene's frame, and (lon, lat, alt) of the scene the corrections describe (the true
+    one moved by dX, found in the ENU frame of the sparse stage's cameras, whose axes and the
+    scene's agree to 1e-5 over the AOI)."""
+    rng = np.random.default_rng(seed)
+    lon = rng.uniform(scene.aoi.lon_min, scene.aoi.lon_max, n)
+    lat = rng.uniform(scene.aoi.lat_min, scene.aoi.lat_max, n)
+    alt = scene.surface_altitude(lon=lon, lat=lat)
+    e, nn, u = scene.frame.from_geodetic(lon=lon, lat=lat, alt=alt)
+    moved = scene.frame.to_geodetic(e=e + dX[0], n=nn + dX[1], u=u + dX[2])
+    return (lon, lat, alt), (e, nn, u), moved
+
+
 @pytest.fixture(scope="module")
 def biased(synthetic_scene):
     return synthetic_scene(seed=0, n_views=3, size_px=SIZE_PX, bias_px=BIAS_PX)
@@ -126,14 +140,7 @@ def test_corrections_apply_to_the_cameras_of_any_later_crop(biased, biased_resul
     views = load_views(list(result.kept_paths), biased.aoi, result.altitude_range, margin_px=margin)
     cams = shift_principal_points(build_cameras(views, biased.aoi, result.altitude_range),
                                   result.corrections_for(result.kept_paths))
-    rng = np.random.default_rng(0)
-    lon = rng.uniform(biased.aoi.lon_min, biased.aoi.lon_max, 50)
-    lat = rng.uniform(biased.aoi.lat_min, biased.aoi.lat_max, 50)
-    alt = biased.surface_altitude(lon=lon, lat=lat)
-    e, n, u = biased.frame.from_geodetic(lon=lon, lat=lat, alt=alt)
-    # the scene the corrected cameras see: the true one moved by dX (found in the ENU frame of
-    # the sparse stage's cameras, whose axes and the scene's agree to 1e-5 over the AOI)
-    lon2, lat2, alt2 = biased.frame.to_geodetic(e=e + dX[0], n=n + dX[1], u=u + dX[2])
+    _, (e, n, u), (lon2, lat2, alt2) = _surface_points(biased, dX, seed=0)
     le, ln, lu = cams.frame.from_geodetic(lon=lon2, lat=lat2, alt=alt2)
     for view, vc, sv in zip(views, cams.views, biased.views):
         col, row = sv.camera.project(e=e, n=n, u=u)  # where the image shows the true points
@@ -148,12 +155,7 @@ def test_the_corrections_folded_into_the_rpcs_see_the_true_scene(biased, biased_
     moved by dX) where the image shows them; with the true bias, the true points."""
     result, _ = biased_result
     _, dX = _motion(result, biased)
-    rng = np.random.default_rng(1)
-    lon = rng.uniform(biased.aoi.lon_min, biased.aoi.lon_max, 50)
-    lat = rng.uniform(biased.aoi.lat_min, biased.aoi.lat_max, 50)
-    alt = biased.surface_altitude(lon=lon, lat=lat)
-    e, n, u = biased.frame.from_geodetic(lon=lon, lat=lat, alt=alt)
-    lon2, lat2, alt2 = biased.frame.to_geodetic(e=e + dX[0], n=n + dX[1], u=u + dX[2])
+    (lon, lat, alt), (e, n, u), (lon2, lat2, alt2) = _surface_points(biased, dX, seed=1)
     for v, sv in enumerate(biased.views):
         col, row = sv.camera.project(e=e, n=n, u=u)  # where the image shows the true points
         exact = sv.rpc().corrected(sv.bias_px).projection(lon=lon, lat=lat, alt=alt)
