@@ -472,6 +472,10 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     # the next round restricts it to the views left instead of solving again, and keeps the
     # fine cameras (see _coarse_for).
     previous: tuple[list[int], BundleSolution] | None = None
+    # The pairs of the last round, and whether its tracks are still to be built (a reused round
+    # builds none; the report's count and lengths are those of the views it kept).
+    last_used: dict = {}
+    stale = False
     for _ in range(V):  # each round ties the views or drops at least one
         used = {p: m for p, m in pair_matches.items()
                 if (len(m[0]) >= o.min_matches or p in links) and p[0] not in dropped
@@ -483,15 +487,17 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         kept = sorted(main)
         if len(kept) < 2:
             break
-        t0 = time.perf_counter()
         used = {p: m for p, m in used.items() if p[0] in main and p[1] in main}
-        tracks = build_tracks(V, used)
-        obs = _local(observations_from_tracks(tracks, xys), kept)
-        seconds["tracks"] = seconds.get("tracks", 0.0) + time.perf_counter() - t0
+        reused = previous is not None and set(kept) <= set(previous[0])
+        last_used, stale = used, reused
+        if not reused:  # (a reused round restricts the previous coarse solution instead)
+            t0 = time.perf_counter()
+            tracks = build_tracks(V, used)
+            obs = _local(observations_from_tracks(tracks, xys), kept)
+            seconds["tracks"] = seconds.get("tracks", 0.0) + time.perf_counter() - t0
 
         t0 = time.perf_counter()
         local_cams = [cameras[v] for v in kept]
-        reused = previous is not None and set(kept) <= set(previous[0])
         if reused:
             coarse = _coarse_for(previous[1], previous[0], kept)
         else:
@@ -594,6 +600,10 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         kept, fine = [], None
         for v in range(V):
             dropped.setdefault(v, "fewer than two views could be tied together")
+    if stale:
+        t0 = time.perf_counter()
+        tracks = build_tracks(V, last_used)
+        seconds["tracks"] = seconds.get("tracks", 0.0) + time.perf_counter() - t0
     lengths = np.bincount([len(t) for t in tracks], minlength=V + 1) if tracks else np.zeros(V + 1, int)
     if fine is not None:
         # Every tie point the coarse adjustment kept, at its keypoints, triangulated with the
