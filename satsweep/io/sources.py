@@ -82,25 +82,28 @@ def open_source(path: str | os.PathLike, *, rpc_file: str | os.PathLike | None =
                        acquisition=read_acquisition_metadata(path), nodata=image_nodata(path))
 
 
-def rpc_file_in(rpc_dir: str | os.PathLike, image: str | os.PathLike) -> str:
-    """The RPC of ``image`` in the folder ``rpc_dir``: ``<image stem>_RPC.TXT`` (the name
-    satsweep's rpc/ outputs and GDAL's sidecars use), matched case-insensitively. InputError
-    naming the folder or the image when there is none."""
+def rpc_files_in(rpc_dir: str | os.PathLike, images: Sequence[str | os.PathLike]) -> list[str]:
+    """The RPC of each of ``images`` in the folder ``rpc_dir``: ``<image stem>_RPC.TXT`` (the
+    name satsweep's rpc/ outputs and GDAL's sidecars use), matched case-insensitively.
+    InputError naming the folder, or the first image that has none there."""
     folder = os.fspath(rpc_dir)
     try:
         names = {n.lower(): n for n in os.listdir(folder)}
     except OSError as exc:
         raise InputError(folder, f"cannot read the RPC folder ({exc.strerror or exc})") from None
-    wanted = f"{os.path.splitext(os.path.basename(os.fspath(image)))[0]}_RPC.TXT"
-    if wanted.lower() not in names:
-        raise InputError(image, f"no {wanted} in the RPC folder {folder}")
-    return os.path.join(folder, names[wanted.lower()])
+    out = []
+    for image in images:
+        wanted = f"{os.path.splitext(os.path.basename(os.fspath(image)))[0]}_RPC.TXT"
+        if wanted.lower() not in names:
+            raise InputError(image, f"no {wanted} in the RPC folder {folder}")
+        out.append(os.path.join(folder, names[wanted.lower()]))
+    return out
 
 
 def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
                  rpc_dir: str | os.PathLike | None = None) -> list[ImageSource]:
     """``open_source`` of every path, in order (sources given as such are kept); with
-    ``rpc_dir``, each image's RPC is its ``rpc_file_in`` that folder (an adjustment's RPCs, as
+    ``rpc_dir``, each image's RPC is its file in that folder (``rpc_files_in``) (an adjustment's RPCs, as
     satsweep writes to rpc/), not its own. InputError for fewer than ``MIN_IMAGES`` images, for
     an image given twice or for one whose RPC the folder lacks."""
     items = [p if isinstance(p, ImageSource) else os.fspath(p) for p in paths]
@@ -113,6 +116,10 @@ def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
         if key in seen:
             raise InputError(path, f"image given twice (also as {seen[key]})")
         seen[key] = path
-    return [item if isinstance(item, ImageSource)
-            else open_source(item, rpc_file=None if rpc_dir is None else rpc_file_in(rpc_dir, item))
-            for item in items]
+    files = [None] * len(items)
+    if rpc_dir is not None:
+        paths = [(k, item) for k, item in enumerate(items) if not isinstance(item, ImageSource)]
+        for (k, _), rpc_file in zip(paths, rpc_files_in(rpc_dir, [p for _, p in paths])):
+            files[k] = rpc_file
+    return [item if isinstance(item, ImageSource) else open_source(item, rpc_file=rpc_file)
+            for item, rpc_file in zip(items, files)]

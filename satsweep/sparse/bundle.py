@@ -85,6 +85,7 @@ __all__ = [
     "gauge_jacobians",
     "adjust_coarse",
     "robust_gauge",
+    "in_gauge",
     "shift_uncertainty",
     "ShiftUncertainty",
     "TooFewObservations",
@@ -551,6 +552,15 @@ def robust_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray,
     return x0 + free @ t
 
 
+def in_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray,
+             fixed: Sequence[int] = ()) -> np.ndarray:
+    """``shifts`` moved by the motion :func:`robust_gauge` picks: ``shifts - A_v dX`` (the
+    residuals, to first order, are those of the original shifts)."""
+    V = P.shape[0]
+    A = projection_jacobian(P, np.arange(V), np.tile(np.asarray(point, np.float64), (V, 1)))[2]
+    return np.asarray(shifts, np.float64) - A @ robust_gauge(P, shifts, point, fixed)
+
+
 def _robust_motion(A: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     """The parameters ``t`` (r,) of the motion that makes ``shifts - A @ t`` smallest in
     Cauchy's cost (``A`` (V, 2, r), ``shifts`` (V, 2)): :func:`robust_gauge`'s fit."""
@@ -661,9 +671,7 @@ def adjust_coarse(cameras: Sequence[Any], obs: Observations, options: BundleOpti
         final = threshold <= floor
         scale = max(options.loss_scale_px, min(scale, median))
     if sub.n_points:
-        centre = X.mean(axis=0)
-        A = projection_jacobian(P, np.arange(V), np.tile(centre, (V, 1)))[2]
-        shifts = shifts - A @ robust_gauge(P, shifts, centre, fixed)
+        shifts = in_gauge(P, shifts, X.mean(axis=0), fixed)
     # Every track, with the corrected cameras: the observations within the threshold.
     X = triangulate_observations(full, _shifted(P, shifts))[0]
     full = full.subset(_errors(P, full, X, shifts) <= floor)

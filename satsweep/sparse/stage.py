@@ -90,7 +90,7 @@ from satsweep.sparse.bundle import (
     TooFewObservations,
     adjust_coarse,
     adjust_observations,
-    robust_gauge,
+    in_gauge,
     shift_principal_point,
     shift_uncertainty,
 )
@@ -108,12 +108,7 @@ from satsweep.sparse.tracks import (
     register_observations,
     thin_points,
 )
-from satsweep.sparse.triangulation import (
-    project,
-    projection_jacobian,
-    projection_stack,
-    triangulate_observations,
-)
+from satsweep.sparse.triangulation import project, projection_stack, triangulate_observations
 from satsweep.threads import map_in_threads
 
 __all__ = ["DroppedView", "SparseResult", "TiedViews", "corrected_projections", "sparse_stage",
@@ -353,14 +348,12 @@ def _coarse_for(coarse: BundleSolution, kept: Sequence[int],
     index = np.full(len(kept), -1, dtype=np.int64)
     index[views] = np.arange(len(views))
     rows = coarse.obs.subset_index(index[coarse.obs.view] >= 0)  # what _local would keep
+    obs = coarse.obs.take(rows)
     alive = np.zeros(coarse.obs.n_points, dtype=bool)
     alive[coarse.obs.point[rows]] = True
-    obs = Observations(point=(np.cumsum(alive) - 1)[coarse.obs.point[rows]],
-                       view=index[coarse.obs.view[rows]], xy=coarse.obs.xy[rows],
-                       n_points=int(alive.sum()))
     return dataclasses.replace(
         coarse, shifts=coarse.shifts[views], points=coarse.points[alive],
-        anchors=coarse.anchors[alive], obs=obs,
+        anchors=coarse.anchors[alive], obs=dataclasses.replace(obs, view=index[obs.view]),
         errors_before=coarse.errors_before[rows], errors_after=coarse.errors_after[rows])
 
 
@@ -472,10 +465,9 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     # the next round restricts it to the views left instead of solving again, and keeps the
     # fine cameras (see _coarse_for).
     previous: tuple[list[int], BundleSolution] | None = None
-    # The pairs of the last round, and whether its tracks are still to be built (a reused round
-    # builds none; the report's count and lengths are those of the views it kept).
+    # The pairs of the last round: a reused round builds no tracks (None), so the report's count
+    # and lengths, those of the views it kept, are built from them after the rounds.
     last_used: dict = {}
-    stale = False
     for _ in range(V):  # each round ties the views or drops at least one
         used = {p: m for p, m in pair_matches.items()
                 if (len(m[0]) >= o.min_matches or p in links) and p[0] not in dropped
@@ -489,7 +481,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             break
         used = {p: m for p, m in used.items() if p[0] in main and p[1] in main}
         reused = previous is not None and set(kept) <= set(previous[0])
-        last_used, stale = used, reused
+        last_used, tracks = used, None
         if not reused:  # (a reused round restricts the previous coarse solution instead)
             t0 = time.perf_counter()
             tracks = build_tracks(V, used)
@@ -579,10 +571,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             # The fine adjustment's anchors keep the coarse gauge to tenths of a pixel: the fixed
             # views' corrections are made exactly zero by the motion no image sees (a shifted
             # principal point leaves a camera's Jacobian as it is).
-            P = projection_stack(local_fine)
-            centre = fine.points.mean(axis=0)
-            A = projection_jacobian(P, np.arange(len(kept)), np.tile(centre, (len(kept), 1)))[2]
-            shifts[kept] -= A @ robust_gauge(P, shifts[kept], centre, held)
+            shifts[kept] = in_gauge(projection_stack(local_fine), shifts[kept],
+                                    fine.points.mean(axis=0), held)
             rows = [kept[k] for k in held]
             left = np.hypot(*shifts[rows].T)
             if left.max() > FIXED_AGREEMENT_PX:
@@ -600,7 +590,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         kept, fine = [], None
         for v in range(V):
             dropped.setdefault(v, "fewer than two views could be tied together")
-    if stale:
+    if tracks is None:
         t0 = time.perf_counter()
         tracks = build_tracks(V, last_used)
         seconds["tracks"] = seconds.get("tracks", 0.0) + time.perf_counter() - t0

@@ -117,12 +117,16 @@ class Observations:
     def subset(self, keep: np.ndarray) -> "Observations":
         """Keep observations ``keep`` (bool mask); points left with fewer than 2 are dropped and
         the remaining points renumbered 0..n-1 in their previous order."""
-        index = self.subset_index(keep)
+        return self.take(self.subset_index(keep))
+
+    def take(self, rows: np.ndarray) -> "Observations":
+        """The observations ``rows`` (indices, in order; each point keeping two or more, as
+        :meth:`subset_index` gives them), points renumbered 0..n-1 in their previous order."""
         alive = np.zeros(self.n_points, dtype=bool)
-        alive[self.point[index]] = True
+        alive[self.point[rows]] = True
         new_index = np.cumsum(alive) - 1
-        return Observations(point=new_index[self.point[index]], view=self.view[index],
-                            xy=self.xy[index], n_points=int(alive.sum()))
+        return Observations(point=new_index[self.point[rows]], view=self.view[rows],
+                            xy=self.xy[rows], n_points=int(alive.sum()))
 
     def subset_index(self, keep: np.ndarray) -> np.ndarray:
         """The indices of the observations that :meth:`subset` keeps (to carry other per-
