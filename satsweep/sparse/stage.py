@@ -19,6 +19,8 @@ wide one) gives everything the dense stages need from tie points:
    of such views (one date's acquisition, tied within itself) whose weaker pairs into the
    largest group (``_WEAK_PAIR_MIN`` matches or more each) hold three times ``min_matches``
    together is linked by them; the views still apart are dropped (another place, mostly cloud).
+   A group held to the others by one such pair (a bridge) is matched with more candidates when
+   its pairs into them are few, and adjusted on all of them, weak ones included.
 4. *Tracks* (:mod:`satsweep.sparse.tracks`): the verified matches chained across views.
 5. *Coarse correction* (:func:`satsweep.sparse.bundle.adjust_coarse`): a robust adjustment of
    one translation per view on the raw keypoints, with no assumption on the size of the
@@ -140,6 +142,15 @@ SPARSE_THREADS_MAX = 4
 # matches in 6-15 pairs came within 0.1-0.38 px).
 _WEAK_PAIR_MIN = 6
 _WEAK_LINK_FACTOR = 3
+# A group that does reach the largest group, but through one pair of min_matches or more (a
+# bridge of the graph of such pairs), is held by few tie points: the adjustments may leave it
+# fewer than min_observations that agree, or tie it in one direction only, and drop it. Such a
+# group is matched with its views' ``pair_repair`` next candidates too when its pairs into the
+# rest (of _WEAK_PAIR_MIN matches or more) hold fewer than _WEAK_LINK_FACTOR x min_matches, and
+# is adjusted on all those pairs (_bridge_sides). v10 seed 0 (tools/bench_multidate.py) with
+# exact RPCs: one date's three views hung on one pair of 15 matches and were dropped (14 tie
+# points agreed), now all ten views are kept, the worst 0.15 px off; with the scene's pointing
+# errors, seeds 1 and 2 keep a view they dropped (10 of 10).
 
 
 @dataclasses.dataclass(frozen=True)
@@ -232,6 +243,44 @@ def _largest_group(V: int, active: set[int], edges: Sequence[tuple[int, int]],
         if best_key is None or key > best_key:
             best, best_key = members, key
     return best
+
+
+def _bridge_sides(V: int, main: set[int], edges: Sequence[tuple[int, int]]) -> list[set[int]]:
+    """For each pair of ``edges`` whose removal splits ``main`` (connected by them), the views
+    on its smaller side (on a tie, the side without ``main``'s lowest view)."""
+    inner = [e for e in edges if e[0] in main and e[1] in main]
+    sides = []
+    for cut in inner:
+        rest = np.array([e for e in inner if e != cut], dtype=np.int64).reshape(-1, 2)
+        labels = connected_labels(V, rest[:, 0], rest[:, 1])
+        side = {v for v in main if labels[v] == labels[cut[0]]}
+        if len(side) == len(main):
+            continue  # not a bridge
+        if 2 * len(side) > len(main) or (2 * len(side) == len(main) and min(side) == min(main)):
+            side = main - side
+        sides.append(side)
+    return sides
+
+
+def _pairs_across(side: set[int], main: set[int], counts: dict[tuple[int, int], int]
+                  ) -> list[tuple[int, int]]:
+    """The pairs of _WEAK_PAIR_MIN verified matches or more between ``side`` and the rest of
+    ``main``."""
+    return [p for p, k in counts.items() if k >= _WEAK_PAIR_MIN and p[0] in main
+            and p[1] in main and (p[0] in side) != (p[1] in side)]
+
+
+def _thinly_linked(V: int, main: set[int], edges: Sequence[tuple[int, int]],
+                   counts: dict[tuple[int, int], int], min_matches: int) -> set[int]:
+    """The views of ``main`` on the smaller side of a bridge (``_bridge_sides``) whose pairs
+    into the rest (``_pairs_across``) hold fewer than _WEAK_LINK_FACTOR x ``min_matches``
+    verified matches: groups that one or two thin pairs hold to the others."""
+    out: set[int] = set()
+    for side in _bridge_sides(V, main, edges):
+        across = sum(counts[p] for p in _pairs_across(side, main, counts))
+        if across < _WEAK_LINK_FACTOR * min_matches:
+            out |= side
+    return out
 
 
 def _weak_links(V: int, active: set[int], main: set[int], counts: dict[tuple[int, int], int],
@@ -439,13 +488,21 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         edges = [p for p, k in counts.items()
                  if k >= o.min_matches and p[0] in active and p[1] in active]
         main = _largest_group(V, active, edges, counts) if active else set()
-        loose = sorted(active - main - repaired)
+        loose = sorted((active - main - repaired)
+                       | (_thinly_linked(V, main, edges, counts, o.min_matches) - repaired))
         extra = repair_pairs(graph, set(pair_matches), loose, o.pair_repair) if o.pair_repair else []
         repaired.update(loose)
         if not extra:
             break
         match(extra)
     main, links = _weak_links(V, active, main, counts, o.min_matches)
+    # A group held to the others by a bridge is adjusted on all its pairs into them, weak ones
+    # included, as a group linked by weak pairs alone is (_weak_links).
+    strong_edges = [p for p, k in counts.items()
+                    if k >= o.min_matches and p[0] in main and p[1] in main]
+    for side in _bridge_sides(V, main, strong_edges):
+        links = sorted(set(links) | {p for p in _pairs_across(side, main, counts)
+                                     if counts[p] < o.min_matches})
     for v in sorted(active - main):
         dropped[v] = _unlinked_reason(v, counts, names, o.min_matches, len(main))
     seconds["matching"] = time.perf_counter() - t0

@@ -241,11 +241,14 @@ def test_views_of_other_dates_are_tied_through_local_contrast(synthetic_scene):
 
 
 def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_scene, monkeypatch):
-    """Seed 1 of the same stack: views 0-3 (two dates) and views 4-5 (a third) share 7 tie
-    points, which fix their relative motion along one direction only. The two views are
-    dropped together, with that reason; dropping the view of largest uncertainty one at a time
-    ended with views 4 and 5 alone. The round after the drop restricts the first round's coarse
-    solution to views 0-3 rather than solving it again, and their corrections hold."""
+    """Seed 1 of the same stack: views 0-3 (two dates) and views 4-5 (a third) hang on one pair
+    of min_matches (a bridge) and share 7 tie points through it, which fix their relative
+    motion along one direction only. With thinly linked groups repaired and adjusted on their
+    weak pairs too (_bridge_sides), all six views tie within the tolerance. Without that rule
+    (patched out), the two views are dropped together, with that reason; dropping the view of
+    largest uncertainty one at a time ended with views 4 and 5 alone. The round after the drop
+    restricts the first round's coarse solution to views 0-3 rather than solving it again, and
+    their corrections hold."""
     import satsweep.sparse.stage as stage
 
     calls = []
@@ -261,6 +264,13 @@ def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_sce
     # Cropped at the RPCs' range +-30 m (at +-300 m all six views tie: which tie points there
     # are depends on the crops).
     views, prior = _views(scene, AltitudeRange(rpc.min - 30.0, rpc.max + 30.0))
+    result = sparse_stage(views, scene.aoi, prior)
+    assert result.kept == (0, 1, 2, 3, 4, 5), result.warnings
+    resid, _ = _motion(result, scene)
+    assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
+
+    calls.clear()
+    monkeypatch.setattr(stage, "_bridge_sides", lambda V, main, edges: [])
     result = sparse_stage(views, scene.aoi, prior)
     assert result.kept == (0, 1, 2, 3), result.warnings
     reasons = {d.index: d.reason for d in result.dropped}
@@ -458,6 +468,27 @@ def test_a_date_apart_is_linked_by_its_weak_pairs_together():
     counts2 = counts | {(3, 6): 14, (4, 7): 13, (3, 7): 12}
     main, links = _weak_links(8, active, {0, 1, 2}, counts2, 15)
     assert main == set(range(8)) - {5} and (3, 6) in links and (4, 7) in links
+
+
+def test_a_date_held_by_one_thin_pair_is_repaired_and_adjusted_on_its_weak_pairs():
+    """Views 3-5 (one date) reach views 0-2 by one pair of 15 matches, (2, 3): a bridge. With
+    their other pairs into 0-2 (7 and 9 matches; the 3 counts for nothing) they hold 31 < 3 x 15
+    matches across: thinly linked, to be matched with more candidates. With (1, 4) at 30 they
+    hold 61: linked well enough, though still by one pair of 15 or more. The smaller side is the
+    one named (views 0-2 of 0-6; view 6 alone behind the pair (5, 6)); of equal sides, the one
+    without the lowest view; a cycle has no bridge."""
+    from satsweep.sparse.stage import _bridge_sides, _pairs_across, _thinly_linked
+
+    counts = {(0, 1): 200, (1, 2): 150, (0, 2): 90, (3, 4): 120, (4, 5): 100, (3, 5): 80,
+              (2, 3): 15, (0, 4): 7, (1, 5): 9, (0, 3): 3, (5, 6): 20}
+    main = set(range(7))
+    edges = [p for p, k in counts.items() if k >= 15]
+    assert sorted(map(sorted, _bridge_sides(7, main, edges))) == [[0, 1, 2], [6]]
+    assert _bridge_sides(7, main - {6}, edges) == [{3, 4, 5}]
+    assert sorted(_pairs_across({3, 4, 5}, main - {6}, counts)) == [(0, 4), (1, 5), (2, 3)]
+    assert _thinly_linked(7, main - {6}, edges, counts, 15) == {3, 4, 5}
+    assert _thinly_linked(7, main - {6}, edges, counts | {(1, 4): 30}, 15) == set()
+    assert _bridge_sides(3, {0, 1, 2}, [(0, 1), (1, 2), (0, 2)]) == []
 
 
 def test_a_view_that_shares_no_area_with_the_others_is_dropped(biased):
