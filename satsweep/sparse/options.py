@@ -24,6 +24,9 @@ class SparseOptions(Options):
     refine_keep_fraction: float = 0.5  # share of each pair's registered tie points kept (best first)
     fine_points_per_view: int = 600  # the registration and the fine adjustment use the tie points
     # that give each view at least this many observations, longest tracks first; 0: all
+    extend_points_per_view: int = 600  # those tie points are also registered in the views that
+    # did not match them (at their projection, from the track's first view), at most this many
+    # per view: ties between dates on many more points; 0: none
     contrast_threshold: float = 0.02  # SIFT contrast threshold (OpenCV units)
     ratio: float = 0.8  # Lowe's ratio test: nearest / second-nearest descriptor distance below this
     mutual: bool = True  # keep a match only when each feature is the other's nearest neighbour
@@ -57,6 +60,7 @@ class SparseOptions(Options):
 
     ADVANCED = ("feature_scale", "feature_scale_min_px", "refine_window_px",
                 "refine_max_shift_px", "refine_keep_fraction", "fine_points_per_view",
+                "extend_points_per_view",
                 "contrast_threshold", "ratio",
                 "mutual", "geometric_model", "ransac_threshold_px", "ransac_iterations", "seed",
                 "pair_min_overlap", "pair_bh_range", "pair_probe_features", "pair_repair",
@@ -73,6 +77,8 @@ class SparseOptions(Options):
         self._require(self.refine_window_px == 0 or 5 <= self.refine_window_px <= 63,
                       "refine_window_px", "must be 0 (no refinement) or in [5, 63] pixels")
         self._require(self.fine_points_per_view >= 0, "fine_points_per_view", "must be >= 0")
+        self._require(self.extend_points_per_view >= 0, "extend_points_per_view",
+                      "must be >= 0 (0: tracks not extended)")
         self._require(math.isfinite(self.refine_keep_fraction) and 0.0 < self.refine_keep_fraction <= 1.0,
                       "refine_keep_fraction", "must be a fraction in (0, 1]")
         self._require(math.isfinite(self.refine_max_shift_px) and self.refine_max_shift_px > 0.0,

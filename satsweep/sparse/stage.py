@@ -32,11 +32,14 @@ wide one) gives everything the dense stages need from tie points:
    points, those that give each view ``fine_points_per_view`` observations, longest tracks
    first (:func:`satsweep.sparse.tracks.thin_points`: a stack of many views gathers long tracks
    and thousands of observations per view, which would make this step grow faster than the
-   number of views), registered to a fraction of a pixel (Lucas-Kanade after a ground-plane
+   number of views), each also in the views that did not match it (at its projection, up to
+   ``extend_points_per_view`` per view: SIFT matches few points between dates, whose patches are
+   seen all the same), registered to a fraction of a pixel (Lucas-Kanade after a ground-plane
    warp; on local contrast in pairs of views whose grey levels differ, as another date's do; of
    each pair of views the best registered ``refine_keep_fraction``), then the principal-point bundle
    adjustment with the anchor regulariser (0.01 px^2/m^2) and a robust loss whose quadratic
-   zone ends at 0.3 px, its anchors triangulated with the coarsely corrected cameras.
+   zone ends at 0.3 px (0.1 px once the tracks are extended: ``extended_loss_scale_px``), its
+   anchors triangulated with the coarsely corrected cameras.
    A view left with fewer than ``min_observations`` observations, or carrying the least
    determined direction of the shifts when that is uncertain by more than
    ``max_shift_sigma_px`` (a view tied along one direction only), is dropped, and 7 runs again
@@ -106,6 +109,7 @@ from satsweep.sparse.tracks import (
     best_registered,
     build_tracks,
     connected_labels,
+    extend_tracks,
     observations_from_tracks,
     register_observations,
     thin_points,
@@ -569,8 +573,14 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         local_fine = [shift_principal_point(fine_cams[v], s) for v, s in zip(kept, coarse.shifts)]
         chosen = thin_points(coarse.obs, o.fine_points_per_view)
         registered, residual = chosen, np.zeros(len(chosen.view))
+        extended = bool(o.refine_window_px and o.extend_points_per_view and len(kept) >= 3)
         if o.refine_window_px:
             t0 = time.perf_counter()
+            if extended:
+                chosen = extend_tracks(chosen, projection_stack(local_fine),
+                                       [(c.height, c.width) for c in local_fine],
+                                       margin_px=o.refine_window_px + o.refine_max_shift_px,
+                                       per_view=o.extend_points_per_view)
             registered, residual, n_refine_dropped = register_observations(
                 chosen, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
                 max_shift_px=o.refine_max_shift_px, keep_fraction=o.refine_keep_fraction,
@@ -581,7 +591,10 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
                                    at_least=_MIN_BEST_REGISTERED)
         t0 = time.perf_counter()
         try:
-            fine = adjust_observations(local_fine, fine_obs, b, names=[names[v] for v in kept])
+            fine_options = (dataclasses.replace(b, loss_scale_px=b.extended_loss_scale_px)
+                            if extended else b)
+            fine = adjust_observations(local_fine, fine_obs, fine_options,
+                                       names=[names[v] for v in kept])
         except TooFewObservations as exc:
             for k, c in zip(exc.views, exc.counts):
                 dropped[kept[k]] = (f"only {c} tie points left after the fine adjustment (need "

@@ -175,6 +175,53 @@ def thin_points(obs: Observations, per_view: int) -> Observations:
     return obs.subset(chosen[obs.point])
 
 
+def extend_tracks(obs: Observations, P: np.ndarray, shapes: Sequence[tuple[int, int]], *,
+                  margin_px: float, per_view: int) -> Observations:
+    """``obs`` with each point also observed, at its projection, in the views that do not see
+    it yet: observations for :func:`register_observations` to move onto the image (it starts
+    there, as from a keypoint) or drop. ``P`` (V, 3, 4): the views' cameras, as corrected as
+    known (the points are triangulated with them); ``shapes``: their images' (height, width).
+
+    A tie point matched in one date's views is where the matching of another date's failed
+    (shadows, seasons, radiometry: SIFT matches between dates are few), yet its patch is seen
+    there; registered from the track's first observation, it ties the dates on many more
+    points. Only projections at least ``margin_px`` inside the image and in front of the camera
+    count; each view gains at most ``per_view`` observations (the points in a fixed pseudo-random
+    order, as :func:`thin_points` ranks them), so the count stays linear in the views.
+    Observations keep their order per point, the new ones after the point's own.
+    """
+    from satsweep.sparse.triangulation import project, triangulate_observations
+
+    V = len(shapes)
+    if obs.xy.shape[0] == 0 or V < 3 or per_view <= 0:
+        return obs
+    X, _, _ = triangulate_observations(obs, P)
+    n = obs.n_points
+    seen = np.zeros((n, V), dtype=bool)
+    seen[obs.point, obs.view] = True
+    ok_point = np.all(np.isfinite(X), axis=1)
+    pt, vw = np.nonzero(~seen & ok_point[:, None])
+    if len(pt) == 0:
+        return obs
+    xy, depth = project(P, vw, X[pt])
+    h = np.array([s[0] for s in shapes], np.float64)[vw]
+    w = np.array([s[1] for s in shapes], np.float64)[vw]
+    inside = (depth > 0) & np.all(np.isfinite(xy), axis=1)
+    inside &= (xy[:, 0] >= margin_px) & (xy[:, 0] <= w - 1 - margin_px)
+    inside &= (xy[:, 1] >= margin_px) & (xy[:, 1] <= h - 1 - margin_px)
+    pt, vw, xy = pt[inside], vw[inside], xy[inside]
+    scramble = (pt.astype(np.uint64) * np.uint64(2654435761)) % np.uint64(2**32)
+    order = np.lexsort((scramble, vw))
+    start = np.searchsorted(vw[order], vw[order], side="left")
+    keep = order[(np.arange(len(order)) - start) < per_view]
+    pt, vw, xy = pt[keep], vw[keep], xy[keep]
+    point = np.r_[obs.point, pt]
+    view = np.r_[obs.view, vw]
+    allxy = np.r_[obs.xy, xy]
+    grouped = np.argsort(point, kind="stable")  # the point's own observations first
+    return Observations(point=point[grouped], view=view[grouped], xy=allxy[grouped], n_points=n)
+
+
 # Lucas-Kanade of refine_observations: pyramid levels above full resolution (each halves the
 # image; 1 lets a window converge from a keypoint ~2 px off), iterations and the step (px) below
 # which it stops.

@@ -287,6 +287,67 @@ def test_thin_points_prefers_long_tracks_and_zero_keeps_all():
         options.SparseOptions(fine_points_per_view=-1)
 
 
+def _pinhole(rng, k):
+    """A 3x4 camera at about 600 km looking at the ENU origin from up to ~17 degrees off nadir."""
+    tilt, az = rng.uniform(0.0, 0.3), rng.uniform(0.0, 2 * np.pi)
+    d = np.array([np.sin(tilt) * np.sin(az), np.sin(tilt) * np.cos(az), np.cos(tilt)])
+    C = 6.0e5 * d
+    z = -d  # the optical axis, towards the origin
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])  # rows: image x, image y, depth
+    K = np.array([[1.2e6, 0.0, 100.0 + 10 * k], [0.0, 1.2e6, 90.0], [0.0, 0.0, 1.0]])
+    return K @ np.hstack([R, -(R @ C)[:, None]])
+
+
+def test_extend_tracks_adds_each_point_in_the_views_that_miss_it():
+    """Points observed (exactly) in some of 5 views get an observation at their projection in
+    each other view where it lies margin_px inside the image, at most per_view per view (the
+    fixed pseudo-random order), after their own; checked by a plain loop."""
+    from satsweep.sparse.triangulation import project
+
+    rng = np.random.default_rng(7)
+    V, N, shape, margin = 5, 60, (200, 220), 11.0
+    P = np.stack([_pinhole(rng, k) for k in range(V)])
+    X = np.c_[rng.uniform(-40, 40, (N, 2)), rng.uniform(0, 30, N)]
+    point, view = [], []
+    for p in range(N):
+        for v in sorted(rng.choice(V, size=rng.integers(2, 4), replace=False)):
+            point.append(p)
+            view.append(v)
+    point, view = np.array(point), np.array(view)
+    xy, _ = project(P, view, X[point])
+    obs = sparse_tracks.Observations(point=point, view=view, xy=xy, n_points=N)
+    for per_view in (1000, 4):
+        ext = sparse_tracks.extend_tracks(obs, P, [shape] * V, margin_px=margin, per_view=per_view)
+        scramble = (np.arange(N, dtype=np.uint64) * np.uint64(2654435761)) % np.uint64(2**32)
+        wanted = set()
+        for v in range(V):
+            cand = []
+            for p in range(N):
+                if v in view[point == p]:
+                    continue
+                (c, r), = project(P, np.array([v]), X[p][None])[0]
+                if margin <= c <= shape[1] - 1 - margin and margin <= r <= shape[0] - 1 - margin:
+                    cand.append(p)
+            wanted.update((p, v) for p in sorted(cand, key=lambda p: scramble[p])[:per_view])
+        new = ext.view.shape[0] - obs.view.shape[0]
+        assert new == len(wanted) > 0
+        for p in range(N):
+            mine = np.flatnonzero(ext.point == p)
+            k = int(np.sum(point == p))
+            np.testing.assert_array_equal(ext.view[mine[:k]], view[point == p])  # own ones first
+            np.testing.assert_array_equal(ext.xy[mine[:k]], xy[point == p])
+            added = ext.view[mine[k:]]
+            assert {(p, int(v)) for v in added} == {w for w in wanted if w[0] == p}
+            # at the projection (the points are triangulated back from exact observations)
+            at = project(P, added, np.tile(X[p], (len(added), 1)))[0]
+            np.testing.assert_allclose(ext.xy[mine[k:]], at, atol=1e-6)
+    assert sparse_tracks.extend_tracks(obs, P, [shape] * V, margin_px=margin, per_view=0) is obs
+    with pytest.raises(OptionsError, match="extend_points_per_view"):
+        options.SparseOptions(extend_points_per_view=-1)
+
+
 # -- matching ----------------------------------------------------------------------------------
 def test_ratio_test_and_mutual_check():
     """Ambiguous matches fail the ratio test; a one-way nearest neighbour fails the mutual check."""

@@ -245,10 +245,10 @@ def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_sce
     of min_matches (a bridge) and share 7 tie points through it, which fix their relative
     motion along one direction only. With thinly linked groups repaired and adjusted on their
     weak pairs too (_bridge_sides), all six views tie within the tolerance. Without that rule
-    (patched out), the two views are dropped together, with that reason; dropping the view of
-    largest uncertainty one at a time ended with views 4 and 5 alone. The round after the drop
-    restricts the first round's coarse solution to views 0-3 rather than solving it again, and
-    their corrections hold."""
+    (patched out) and without extending the tracks, the two views are dropped together, with
+    that reason; dropping the view of largest uncertainty one at a time ended with views 4 and
+    5 alone. The round after the drop restricts the first round's coarse solution to views 0-3
+    rather than solving it again, and their corrections hold."""
     import satsweep.sparse.stage as stage
 
     calls = []
@@ -271,7 +271,8 @@ def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_sce
 
     calls.clear()
     monkeypatch.setattr(stage, "_bridge_sides", lambda V, main, edges: [])
-    result = sparse_stage(views, scene.aoi, prior)
+    # (The tracks extended to every view tie the two groups in every direction too.)
+    result = sparse_stage(views, scene.aoi, prior, SparseOptions(extend_points_per_view=0))
     assert result.kept == (0, 1, 2, 3), result.warnings
     reasons = {d.index: d.reason for d in result.dropped}
     assert sorted(reasons) == [4, 5]
