@@ -71,12 +71,14 @@ it.
 
 Figures (tools/bench_ba.py; synthetic stacks of 1000 px views with pointing errors drawn up to
 50 px per axis, cropped at the RPCs' range widened by 300 m; 2 cores; seeds 0 and 1): the
-worst correction within 0.039 px of the truth after the gauge on 3 views, 0.029 on 5, 0.019 on
-10, 0.029 on 20; 0.59, 1.14, 2.46 and 4.39 s (20 views / 5 views: 3.8); every altitude range
-held the truth. On the multi-date stacks of tools/bench_multidate.py (10 views of 384 px, one
-to three per date) the tie points between dates are less precise: 0.18 px for the worst view
-(mean over seeds 0-5), 0.06 px for the median one. The Pleiades pair (300 m AOI, the RPCs'
--20..2610 m): range 2261..2391 m from 959 tie points in 0.4 s (S2P's DSM spans 2274..2373 m).
+worst correction within 0.022 px of the truth after the gauge on 3 views, 0.025 on 5, 0.018 on
+10, 0.021 on 20; 0.50, 0.90, 1.74 and 3.44 s (20 views / 5 views: 3.8-3.85); every altitude
+range held the truth. On the multi-date stacks of tools/bench_multidate.py (10 views of 384 px,
+one to three per date, cropped at the RPCs' range as a reconstruction crops them) the tie points
+between dates are less precise: 0.13 px for the worst view (mean over seeds 0-5; 0.21 before
+the tracks were extended to every view), 0.045 px for the median one. The Pleiades pair (300 m
+AOI, the RPCs' -20..2610 m): range 2261..2391 m from 959 tie points in 0.4 s (S2P's DSM spans
+2274..2373 m).
 """
 
 from __future__ import annotations
