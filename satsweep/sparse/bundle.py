@@ -106,7 +106,7 @@ class BundleOptions(Options):
     extended_loss_scale_px: float = 0.1  # ... in the sparse stage's fine adjustment once its
     # tracks are extended to every view (SparseOptions.extend_points_per_view, 3 views or more):
     # with many more tie points between dates, the tighter loss leaves out those that moving
-    # shadows bias (tools/bench_multidate.py v10 seeds 0-5, worst correction 0.150 -> 0.119 px
+    # shadows bias (tools/bench_multidate.py v10 seeds 0-5, worst correction 0.150 -> 0.128 px
     # on average; without the extension 0.1 did not help: 0.209 -> 0.216 px)
     initial_threshold_px: float = 10.0  # tracks leaving an observation farther (px) before the
     # adjustment are dropped

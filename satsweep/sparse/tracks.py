@@ -187,7 +187,8 @@ def extend_tracks(obs: Observations, P: np.ndarray, shapes: Sequence[tuple[int, 
     there; registered from the track's first observation, it ties the dates on many more
     points. Only projections at least ``margin_px`` inside the image and in front of the camera
     count; each view gains at most ``per_view`` observations (the points in a fixed pseudo-random
-    order, as :func:`thin_points` ranks them), so the count stays linear in the views.
+    order, the one :func:`thin_points` breaks its ties with), so the count stays linear in the
+    views.
     Observations keep their order per point, the new ones after the point's own.
     """
     from satsweep.sparse.triangulation import project, triangulate_observations
