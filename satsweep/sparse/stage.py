@@ -208,6 +208,7 @@ class TiedViews:
     track_length_histogram: dict[int, int]
     n_refine_dropped: int
     n_refine_contrast: int  # observations registered on local contrast (other dates)
+    n_extended: int  # observations added where a view had not matched a tie point (extend_tracks)
     coarse: BundleSolution | None
     fine: BundleSolution | None
     seconds: dict[str, float]
@@ -518,7 +519,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     coarse = fine = None
     tied = False
     tracks: list = []
-    n_refine_dropped = n_refine_contrast = 0
+    n_refine_dropped = n_refine_contrast = n_extended = 0
     fine_cams = list(cameras)
     shifts = np.full((V, 2), np.nan)
     coarse_shifts = np.full((V, 2), np.nan)
@@ -579,10 +580,12 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         if o.refine_window_px:
             t0 = time.perf_counter()
             if extended:
+                before = len(chosen.view)
                 chosen = extend_tracks(chosen, projection_stack(local_fine),
                                        [(c.height, c.width) for c in local_fine],
                                        margin_px=o.refine_window_px + o.refine_max_shift_px,
                                        per_view=o.extend_points_per_view)
+                n_extended = len(chosen.view) - before
             registered, residual, n_refine_dropped = register_observations(
                 chosen, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
                 max_shift_px=o.refine_max_shift_px, keep_fraction=o.refine_keep_fraction,
@@ -692,7 +695,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         matches=matches,
         n_features=n_features, n_tracks=len(tracks),
         track_length_histogram={int(k): int(c) for k, c in enumerate(lengths) if c > 0},
-        n_refine_dropped=n_refine_dropped, n_refine_contrast=n_refine_contrast, coarse=coarse,
+        n_refine_dropped=n_refine_dropped, n_refine_contrast=n_refine_contrast,
+        n_extended=n_extended, coarse=coarse,
         fine=fine, seconds=seconds, weak_links=tuple(p for p in links if p[0] in kept and p[1] in kept))
 
 
@@ -826,6 +830,7 @@ class SparseResult:
             "track_length_histogram": {str(k): v for k, v in sorted(t.track_length_histogram.items())},
             "refine_dropped": t.n_refine_dropped,
             "refine_on_local_contrast": t.n_refine_contrast,
+            "extended_observations": t.n_extended,
             "coarse": figures(coarse),
             "fine": figures(fine),
             "prior_range": [self.prior_range.min, self.prior_range.max],

@@ -230,14 +230,22 @@ MULTIDATE_SHIFT_TOL_PX = 0.15
 
 
 def test_views_of_other_dates_are_tied_through_local_contrast(synthetic_scene):
+    """Three dates of two views: the pairs across dates registered on local contrast, every
+    tie point also registered in the views that did not match it."""
     scene = synthetic_scene(**MULTIDATE)
     assert len({v.acquisition for v in scene.views}) == 3
     views, prior = _views(scene)
     result = sparse_stage(views, scene.aoi, prior)
     assert result.kept == tuple(range(6)), result.warnings
     assert result.to_dict()["refine_on_local_contrast"] > 0
+    assert result.to_dict()["extended_observations"] > 0
     resid, _ = _motion(result, scene)
     assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
+    # The tracks extended to every view tie the dates closer than the matches alone (measured
+    # 0.043 against 0.080 px), which add no observation.
+    plain = sparse_stage(views, scene.aoi, prior, SparseOptions(extend_points_per_view=0))
+    assert plain.to_dict()["extended_observations"] == 0
+    assert np.abs(resid).max() < np.abs(_motion(plain, scene)[0]).max()
 
 
 def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_scene, monkeypatch):
