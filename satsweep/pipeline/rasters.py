@@ -5,6 +5,7 @@ each pixel's footprint -> per-view rasters -> fused DSM, confidence and orthopho
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -57,11 +58,14 @@ class AreaRasters:
     per_view_filled_fraction: list[float]
     enu_to_map: dict  # whether the polynomial ENU -> map fit was used, and its error
     per_view_raster: list[str] = dataclasses.field(default_factory=list)  # max, upper_quartile
+    vertical_offsets_m: list[float] | None = None  # per reference view, the offset removed from
+    # its raster before the consensus ([dsm] coregister); None: not co-registered
 
     def to_report(self) -> dict:
         return {"fusion": self.fusion, "cross_check": self.cross_check,
                 "per_view_filled_fraction": self.per_view_filled_fraction,
                 "per_view_raster": self.per_view_raster,
+                "vertical_offsets_m": self.vertical_offsets_m,
                 "enu_to_map": self.enu_to_map}
 
 
@@ -80,6 +84,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         rasterise_max_cells,
         rasterise_quantile_cells,
         step_edge_pixels,
+        vertical_offsets,
         visibility_check_heights,
     )
     from satsweep.products.ortho import match_radiometry, value_at_highest
@@ -117,6 +122,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                        for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
         rasters, conf_rasters, orthos, clouds, view_rules = [], [], [], [], []
+        offsets_m = None
         for pv, centre, height, keep in zip(per_view, centres, heights, checked):
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
                 centre, height, keep, cameras.views[pv.index].camera.P, to_map,
@@ -153,10 +159,16 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             view_sets = [(pv.index, *pv.source_indices) for pv in per_view]
             # A stack of fewer distinct views than asked needs them all, not the impossible.
             distinct = min(d.consensus_min_distinct_views, len(set().union(*view_sets)))
-            fused, count, members = consensus_dsms(
-                rasters, tolerance_m=d.consensus_tolerance_m, min_views=d.consensus_min_views,
-                view_sets=view_sets, min_distinct_views=distinct,
-                min_share=d.consensus_min_share)
+            consensus = functools.partial(
+                consensus_dsms, tolerance_m=d.consensus_tolerance_m,
+                min_views=d.consensus_min_views, view_sets=view_sets,
+                min_distinct_views=distinct, min_share=d.consensus_min_share)
+            if d.coregister:
+                offsets = vertical_offsets(rasters, consensus(rasters)[0])
+                offsets_m = [round(float(o), 3) for o in offsets]
+                rasters = [r - np.float32(o) for r, o in zip(rasters, offsets)]
+                clouds = [(x, y, z - o, c) for (x, y, z, c), o in zip(clouds, offsets)]
+            fused, count, members = consensus(rasters)
             # The confidence of the views that agree on the cell's height.
             conf = _nanmean_stack([np.where(m, c, np.nan) for m, c in zip(members, conf_rasters)],
                                   grid.shape)
@@ -184,6 +196,6 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                        count=np.minimum(count, 255).astype(np.uint8), clouds=clouds,
                        fusion=fusion, cross_check=check,
                        per_view_filled_fraction=[float(np.isfinite(a).mean()) for a in rasters],
-                       per_view_raster=view_rules,
+                       per_view_raster=view_rules, vertical_offsets_m=offsets_m,
                        enu_to_map={"polynomial": to_map.accurate,
                                    "max_error_m": to_map.max_error_m})

@@ -825,3 +825,34 @@ def test_edge_min_confidence_is_checked():
     with pytest.raises(OptionsError, match="edge_min_confidence"):
         dsm.DSMOptions(edge_min_confidence=1.5)
     assert dsm.DSMOptions(edge_min_confidence=0.0).edge_min_confidence == 0.0
+
+
+def test_vertical_offsets_of_rasters_against_a_plain_loop():
+    """Each raster's offset to the reference: the median of their differences over the cells
+    where the reference is flat (a building's walls and a NaN's neighbours are not) and the two
+    agree within COREGISTER_WINDOW_M (a blunder 5 m off counts for nothing); a raster with
+    fewer such cells than COREGISTER_MIN_CELLS keeps offset 0."""
+    from satsweep.products.fusion import (COREGISTER_FLAT_M, COREGISTER_MIN_CELLS,
+                                          COREGISTER_WINDOW_M, vertical_offsets)
+
+    rng = np.random.default_rng(5)
+    ref = np.full((60, 70), 100.0)
+    ref[20:40, 25:50] = 112.0  # a building: its walls are steps
+    ref[5, 5] = np.nan
+    ref += rng.normal(0.0, 0.01, ref.shape)
+    shifts = [0.0, 0.23, -0.41]
+    dsms = [ref + s + rng.normal(0.0, 0.05, ref.shape) for s in shifts]
+    dsms[1][0:10, :] += 5.0  # blunders
+    sparse = np.full_like(ref, np.nan)
+    sparse[:5, :10] = ref[:5, :10] + 0.3  # 49 flat cells (one next to the NaN), too few
+    got = vertical_offsets(dsms + [sparse], ref)
+    gy, gx = np.gradient(ref)
+    flat = np.hypot(gx, gy) < COREGISTER_FLAT_M
+    for k, d in enumerate(dsms + [sparse]):
+        e = d - ref
+        ok = flat & (np.abs(e) < COREGISTER_WINDOW_M)
+        want = float(np.median(e[ok])) if ok.sum() >= COREGISTER_MIN_CELLS else 0.0
+        assert got[k] == pytest.approx(want, abs=1e-12)
+    np.testing.assert_allclose(got[:3], shifts, atol=0.01)
+    assert got[3] == 0.0
+    assert not flat[5, 6] and not flat[19, 30]  # beside the NaN, on a wall
