@@ -103,9 +103,9 @@ def rpc_files_in(rpc_dir: str | os.PathLike, images: Sequence[str | os.PathLike]
 def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
                  rpc_dir: str | os.PathLike | None = None) -> list[ImageSource]:
     """``open_source`` of every path, in order (sources given as such are kept); with
-    ``rpc_dir``, each image's RPC is its file in that folder (``rpc_files_in``) (an adjustment's RPCs, as
-    satsweep writes to rpc/), not its own. InputError for fewer than ``MIN_IMAGES`` images, for
-    an image given twice or for one whose RPC the folder lacks."""
+    ``rpc_dir``, each image's RPC is its file in that folder (``rpc_files_in``: an
+    adjustment's RPCs, as satsweep writes to rpc/), not its own. InputError for fewer than
+    ``MIN_IMAGES`` images, for an image given twice or for one whose RPC the folder lacks."""
     items = [p if isinstance(p, ImageSource) else os.fspath(p) for p in paths]
     if len(items) < MIN_IMAGES:
         raise InputError(None, f"stereo needs at least {MIN_IMAGES} images, got {len(items)}")

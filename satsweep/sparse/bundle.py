@@ -543,9 +543,18 @@ def robust_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray,
     their shifts (least squares over them), and only what they leave free (the motion along the
     line of sight of a single fixed view) is fitted to the others as above.
     """
+    return _gauge_motion(_jacobians_at(P, point), np.asarray(shifts, np.float64), fixed)
+
+
+def _jacobians_at(P: np.ndarray, point: Sequence[float]) -> np.ndarray:
+    """(V, 2, 3) Jacobians of the cameras ``P`` (V, 3, 4) at one ENU ``point``."""
     V = P.shape[0]
-    A = projection_jacobian(P, np.arange(V), np.tile(np.asarray(point, np.float64), (V, 1)))[2]
-    shifts = np.asarray(shifts, np.float64)
+    return projection_jacobian(P, np.arange(V), np.tile(np.asarray(point, np.float64), (V, 1)))[2]
+
+
+def _gauge_motion(A: np.ndarray, shifts: np.ndarray, fixed: Sequence[int]) -> np.ndarray:
+    """:func:`robust_gauge` on the Jacobians ``A`` (V, 2, 3) at its point."""
+    V = A.shape[0]
     fixed = sorted(set(int(v) for v in fixed))
     if not fixed:
         return _robust_motion(A, shifts)
@@ -565,9 +574,9 @@ def in_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray,
              fixed: Sequence[int] = ()) -> np.ndarray:
     """``shifts`` moved by the motion :func:`robust_gauge` picks: ``shifts - A_v dX`` (the
     residuals, to first order, are those of the original shifts)."""
-    V = P.shape[0]
-    A = projection_jacobian(P, np.arange(V), np.tile(np.asarray(point, np.float64), (V, 1)))[2]
-    return np.asarray(shifts, np.float64) - A @ robust_gauge(P, shifts, point, fixed)
+    A = _jacobians_at(P, point)
+    shifts = np.asarray(shifts, np.float64)
+    return shifts - A @ _gauge_motion(A, shifts, fixed)
 
 
 def _robust_motion(A: np.ndarray, shifts: np.ndarray) -> np.ndarray:
@@ -626,8 +635,9 @@ def _sample_points(obs: Observations, per_view: int, seed: int) -> np.ndarray:
     return pick
 
 
-def adjust_coarse(cameras: Sequence[Any], obs: Observations, options: BundleOptions = BundleOptions(),
-                  *, fixed: Sequence[int] = ()) -> BundleSolution:
+def adjust_coarse(cameras: Sequence[Any], obs: Observations,
+                  options: BundleOptions = BundleOptions(), *,
+                  fixed: Sequence[int] = ()) -> BundleSolution:
     """Principal-point shifts of any size (tens of pixels) from raw tie points, robustly.
 
     Nothing here assumes the cameras are within a few pixels: the tracks are triangulated with
@@ -761,9 +771,7 @@ def gauge_jacobians(cameras: Sequence[Any], point: Sequence[float] = (0.0, 0.0, 
     Shifts ``s_v`` and ``s_v - A_v dX`` fit the images equally well for any ``dX`` (m); compare
     recovered shifts with expected ones modulo this 3-parameter family.
     """
-    P = projection_stack(cameras)
-    X = np.tile(np.asarray(point, np.float64), (P.shape[0], 1))
-    return projection_jacobian(P, np.arange(P.shape[0]), X)[2]
+    return _jacobians_at(projection_stack(cameras), point)
 
 
 # -- the whole step ------------------------------------------------------------------------------

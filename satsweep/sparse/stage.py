@@ -505,9 +505,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     main, links = _weak_links(V, active, main, counts, o.min_matches)
     # A group held to the others by a bridge is adjusted on all its pairs into them, weak ones
     # included, as a group linked by weak pairs alone is (_weak_links).
-    strong_edges = [p for p, k in counts.items()
-                    if k >= o.min_matches and p[0] in main and p[1] in main]
-    for side in _bridge_sides(V, main, strong_edges):
+    for side in _bridge_sides(V, main, edges):
         links = sorted(set(links) | {p for p in _pairs_across(side, main, counts)
                                      if counts[p] < o.min_matches})
     for v in sorted(active - main):

@@ -150,6 +150,11 @@ def observations_from_tracks(tracks: Sequence[np.ndarray], xys: Sequence[np.ndar
     return Observations(point=point, view=flat[:, 0].copy(), xy=xy, n_points=len(tracks))
 
 
+def _scrambled(points: np.ndarray) -> np.ndarray:
+    """A multiplicative hash of point numbers: a fixed order unrelated to the image position."""
+    return (np.asarray(points).astype(np.uint64) * np.uint64(2654435761)) % np.uint64(2**32)
+
+
 def thin_points(obs: Observations, per_view: int) -> Observations:
     """The tie points of ``obs`` that give every view at least ``per_view`` observations (all of
     its own when it has fewer), with every observation of each point kept.
@@ -164,9 +169,7 @@ def thin_points(obs: Observations, per_view: int) -> Observations:
     if per_view <= 0 or obs.xy.shape[0] == 0:
         return obs
     length = np.bincount(obs.point, minlength=obs.n_points)
-    # a multiplicative hash of the point number: a fixed order unrelated to the image position
-    scramble = (np.arange(obs.n_points, dtype=np.uint64) * np.uint64(2654435761)) % np.uint64(2**32)
-    order = np.lexsort((scramble[obs.point], -length[obs.point], obs.view))  # by view, best first
+    order = np.lexsort((_scrambled(obs.point), -length[obs.point], obs.view))  # by view, best first
     view_sorted = obs.view[order]
     start = np.searchsorted(view_sorted, view_sorted, side="left")
     rank = np.arange(len(order)) - start
@@ -211,8 +214,7 @@ def extend_tracks(obs: Observations, P: np.ndarray, shapes: Sequence[tuple[int, 
     inside &= (xy[:, 0] >= margin_px) & (xy[:, 0] <= w - 1 - margin_px)
     inside &= (xy[:, 1] >= margin_px) & (xy[:, 1] <= h - 1 - margin_px)
     pt, vw, xy = pt[inside], vw[inside], xy[inside]
-    scramble = (pt.astype(np.uint64) * np.uint64(2654435761)) % np.uint64(2**32)
-    order = np.lexsort((scramble, vw))
+    order = np.lexsort((_scrambled(pt), vw))
     start = np.searchsorted(vw[order], vw[order], side="left")
     keep = order[(np.arange(len(order)) - start) < per_view]
     pt, vw, xy = pt[keep], vw[keep], xy[keep]
