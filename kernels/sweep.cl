@@ -2,14 +2,14 @@
  *
  * For a batch of planes and every pixel of a reference tile, each source view is warped into the
  * reference view by the plane's homography, a census code is compared with the reference code
- * (Hamming distance, in bits), plus with AD_WEIGHT > 0 the truncated absolute difference of the
- * warped source intensity and the reference intensity at the pixel (AD-census, Mei et al. 2011:
- * AD_WEIGHT * min(|I_src - I_ref|, AD_TRUNC) / AD_TRUNC bits), plus with GRAD_WEIGHT > 0 the
- * truncated differences of the two images' gradients (central differences, neighbours clamped to
- * the reference image as the census does: GRAD_WEIGHT * (min(|dx_src - dx_ref|, GRAD_TRUNC) +
- * min(|dy_src - dy_ref|, GRAD_TRUNC)) / (2 GRAD_TRUNC) bits), and the per-source costs are
- * aggregated by the mean of the NBEST lowest costs among the sources in which the pixel is valid
- * (robust to occlusion in the others).
+ * (Hamming distance, in bits; census_term), plus with AD_WEIGHT > 0 the truncated absolute
+ * difference of the warped source intensity and the reference intensity at the pixel
+ * (AD-census, Mei et al. 2011: AD_WEIGHT * min(|I_src - I_ref|, AD_TRUNC) / AD_TRUNC bits), plus
+ * with GRAD_WEIGHT > 0 the truncated differences of the two images' gradients (central
+ * differences, neighbours clamped to the reference image as the census does: GRAD_WEIGHT *
+ * (min(|dx_src - dx_ref|, GRAD_TRUNC) + min(|dy_src - dy_ref|, GRAD_TRUNC)) / (2 GRAD_TRUNC)
+ * bits), and the per-source costs are aggregated by the mean of the NBEST lowest costs among the
+ * sources in which the pixel is valid (robust to occlusion in the others).
  *
  * Shared arguments:
  *   src_offset[s]  first element of source s in the concatenated source buffer (row-major);
@@ -30,6 +30,8 @@
  *   WG_X, WG_Y (work-group size of sweep_census_cost), AD_WEIGHT (float, census bits, default 0:
  *   census alone; not used by sweep_code_cost) and AD_TRUNC (float, intensity units, > 0),
  *   GRAD_WEIGHT (float, census bits, default 0; needs CENSUS_RX, CENSUS_RY >= 1) and GRAD_TRUNC;
+ *   optionally CENSUS_RING_WEIGHT (float) with CENSUS_RING, CENSUS_RING_LO, CENSUS_RING_HI and
+ *   CENSUS_SCALE (census_term below: the 3 x 3 ring's bits weighted, every cost kernel);
  *   shared with the host (common.h): SWEEP_VEC (positions per work-item of sweep_warp and
  *   sweep_warped_cost: 8).
  */
@@ -61,6 +63,36 @@
 /* The gradient reads one neighbour on every side of the (warped) pixel: with a census radius of 0
  * in either direction the term is left out (the host refuses GRAD_WEIGHT > 0 then). */
 #define GRAD_READY (CENSUS_RX >= 1 && CENSUS_RY >= 1)
+
+/* The census term of the XOR of two codes: the differing bits, or with CENSUS_RING_WEIGHT (w)
+ * CENSUS_SCALE * (bits + w * bits of the ring mask CENSUS_RING), CENSUS_SCALE = n / (n + w n_ring)
+ * so that it spans 0..CENSUS_NBITS as the plain count does. census_term8 is the same for the
+ * codes of 8 pixels held as low and high 32-bit words (sweep_warped_cost): the same integer sums
+ * and float32 operations, so both give the same value bit for bit. */
+#ifdef CENSUS_RING_WEIGHT
+#if !defined(CENSUS_RING) || !defined(CENSUS_RING_LO) || !defined(CENSUS_RING_HI) \
+    || !defined(CENSUS_SCALE)
+#error "CENSUS_RING_WEIGHT needs CENSUS_RING, CENSUS_RING_LO, CENSUS_RING_HI and CENSUS_SCALE"
+#endif
+inline float census_term(const ulong x)
+{
+    return CENSUS_SCALE
+           * ((float)popcount(x) + CENSUS_RING_WEIGHT * (float)popcount(x & CENSUS_RING));
+}
+inline float8 census_term8(const uint8 lo, const uint8 hi)
+{
+    return CENSUS_SCALE * (convert_float8(popcount(lo) + popcount(hi))
+                           + CENSUS_RING_WEIGHT
+                             * convert_float8(popcount(lo & (uint8)CENSUS_RING_LO)
+                                              + popcount(hi & (uint8)CENSUS_RING_HI)));
+}
+#else
+inline float census_term(const ulong x) { return (float)popcount(x); }
+inline float8 census_term8(const uint8 lo, const uint8 hi)
+{
+    return convert_float8(popcount(lo) + popcount(hi));
+}
+#endif
 
 /* The AD term of a source intensity against the reference intensity (0 when AD_WEIGHT = 0). */
 inline float ad_cost(const float src, const float ref)
@@ -171,7 +203,7 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
                     code = (code << 1) | (ulong)(patch[base + dy * PATCH_W + dx] < c);
                 }
             }
-            c_s = (float)popcount(code ^ ref_code[IDX2(x, y, tw)])
+            c_s = census_term(code ^ ref_code[IDX2(x, y, tw)])
                   + ad_cost(c, ref_img[(size_t)(ty0 + y) * ref_w + tx0 + x]);
 #if GRAD_READY
             c_s += grad_cost(patch[base + 1] - patch[base - 1],
@@ -313,7 +345,7 @@ inline float warped_cost_px(__global const float *warped, __global const uchar *
                 code = (code << 1) | (ulong)(w[dy * pw + dx] < c);
             }
         }
-        cst[s] = (float)popcount(code ^ rc) + ad_cost(c, ref_i);
+        cst[s] = census_term(code ^ rc) + ad_cost(c, ref_i);
 #if GRAD_READY
         cst[s] += grad_cost(w[1] - w[-1], w[pw] - w[-pw], ref_img, ref_w, ref_h, tx0 + x, ty0 + y);
 #endif
@@ -387,7 +419,7 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const uch
                 ++bit;
             }
         }
-        cst[s] = convert_float8(popcount(lo ^ rc_lo) + popcount(hi ^ rc_hi))
+        cst[s] = census_term8(lo ^ rc_lo, hi ^ rc_hi)
                  + AD_WEIGHT * fmin(fabs(c - ref_i), (float8)AD_TRUNC) / AD_TRUNC;
 #if GRAD_READY
         if (GRAD_WEIGHT != 0.0f)
@@ -446,7 +478,7 @@ __kernel void sweep_code_cost(__global const ulong *src_code, __global const lon
             && u >= 0.0f && u <= (float)(sw - 1) && v >= 0.0f && v <= (float)(sh - 1)) {
             const int ix = min((int)floor(u + 0.5f), sw - 1);
             const int iy = min((int)floor(v + 0.5f), sh - 1);
-            cst[s] = (float)popcount(src_code[src_offset[s] + IDX2(ix, iy, sw)] ^ rc);
+            cst[s] = census_term(src_code[src_offset[s] + IDX2(ix, iy, sw)] ^ rc);
             valid |= 1u << s;
         }
     }

@@ -38,6 +38,27 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.bitwise_count(np.asarray(a, np.uint64) ^ np.asarray(b, np.uint64)).astype(np.int64)
 
 
+def ring_positions(rx: int, ry: int) -> np.ndarray:
+    """(n_bits,) bool: which bits of a census code (highest first, raster order of the window)
+    compare the centre with one of its 8 nearest neighbours."""
+    return np.array([abs(dy) <= 1 and abs(dx) <= 1 for dy in range(-ry, ry + 1)
+                     for dx in range(-rx, rx + 1) if (dy, dx) != (0, 0)])
+
+
+def census_term(a: np.ndarray, b: np.ndarray, rx: int, ry: int, ring_weight: float = 0.0):
+    """The census term of two code arrays: the differing bits, or with ring_weight = w
+    (bits + w ring bits) n / (n + w n_ring), float64; the ring's bits found bit by bit."""
+    d = np.asarray(a, np.uint64) ^ np.asarray(b, np.uint64)
+    ring = ring_positions(rx, ry)
+    n = ring.size
+    bits = np.stack([(d >> np.uint64(n - 1 - k)) & np.uint64(1) for k in range(n)])
+    bits = bits.astype(np.float64)
+    total, ring_bits = bits.sum(axis=0), bits[ring].sum(axis=0)
+    if ring_weight == 0.0:
+        return total
+    return (total + ring_weight * ring_bits) * n / (n + ring_weight * ring.sum())
+
+
 def map_points(hom: np.ndarray, shape: tuple[int, int]):
     """(u, v, positive) of every pixel of a (h, w) grid through a 3x3 homography, float64."""
     h, w = shape
@@ -89,14 +110,15 @@ def central_differences(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def warped_census_cost(ref_codes: np.ndarray, src: np.ndarray, hom: np.ndarray, rx: int, ry: int,
                        *, ref_img: np.ndarray | None = None, ad_weight: float = 0.0,
                        ad_truncation: float = 1.0, grad_weight: float = 0.0,
-                       grad_truncation: float = 1.0):
-    """Hamming cost of the census of the warped source (float32-rounded warp) and validity; with
+                       grad_truncation: float = 1.0, ring_weight: float = 0.0):
+    """Census term (``census_term``, ring_weight) of the census of the warped source
+    (float32-rounded warp) and validity; with
     ad_weight > 0 plus ad_weight * min(|warped - ref_img|, ad_truncation) / ad_truncation; with
     grad_weight > 0 plus grad_weight * (min(|dx_w - dx_ref|, t) + min(|dy_w - dy_ref|, t)) / (2 t)
     (central differences of the warped image and of ref_img, t = grad_truncation)."""
     warped, valid = warp_image(src, hom, ref_codes.shape)
     warped = warped.astype(np.float32)
-    cost = hamming(ref_codes, census(warped, rx, ry)).astype(np.float64)
+    cost = census_term(ref_codes, census(warped, rx, ry), rx, ry, ring_weight)
     if ad_weight > 0:
         diff = np.abs(warped.astype(np.float64) - np.asarray(ref_img, np.float64))
         cost = cost + ad_weight * np.minimum(diff, ad_truncation) / ad_truncation
@@ -108,13 +130,18 @@ def warped_census_cost(ref_codes: np.ndarray, src: np.ndarray, hom: np.ndarray, 
     return cost, valid
 
 
-def sampled_codes_cost(ref_codes: np.ndarray, src_codes: np.ndarray, hom: np.ndarray):
-    """Hamming cost of the source codes at the nearest warped pixel (floor(u + 0.5)), validity."""
+def sampled_codes_cost(ref_codes: np.ndarray, src_codes: np.ndarray, hom: np.ndarray,
+                       rx: int | None = None, ry: int | None = None, ring_weight: float = 0.0):
+    """Hamming cost of the source codes at the nearest warped pixel (floor(u + 0.5)), validity;
+    with ring_weight (and the census radii rx, ry) the census term of ``census_term``."""
     hs, ws = src_codes.shape
     u, v, pos = map_points(hom, ref_codes.shape)
     valid = pos & (u >= 0) & (u <= ws - 1) & (v >= 0) & (v <= hs - 1)
     iu = np.clip(np.floor(u + 0.5).astype(np.int64), 0, ws - 1)
     iv = np.clip(np.floor(v + 0.5).astype(np.int64), 0, hs - 1)
+    if ring_weight:
+        return np.where(valid, census_term(ref_codes, src_codes[iv, iu], rx, ry, ring_weight),
+                        0), valid
     return np.where(valid, hamming(ref_codes, src_codes[iv, iu]), 0), valid
 
 

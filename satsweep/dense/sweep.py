@@ -91,6 +91,11 @@ class SweepOptions(Options):
     # the reference views' height maps ([dsm] fusion), where the costs hold intensities
     # (cost_mode "warped_census", a census window of 3 x 3 or more); None: grad_weight
     grad_truncation: float = 0.1  # gradient difference at which the gradient term saturates
+    census_ring_weight: float = 0.0  # extra weight of the census bits that compare the centre
+    # with its 8 nearest neighbours (the 3 x 3 ring): the census term is (bits + w ring bits)
+    # n / (n + w n_ring), so it still spans 0..n bits (n: the window's bits); 0: plain census
+    consensus_census_ring_weight: float | None = 2.0  # ... in an area whose DSM is the consensus
+    # of the reference views' height maps ([dsm] fusion); None: census_ring_weight
     prefilter_sigma_px: float = 0.0  # Gaussian blur (px) of the images before the census; 0: none
     n_best_sources: int | None = None  # cost = mean of the k lowest source costs; None: half the
     # sources, rounded up
@@ -116,7 +121,8 @@ class SweepOptions(Options):
     # hold more than this fraction of them
 
     ADVANCED = ("census_window", "cost_mode", "ad_truncation", "grad_weight",
-                "consensus_grad_weight", "grad_truncation",
+                "consensus_grad_weight", "grad_truncation", "census_ring_weight",
+                "consensus_census_ring_weight",
                 "prefilter_sigma_px", "n_best_sources", "cost_filter", "gf_radius", "gf_eps",
                 "box_radius", "subplane", "reject_range_edges", "lr_check", "lr_tolerance_planes",
                 "max_planes_per_batch", "census_kernel", "work_group", "coarse_plane_stride",
@@ -143,6 +149,11 @@ class SweepOptions(Options):
         w = self.consensus_grad_weight
         self._require(w is None or (math.isfinite(w) and 0 <= w <= 64), "consensus_grad_weight",
                       "must be in [0, 64] census bits (or None)")
+        self._require(math.isfinite(self.census_ring_weight) and 0 <= self.census_ring_weight <= 64,
+                      "census_ring_weight", "must be in [0, 64] (times a ring bit's weight)")
+        w = self.consensus_census_ring_weight
+        self._require(w is None or (math.isfinite(w) and 0 <= w <= 64),
+                      "consensus_census_ring_weight", "must be in [0, 64] (or None)")
         self._require(math.isfinite(self.prefilter_sigma_px) and 0 <= self.prefilter_sigma_px <= 5,
                       "prefilter_sigma_px", "must be in [0, 5] pixels")
         self._require(math.isfinite(self.step_px) and self.step_px > 0, "step_px", "must be > 0")
@@ -183,6 +194,23 @@ class SweepOptions(Options):
         return self.census_window[0] * self.census_window[1] - 1
 
     @property
+    def census_ring(self) -> int:
+        """The census code's bits that compare the centre with its 8 nearest neighbours (a mask:
+        the code holds the window's comparisons in raster order, the first in its highest bit)."""
+        rx, ry = self.census_radii
+        order = [(dy, dx) for dy in range(-ry, ry + 1) for dx in range(-rx, rx + 1)
+                 if (dy, dx) != (0, 0)]
+        n = len(order)
+        return sum(1 << (n - 1 - k) for k, (dy, dx) in enumerate(order)
+                   if abs(dy) <= 1 and abs(dx) <= 1)
+
+    @property
+    def census_scale(self) -> float:
+        """The factor n / (n + w n_ring) of the census term under ``census_ring_weight`` = w."""
+        n, ring = self.census_bits, bin(self.census_ring).count("1")
+        return n / (n + self.census_ring_weight * ring)
+
+    @property
     def max_cost(self) -> float:
         """The largest cost of one source at one pixel and plane: census bits plus the AD and
         gradient terms (also the cost of a pixel that no source sees)."""
@@ -205,11 +233,15 @@ class SweepOptions(Options):
 
     def for_consensus(self) -> "SweepOptions":
         """The options of an area whose DSM is a consensus of many height maps: the gradient
-        term weighs ``consensus_grad_weight`` where the costs can hold it (see its comment)."""
+        term weighs ``consensus_grad_weight`` where the costs can hold it (see its comment), the
+        census's 3 x 3 ring ``consensus_census_ring_weight``."""
+        changes: dict = {}
         w = self.consensus_grad_weight
-        if w is None or self.cost_mode != "warped_census" or min(self.census_window) < 3:
-            return self
-        return self.replace(grad_weight=float(w))
+        if w is not None and self.cost_mode == "warped_census" and min(self.census_window) >= 3:
+            changes["grad_weight"] = float(w)
+        if self.consensus_census_ring_weight is not None:
+            changes["census_ring_weight"] = float(self.consensus_census_ring_weight)
+        return self.replace(**changes) if changes else self
 
     def best_k(self, n_sources: int) -> int:
         """The number of lowest source costs averaged per pixel for ``n_sources`` sources."""
@@ -552,6 +584,19 @@ def _largest_square(ok: Callable[[int], bool], upper: int) -> int:
 
 
 # -- the processing class -----------------------------------------------------------------------
+def census_ring_defines(options: SweepOptions) -> dict:
+    """The sweep kernels' -D constants of the census ring's weight (none without one, or where
+    the ring is the whole window, whose term it would not change): CENSUS_RING_WEIGHT, the
+    ring's mask of the 64-bit code (CENSUS_RING) and of its low and high 32-bit words
+    (CENSUS_RING_LO, CENSUS_RING_HI: sweep_warped_cost's vectors), and CENSUS_SCALE."""
+    ring = options.census_ring
+    if options.census_ring_weight == 0.0 or ring == (1 << options.census_bits) - 1:
+        return {}
+    return {"CENSUS_RING_WEIGHT": float(options.census_ring_weight),
+            "CENSUS_RING": f"0x{ring:x}UL", "CENSUS_RING_LO": f"0x{ring & 0xFFFFFFFF:x}u",
+            "CENSUS_RING_HI": f"0x{ring >> 32:x}u", "CENSUS_SCALE": options.census_scale}
+
+
 def _round_up(n: int, m: int) -> int:
     return ((n + m - 1) // m) * m
 
@@ -631,6 +676,7 @@ class PlaneSweep:
         sweep_defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, "NSRC": n_src, "NBEST": o.best_k(n_src),
                       "AD_WEIGHT": float(o.ad_weight), "AD_TRUNC": float(o.ad_truncation),
                       "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation)}
+        sweep_defs.update(census_ring_defines(o))
         if o.cost_mode == "warped_census" and o.census_kernel == "staged":
             sweep_defs.update({"WG_X": o.work_group[0], "WG_Y": o.work_group[1]})
         wta_defs = {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry, "AD_WEIGHT": float(o.ad_weight),

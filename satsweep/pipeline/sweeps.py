@@ -196,6 +196,7 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             mrf_info = {"method": mrf.method, "seconds": seconds,
                         "sweep_gf_radius": int(swept.gf_radius),
                         "sweep_grad_weight": float(swept.grad_weight),
+                        "sweep_census_ring_weight": float(swept.census_ring_weight),
                         "tiles": int(result.split.n_tiles),
                         "valid_fraction": float(np.mean(result.valid))}
         progress.update(k + 1, names[r])

@@ -13,7 +13,7 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from satsweep.dense.sweep import PlaneSweep, SweepOptions, box_chunk
+from satsweep.dense.sweep import PlaneSweep, SweepOptions, box_chunk, census_ring_defines
 from satsweep.opencl.constants import SWEEP_VEC, WTA_BIG, WTA_NSTATE, WTA_SLOT, WTA_VEC
 from tests import reference_sweep as ref
 
@@ -70,13 +70,14 @@ def _census_dev(dev, img, rx, ry, x0=0, y0=0, out_w=None, out_h=None):
 
 
 def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16, 16),
-               tile=None, ad=None, grad=None):
+               tile=None, ad=None, grad=None, ring=0.0):
     """Run one sweep kernel over all planes of hom (n_planes, n_src, 3, 3) on a tile.
 
     tile = (tx0, ty0, tw, th) of ref_img (default: the whole image); hom maps tile-local pixels.
     mode: "warped_census" (the staged kernel sweep_census_cost), "split" (sweep_warp then
     sweep_warped_cost, two planes a launch) or "sampled_codes" (sweep_code_cost). ad, grad =
-    (weight, truncation) of the AD and gradient terms (default: none).
+    (weight, truncation) of the AD and gradient terms (default: none); ring: the census ring's
+    weight (the host's census_ring_defines).
     """
     h, w = ref_img.shape
     tx0, ty0, tw, th = tile if tile is not None else (0, 0, w, h)
@@ -88,6 +89,8 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
         defs.update({"GRAD_WEIGHT": float(grad[0]), "GRAD_TRUNC": float(grad[1])})
     if mode == "warped_census":
         defs.update({"WG_X": wg[0], "WG_Y": wg[1]})
+    defs.update(census_ring_defines(SweepOptions(census_window=(2 * ry + 1, 2 * rx + 1),
+                                                 census_ring_weight=ring)))
     prg = dev.build("sweep", defs)
     codes = _census_dev(dev, ref_img, rx, ry, tx0, ty0, tw, th)
     sizes = np.array([[s.shape[1], s.shape[0]] for s in srcs], np.int32).ravel()
@@ -138,6 +141,9 @@ def _translations(shifts):
 
 # float32 rounding of the AD term (at most AD_WEIGHT = 8 bits; a few ulp of it).
 AD_ATOL = 1e-5
+# float32 rounding of the ring-weighted census term: CENSUS_SCALE and one product, on terms of
+# at most 64 bits (a few ulp of 64).
+RING_ATOL = 2e-5
 
 
 # -- census ---------------------------------------------------------------------------------------
@@ -259,11 +265,13 @@ def test_warped_census_cost_general_homography_within_rounding(cl_device, form):
         assert (got[p][~valid & ~border] == 62).all()
 
 
+@pytest.mark.parametrize("ring", [0.0, 2.0])
 @pytest.mark.parametrize("window", [(5, 5), (7, 9)])
-def test_split_sweep_equals_staged_kernel_bit_for_bit(cl_device, window):
+def test_split_sweep_equals_staged_kernel_bit_for_bit(cl_device, window, ring):
     """sweep_warp + sweep_warped_cost give exactly sweep_census_cost's costs: perspective
     homographies, two sources with best-2 aggregation, a tile inside the image (clamped census
-    neighbours at its border), sources partly out of view."""
+    neighbours at its border), sources partly out of view; with and without the census ring's
+    weight (its 7 x 9 ring spans both 32-bit words of the vector path's codes)."""
     rng = np.random.default_rng(9)
     rx, ry = window[1] // 2, window[0] // 2
     ref_img = rng.random((41, 53)).astype(np.float32)
@@ -275,8 +283,10 @@ def test_split_sweep_equals_staged_kernel_bit_for_bit(cl_device, window):
     shift = np.eye(3)
     shift[0, 2], shift[1, 2] = tx0, ty0
     local = (hom @ shift).astype(np.float32).astype(np.float64)
-    staged = _sweep_dev(cl_device, ref_img, srcs, local, rx, ry, 2, wg=(8, 8), tile=(tx0, ty0, tw, th))
-    split = _sweep_dev(cl_device, ref_img, srcs, local, rx, ry, 2, mode="split", tile=(tx0, ty0, tw, th))
+    tile = (tx0, ty0, tw, th)
+    staged = _sweep_dev(cl_device, ref_img, srcs, local, rx, ry, 2, wg=(8, 8), tile=tile, ring=ring)
+    split = _sweep_dev(cl_device, ref_img, srcs, local, rx, ry, 2, mode="split", tile=tile,
+                       ring=ring)
     np.testing.assert_array_equal(split, staged)
     invalid = (2 * rx + 1) * (2 * ry + 1) - 1
     assert (staged == invalid).any() and (staged < invalid).any()
@@ -314,6 +324,44 @@ def test_ad_census_cost_matches_reference(cl_device, form, terms):
                              tile=(tx0, ty0, tw, th))
     assert (got > census_only).mean() > 0.5  # the term is there where intensities differ
     assert (got == 24 + weight + gweight).any()  # shifted 20 px: part of the tile sees no source
+
+
+@pytest.mark.parametrize("window", [(5, 5), (7, 9)])
+@pytest.mark.parametrize("form", ["warped_census", "split", "sampled_codes"])
+def test_census_ring_weight_matches_reference(cl_device, form, window):
+    """With census_ring_weight w each source's census term is (bits + w ring bits) n / (n + w
+    n_ring), the ring's bits those comparing the centre with its 8 nearest neighbours (found bit
+    by bit in the reference, from the window's raster order): in every cost kernel, on a tile
+    inside the image; the term still spans 0..n (the no-source cost stays n)."""
+    rng = np.random.default_rng(21)
+    rx, ry = window[1] // 2, window[0] // 2
+    n, w = window[0] * window[1] - 1, 2.0
+    ref_img = _quantised(rng, (36, 44))
+    src = np.roll(ref_img, 1, axis=1).copy()
+    noisy = rng.random(src.shape) < 0.3  # a third of the pixels changed: codes that differ
+    src[noisy] = _quantised(rng, src.shape)[noisy]
+    src = src.astype(np.float32)
+    # Dyadic (warped) or quarter (sampled: no rounding tie) translations: exact warps.
+    hom = _translations([[[1.0, 0.0]], [[0.5, -0.25]], [[2.25, 0.75]], [[20.0, 0.0]]])
+    tx0, ty0, tw, th = 4, 2, 36, 30
+    shift = np.eye(3)
+    shift[0, 2], shift[1, 2] = tx0, ty0
+    local = hom @ shift
+    got = _sweep_dev(cl_device, ref_img, [src], local, rx, ry, 1, mode=form, wg=(8, 8),
+                     tile=(tx0, ty0, tw, th), ring=w)
+    plain = _sweep_dev(cl_device, ref_img, [src], local, rx, ry, 1, mode=form, wg=(8, 8),
+                       tile=(tx0, ty0, tw, th))
+    codes = ref.census(ref_img, rx, ry)
+    src_codes = ref.census(src, rx, ry)
+    for p in range(hom.shape[0]):
+        if form == "sampled_codes":
+            cost, valid = ref.sampled_codes_cost(codes, src_codes, hom[p, 0], rx, ry, w)
+        else:
+            cost, valid = ref.warped_census_cost(codes, src, hom[p, 0], rx, ry, ring_weight=w)
+        want = np.where(valid, cost, n)[ty0:ty0 + th, tx0:tx0 + tw]
+        np.testing.assert_allclose(got[p], want, atol=RING_ATOL, rtol=0)
+    assert (np.abs(got - plain) > 0.1).mean() > 0.3  # the weight changes the costs
+    assert got.max() <= n + RING_ATOL and (got == n).any()  # shifted 20 px: no source
 
 
 def test_sampled_codes_cost_exact(cl_device):

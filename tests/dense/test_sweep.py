@@ -16,6 +16,7 @@ from satsweep.dense.sweep import (
     PlaneSweep,
     PlaneWindows,
     SweepOptions,
+    census_ring_defines,
     lr_consistent,
     plan_tiles,
     prefilter,
@@ -87,22 +88,50 @@ def _errors(res, truth):
                                          ("prefilter_sigma_px", -0.5),
                                          ("prefilter_sigma_px", float("nan")),
                                          ("consensus_grad_weight", -1.0),
-                                         ("consensus_grad_weight", 65.0)])
+                                         ("consensus_grad_weight", 65.0),
+                                         ("census_ring_weight", -0.5),
+                                         ("census_ring_weight", float("nan")),
+                                         ("consensus_census_ring_weight", 65.0)])
 def test_bad_options_name_the_field(field, value):
     with pytest.raises(OptionsError, match=field):
         SweepOptions(**{field: value})
 
 
-def test_consensus_options_change_only_the_gradient_weight():
+def test_consensus_options_change_only_the_gradient_and_ring_weights():
     """for_consensus() sets grad_weight to consensus_grad_weight, where the costs hold
-    intensities for the gradient term (warped census, a window of 3 x 3 or more)."""
-    o = SweepOptions(grad_weight=0.0, consensus_grad_weight=8.0)
-    assert o.for_consensus() == o.replace(grad_weight=8.0)
-    assert o.replace(consensus_grad_weight=None).for_consensus() == o.replace(consensus_grad_weight=None)
+    intensities for the gradient term (warped census, a window of 3 x 3 or more), and
+    census_ring_weight to consensus_census_ring_weight."""
+    o = SweepOptions(grad_weight=0.0, consensus_grad_weight=8.0, census_ring_weight=0.0,
+                     consensus_census_ring_weight=2.0)
+    assert o.for_consensus() == o.replace(grad_weight=8.0, census_ring_weight=2.0)
+    neither = o.replace(consensus_grad_weight=None, consensus_census_ring_weight=None)
+    assert neither.for_consensus() == neither
     codes = o.replace(cost_mode="sampled_codes", ad_weight=0.0)
-    assert codes.for_consensus() == codes
+    assert codes.for_consensus() == codes.replace(census_ring_weight=2.0)
     narrow = o.replace(census_window=(1, 9))
-    assert narrow.for_consensus() == narrow
+    assert narrow.for_consensus() == narrow.replace(census_ring_weight=2.0)
+
+
+@pytest.mark.parametrize("window", [(5, 5), (3, 3), (7, 9), (1, 9), (9, 7)])
+def test_census_ring_is_the_centres_eight_neighbours(window):
+    """census_ring marks the code's bits (highest first, the window in raster order) that
+    compare the centre with its 8 nearest neighbours; census_scale keeps the term's span."""
+    o = SweepOptions(census_window=window, census_ring_weight=2.0)
+    rx, ry = o.census_radii
+    positions = ref.ring_positions(rx, ry)
+    n = o.census_bits
+    assert positions.size == n
+    want = sum(1 << (n - 1 - k) for k in np.flatnonzero(positions))
+    assert o.census_ring == want
+    assert o.census_scale * (n + 2.0 * positions.sum()) == pytest.approx(n)
+    defines = census_ring_defines(o)
+    if positions.all():  # 3 x 3: the ring is the whole window, the term unchanged
+        assert defines == {}
+    else:
+        assert int(defines["CENSUS_RING"].rstrip("UL"), 16) == want
+        lo, hi = (int(defines[k].rstrip("u"), 16) for k in ("CENSUS_RING_LO", "CENSUS_RING_HI"))
+        assert (hi << 32) | lo == want
+    assert census_ring_defines(o.replace(census_ring_weight=0.0)) == {}
 
 
 def test_defaults_and_derived_sizes():

@@ -787,8 +787,11 @@ def test_many_references_of_a_consensus_are_swept_with_the_narrower_filter(n_ref
     # and the gradient term of any area the consensus fuses (area_sweep_options)
     sweep = area_sweep_options(config, n_references)
     weight = config.sweep.consensus_grad_weight if gradient else config.sweep.grad_weight
-    assert sweep == config.sweep.replace(grad_weight=weight)
+    ring = (config.sweep.consensus_census_ring_weight if gradient
+            else config.sweep.census_ring_weight)
+    assert sweep == config.sweep.replace(grad_weight=weight, census_ring_weight=ring)
     assert config.sweep.consensus_grad_weight != config.sweep.grad_weight
+    assert config.sweep.consensus_census_ring_weight != config.sweep.census_ring_weight
 
 
 def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
@@ -800,6 +803,8 @@ def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
     # swept with the consensus's gradient term (area_sweep_options)
     assert all(v["mrf"]["sweep_gf_radius"] == MRFOptions().sgm_sweep_gf_radius
                and v["mrf"]["sweep_grad_weight"] == SweepOptions().consensus_grad_weight
+               and v["mrf"]["sweep_census_ring_weight"]
+               == SweepOptions().consensus_census_ring_weight
                for v in result.report["sweep"])
     out = result.out_dir
     with rasterio.open(out / "count.tif") as c, rasterio.open(out / "interpolated.tif") as m:
