@@ -583,7 +583,6 @@ def _largest_square(ok: Callable[[int], bool], upper: int) -> int:
     return lo
 
 
-# -- the processing class -----------------------------------------------------------------------
 def census_ring_defines(options: SweepOptions) -> dict:
     """The sweep kernels' -D constants of the census ring's weight (none without one, or where
     the ring is the whole window, whose term it would not change): CENSUS_RING_WEIGHT, the
@@ -597,6 +596,7 @@ def census_ring_defines(options: SweepOptions) -> dict:
             "CENSUS_RING_HI": f"0x{ring >> 32:x}u", "CENSUS_SCALE": options.census_scale}
 
 
+# -- the processing class -----------------------------------------------------------------------
 def _round_up(n: int, m: int) -> int:
     return ((n + m - 1) // m) * m
 
