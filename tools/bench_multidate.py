@@ -15,7 +15,10 @@ order), always with view 0, and reconstructed by ``satsweep.pipeline.reconstruct
 images and raw RPCs, with no altitude range (the pipeline's own tie points set it) unless
 ``--given-range``; the DSM is scored against the exact truth by both protocols:
 IARPA MVS3DM (median |error| and completeness within 1 m after its alignment) and DFC2019 (mean
-absolute error after the NCC shift and the mean vertical offset; valid fraction). The best
+absolute error after the NCC shift and the mean vertical offset; valid fraction); the table
+also gives the MVS3DM alignment's horizontal shift and the share of the truth's cells it compares
+(those a shift moves off the DSM's border count as incomplete: about 0.8 points per row or column
+of cells at 384 px, so whole-cell shifts move a small scene's figure by that much). The best
 single same-date pair of the scene (each pair of views of one pass) is the reference the issue
 compares the 10-view result with: at least 5 points more completeness within 1 m.
 
@@ -93,10 +96,17 @@ def subset(n_total: int, k: int) -> list[int]:
 
 
 def score(dsm: Path, truth: Path) -> dict:
-    mvs = evaluate_dsm(dsm, truth)["aligned"]
+    """Both protocols' figures, with the MVS3DM alignment's shift and the share of the truth's
+    cells it compares: the DSM covers the AOI only, so a shifted prediction leaves the truth's
+    cells along one or two borders without a value, which count as incomplete."""
+    report = evaluate_dsm(dsm, truth)
+    mvs = report["aligned"]
     dfc = evaluate_dsm(dsm, truth, EvaluateOptions(protocol="dfc"))
+    shift = mvs["shift"]
     return {"median_m": mvs["median_abs_error_m"], "completeness_1m": mvs["completeness_1m"],
-            "dfc_mae_m": dfc["mean_abs_error_m"], "dfc_valid": dfc["valid_fraction"]}
+            "dfc_mae_m": dfc["mean_abs_error_m"], "dfc_valid": dfc["valid_fraction"],
+            "mvs_shift_m": [shift["dx_m"], shift["dy_m"], shift["dz_m"]],
+            "mvs_compared": mvs["compared_cells"] / report["truth_cells"]}
 
 
 def run(scene: Scene, views: list[int], out: Path, args, config: PipelineConfig) -> dict:
@@ -212,7 +222,8 @@ def main(argv=None) -> int:
 
 def print_table(rows: list[dict]) -> None:
     print(f"{'seed':>4} {'kind':<15} {'k':>3} {'refs':>4} {'med m':>6} {'<1m %':>6} "
-          f"{'MAE m':>6} {'valid':>6} {'range (truth)':>26} {'sparse s':>8} {'total s':>7}")
+          f"{'MAE m':>6} {'valid':>6} {'shift m':>10} {'cmp %':>6} {'range (truth)':>26} "
+          f"{'sparse s':>8} {'total s':>7}")
     for r in rows:
         if "error" in r:
             print(f"{r['seed']:>4} {r['kind']:<15} {r['k']:>3} error: {r['error']}")
@@ -220,9 +231,12 @@ def print_table(rows: list[dict]) -> None:
         lo, hi = r["altitude_range"]
         t_lo, t_hi = r["truth_range"]
         sparse = r["stages"].get("sparse", 0.0)
+        dx, dy, _ = r["mvs_shift_m"]
         print(f"{r['seed']:>4} {r['kind']:<15} {r['k']:>3} {r['references']:>4} "
               f"{r['median_m']:>6.3f} {100 * r['completeness_1m']:>6.1f} {r['dfc_mae_m']:>6.3f} "
-              f"{r['dfc_valid']:>6.3f} {f'{lo:.0f}..{hi:.0f} ({t_lo:.0f}..{t_hi:.0f})':>26} "
+              f"{r['dfc_valid']:>6.3f} {f'{dx:+.1f},{dy:+.1f}':>10} "
+              f"{100 * r['mvs_compared']:>6.1f} "
+              f"{f'{lo:.0f}..{hi:.0f} ({t_lo:.0f}..{t_hi:.0f})':>26} "
               f"{sparse:>8.1f} {r['seconds']:>7.1f}")
     for seed in sorted({r["seed"] for r in rows}):
         pairs = [r for r in rows if r["seed"] == seed and r["kind"] == "same-date pair"
