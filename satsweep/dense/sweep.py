@@ -150,7 +150,7 @@ class SweepOptions(Options):
         self._require(w is None or (math.isfinite(w) and 0 <= w <= 64), "consensus_grad_weight",
                       "must be in [0, 64] census bits (or None)")
         self._require(math.isfinite(self.census_ring_weight) and 0 <= self.census_ring_weight <= 64,
-                      "census_ring_weight", "must be in [0, 64] (times a ring bit's weight)")
+                      "census_ring_weight", "must be in [0, 64] (a ring bit weighs 1 + this)")
         w = self.consensus_census_ring_weight
         self._require(w is None or (math.isfinite(w) and 0 <= w <= 64),
                       "consensus_census_ring_weight", "must be in [0, 64] (or None)")
