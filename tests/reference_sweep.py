@@ -157,10 +157,10 @@ def aggregate_best_k(costs: np.ndarray, valid: np.ndarray, k: int, invalid_cost:
 def sweep_volume(ref: np.ndarray, srcs, hom: np.ndarray, rx: int, ry: int, k: int,
                  mode: str = "warped_census", ad_weight: float = 0.0,
                  ad_truncation: float = 1.0, grad_weight: float = 0.0,
-                 grad_truncation: float = 1.0) -> np.ndarray:
+                 grad_truncation: float = 1.0, ring_weight: float = 0.0) -> np.ndarray:
     """Aggregated cost volume (n_planes, h, w) of a whole reference image (float64); the AD and
-    gradient terms (warped_census mode) as in warped_census_cost; no valid source costs
-    bits + ad_weight + grad_weight."""
+    gradient terms (warped_census mode) and the census ring's weight as in warped_census_cost;
+    no valid source costs bits + ad_weight + grad_weight."""
     ref_codes = census(ref, rx, ry)
     nbits = (2 * rx + 1) * (2 * ry + 1) - 1
     src_codes = [census(s, rx, ry) for s in srcs] if mode == "sampled_codes" else None
@@ -169,11 +169,12 @@ def sweep_volume(ref: np.ndarray, srcs, hom: np.ndarray, rx: int, ry: int, k: in
         cs, vs = [], []
         for s, src in enumerate(srcs):
             if mode == "sampled_codes":
-                c, v = sampled_codes_cost(ref_codes, src_codes[s], hom[p, s])
+                c, v = sampled_codes_cost(ref_codes, src_codes[s], hom[p, s], rx, ry, ring_weight)
             else:
                 c, v = warped_census_cost(ref_codes, src, hom[p, s], rx, ry, ref_img=ref,
                                           ad_weight=ad_weight, ad_truncation=ad_truncation,
-                                          grad_weight=grad_weight, grad_truncation=grad_truncation)
+                                          grad_weight=grad_weight, grad_truncation=grad_truncation,
+                                          ring_weight=ring_weight)
             cs.append(c)
             vs.append(v)
         vol[p] = aggregate_best_k(np.stack(cs), np.stack(vs), k,

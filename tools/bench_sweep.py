@@ -10,11 +10,13 @@ planes and scaled linearly to all planes (the per-plane work is the same; the ou
     python tools/bench_sweep.py                     # 1024^2, 2 sources, 128 planes
     python tools/bench_sweep.py --size 256 --planes 32 --json out.json
     python tools/bench_sweep.py --census-kernel split staged   # both census kernels, same run
+    python tools/bench_sweep.py --census-ring-weight 0 2       # plain and ring-weighted census
     python tools/bench_sweep.py --size 10000 --planes 8 --sources 1 --memory-budget-gb 4 \
         --repeat 1 --numpy-planes 0      # the issue's 10000^2 reference within a 4 GB budget
 
-With several ``--census-kernel`` values each is timed in turn (same images, same device) and the
-ratio of each to the first is printed; the numpy comparison uses the first.
+With several ``--census-kernel`` or ``--census-ring-weight`` values each combination is timed in
+turn (same images, same device) and the ratio of each to the first is printed; the numpy
+comparison uses the first.
 """
 
 from __future__ import annotations
@@ -55,7 +57,8 @@ def _numpy_reference(ref_img, srcs, hom, heights, options: SweepOptions, n_sub: 
     t0 = time.perf_counter()
     vol = ref.sweep_volume(ref_img, srcs, sub, rx, ry, options.best_k(len(srcs)),
                            ad_weight=options.ad_weight, ad_truncation=options.ad_truncation,
-                           grad_weight=options.grad_weight, grad_truncation=options.grad_truncation)
+                           grad_weight=options.grad_weight, grad_truncation=options.grad_truncation,
+                           ring_weight=options.census_ring_weight)
     if options.cost_filter == "guided":
         vol = ref.guided_filter(vol, ref_img, options.gf_radius, options.gf_eps)
     elif options.cost_filter == "box":
@@ -78,7 +81,8 @@ def _time_engine(device, options: SweepOptions, ref_img, srcs, hom, heights, vox
     prof = PlaneSweep(device, options, profile=True)
     prof.height_map(ref_img, srcs, hom, heights)
     stages = dict(sorted(prof.stage_seconds.items()))
-    return {"census_kernel": options.census_kernel, "tiles": res.split.n_tiles,
+    return {"census_kernel": options.census_kernel,
+            "census_ring_weight": options.census_ring_weight, "tiles": res.split.n_tiles,
             "batches": res.split.n_batches, "peak_device_bytes": res.split.peak_device_bytes,
             "engine_seconds": best,
             "engine_gvoxel_per_s": voxels / best / 1e9, "stage_seconds": stages,
@@ -97,6 +101,8 @@ def main(argv=None) -> int:
                    help="planes of the numpy reference run, scaled to --planes (0: skip)")
     p.add_argument("--census-kernel", nargs="+", choices=["split", "staged"], default=["split"],
                    help="SweepOptions.census_kernel values to time (the first is the main figure)")
+    p.add_argument("--census-ring-weight", nargs="+", type=float, default=[0.0],
+                   help="census_ring_weight values to time (the consensus areas' default: 2)")
     p.add_argument("--memory-budget-gb", type=float, default=None,
                    help="SweepOptions.memory_budget_bytes in GiB (default: the device fraction)")
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
@@ -109,15 +115,19 @@ def main(argv=None) -> int:
     budget = None if args.memory_budget_gb is None else int(args.memory_budget_gb * 2**30)
     runs = []
     for kernel in args.census_kernel:
-        options = SweepOptions(cost_filter=args.filter, census_kernel=kernel, memory_budget_bytes=budget)
-        runs.append(_time_engine(device, options, ref_img, srcs, hom, heights, voxels, args.repeat))
+        for ring in args.census_ring_weight:
+            options = SweepOptions(cost_filter=args.filter, census_kernel=kernel,
+                                   census_ring_weight=ring, memory_budget_bytes=budget)
+            runs.append(_time_engine(device, options, ref_img, srcs, hom, heights, voxels,
+                                     args.repeat))
     out = dict(runs[0])
     out.update({"device": device.info.label, "size": args.size, "planes": args.planes,
                 "sources": args.sources, "filter": args.filter, "voxels": voxels})
     if len(runs) > 1:
         out["kernels"] = runs
     for r in runs:
-        print(f"census kernel {r['census_kernel']}: reference {args.size}x{args.size}, "
+        print(f"census kernel {r['census_kernel']} (ring weight {r['census_ring_weight']:g}): "
+              f"reference {args.size}x{args.size}, "
               f"{args.sources} sources, {args.planes} planes, filter {args.filter}: "
               f"{voxels / 1e9:.3f} Gvoxel, {r['tiles']} tile(s), {r['batches']} batch(es), "
               f"peak {r['peak_device_bytes'] / 2**20:.0f} MiB on the device")
@@ -126,10 +136,13 @@ def main(argv=None) -> int:
         for k, v in r["stage_seconds"].items():
             print(f"  stage {k:7s}: {v:8.3f} s = {voxels / v / 1e9:9.3f} Gvoxel/s (queue drained per stage)")
     for r in runs[1:]:
-        print(f"time of census kernel {r['census_kernel']} / time of {runs[0]['census_kernel']}: "
+        print(f"time of census kernel {r['census_kernel']} (ring weight "
+              f"{r['census_ring_weight']:g}) / time of {runs[0]['census_kernel']} (ring weight "
+              f"{runs[0]['census_ring_weight']:g}): "
               f"engine {r['engine_seconds'] / runs[0]['engine_seconds']:.2f}, sweep stage "
               f"{r['stage_seconds'].get('sweep', 0) / runs[0]['stage_seconds'].get('sweep', 1):.2f}")
     options = SweepOptions(cost_filter=args.filter, census_kernel=args.census_kernel[0],
+                           census_ring_weight=args.census_ring_weight[0],
                            memory_budget_bytes=budget)
     best = runs[0]["engine_seconds"]
     if args.numpy_planes > 0:
