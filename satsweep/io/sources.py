@@ -118,8 +118,8 @@ def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
         seen[key] = path
     files = [None] * len(items)
     if rpc_dir is not None:
-        paths = [(k, item) for k, item in enumerate(items) if not isinstance(item, ImageSource)]
-        for (k, _), rpc_file in zip(paths, rpc_files_in(rpc_dir, [p for _, p in paths])):
+        to_open = [k for k, item in enumerate(items) if not isinstance(item, ImageSource)]
+        for k, rpc_file in zip(to_open, rpc_files_in(rpc_dir, [items[k] for k in to_open])):
             files[k] = rpc_file
     return [item if isinstance(item, ImageSource) else open_source(item, rpc_file=rpc_file)
             for item, rpc_file in zip(items, files)]
