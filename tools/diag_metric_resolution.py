@@ -34,6 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from satsweep.errors import InputError, SatsweepError  # noqa: E402
 from satsweep.io.geotiff import read_geotiff  # noqa: E402
 from satsweep.products.evaluate import (  # noqa: E402
     EvaluateOptions,
@@ -84,6 +85,10 @@ def scores(scene: Scene, offsets_m, dsms=()) -> dict:
     surface = scene.surface()
     truth, _ = read_dsm(scene.truth_dsm)
     preds = [(str(p), *read_dsm(p)) for p in dsms]
+    for name, _, info in preds:
+        if info.epsg != grid.epsg:
+            raise InputError(name, f"EPSG:{info.epsg}, the truth's is EPSG:{grid.epsg}: "
+                                   "reproject it onto the truth's UTM zone")
     out: dict = {"perfect": {}}
     for dx in offsets_m:
         for dy in offsets_m:
@@ -105,8 +110,11 @@ def main(argv=None) -> int:
                    help="offsets (m) along each axis, every (dx, dy) pair tried")
     p.add_argument("--json", help="write the figures here")
     args = p.parse_args(argv)
-    scene = Scene.load(args.scene)
-    res = scores(scene, args.offsets, args.dsm)
+    try:
+        res = scores(Scene.load(args.scene), args.offsets, args.dsm)
+    except SatsweepError as exc:
+        print(f"diag_metric_resolution: error: {exc}", file=sys.stderr)
+        return 2
     print(f"{'':40s} {'at (0, 0)':>9s} {'best':>6s} {'worst':>6s} {'mean':>6s}   (% within 1 m)")
     for name, v in res.items():
         at0 = v.get((0.0, 0.0))

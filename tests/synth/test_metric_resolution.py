@@ -3,8 +3,18 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from tools.diag_metric_resolution import completeness, offset_truth, read_dsm, scores, truth_grid
+from satsweep.errors import InputError
+from satsweep.io.geotiff import write_geotiff
+from tools.diag_metric_resolution import (
+    completeness,
+    main,
+    offset_truth,
+    read_dsm,
+    scores,
+    truth_grid,
+)
 
 # The truth on a grid moved by exactly one cell is the truth's own next column (row): the same
 # UTM points go through pyproj, up to the rounding of x_min + res + k res against
@@ -36,3 +46,16 @@ def test_scores_of_the_exact_truth_and_of_a_dsm(small_town, tmp_path):
     north = completeness(offset_truth(small_town, 0.0, 0.25), truth, info.resolution)
     assert east != north
     assert res["perfect"][(0.25, 0.0)] == east and res["perfect"][(0.0, 0.25)] == north
+
+
+def test_a_dsm_in_another_crs_is_an_error_naming_it(small_town, tmp_path, capsys):
+    truth, info = read_dsm(small_town.truth_dsm)
+    other = 32632 if info.epsg != 32632 else 32633
+    path = tmp_path / "other_zone.tif"
+    write_geotiff(path, truth, epsg=other, x_min=info.x_min, y_max=info.y_max,
+                  resolution=info.resolution)
+    with pytest.raises(InputError, match="other_zone.tif.*EPSG"):
+        scores(small_town, (0.0,), [path])
+    assert main([str(small_town.directory), "--dsm", str(path), "--offsets", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "other_zone.tif" in err[0]
