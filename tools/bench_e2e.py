@@ -229,10 +229,10 @@ def split_by_relief(error_tif: Path, truth_tif: Path) -> dict:
     from scipy import ndimage
 
     from satsweep.errors import InputError
-    from satsweep.products.evaluate import _read_dsm
+    from satsweep.products.evaluate import read_dsm
 
-    err, _ = _read_dsm(error_tif)
-    truth, _ = _read_dsm(truth_tif)
+    err, _ = read_dsm(error_tif)
+    truth, _ = read_dsm(truth_tif)
     if err.shape != truth.shape:
         raise InputError(error_tif, f"{err.shape} cells, not the truth's {truth.shape}")
     filled = np.where(np.isfinite(truth), truth, np.nanmedian(truth))
@@ -289,10 +289,10 @@ def pleiades_aoi(pair: Path) -> AOI:
 
 def compare_with_s2p(dsm_path: Path, s2p_path: Path, out_dir: Path) -> dict:
     """Median |satsweep - S2P| over the common cells (S2P's grid), raw and MVS3DM-aligned."""
-    from satsweep.products.evaluate import _read_dsm, evaluate_dsm, resample_to_grid
+    from satsweep.products.evaluate import read_dsm, evaluate_dsm, resample_to_grid
 
-    s2p, sinfo = _read_dsm(s2p_path)
-    ours, oinfo = _read_dsm(dsm_path)
+    s2p, sinfo = read_dsm(s2p_path)
+    ours, oinfo = read_dsm(dsm_path)
     cx, cy = sinfo.pixel_size
     on_s2p = resample_to_grid(ours, oinfo, x_min=sinfo.x_min, y_max=sinfo.y_max, cell_x=cx,
                               cell_y=cy, shape=s2p.shape)

@@ -35,10 +35,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from satsweep.errors import InputError, SatsweepError  # noqa: E402
-from satsweep.io.geotiff import read_geotiff  # noqa: E402
 from satsweep.products.evaluate import (  # noqa: E402
     EvaluateOptions,
     evaluate_arrays,
+    read_dsm,
     resample_to_grid,
 )
 from satsweep.products.grid import DSMGrid  # noqa: E402
@@ -48,14 +48,6 @@ from satsweep.synth.scene import Scene, truth_dsm  # noqa: E402
 # 0.5 m cells); larger offsets are whole-cell shifts plus one of these, which the alignment
 # takes care of.
 DEFAULT_OFFSETS_M = (-0.2, -0.1, 0.0, 0.1, 0.2)
-
-
-def read_dsm(path: str | Path) -> tuple[np.ndarray, object]:
-    """A DSM GeoTIFF as float64 with NaN for no data, and its grid info."""
-    array, info = read_geotiff(path)
-    a = np.asarray(array, dtype=np.float64)
-    a[info.is_nodata(array) | ~np.isfinite(a)] = np.nan
-    return a, info
 
 
 def truth_grid(scene: Scene) -> DSMGrid:

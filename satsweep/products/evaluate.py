@@ -435,7 +435,7 @@ def _require_one_band(path: str | os.PathLike, what: str) -> None:
                                f"a {what} has one band")
 
 
-def _read_dsm(path: str | os.PathLike):
+def read_dsm(path: str | os.PathLike):
     """Read a DSM GeoTIFF as float64 with NaN for no data; InputError naming the file if unusable."""
     import pyproj
 
@@ -498,8 +498,8 @@ def evaluate_dsm(pred_path: str | os.PathLike, truth_path: str | os.PathLike,
     options = options or EvaluateOptions()
     if classification is not None:
         _require_dfc(options)
-    truth, tinfo = _read_dsm(truth_path)
-    pred, pinfo = _read_dsm(pred_path)
+    truth, tinfo = read_dsm(truth_path)
+    pred, pinfo = read_dsm(pred_path)
     if pinfo.epsg != tinfo.epsg:
         raise InputError(
             pred_path, f"CRS EPSG:{pinfo.epsg} differs from the truth's EPSG:{tinfo.epsg} ({os.fspath(truth_path)}); "

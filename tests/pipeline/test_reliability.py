@@ -292,10 +292,10 @@ def _with_rpc(src, dst: Path, pixels) -> Path:
 
 
 def _errors_on_filled(dsm_path, truth_path) -> np.ndarray:
-    from satsweep.products.evaluate import _read_dsm, resample_to_grid
+    from satsweep.products.evaluate import read_dsm, resample_to_grid
 
-    pred, pinfo = _read_dsm(dsm_path)
-    truth, tinfo = _read_dsm(truth_path)
+    pred, pinfo = read_dsm(dsm_path)
+    truth, tinfo = read_dsm(truth_path)
     on_truth = resample_to_grid(pred, pinfo, x_min=tinfo.x_min, y_max=tinfo.y_max,
                                 cell_x=tinfo.resolution, cell_y=tinfo.resolution,
                                 shape=truth.shape)
