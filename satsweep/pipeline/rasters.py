@@ -112,11 +112,14 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                                           min_agreeing=d.cross_check_views, points=centres)
             check = {"tolerance_m": d.cross_check_m, "views": d.cross_check_views}
         elif visibility:
-            checked = visibility_check_heights(heights, projections,
-                                               tolerance_m=d.consensus_tolerance_m,
-                                               far_m=d.visibility_far_m, points=centres)
+            checked = visibility_check_heights(
+                heights, projections, tolerance_m=d.consensus_tolerance_m,
+                far_m=d.visibility_far_m, points=centres, slack_px=d.visibility_slack_px,
+                confidences=[pv.confidence for pv in per_view],
+                slack_min_confidence=d.visibility_slack_confidence)
             check = {"check": "free space", "tolerance_m": d.consensus_tolerance_m,
-                     "far_m": d.visibility_far_m}
+                     "far_m": d.visibility_far_m, "slack_px": d.visibility_slack_px,
+                     "slack_min_confidence": d.visibility_slack_confidence}
         if check is not None:
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]

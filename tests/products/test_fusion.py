@@ -804,6 +804,72 @@ def test_visibility_check_drops_a_facade_two_views_agree_on_when_one_sees_far_pa
         dsm.visibility_check_heights(heights, projections, tolerance_m=2.0, far_m=-1.0)
 
 
+def test_visibility_slack_keeps_a_rim_that_other_views_erode_by_a_pixel():
+    """Three near-nadir views of the block; views 1 and 2 erode it by a pixel on each side (their
+    edge pixels see the ground), view 0 does not. Its edge pixels then land on the others'
+    eroded pixels: two views see past, none agrees, and the strict check drops the rim. With a
+    one-pixel slack each of them has the block's height a pixel away, so the rim stays, when
+    view 0 matched it confidently; an unconfident rim (a facade's pattern) keeps the strict
+    test, and the far rule, which reads the nearest pixel, still applies."""
+    width = 60
+    slopes = (0.1, -0.1, 0.05)
+    truth = [_true_heights(a, width)[0] for a in slopes]
+    heights = [t.copy() for t in truth]
+    roof0 = np.flatnonzero(heights[0][0] == _BLOCK[2])
+    rim0 = [roof0[0], roof0[-1]]
+    for j in (1, 2):  # where view 0's rim points land in view j (pixel centres at integers)
+        west, east = np.floor(np.array(rim0) - (slopes[0] - slopes[j]) * _BLOCK[2]
+                              + 0.5).astype(int)
+        roof = np.flatnonzero(heights[j][0] == _BLOCK[2])
+        # Eroded: the block's pixels up to those see the ground, the next ones hold its height.
+        heights[j][:, roof[0]:west + 1] = 0.0
+        heights[j][:, east:roof[-1] + 1] = 0.0
+        assert heights[j][0, west + 1] == heights[j][0, east - 1] == _BLOCK[2]
+    projections = [_affine(a) for a in slopes]
+    sure = [np.ones(h.shape) for h in heights]
+    strict = dsm.visibility_check_heights(heights, projections, tolerance_m=2.0)
+    assert not strict[0][:, rim0].any()
+    slack = dsm.visibility_check_heights(heights, projections, tolerance_m=2.0, slack_px=1,
+                                         confidences=sure, slack_min_confidence=0.3)
+    assert slack[0][:, rim0].all()
+    # The slack only keeps more, and only true points of the block (views 1 and 2 see past
+    # each other's edge pixels too, eroded differently; view 1's last facade pixel).
+    for k in range(3):
+        assert (slack[k] | ~strict[k]).all(), k
+        rescued = slack[k] & ~strict[k]
+        assert (heights[k][rescued] == truth[k][rescued]).all(), k
+        assert (heights[k][rescued] > 0.0).all(), k
+    # Unconfident pixels (view 0's rim under 0.3), or views without confidences: strict.
+    unsure = [c.copy() for c in sure]
+    unsure[0][:, rim0] = 0.1
+    low = dsm.visibility_check_heights(heights, projections, tolerance_m=2.0, slack_px=1,
+                                       confidences=unsure, slack_min_confidence=0.3)
+    assert not low[0][:, rim0].any()
+    none = dsm.visibility_check_heights(heights, projections, tolerance_m=2.0, slack_px=1,
+                                        confidences=[None, *sure[1:]],
+                                        slack_min_confidence=0.3)
+    assert not none[0][:, rim0].any()
+    # The far rule reads the nearest pixel: two views 10 m past outweigh none agreeing.
+    far = dsm.visibility_check_heights(heights, projections, tolerance_m=2.0, far_m=5.0,
+                                       slack_px=1, confidences=sure, slack_min_confidence=0.3)
+    assert not far[0][:, rim0].any()
+    with pytest.raises(OptionsError, match="slack_px"):
+        dsm.visibility_check_heights(heights, projections, tolerance_m=2.0, slack_px=-1)
+    with pytest.raises(OptionsError, match="slack_min_confidence"):
+        dsm.visibility_check_heights(heights, projections, tolerance_m=2.0, slack_px=1,
+                                     slack_min_confidence=1.5)
+    with pytest.raises(ValueError, match="confidence maps"):
+        dsm.visibility_check_heights(heights, projections, tolerance_m=2.0, slack_px=1,
+                                     confidences=sure[:2])
+
+
+def test_visibility_slack_options_are_checked():
+    with pytest.raises(OptionsError, match="DSMOptions.visibility_slack_px"):
+        dsm.DSMOptions(visibility_slack_px=-1)
+    with pytest.raises(OptionsError, match="DSMOptions.visibility_slack_confidence"):
+        dsm.DSMOptions(visibility_slack_confidence=float("nan"))
+
+
 def test_step_edge_pixels_are_the_high_side_of_steps():
     """A 10 m box on flat ground, a 1 m kerb and an unknown pixel: the box's outer ring of
     pixels (each with a ground neighbour, diagonals included) and nothing else."""
