@@ -197,14 +197,13 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     from satsweep.geometry.camera import write_cameras
     from satsweep.geometry.skew import skew_correct_set
     from satsweep.io.atomic import check_output_dir
-    from satsweep.io.sources import open_sources
     from satsweep.pipeline.altitude import tie_and_range
     from satsweep.pipeline.outputs import RPC_DIR, write_corrected_rpcs
     from satsweep.pipeline.prepare import (
-        check_fixed_views,
         correct_pointing,
         crop_views,
         fit_cameras,
+        open_run_sources,
     )
 
     if args.fixed_view and not args.adjust:
@@ -217,8 +216,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
         config = config.override("camera", grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
     # The views, their pointing corrections and the altitude range as reconstruct takes them.
-    sources = open_sources(args.images, rpc_dir=args.rpc_dir)
-    check_fixed_views(sources, config)
+    sources = open_run_sources(args.images, config, rpc_dir=args.rpc_dir)
     tied = tie_and_range(sources, aoi, alt_range=_cli_altitude_range(args),
                          dem=args.dem, config=config, adjust=args.adjust)
     sparse, alt = tied.sparse, tied.altitude.range  # (doubts about them: logged warnings)

@@ -28,6 +28,8 @@ import numpy as np
 from satsweep.errors import CameraError
 
 if TYPE_CHECKING:  # pragma: no cover
+    import os
+
     from satsweep.config import PipelineConfig
     from satsweep.geometry.altitude import AltitudeRange
     from satsweep.geometry.aoi import AOI
@@ -282,6 +284,19 @@ def check_fixed_views(sources: Sequence["ImageSource"], config: "PipelineConfig"
                        [s.name for s in sources])
 
 
+def open_run_sources(paths: Sequence["ImageSource | str | os.PathLike"],
+                     config: "PipelineConfig", *,
+                     rpc_dir: "str | os.PathLike | None" = None) -> list["ImageSource"]:
+    """The run's images opened (``satsweep.io.sources.open_sources``: each with its RPC, from
+    ``rpc_dir`` where given) and ``[bundle] fixed_views`` checked against all of them
+    (``check_fixed_views``): what every entry point does first."""
+    from satsweep.io.sources import open_sources
+
+    sources = open_sources(paths, rpc_dir=rpc_dir)
+    check_fixed_views(sources, config)
+    return sources
+
+
 def ortho_values(views: Sequence["View"]) -> list[np.ndarray]:
     """The orthophoto's grey levels: the crops' own values (sensor units, the same for every
     tile, where each tile's tonemap stretches its own crop)."""
@@ -297,12 +312,10 @@ def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
     correction per ``[reconstruct] skew_correct``. ``sources``: ``ImageSource`` objects or image
     paths."""
     from satsweep.config import PipelineConfig
-    from satsweep.io.sources import open_sources
     from satsweep.pipeline.altitude import tie_and_range
 
     config = config if config is not None else PipelineConfig()
-    sources = open_sources(sources)
-    check_fixed_views(sources, config)
+    sources = open_run_sources(sources, config)
     tied = tie_and_range(sources, aoi, alt_range=alt_range, dem=None,
                          config=config, adjust=config.reconstruct.adjust != "off",
                          report=report)

@@ -96,14 +96,13 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
 def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: PipelineConfig,
                  truth, verbose: bool, command: str, rpc_dir=None) -> ReconstructResult:
     from satsweep.geometry.geodesy import utm_epsg
-    from satsweep.io.sources import open_sources
     from satsweep.pipeline.cluster import (
         RunSettings,
         open_runner,
         resolve_device_spec,
         worker_device,
     )
-    from satsweep.pipeline.prepare import check_fixed_views
+    from satsweep.pipeline.prepare import open_run_sources
     from satsweep.pipeline.tiling import plan_tiles
     from satsweep.products.grid import dsm_grid_for_aoi
 
@@ -116,8 +115,7 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     settings = RunSettings(config=config, device=resolve_device_spec(config.reconstruct.device),
                            alt_range=alt_range, dem=None if dem is None else os.fspath(dem),
                            verbose=verbose)
-    sources = open_sources(paths, rpc_dir=rpc_dir)
-    check_fixed_views(sources, config)
+    sources = open_run_sources(paths, config, rpc_dir=rpc_dir)
     rep["inputs"]["rpcs"] = [None if s.rpc.source is None else os.fspath(s.rpc.source)
                              for s in sources]  # where each image's RPC was read
     for source in sources:
