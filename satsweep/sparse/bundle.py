@@ -673,8 +673,8 @@ def adjust_coarse(cameras: Sequence[Any], obs: Observations,
     evaluations = []
     final = False
     for _ in range(_COARSE_ROUNDS):
-        o = dataclasses.replace(options, regulariser=_COARSE_REGULARISER, loss="soft_l1",
-                                loss_scale_px=scale)
+        o = options.replace(regulariser=_COARSE_REGULARISER, loss="soft_l1",
+                            loss_scale_px=scale)
         shifts, X, nfev = _solve(P, sub, anchors, shifts, X, o, ftol=_COARSE_FTOL, xtol=_COARSE_XTOL)
         evaluations.append(nfev)
         if final:

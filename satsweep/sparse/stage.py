@@ -594,7 +594,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
                                    at_least=_MIN_BEST_REGISTERED)
         t0 = time.perf_counter()
         try:
-            fine_options = (dataclasses.replace(b, loss_scale_px=b.extended_loss_scale_px)
+            fine_options = (b.replace(loss_scale_px=b.extended_loss_scale_px)
                             if extended else b)
             fine = adjust_observations(local_fine, fine_obs, fine_options,
                                        names=[names[v] for v in kept])
