@@ -76,19 +76,26 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
     footprint (ENU -> UTM) -> per-view rasters -> fusion, with the orthophoto of
     ``ortho_images``' values (the views' in the cameras' pixels; None: no orthophoto) and one
     cloud (x, y, z, grey colours) per reference view."""
+    from satsweep.geometry.camera import ground_sample_distance
     from satsweep.products.fusion import (
+        FOOTPRINT_EDGE_PX,
         consensus_dsms,
         cross_check_heights,
         flat_cells,
         fuse_dsms,
         rasterise_max_cells,
         rasterise_quantile_cells,
+        small_raised_pixels,
         step_edge_pixels,
         vertical_offsets,
         visibility_check_heights,
     )
     from satsweep.products.ortho import match_radiometry, value_at_highest
-    from satsweep.products.points import height_map_to_enu, map_view_points
+    from satsweep.products.points import (
+        height_map_to_enu,
+        map_view_points,
+        spread_to_footprint_edges,
+    )
 
     d = config.dsm
     with rep.stage("dsm"):
@@ -130,6 +137,17 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
                 centre, height, keep, cameras.views[pv.index].camera.P, to_map,
                 subsamples=d.subsamples)
+            if d.small_object_area_m2 > 0.0 and d.subsamples > 1 and pixel.size:
+                # Small raised objects (crowns, boxes) reach the cells they overhang. Their
+                # regions are found on the map before the check, which would split buildings
+                # into small pieces where it drops facades (v20 seeds 0-5: 91.60% / 0.896 m
+                # against 91.48% / 0.905 m on the checked map).
+                P = cameras.views[pv.index].camera.P
+                gsd = ground_sample_distance(P, (0.0, 0.0, float(np.median(centre[2]))))
+                small = small_raised_pixels(height, gsd, d.small_object_area_m2)
+                sx, sy, sz, spix = spread_to_footprint_edges(
+                    (x, y, z, pixel), (sx, sy, sz, spix), small.ravel(), d.subsamples,
+                    FOOTPRINT_EDGE_PX)
             rule = d.view_raster_for(flat_cells(x, y, grid))
             view_rules.append(rule)
             if (rule == "upper_quartile" and d.edge_min_confidence > 0.0

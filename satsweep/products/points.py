@@ -11,6 +11,7 @@ rasters).
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Sequence
 
 import numpy as np
@@ -342,6 +343,41 @@ def footprint_splats(x, y, z, pixel, jacobian: np.ndarray, subsamples: int):
         shift = jacobian[k, 0] * dx + jacobian[k, 1] * dy
         out.append((np.asarray(v, np.float64)[:, None] + shift[None, :]).ravel())
     return out[0], out[1], out[2], np.repeat(pixel, subsamples * subsamples)
+
+
+def spread_to_footprint_edges(centres, samples, selected: np.ndarray, subsamples: int,
+                              edge_px: float):
+    """The footprint sub-samples of the pixels ``selected`` moved out to ``edge_px`` pixels from
+    their centres (the outermost sub-sample of ``_subsample_offsets`` at ``edge_px``, the others
+    in proportion), the others' as they are.
+
+    ``centres``, ``samples``: (x, y, z, pixel) of a view's mapped pixel centres (pixel indices
+    ascending, as ``height_map_to_enu`` gives them) and of their sub-samples
+    (``map_view_points``); ``selected``: (H * W,) bool per pixel index. Each sub-sample moves
+    along the line from its pixel's centre, so a pixel's sub-samples keep their pattern and
+    reach ``edge_px`` of its footprint's edge at 0.5. With one sub-sample per pixel there is
+    nothing to move. Returns (x, y, z, pixel) of the sub-samples."""
+    sx, sy, sz, spix = samples
+    if subsamples < 2 or spix.size == 0:
+        return samples
+    half = 0.5 - 0.5 / subsamples  # the outermost sub-sample's offset (pixels)
+    if not (math.isfinite(edge_px) and 0.0 < edge_px <= 0.5):
+        raise ValueError(f"edge_px = {edge_px!r}: must be in (0, 0.5] pixels")
+    x, y, z, pixel = centres
+    move = np.asarray(selected, bool)[spix]
+    if not move.any():
+        return samples
+    at = np.searchsorted(pixel, spix[move])
+    if np.any(at >= pixel.size) or np.any(pixel[np.minimum(at, pixel.size - 1)] != spix[move]):
+        raise ValueError("spread_to_footprint_edges: a sub-sample's pixel has no centre")
+    factor = edge_px / half
+    out = []
+    for c, v in ((x, sx), (y, sy), (z, sz)):
+        v = np.array(v, dtype=np.float64, copy=True)
+        base = np.asarray(c, np.float64)[at]
+        v[move] = base + factor * (v[move] - base)
+        out.append(v)
+    return out[0], out[1], out[2], spix
 
 
 def map_view_points(centres, height: np.ndarray, valid: np.ndarray, P: np.ndarray, to_map, *,

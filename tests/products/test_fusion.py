@@ -887,6 +887,83 @@ def test_step_edge_pixels_are_the_high_side_of_steps():
     assert dsm.step_edge_pixels(h, step_m=0.5)[:, 0].all()
 
 
+def test_small_raised_pixels_are_crowns_not_buildings():
+    """A 0.5 m map of gently sloping ground (0.01 m per pixel): a 3 m crown (radius) 5 m above
+    it, a 20 x 20 m block 10 m above it, a 30 m-deep blunder pixel and unknown pixels. The
+    crown's pixels are small and raised; the block (400 m^2) is not, nor the ground around the
+    blunder (the median ignores one pixel), nor the unknown ones; a 1.5 m hump is not raised."""
+    gsd = 0.5
+    rows, cols = np.mgrid[0:120, 0:160]
+    ground = 0.01 * cols
+    h = ground.copy()
+    crown = (rows - 30) ** 2 + (cols - 30) ** 2 <= (3.0 / gsd) ** 2
+    h[crown] += 5.0
+    block = (rows >= 60) & (rows < 100) & (cols >= 80) & (cols < 120)
+    h[block] += 10.0
+    hump = (rows - 30) ** 2 + (cols - 120) ** 2 <= 16
+    h[hump] += 1.5
+    h[10, 100] = -30.0  # a blunder
+    h[0:5, 0:5] = np.nan
+    small = dsm.small_raised_pixels(h, gsd, 150.0)
+    np.testing.assert_array_equal(small, crown)
+    # Larger areas take the block too; 0 m^2 none.
+    assert np.array_equal(dsm.small_raised_pixels(h, gsd, 500.0), crown | block)
+    assert not dsm.small_raised_pixels(h, gsd, 0.0).any()
+    # The area is in square metres: at 0.25 m per pixel the same pixels cover a quarter.
+    assert np.array_equal(dsm.small_raised_pixels(h, 0.25, 100.0), crown | block)
+    with pytest.raises(ValueError, match="gsd_m"):
+        dsm.small_raised_pixels(h, 0.0, 150.0)
+
+
+def test_spread_to_footprint_edges_moves_the_selected_pixels_sub_samples_only():
+    """Pixels mapped by x = 2 col + 0.5 row, y = -3 row (a sheared footprint), z = the pixel's
+    height: the selected pixel's 2 x 2 sub-samples end at +-0.49 px of its centre, the others'
+    stay at +-0.25 px."""
+    shape = (4, 5)
+    height = np.arange(20, dtype=np.float64).reshape(shape)
+    pixel = np.array([3, 7, 12])
+    r, c = np.divmod(pixel, shape[1])
+
+    def mapped(dc, dr):
+        cc, rr = c[:, None] + dc[None, :], r[:, None] + dr[None, :]
+        return ((2.0 * cc + 0.5 * rr).ravel(), (-3.0 * rr).ravel(),
+                np.repeat(height.ravel()[pixel], dc.size))
+
+    dx, dy = dsm_points._subsample_offsets(2)
+    x, y, z = mapped(np.zeros(1), np.zeros(1))
+    sx, sy, sz = mapped(dx, dy)
+    spix = np.repeat(pixel, 4)
+    selected = np.zeros(20, bool)
+    selected[7] = True
+    ox, oy, oz, opix = dsm_points.spread_to_footprint_edges(
+        (x, y, z, pixel), (sx, sy, sz, spix), selected, 2, 0.49)
+    ex, ey, ez = mapped(dx / 0.25 * 0.49, dy / 0.25 * 0.49)
+    moved = spix == 7
+    np.testing.assert_allclose(ox[moved], ex[moved], atol=1e-12)
+    np.testing.assert_allclose(oy[moved], ey[moved], atol=1e-12)
+    np.testing.assert_array_equal(oz, sz)
+    np.testing.assert_array_equal(opix, spix)
+    np.testing.assert_array_equal(ox[~moved], sx[~moved])
+    np.testing.assert_array_equal(oy[~moved], sy[~moved])
+    # One sub-sample per pixel: nothing to move.
+    same = dsm_points.spread_to_footprint_edges((x, y, z, pixel), (x, y, z, pixel), selected, 1,
+                                                0.49)
+    np.testing.assert_array_equal(same[0], x)
+    with pytest.raises(ValueError, match="edge_px"):
+        dsm_points.spread_to_footprint_edges((x, y, z, pixel), (sx, sy, sz, spix), selected, 2,
+                                             0.6)
+    with pytest.raises(ValueError, match="no centre"):
+        dsm_points.spread_to_footprint_edges((x[:1], y[:1], z[:1], pixel[:1]),
+                                             (sx, sy, sz, spix), selected, 2, 0.49)
+
+
+def test_small_object_area_is_checked():
+    with pytest.raises(OptionsError, match="DSMOptions.small_object_area_m2"):
+        dsm.DSMOptions(small_object_area_m2=-1.0)
+    with pytest.raises(OptionsError, match="DSMOptions.small_object_area_m2"):
+        dsm.DSMOptions(small_object_area_m2=float("inf"))
+
+
 def test_edge_min_confidence_is_checked():
     with pytest.raises(OptionsError, match="edge_min_confidence"):
         dsm.DSMOptions(edge_min_confidence=1.5)
