@@ -105,7 +105,7 @@ VISIBILITY_SLACK_CONFIDENCE = 0.3
 MAX_VISIBILITY_SLACK_PX = 8
 # Small raised objects' whole footprints ([dsm] small_object_area_m2): the DSM holds each
 # cell's highest point (as the lidar truths do), and a pixel's sub-samples (+-0.25 px with 2 per
-# side) stop short of its footprint's edges, so the cells a tree crown or a rooftop box only
+# side) stop short of its footprint's edges, so the cells a tree crown (or a truck, a shed) only
 # overhangs take the ground beside it. Spreading every pixel's sub-samples to its footprint's
 # edges carried the facades matched at the roof's height onto the ground beside buildings as
 # well (docs/measurements.md, seventeenth session: v10 seed 1 DFC MAE 0.860 -> 1.163 m). Only
@@ -160,9 +160,9 @@ class DSMOptions(Options):
     visibility_slack_confidence: float = VISIBILITY_SLACK_CONFIDENCE  # ... confident: a
     # pixel's matching confidence at least this (facades matched at the roof's height are not)
     small_object_area_m2: float = 150.0  # the pixels of a view's raised regions (2 m above the
-    # ground around them) of at most this area splat to their footprints' edges: a crown's or a
-    # box's rim reaches the cells it overhangs (SMALL_OBJECT_MIN_HEIGHT_M); 0: none (subsamples
-    # 1: nothing to spread)
+    # ground around them) of at most this area splat to their footprints' edges: a crown's rim
+    # reaches the cells it overhangs (SMALL_OBJECT_MIN_HEIGHT_M); 0: none (subsamples 1:
+    # nothing to spread)
     consensus_min_distinct_views: int = 3  # consensus: the agreeing height maps must be matched
     # from at least this many distinct views in all (A against B and B against A are one pair;
     # at most the views there are)
@@ -444,7 +444,8 @@ def small_raised_pixels(height: np.ndarray, gsd_m: float, max_area_m2: float, *,
                         min_height_m: float = SMALL_OBJECT_MIN_HEIGHT_M,
                         ground_window_m: float = SMALL_OBJECT_GROUND_WINDOW_M) -> np.ndarray:
     """(H, W) bool: the pixels of a height map (NaN: unknown) that belong to small raised
-    objects, trees and boxes rather than buildings.
+    objects (tree crowns, vehicles, sheds) rather than buildings; a box on a roof is
+    part of its building's region.
 
     The ground under a pixel is the lowest height within ``ground_window_m`` (a square, from a
     ``SMALL_OBJECT_SMOOTH_PX`` median of the map, which one pixel's blunder does not lower);
