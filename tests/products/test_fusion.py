@@ -957,6 +957,43 @@ def test_spread_to_footprint_edges_moves_the_selected_pixels_sub_samples_only():
                                              (sx, sy, sz, spix), selected, 2, 0.49)
 
 
+@pytest.mark.parametrize("radius", [1, 3, 8])
+def test_extreme_within_matches_scipy(radius):
+    """fusion._extreme_within (the package's, numpy) against scipy.ndimage's maximum and minimum
+    filters with a constant outside, on values with infinities: exactly equal."""
+    ndimage = pytest.importorskip("scipy.ndimage")
+    rng = np.random.default_rng(radius)
+    a = rng.normal(100.0, 20.0, size=(37, 23))
+    a[rng.uniform(size=a.shape) < 0.1] = np.inf
+    a[rng.uniform(size=a.shape) < 0.1] = -np.inf
+    size = 2 * radius + 1
+    for op, fill, ref in ((np.maximum, -np.inf, ndimage.maximum_filter),
+                          (np.minimum, np.inf, ndimage.minimum_filter)):
+        expected = ref(a, size=size, mode="constant", cval=fill)
+        np.testing.assert_array_equal(dsm._extreme_within(a, radius, op, fill), expected)
+
+
+def test_dsm_rules_run_without_scipy():
+    """SciPy is a test dependency only: the free-space check with its slack, the step edges and
+    the small objects run in a process where importing it fails."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; sys.modules['scipy'] = None; sys.modules['scipy.ndimage'] = None\n"
+        "import numpy as np\n"
+        "from satsweep.products import fusion as f\n"
+        "h = np.zeros((40, 40)); h[10:14, 10:14] = 6.0\n"
+        "P = np.array([[1.0, 0, 0.1, 0], [0, 1.0, 0, 0], [0, 0, 1e-6, 1.0]])\n"
+        "f.visibility_check_heights([h, h], [P, P], tolerance_m=1.0, slack_px=1,\n"
+        "                           confidences=[np.ones_like(h)] * 2, slack_min_confidence=0.3)\n"
+        "assert f.step_edge_pixels(h).sum() == 12\n"
+        "assert f.small_raised_pixels(h, 0.5, 150.0).sum() == 16\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+
+
 def test_small_object_area_is_checked():
     with pytest.raises(OptionsError, match="DSMOptions.small_object_area_m2"):
         dsm.DSMOptions(small_object_area_m2=-1.0)
