@@ -959,18 +959,18 @@ def test_spread_to_footprint_edges_moves_the_selected_pixels_sub_samples_only():
 
 @pytest.mark.parametrize("radius", [1, 3, 8])
 def test_extreme_within_matches_scipy(radius):
-    """fusion._extreme_within (the package's, numpy) against scipy.ndimage's maximum and minimum
-    filters with a constant outside, on values with infinities: exactly equal."""
+    """fusion._max_within / _min_within (OpenCV, float64) against scipy.ndimage's maximum and
+    minimum filters with a constant outside, on values with infinities: exactly equal."""
     ndimage = pytest.importorskip("scipy.ndimage")
     rng = np.random.default_rng(radius)
     a = rng.normal(100.0, 20.0, size=(37, 23))
     a[rng.uniform(size=a.shape) < 0.1] = np.inf
     a[rng.uniform(size=a.shape) < 0.1] = -np.inf
     size = 2 * radius + 1
-    for op, fill, ref in ((np.maximum, -np.inf, ndimage.maximum_filter),
-                          (np.minimum, np.inf, ndimage.minimum_filter)):
+    for ours, fill, ref in ((dsm._max_within, -np.inf, ndimage.maximum_filter),
+                            (dsm._min_within, np.inf, ndimage.minimum_filter)):
         expected = ref(a, size=size, mode="constant", cval=fill)
-        np.testing.assert_array_equal(dsm._extreme_within(a, radius, op, fill), expected)
+        np.testing.assert_array_equal(ours(a, radius), expected)
 
 
 def test_dsm_rules_run_without_scipy():
