@@ -29,13 +29,23 @@ Rules (documented in the report):
   seen by at least ``side_coverage`` references where the slots allow: the last references are
   taken from the best views on the sides still missing (references all looking from one side
   leave the ground in front of every wall facing the other way hidden from all of them, and
-  the fusion fills it with roof heights).
-Without similarity (all 1), the rules reduce to B/H and incidence alone.
+  the fusion fills it with roof heights);
+- season: where the metadata date the views (``similarity.leaf_season``: how fully deciduous
+  trees are in leaf on that date at the AOI's latitude), at least ``leaf_on_references`` of
+  the references are views of dates in leaf where the stack has such views (views part in leaf
+  counting for their part; the side coverage keeps its slots), and a source's rank adds
+  ``leaf_state_weight`` times its difference in leaf state from the reference. The DSM holds
+  the canopy's top (the highest point of a cell, an airborne lidar's first return); a leafless
+  crown shows the ground through its branches, and references all of winter dates put the
+  crowns at the ground's height (an issue-form stack of 19 views on 19 dates whose 8 lowest-
+  cost references were all of dates from October to April: crowns 4.6 m too low on average).
+Without similarity (all 1) and dates, the rules reduce to B/H and incidence alone.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Sequence
 
 import numpy as np
@@ -74,6 +84,9 @@ CLOSE_SIMILARITY = 0.9
 SIDE_HALF_ANGLE_DEG = 60.0
 NADIR_DEG = 6.0
 SIDES_DEG = (0.0, 90.0, 180.0, 270.0)
+# A view's date counts as in leaf from this similarity.leaf_season on (late May to mid October
+# in the northern temperate zone).
+LEAF_ON_SEASON = 0.75
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,9 +106,17 @@ class ViewSelectionOptions(Options):
     side_coverage: int = 2  # references wanted that see each side of the buildings (north,
     # east, south, west: the views looking from within 60 degrees of it, and those within 6
     # degrees of nadir), where some view does; 0: no such rule
+    leaf_on_references: float = 0.5  # share of the references (rounded up) taken from views
+    # of dates in leaf (similarity.leaf_season >= LEAF_ON_SEASON, from the metadata's date and
+    # the AOI's latitude) where the stack has such views: the DSM holds the canopy's top, which
+    # leafless crowns do not show; 0: no such rule
+    leaf_state_weight: float = 1.0  # weight of the difference in leaf state between a
+    # reference and a source (|leaf_season difference|, 0 where either date is unknown) in the
+    # source's rank, beside similarity_weight x (1 - similarity)
 
     ADVANCED = ("min_b_over_h", "max_b_over_h", "target_b_over_h", "min_overlap",
-                "similarity_weight", "min_similarity", "side_coverage")
+                "similarity_weight", "min_similarity", "side_coverage", "leaf_on_references",
+                "leaf_state_weight")
 
     def check(self) -> None:
         self._require(0 <= self.min_b_over_h < self.max_b_over_h, "min_b_over_h",
@@ -108,6 +129,12 @@ class ViewSelectionOptions(Options):
                       "must be in [0, 100]")
         self._require(0 <= self.min_similarity <= 1, "min_similarity", "must be in [0, 1]")
         self._require(self.side_coverage >= 0, "side_coverage", "must be >= 0 (0: no such rule)")
+        self._require(math.isfinite(self.leaf_on_references)
+                      and 0 <= self.leaf_on_references <= 1, "leaf_on_references",
+                      "must be a share in [0, 1] (0: no such rule)")
+        self._require(math.isfinite(self.leaf_state_weight)
+                      and 0 <= self.leaf_state_weight <= 100, "leaf_state_weight",
+                      "must be in [0, 100] (0: no such rule)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +159,11 @@ RULES = [
     "(1 - similarity), then incidence; those under min_similarity dropped if a better one "
     "remains, unless the metadata say that every source is of another date (similarity under "
     f"{CLOSE_SIMILARITY:g} to all: then none is); at most max_sources",
+    "season: at least leaf_on_references of the references are views of dates in leaf "
+    f"(leaf_season >= {LEAF_ON_SEASON:g}; views part in leaf count for their part) where there "
+    "are such views (the side coverage keeps its slots); sources' rank adds leaf_state_weight "
+    "x their difference in leaf state from the reference; leaf_season from the metadata's date and "
+    "the AOI's latitude (unknown: no preference)",
     "similarity: from the acquisition metadata when both views have it (1 within one pass, else "
     "sun-direction and season terms), else from the sparse stage's tie points (each pair's "
     "matches among the strongest features over the stack's largest), else measured (gradient "
@@ -152,13 +184,16 @@ class Selection:
     similarity: np.ndarray | None = None  # (n, n) appearance similarity; None: not known
     similarity_source: np.ndarray | None = None  # (n, n) where each pair's came from:
     # "metadata", "tie points" or "images" (satsweep.dense.similarity)
+    leaf_season: tuple[float | None, ...] | None = None  # per view, how fully its date's
+    # trees are in leaf (None: unknown date)
 
     def to_dict(self, names: Sequence[str] | None = None) -> dict:
         n = len(self.geometry)
         names = list(names) if names is not None else [str(i) for i in range(n)]
         return {
             "views": [
-                {"name": names[i], "incidence_deg": g.incidence_deg, "azimuth_deg": g.azimuth_deg}
+                {"name": names[i], "incidence_deg": g.incidence_deg, "azimuth_deg": g.azimuth_deg,
+                 "leaf_season": None if self.leaf_season is None else self.leaf_season[i]}
                 for i, g in enumerate(self.geometry)
             ],
             "pairs": [
@@ -221,12 +256,15 @@ def crop_overlap(cam_i, cam_j, mid_height: float, samples: int = 21) -> float:
 def select_views(cameras: Sequence, *, mid_height: float,
                  options: ViewSelectionOptions = ViewSelectionOptions(),
                  names: Sequence[str] | None = None, similarity: np.ndarray | None = None,
-                 similarity_source: np.ndarray | None = None) -> Selection:
+                 similarity_source: np.ndarray | None = None,
+                 leaf_season: Sequence[float | None] | None = None) -> Selection:
     """Choose references and their sources from the approximated cameras (see module doc).
 
     ``cameras`` are objects with ``center`` (ENU, m), ``P``, ``width`` and ``height``;
     ``mid_height`` is the ENU height of the middle of the altitude range; ``similarity`` the
-    (n, n) appearance similarity of the views (``satsweep.dense.similarity``; None: all alike).
+    (n, n) appearance similarity of the views (``satsweep.dense.similarity``; None: all alike);
+    ``leaf_season`` per view how fully its date's trees are in leaf (``similarity.leaf_season``;
+    None, or None for a view: unknown, no preference).
     """
     n = len(cameras)
     names = list(names) if names is not None else [f"view {i}" for i in range(n)]
@@ -243,6 +281,12 @@ def select_views(cameras: Sequence, *, mid_height: float,
                 bh[i, j] = b_over_h(geometry[i], geometry[j])
                 ov[i, j] = crop_overlap(cameras[i], cameras[j], mid_height)
     o = options
+    # Leaf state per view (NaN: unknown date).
+    leaf = np.full(n, np.nan)
+    if leaf_season is not None:
+        leaf = np.array([np.nan if v is None else float(v) for v in leaf_season])
+    leaf_gap = np.nan_to_num(np.abs(leaf[:, None] - leaf[None, :]), nan=0.0)
+    in_leaf = leaf >= LEAF_ON_SEASON  # False where unknown
 
     def in_range(r: int, j: int) -> bool:
         return (j != r and ov[r, j] >= o.min_overlap
@@ -250,12 +294,14 @@ def select_views(cameras: Sequence, *, mid_height: float,
 
     def source_cost(r: int, j: int) -> tuple[float, float]:
         return (abs(bh[r, j] - o.target_b_over_h) / o.target_b_over_h
-                + o.similarity_weight * (1.0 - sim[r, j]), geometry[j].incidence_deg)
+                + o.similarity_weight * (1.0 - sim[r, j]) + o.leaf_state_weight * leaf_gap[r, j],
+                geometry[j].incidence_deg)
 
     def reference_cost(r: int) -> float:
         cands = sorted((sim[r, j] for j in range(n) if in_range(r, j)), reverse=True)
         best = cands[:o.max_sources] or [1.0]
-        return geometry[r].incidence_deg + REFERENCE_DISSIMILARITY_DEG * (1.0 - float(np.mean(best)))
+        return (geometry[r].incidence_deg
+                + REFERENCE_DISSIMILARITY_DEG * (1.0 - float(np.mean(best))))
 
     def all_other_dates(r: int, sources: Sequence[int]) -> bool:
         """Whether the metadata say that none of ``sources`` shares the reference's conditions
@@ -272,16 +318,30 @@ def select_views(cameras: Sequence, *, mid_height: float,
                       for side in SIDES_DEG] for g in geometry])
     references: list[int] = []
     sources: dict[int, tuple[int, ...]] = {}
+    leaf_on_wanted = math.ceil(o.leaf_on_references * min(o.max_references, n))
     while remaining and len(references) < o.max_references:
         r = remaining[0]
+        slots = o.max_references - len(references)
+        # Season: once the slots left are no more than the references still wanted from dates
+        # in leaf, the next one must be such a view (one that sees a side still wanted first),
+        # unless the side coverage below needs the slot (then a view in leaf of such a side
+        # if there is one): a side that no reference sees leaves holes, not just lower crowns.
+        leaf_left = [j for j in remaining if in_leaf[j]]
+        # References of dates part in leaf count for their part (a May date for 0.66).
+        leaf_missing = leaf_on_wanted - float(np.nansum(leaf[references]))
+        leaf_wanted = leaf_missing > 0.0
+        leaf_on = leaf_left and math.ceil(leaf_missing) >= slots
         # Side coverage: once the references left to take are no more than the views still
         # wanted on the sides that some remaining view sees, the next one must see such a side
         # (the best of those by the order above); references all on one side leave the ground
         # behind every wall facing away hidden from all of them (filled with roof heights).
         wanted = np.maximum(o.side_coverage - sees[references].sum(axis=0), 0)
         wanted = wanted * sees[remaining].any(axis=0)
-        if wanted.sum() >= o.max_references - len(references):
-            r = next((j for j in remaining if (sees[j] & (wanted > 0)).any()), r)
+        if wanted.sum() >= slots:
+            side = [j for j in remaining if (sees[j] & (wanted > 0)).any()]
+            r = next((j for j in side if in_leaf[j] and leaf_wanted), side[0] if side else r)
+        elif leaf_on:
+            r = next((j for j in leaf_left if (sees[j] & (wanted > 0)).any()), leaf_left[0])
         remaining.remove(r)
         cands = [j for j in range(n) if j != r and ov[r, j] >= o.min_overlap]
         flat = [j for j in cands if bh[r, j] < MIN_STEREO_B_OVER_H]
@@ -313,7 +373,9 @@ def select_views(cameras: Sequence, *, mid_height: float,
     return Selection(references=tuple(references), sources=sources, b_over_h=bh, overlap=ov,
                      geometry=geometry, warnings=tuple(warnings),
                      similarity=None if similarity is None else sim,
-                     similarity_source=similarity_source)
+                     similarity_source=similarity_source,
+                     leaf_season=None if leaf_season is None else tuple(
+                         None if v is None else float(v) for v in leaf_season))
 
 
 def _range_distance(value: float, o: ViewSelectionOptions) -> float:

@@ -21,6 +21,12 @@ ratio, sources are ranked by a similarity in [0, 1] (1: alike):
 
 ``appearance_similarity`` takes the metadata where both views have it, then the tie points,
 and measures the rest.
+
+Apart from how alike two views look, a view's date says how much of the vegetation it sees
+(``leaf_season``): a DSM holds the top of the canopy (an airborne lidar's first return, the
+highest point of each cell), which deciduous trees show only in leaf; a leafless crown shows
+the ground through its branches, and a height map matched on a winter date puts most of a
+crown at the ground's height.
 """
 
 from __future__ import annotations
@@ -43,6 +49,15 @@ SUN_SCALE_DEG = 15.0
 # Dates this many days apart within a year (the shorter way round) lower it to exp(-1/2): the
 # vegetation of mid-latitude cities changes over a season.
 SEASON_SCALE_DAYS = 45.0
+# Temperate deciduous phenology (northern hemisphere days of year; the southern one is half a
+# year off): leafless until LEAF_OUT_DOY[0] (1 April) and from LEAF_FALL_DOY[1] (1 December),
+# in full leaf from LEAF_OUT_DOY[1] (1 June) to LEAF_FALL_DOY[0] (1 October), linear between.
+# Broad on purpose: leaf-out and leaf fall move by weeks with latitude, altitude and species;
+# the dates inside both ramps are the ones it cannot tell.
+LEAF_OUT_DOY = (91.0, 152.0)
+LEAF_FALL_DOY = (274.0, 335.0)
+# Within this latitude (degrees) there is no leafless season to avoid (the tropics: 1).
+TROPICS_LAT_DEG = 23.44
 # Side (m) of the cells of the grid the images are compared on: coarse enough that the
 # parallax of a few metres of height between two views stays within about a cell.
 GRID_CELL_M = 2.0
@@ -75,6 +90,27 @@ def metadata_similarity(a: "AcquisitionMetadata | None",
     days = abs((ta - tb).total_seconds()) / 86400.0 % 365.25
     season = min(days, 365.25 - days)
     return math.exp(-0.5 * (sun / SUN_SCALE_DEG) ** 2 - 0.5 * (season / SEASON_SCALE_DAYS) ** 2)
+
+
+def leaf_season(acquisition: "AcquisitionMetadata | None", lat: float) -> float | None:
+    """How fully deciduous trees are in leaf on an acquisition's date at latitude ``lat``
+    (degrees): 1 in full leaf (and anywhere in the tropics), 0 leafless, a linear ramp in
+    between (``LEAF_OUT_DOY``, ``LEAF_FALL_DOY``); None when the metadata give no date."""
+    if acquisition is None or acquisition.acquisition_datetime is None:
+        return None
+    if abs(lat) < TROPICS_LAT_DEG:
+        return 1.0
+    t = acquisition.acquisition_datetime
+    doy = t.timetuple().tm_yday + (t.hour + t.minute / 60.0) / 24.0
+    if lat < 0.0:
+        doy = (doy + 365.25 / 2.0) % 365.25
+    if doy < LEAF_OUT_DOY[0] or doy >= LEAF_FALL_DOY[1]:
+        return 0.0
+    if doy < LEAF_OUT_DOY[1]:
+        return (doy - LEAF_OUT_DOY[0]) / (LEAF_OUT_DOY[1] - LEAF_OUT_DOY[0])
+    if doy < LEAF_FALL_DOY[0]:
+        return 1.0
+    return (LEAF_FALL_DOY[1] - doy) / (LEAF_FALL_DOY[1] - LEAF_FALL_DOY[0])
 
 
 def _ground_grid(cameras: "CameraSet", aoi: "AOI", height: float) -> tuple[np.ndarray, ...]:

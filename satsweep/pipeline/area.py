@@ -267,9 +267,12 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
                 acquisitions, images, cameras, job.aoi, mid,
                 matches=(None if tied.sparse is None
                          else tied.sparse.match_counts([v.path for v in views])))
+        from satsweep.dense.similarity import leaf_season
+
         selection = select_views([v.camera for v in cameras.views], mid_height=mid,
                                  options=config.views, names=names, similarity=similarity,
-                                 similarity_source=similarity_source)
+                                 similarity_source=similarity_source,
+                                 leaf_season=[leaf_season(a, lat) for a in acquisitions])
         for w in selection.warnings:
             rep.warn(w)
     sweeps = sweep_references(ctx.device, cameras, images, selection, u_range, config, rep,

@@ -185,3 +185,53 @@ def test_a_near_nadir_reference_sees_every_side():
     cams = [satellite(NADIR_DEG / 2, 270)] + _one_sided_stack()
     sel = select_views(cams, mid_height=0.0, options=ViewSelectionOptions(max_references=3))
     assert sel.references == (0, 1, 2)
+
+
+def _seasons_stack():
+    """Six views around nadir, the three lowest incidences of winter dates (leaf_season 0),
+    the three steeper ones of summer dates (1)."""
+    cams = [satellite(5, 0), satellite(8, 120), satellite(10, 240),
+            satellite(14, 60), satellite(16, 180), satellite(18, 300)]
+    return cams, [0.0, 0.0, 0.0, 1.0, 1.0, 1.0]
+
+
+def test_references_from_dates_in_leaf():
+    """By incidence alone the four references are the three winter views and one summer view;
+    leaf_on_references = 0.5 wants two of the four in leaf, so the best summer view takes the
+    last slot. Unknown dates and the rule off change nothing."""
+    cams, leaf = _seasons_stack()
+    opts = dict(max_references=4, side_coverage=0)
+    plain = select_views(cams, mid_height=0.0, options=ViewSelectionOptions(**opts))
+    assert plain.references == (0, 1, 2, 3)
+    sel = select_views(cams, mid_height=0.0, options=ViewSelectionOptions(**opts),
+                       leaf_season=leaf)
+    assert sel.references == (0, 1, 3, 4)
+    assert sum(leaf[r] for r in sel.references) >= 0.5 * 4
+    off = select_views(cams, mid_height=0.0, leaf_season=leaf,
+                       options=ViewSelectionOptions(**opts, leaf_on_references=0.0))
+    assert off.references == plain.references
+    unknown = select_views(cams, mid_height=0.0, options=ViewSelectionOptions(**opts),
+                           leaf_season=[None] * len(cams))
+    assert unknown.references == plain.references and unknown.sources == plain.sources
+    # Dates part in leaf count for their part: two winter views at 0.5 make up one in leaf.
+    half = select_views(cams, mid_height=0.0, options=ViewSelectionOptions(**opts),
+                        leaf_season=[0.5, 0.5, 0.0, 1.0, 1.0, 1.0])
+    assert half.references == plain.references
+
+
+def test_sources_ranked_by_leaf_state():
+    """Two sources at the same B/H from the reference, one of its leaf state and one of the
+    other: the first ranks first, whatever their order by incidence."""
+    cams = [satellite(2, 0), satellite(12, 90), satellite(12, 270)]
+    for leaf, first in (([1.0, 0.0, 1.0], 2), ([1.0, 1.0, 0.0], 1)):
+        sel = select_views(cams, mid_height=0.0, leaf_season=leaf,
+                           options=ViewSelectionOptions(max_references=1))
+        assert sel.sources[0][0] == first, (leaf, sel.sources[0])
+        assert sorted(sel.sources[0]) == [1, 2]
+
+
+def test_leaf_options_are_checked():
+    with pytest.raises(OptionsError, match="leaf_on_references"):
+        ViewSelectionOptions(leaf_on_references=1.5)
+    with pytest.raises(OptionsError, match="leaf_state_weight"):
+        ViewSelectionOptions(leaf_state_weight=-1.0)

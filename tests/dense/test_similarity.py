@@ -83,3 +83,24 @@ def test_metadata_similarity_of_two_dates():
     assert abs(s - math.exp(-1.0)) < 1e-6, s
     assert SEASON_SCALE_DAYS == 45.0
     assert metadata_similarity(a, None) is None
+
+
+def test_leaf_season_over_the_year_and_the_hemispheres():
+    """Leafless in winter, in leaf in summer, linear between (mid-ramp dates computed from the
+    constants); half a year off in the south; no leafless season in the tropics; None without a
+    date."""
+    from satsweep.dense.similarity import LEAF_FALL_DOY, LEAF_OUT_DOY, TROPICS_LAT_DEG, leaf_season
+
+    def on(date, lat=48.85):
+        return leaf_season(AcquisitionMetadata(acquisition_time_utc=date + "T00:00:00Z"), lat)
+
+    assert on("2019-01-15") == 0.0 and on("2019-12-20") == 0.0
+    assert on("2019-07-01") == 1.0 and on("2019-09-15") == 1.0
+    # 1 May 2019 is day 121 (its midnight: 121.0); 1 November is day 305.
+    out, fall = LEAF_OUT_DOY, LEAF_FALL_DOY
+    assert abs(on("2019-05-01") - (121.0 - out[0]) / (out[1] - out[0])) < 1e-12
+    assert abs(on("2019-11-01") - (fall[1] - 305.0) / (fall[1] - fall[0])) < 1e-12
+    assert on("2019-07-01", lat=-34.6) == 0.0 and on("2019-01-15", lat=-34.6) == 1.0
+    assert on("2019-01-15", lat=TROPICS_LAT_DEG - 1.0) == 1.0
+    assert leaf_season(AcquisitionMetadata(), 48.85) is None
+    assert leaf_season(None, 48.85) is None
