@@ -325,12 +325,12 @@ def select_views(cameras: Sequence, *, mid_height: float,
         # Season: once the slots left are no more than the references still wanted from dates
         # in leaf, the next one must be such a view (one that sees a side still wanted first),
         # unless the side coverage below needs the slot (then a view in leaf of such a side
-        # if there is one): a side that no reference sees leaves holes, not just lower crowns.
+        # if there is one, when one is due): a side that no reference sees leaves holes, not
+        # just lower crowns.
         leaf_left = [j for j in remaining if in_leaf[j]]
         # References of dates part in leaf count for their part (a May date for 0.66).
         leaf_missing = leaf_on_wanted - float(np.nansum(leaf[references]))
-        leaf_wanted = leaf_missing > 0.0
-        leaf_on = leaf_left and math.ceil(leaf_missing) >= slots
+        leaf_on = bool(leaf_left) and math.ceil(leaf_missing) >= slots
         # Side coverage: once the references left to take are no more than the views still
         # wanted on the sides that some remaining view sees, the next one must see such a side
         # (the best of those by the order above); references all on one side leave the ground
@@ -339,7 +339,7 @@ def select_views(cameras: Sequence, *, mid_height: float,
         wanted = wanted * sees[remaining].any(axis=0)
         if wanted.sum() >= slots:
             side = [j for j in remaining if (sees[j] & (wanted > 0)).any()]
-            r = next((j for j in side if in_leaf[j] and leaf_wanted), side[0] if side else r)
+            r = next((j for j in side if in_leaf[j] and leaf_on), side[0] if side else r)
         elif leaf_on:
             r = next((j for j in leaf_left if (sees[j] & (wanted > 0)).any()), leaf_left[0])
         remaining.remove(r)

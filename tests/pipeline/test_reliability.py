@@ -257,6 +257,16 @@ def test_each_views_acquisition_metadata_is_reported(small_town, tmp_path):
     assert first["acquisition"]["acquisition_time_utc"] == "2019-06-01T10:31:12Z"
     assert first["acquisition"]["sun_elevation_deg"] == 61.0
     assert second["acquisition"] is None
+    # The view selection reads its date's leaf state at the AOI's latitude (1 June in Paris:
+    # in full leaf); the view without a date has none.
+    from satsweep.dense.similarity import leaf_season
+    from satsweep.io.metadata import AcquisitionMetadata
+
+    selected = result.report["view_selection"]["views"]
+    expected = leaf_season(AcquisitionMetadata(acquisition_time_utc="2019-06-01T10:31:12Z"),
+                           small_town.aoi.center[1])
+    assert expected == 1.0 and selected[0]["leaf_season"] == expected
+    assert selected[1]["leaf_season"] is None
 
 
 @pytest.mark.parametrize("aoi, extra, needle", [
