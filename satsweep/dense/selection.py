@@ -281,10 +281,10 @@ def select_views(cameras: Sequence, *, mid_height: float,
                 bh[i, j] = b_over_h(geometry[i], geometry[j])
                 ov[i, j] = crop_overlap(cameras[i], cameras[j], mid_height)
     o = options
-    # Leaf state per view (NaN: unknown date).
-    leaf = np.full(n, np.nan)
-    if leaf_season is not None:
-        leaf = np.array([np.nan if v is None else float(v) for v in leaf_season])
+    # Leaf state per view (None / NaN: unknown date).
+    seasons = None if leaf_season is None else tuple(
+        None if v is None else float(v) for v in leaf_season)
+    leaf = np.array([np.nan if v is None else v for v in (seasons or (None,) * n)], float)
     leaf_gap = np.nan_to_num(np.abs(leaf[:, None] - leaf[None, :]), nan=0.0)
     in_leaf = leaf >= LEAF_ON_SEASON  # False where unknown
 
@@ -373,9 +373,7 @@ def select_views(cameras: Sequence, *, mid_height: float,
     return Selection(references=tuple(references), sources=sources, b_over_h=bh, overlap=ov,
                      geometry=geometry, warnings=tuple(warnings),
                      similarity=None if similarity is None else sim,
-                     similarity_source=similarity_source,
-                     leaf_season=None if leaf_season is None else tuple(
-                         None if v is None else float(v) for v in leaf_season))
+                     similarity_source=similarity_source, leaf_season=seasons)
 
 
 def _range_distance(value: float, o: ViewSelectionOptions) -> float:

@@ -252,6 +252,7 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
                                                            report=rep)
 
     from satsweep.dense.selection import select_views
+    from satsweep.dense.similarity import leaf_season
 
     u_range = enu_height_range(cameras.frame, job.aoi, alt)
     mid = 0.5 * (u_range[0] + u_range[1])
@@ -267,8 +268,6 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
                 acquisitions, images, cameras, job.aoi, mid,
                 matches=(None if tied.sparse is None
                          else tied.sparse.match_counts([v.path for v in views])))
-        from satsweep.dense.similarity import leaf_season
-
         selection = select_views([v.camera for v in cameras.views], mid_height=mid,
                                  options=config.views, names=names, similarity=similarity,
                                  similarity_source=similarity_source,
