@@ -80,6 +80,9 @@ class MRFOptions(Options):
     sgm_consensus_gf_radius: int | None = 1  # ... in an area whose DSM is the consensus of many
     # reference views' height maps ([dsm] fusion; 6 or more): it rejects each map's blunders,
     # and a wider filter erodes crowns and roof edges; None: sgm_sweep_gf_radius
+    sgm_dense_consensus_gf_radius: int | None = 0  # ... for a reference of such an area whose
+    # pixels are finer than the DSM's cells (2 pixels per cell or more, as 0.3 m pixels on 0.5 m
+    # cells: each cell already pools several pixels); 0: no filter; None: sgm_consensus_gf_radius
     median_radius_m: float = 0.0  # an edge-aware weighted median of each height map, the
     # reference image as guide (satsweep.dense.median): its window's radius (m); 0: none
     consensus_median_radius_m: float = 1.2  # ... in an area whose DSM is the consensus of many
@@ -108,6 +111,7 @@ class MRFOptions(Options):
     tile_overlap_px: int = 64  # pixels each reference tile is swept and refined past its kept part
 
     ADVANCED = ("sgm_p1", "sgm_p2", "sgm_sweep_gf_radius", "sgm_consensus_gf_radius",
+                "sgm_dense_consensus_gf_radius",
                 "median_radius_m", "consensus_median_radius_m", "median_sigma",
                 "sgm_paths", "sgm_p2_sigma", "sgm_work_group", "sgm_scan", "sgm_subplane",
                 "gc_sweep_gf_radius", "gc_smoothness", "gc_truncation_labels", "gc_edge_sigma",
@@ -127,6 +131,14 @@ class MRFOptions(Options):
             changes["median_radius_m"] = self.consensus_median_radius_m
         return self.replace(**changes) if changes else self
 
+    def for_dense_pixels(self) -> "MRFOptions":
+        """The options (already ``for_consensus``) of a reference whose pixels are finer than
+        the DSM's cells: under SGM, the sweep filters with ``sgm_dense_consensus_gf_radius``
+        when that is set."""
+        if self.method != "sgm" or self.sgm_dense_consensus_gf_radius is None:
+            return self
+        return self.replace(sgm_sweep_gf_radius=self.sgm_dense_consensus_gf_radius)
+
     def check(self) -> None:
         self._require(math.isfinite(self.sgm_p1) and self.sgm_p1 >= 0.0, "sgm_p1", "must be >= 0")
         self._require(math.isfinite(self.sgm_p2) and self.sgm_p2 >= self.sgm_p1, "sgm_p2",
@@ -136,6 +148,9 @@ class MRFOptions(Options):
         self._require(self.sgm_consensus_gf_radius is None
                       or 0 <= self.sgm_consensus_gf_radius <= 64,
                       "sgm_consensus_gf_radius", "must be in [0, 64] (or None)")
+        self._require(self.sgm_dense_consensus_gf_radius is None
+                      or 0 <= self.sgm_dense_consensus_gf_radius <= 64,
+                      "sgm_dense_consensus_gf_radius", "must be in [0, 64] (or None)")
         for name in ("median_radius_m", "consensus_median_radius_m"):
             value = getattr(self, name)
             self._require(math.isfinite(value) and 0.0 <= value <= 100.0, name,

@@ -7,7 +7,7 @@ from __future__ import annotations
 from satsweep.config import PipelineConfig
 from satsweep.dense.tiled import coarse_pass_planes, mrf_sweep_options, mrf_sweep_wants_wta
 from satsweep.errors import SatsweepError
-from satsweep.pipeline.sweeps import area_mrf_options, area_sweep_options
+from satsweep.pipeline.sweeps import area_mrf_options, area_sweep_options, reference_mrf_options
 
 
 def program_forecast(device, cameras, u_range: tuple[float, float],
@@ -22,6 +22,7 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
     from satsweep.dense.selection import select_views
     from satsweep.dense.sgm import SGM_MAX_LABELS, sgm_program_requests
     from satsweep.dense.sweep import PlaneSweep
+    from satsweep.geometry.camera import ground_sample_distance
     from satsweep.geometry.parallax import reparametrise
     from satsweep.geometry.skew import skew_corrected_camera
 
@@ -32,17 +33,20 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
                        for cam, v in zip(cams, cameras.views)]
         selection = select_views(cams,
                                  mid_height=0.5 * (u_range[0] + u_range[1]), options=config.views)
-        mrf = area_mrf_options(config, len(selection.references))
-        sweep = area_sweep_options(config, len(selection.references))
-        method = mrf.method
-        if method == "none":
-            engine, wta = PlaneSweep(device, sweep), True
-        else:
-            engine = PlaneSweep(device, mrf_sweep_options(sweep, mrf))
-            wta = mrf_sweep_wants_wta(sweep, mrf)
+        n_refs = len(selection.references)
+        area_mrf = area_mrf_options(config, n_refs)
+        sweep = area_sweep_options(config, n_refs)
+        method = area_mrf.method
         requests = []
         for r in selection.references:
             srcs = list(selection.sources[r])
+            gsd = ground_sample_distance(cams[r].P, (0.0, 0.0, 0.5 * (u_range[0] + u_range[1])))
+            mrf = reference_mrf_options(config, area_mrf, n_refs, gsd)
+            if method == "none":
+                engine, wta = PlaneSweep(device, sweep), True
+            else:
+                engine = PlaneSweep(device, mrf_sweep_options(sweep, mrf))
+                wta = mrf_sweep_wants_wta(sweep, mrf)
             requests += [q for q in engine.program_requests(len(srcs), wta=wta) if q is not None]
             if method == "sgm":
                 shape = (cams[r].height, cams[r].width)

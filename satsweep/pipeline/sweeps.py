@@ -39,6 +39,17 @@ REFERENCE_CONTEXT_PX = 8
 # (seeds 0-2, 4-5) 82.94 / 1.317 -> 83.92 / 1.300; on 2-3 views (tools/bench_e2e.py, median
 # fusion) it moved the medians by -0.003 to +0.012 m.
 NARROW_FILTER_MIN_REFERENCES = 6
+# In such an area a reference whose pixels are finer than the DSM's cells (at least
+# DENSE_CENTRES_PER_CELL pixel centres per cell at its ground sample distance, as WorldView-3's
+# 0.3 m on 0.5 m cells) sweeps with ``mrf.sgm_dense_consensus_gf_radius`` (0: no filter):
+# each of its cells already pools about three pixels (the upper quartile of their points,
+# ``DSMOptions.view_raster``), and even a radius of 1 px widened every roof by a cell into the
+# ground beside it (the issue-form seed 11: ground cells next to a roof 41% more than 1 m
+# high, all sides alike, every reference alike) and eroded crowns. Issue-form 0.3 m stacks
+# (19 views, 8 references), DFC MAE m, radius 1 -> 0: seeds 11, 13 and held-out 14-18 1.216
+# 1.131 0.961 1.252 1.339 0.459 0.885 -> 1.117 1.112 0.834 1.024 1.190 0.457 0.837 (mean 1.035
+# -> 0.939). At 0.5 m pixels (one per cell) the radius of 1 stays: 0 lost there (v10 seeds 0-5,
+# 93.27 -> 92.65% within 1 m; docs/measurements.md).
 
 
 def reference_window(camera, frame, aoi: AOI, alt_range: AltitudeRange, shape: tuple[int, int],
@@ -132,6 +143,23 @@ def area_mrf_options(config: PipelineConfig, n_references: int) -> MRFOptions:
     return config.mrf
 
 
+def reference_mrf_options(config: PipelineConfig, area_mrf: MRFOptions, n_references: int,
+                          gsd_m: float) -> MRFOptions:
+    """The MRF options of one reference of an area of ``n_references`` (``area_mrf``:
+    ``area_mrf_options``) whose pixels are ``gsd_m`` metres on the ground: ``for_dense_pixels``
+    where the area narrows the filter and those pixels are finer than the DSM's cells (at least
+    DENSE_CENTRES_PER_CELL of them per cell), else the area's."""
+    from satsweep.products.fusion import DENSE_CENTRES_PER_CELL  # noqa: PLC0415
+
+    if not (math.isfinite(gsd_m) and gsd_m > 0.0):
+        raise InputError(None, f"a reference's ground sample distance {gsd_m!r} m must be > 0")
+    narrow = (n_references >= NARROW_FILTER_MIN_REFERENCES
+              and config.dsm.fusion_for(n_references) == "consensus")
+    if narrow and (config.dsm.resolution / gsd_m) ** 2 >= DENSE_CENTRES_PER_CELL:
+        return area_mrf.for_dense_pixels()
+    return area_mrf
+
+
 def area_sweep_options(config: PipelineConfig, n_references: int) -> SweepOptions:
     """The sweep options of an area of ``n_references`` reference views: ``sweep.for_consensus()``
     where their height maps make a consensus ([dsm] fusion), else as given."""
@@ -156,22 +184,28 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
     invalid where its matching window reads no-data pixels, or where at its plane no source
     window holds data (``_no_data_check``). With ``median_radius_m`` in the area's MRF options
     (``area_mrf_options``: a consensus of many maps), each map then takes the weighted median of
-    that radius (``satsweep.dense.median``; timed as the "mrf" stage).
+    that radius (``satsweep.dense.median``; timed as the "mrf" stage). A reference of finer
+    pixels than the DSM's cells may filter its costs less (``reference_mrf_options``).
     """
     from satsweep.dense.planes import plane_heights, view_homographies
     from satsweep.dense.sweep import PlaneSweep
+    from satsweep.geometry.camera import ground_sample_distance
 
     out = []
     progress = rep.progress("sweep", len(selection.references))
     with_mrf = config.mrf.method != "none"
-    mrf = area_mrf_options(config, len(selection.references))
+    area_mrf = area_mrf_options(config, len(selection.references))
     sweep = area_sweep_options(config, len(selection.references))
-    swept = mrf_sweep_options(sweep, mrf)  # the sweep options as run
     for k, r in enumerate(selection.references):
         srcs = list(selection.sources[r])
         ref_proj = cameras.views[r].projection
         src_projs = [cameras.views[s].projection for s in srcs]
         shape = images[r].shape
+        # (the AOI's centre, mid-range)
+        gsd = ground_sample_distance(cameras.views[r].camera.P,
+                                     (0.0, 0.0, float(np.mean(u_range))))
+        mrf = reference_mrf_options(config, area_mrf, len(selection.references), gsd)
+        swept = mrf_sweep_options(sweep, mrf)  # the sweep options as run
         window = reference_window(cameras.views[r].camera, cameras.frame, aoi, alt_range, shape,
                                   context_px=max(REFERENCE_CONTEXT_PX, swept.tile_margin))
         x0, y0, x1, y1 = window
@@ -207,13 +241,14 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
         height, valid, confidence = _placed(result, window, shape)
         median_px = None
         if mrf.median_radius_m > 0.0:
-            from satsweep.dense.median import (MEDIAN_MAX_RADIUS_PX, radius_px,
-                                                wanted_radius_px, weighted_median)
-            from satsweep.geometry.camera import ground_sample_distance
+            from satsweep.dense.median import (
+                MEDIAN_MAX_RADIUS_PX,
+                radius_px,
+                wanted_radius_px,
+                weighted_median,
+            )
 
-            with rep.stage("mrf"):  # (the AOI's centre, mid-range)
-                gsd = ground_sample_distance(cameras.views[r].camera.P,
-                                             (0.0, 0.0, float(np.mean(u_range))))
+            with rep.stage("mrf"):
                 median_px = radius_px(mrf.median_radius_m, gsd)
                 wanted_px = wanted_radius_px(mrf.median_radius_m, gsd)
                 if wanted_px > median_px:

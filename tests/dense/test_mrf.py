@@ -718,6 +718,7 @@ def test_graphcut_beats_wta_on_census_costs_of_a_plain_plaza(seed):
     ("gc_truncation_labels", 0), ("gc_levels", 9), ("method", "belief"), ("sgm_p2_sigma", -1.0),
     ("tile_px", 32), ("tile_overlap_px", -1), ("sgm_subplane", "cubic"),
     ("sgm_sweep_gf_radius", 65), ("gc_sweep_gf_radius", -1), ("sgm_consensus_gf_radius", -1),
+    ("sgm_dense_consensus_gf_radius", 65),
 ])
 def test_bad_options_name_the_field(field, value):
     with pytest.raises(OptionsError, match=field):
@@ -731,6 +732,16 @@ def test_consensus_options_change_only_the_sgm_sweep_radius_and_median():
     assert o.replace(sgm_consensus_gf_radius=None).for_consensus().sgm_sweep_gf_radius == 4
     graphcut_options = o.replace(method="graphcut")
     assert graphcut_options.for_consensus() == graphcut_options
+
+
+def test_dense_pixel_options_change_only_the_sgm_sweep_radius():
+    o = mrf.MRFOptions(sgm_sweep_gf_radius=4, sgm_consensus_gf_radius=1,
+                       sgm_dense_consensus_gf_radius=0).for_consensus()
+    assert o.for_dense_pixels() == o.replace(sgm_sweep_gf_radius=0)
+    unset = o.replace(sgm_dense_consensus_gf_radius=None)
+    assert unset.for_dense_pixels() == unset
+    graphcut_options = o.replace(method="graphcut")
+    assert graphcut_options.for_dense_pixels() == graphcut_options
 
 
 def test_options_from_mapping():

@@ -21,6 +21,7 @@ from satsweep.pipeline.sweeps import (
     NARROW_FILTER_MIN_REFERENCES,
     area_mrf_options,
     area_sweep_options,
+    reference_mrf_options,
 )
 from satsweep.products.ply import read_ply
 
@@ -792,6 +793,25 @@ def test_many_references_of_a_consensus_are_swept_with_the_narrower_filter(n_ref
     assert sweep == config.sweep.replace(grad_weight=weight, census_ring_weight=ring)
     assert config.sweep.consensus_grad_weight != config.sweep.grad_weight
     assert config.sweep.consensus_census_ring_weight != config.sweep.census_ring_weight
+
+
+@pytest.mark.parametrize("n_references,resolution,gsd_m,dense", [
+    (NARROW_FILTER_MIN_REFERENCES, 0.5, 0.3, True),   # (0.5 / 0.3)^2 = 2.8 pixels per cell
+    (NARROW_FILTER_MIN_REFERENCES, 0.5, 0.5, False),  # one pixel per cell
+    (NARROW_FILTER_MIN_REFERENCES, 0.5, 0.36, False),  # 1.93 per cell: under the 2 of the rule
+    (NARROW_FILTER_MIN_REFERENCES, 1.0, 0.5, True),
+    (NARROW_FILTER_MIN_REFERENCES - 1, 0.5, 0.3, False),  # no narrower filter in the area
+])
+def test_references_finer_than_the_cells_sweep_without_the_filter(n_references, resolution,
+                                                                   gsd_m, dense):
+    config = PipelineConfig().override("dsm", resolution=resolution)
+    area = area_mrf_options(config, n_references)
+    mrf = reference_mrf_options(config, area, n_references, gsd_m)
+    want = config.mrf.sgm_dense_consensus_gf_radius if dense else area.sgm_sweep_gf_radius
+    assert mrf == area.replace(sgm_sweep_gf_radius=want)
+    assert config.mrf.sgm_dense_consensus_gf_radius != config.mrf.sgm_consensus_gf_radius
+    with pytest.raises(InputError, match="ground sample distance"):
+        reference_mrf_options(config, area, n_references, 0.0)
 
 
 def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
