@@ -44,11 +44,11 @@ NARROW_FILTER_MIN_REFERENCES = 6
 # 0.3 m on 0.5 m cells) sweeps with ``mrf.sgm_dense_consensus_gf_radius`` (0: no filter):
 # each of its cells already pools about three pixels (the upper quartile of their points,
 # ``DSMOptions.view_raster``), and even a radius of 1 px averages a crown's costs over texture
-# that each date redraws (the issue-form seed 11: crown cells within 1 m 28.4 -> 37.3%, their
-# MAE 4.47 -> 3.50 m; the ground beside roofs, at the roof's height as often, 8.51 -> 7.23 m
+# that each date redraws (the issue-form seed 11: crown cells within 1 m 30.2 -> 37.3%, their
+# MAE 4.29 -> 3.50 m; the ground beside roofs, at the roof's height as often, 8.08 -> 7.23 m
 # off on average: docs/measurements.md). Issue-form 0.3 m stacks (19 views, 8 references), DFC
 # MAE m, radius 1 -> 0: seeds 11, 13 and held-out 14-18 1.216 1.131 0.961 1.252 1.339 0.459
-# 0.885 -> 1.117 1.112 0.834 1.024 1.190 0.457 0.837 (mean 1.035 -> 0.939); seeds 7 and 12
+# 0.892 -> 1.117 1.112 0.834 1.024 1.190 0.457 0.837 (mean 1.036 -> 0.939); seeds 7 and 12
 # 0.874 -> 0.797 and 0.709 -> 0.745 (noisier flat areas). At 0.5 m pixels (one per cell) the
 # radius of 1 stays: 0 lost there (v10 seeds 0-5, 93.27 -> 92.65% within 1 m).
 
