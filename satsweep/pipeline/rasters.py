@@ -81,12 +81,12 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         FOOTPRINT_EDGE_PX,
         consensus_dsms,
         cross_check_heights,
+        dropped_edge_pixels,
         flat_cells,
         fuse_dsms,
+        rasterise_dense_view_cells,
         rasterise_max_cells,
-        rasterise_quantile_cells,
         small_raised_pixels,
-        step_edge_pixels,
         vertical_offsets,
         visibility_check_heights,
     )
@@ -136,30 +136,37 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         for pv, P, centre, height, keep in zip(per_view, projections, centres, heights, checked):
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
                 centre, height, keep, P, to_map, subsamples=d.subsamples)
-            if d.small_object_area_m2 > 0.0 and d.subsamples > 1 and pixel.size:
-                # Small raised objects (tree crowns) reach the cells they overhang. Their
-                # regions are found on the map before the check, which would split buildings
-                # into small pieces where it drops facades (v20 seeds 0-5: 91.60% / 0.896 m
-                # against 91.48% / 0.905 m on the checked map).
+            rule = d.view_raster_for(flat_cells(x, y, grid))
+            view_rules.append(rule)
+            small = None  # the pixels of small raised objects (tree crowns)
+            if d.small_object_area_m2 > 0.0 and pixel.size and (
+                    d.subsamples > 1 or (rule == "upper_quartile" and d.small_object_top)):
+                # Their regions are found on the map before the check, which would split
+                # buildings into small pieces where it drops facades (v20 seeds 0-5: 91.60% /
+                # 0.896 m against 91.48% / 0.905 m on the checked map).
                 gsd = ground_sample_distance(P, (0.0, 0.0, float(np.median(centre[2]))))
                 small = small_raised_pixels(height, gsd, d.small_object_area_m2)
+            if small is not None and d.subsamples > 1:
+                # Small raised objects reach the cells they overhang.
                 sx, sy, sz, spix = spread_to_footprint_edges(
                     (x, y, z, pixel), (sx, sy, sz, spix), small.ravel(), d.subsamples,
                     FOOTPRINT_EDGE_PX)
-            rule = d.view_raster_for(flat_cells(x, y, grid))
-            view_rules.append(rule)
+            top = small if rule == "upper_quartile" and d.small_object_top else None
             if (rule == "upper_quartile" and d.edge_min_confidence > 0.0
                     and pv.confidence is not None):
                 # Pixels finer than the cells: those on the high side of a step that matched
                 # poorly are edges and facades at the roof's height (points in the air).
-                drop = (step_edge_pixels(height)
-                        & (np.asarray(pv.confidence) < d.edge_min_confidence)).ravel()
+                drop = dropped_edge_pixels(height, pv.confidence, d.edge_min_confidence,
+                                           keep=top).ravel()
                 kept_centres, kept_samples = ~drop[pixel], ~drop[spix]
                 x, y, z, pixel = (a[kept_centres] for a in (x, y, z, pixel))
                 sx, sy, sz, spix = (a[kept_samples] for a in (sx, sy, sz, spix))
             cells = flat_cells(sx, sy, grid)
-            rasterise = rasterise_quantile_cells if rule == "upper_quartile" else rasterise_max_cells
-            rasters.append(rasterise(cells, sz, grid))
+            if rule == "upper_quartile":
+                rasters.append(rasterise_dense_view_cells(
+                    cells, sz, grid, top=None if top is None else top.ravel()[spix]))
+            else:
+                rasters.append(rasterise_max_cells(cells, sz, grid))
             if pv.confidence is not None:
                 conf_rasters.append(rasterise_max_cells(cells, np.ravel(pv.confidence)[spix],
                                                         grid))

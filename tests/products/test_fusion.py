@@ -887,6 +887,59 @@ def test_step_edge_pixels_are_the_high_side_of_steps():
     assert dsm.step_edge_pixels(h, step_m=0.5)[:, 0].all()
 
 
+def test_dense_view_raster_takes_a_crowns_top_over_the_quartile():
+    """Per cell the upper quartile of its points (rasterise_quantile_cells), or the highest of
+    its flagged points (a crown's) where that is higher: a rim cell with one crown point among
+    seven ground points takes the crown's height, a cell whose flagged point lies below the
+    quartile keeps the quartile, unflagged cells and no flags at all keep the quartile."""
+    grid = dsm_grid.DSMGrid(epsg=32740, x_min=100.0, y_max=50.0, resolution=0.5, width=30, height=20)
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(100.0, 115.0, 3000), rng.uniform(40.0, 50.0, 3000)
+    z = rng.normal(size=3000)
+    z[::101] = np.nan
+    top = rng.uniform(size=3000) < 0.1
+    cells = dsm.flat_cells(x, y, grid)
+    quartile = dsm.rasterise_quantile_cells(cells, z, grid)
+    per_cell: dict[int, list[float]] = {}
+    for c, v, t in zip(cells, z, top):
+        if c >= 0 and np.isfinite(v) and t:
+            per_cell.setdefault(int(c), []).append(float(v))
+    ref = quartile.astype(np.float64).ravel()
+    for c, vals in per_cell.items():
+        ref[c] = max(ref[c], max(vals))
+    got = dsm.rasterise_dense_view_cells(cells, z, grid, top=top)
+    np.testing.assert_array_equal(got, ref.reshape(grid.shape).astype(np.float32))
+    assert (got > quartile).any() and (got == quartile).sum() > got.size // 2
+    np.testing.assert_array_equal(dsm.rasterise_dense_view_cells(cells, z, grid), quartile)
+    # A rim cell: seven ground points at 0 m, one crown point at 6 m.
+    rim = np.zeros(8)
+    rim[3] = 6.0
+    one = np.zeros(8, np.int64)
+    flags = np.arange(8) == 3
+    assert dsm.rasterise_dense_view_cells(one, rim, grid, top=flags).ravel()[0] == 6.0
+    assert dsm.rasterise_dense_view_cells(one, rim, grid).ravel()[0] == 0.0
+    with pytest.raises(ValueError, match="lengths differ"):
+        dsm.rasterise_dense_view_cells(cells, z, grid, top=top[:-1])
+
+
+def test_dropped_edge_pixels_keep_the_marked_ones():
+    """A 10 m box on flat ground whose left half matched poorly: its poorly matched outer ring
+    is dropped, unless marked kept (a crown's rim); well matched pixels never are."""
+    h = np.zeros((12, 12))
+    h[3:9, 4:10] = 10.0
+    confidence = np.full(h.shape, 0.5)
+    confidence[:, :7] = 0.05
+    ring = dsm.step_edge_pixels(h)
+    drop = dsm.dropped_edge_pixels(h, confidence, 0.15)
+    np.testing.assert_array_equal(drop, ring & (confidence < 0.15))
+    assert drop.any() and (ring & ~drop).any()
+    keep = np.zeros(h.shape, bool)
+    keep[3:9, 4:6] = True
+    np.testing.assert_array_equal(dsm.dropped_edge_pixels(h, confidence, 0.15, keep=keep),
+                                  ring & (confidence < 0.15) & ~keep)
+    assert not dsm.dropped_edge_pixels(h, confidence, 0.0).any()
+
+
 def test_small_raised_pixels_are_crowns_not_buildings():
     """A 0.5 m map of gently sloping ground (0.01 m per pixel): a 3 m crown (radius) 5 m above
     it, a 20 x 20 m block 10 m above it, a 30 m-deep blunder pixel and unknown pixels. The
