@@ -7,7 +7,12 @@ from __future__ import annotations
 from satsweep.config import PipelineConfig
 from satsweep.dense.tiled import coarse_pass_planes, mrf_sweep_options, mrf_sweep_wants_wta
 from satsweep.errors import SatsweepError
-from satsweep.pipeline.sweeps import area_mrf_options, area_sweep_options, reference_mrf_options
+from satsweep.pipeline.sweeps import (
+    area_mrf_options,
+    area_sweep_options,
+    reference_mrf_options,
+    reference_sweep_options,
+)
 
 
 def program_forecast(device, cameras, u_range: tuple[float, float],
@@ -35,13 +40,14 @@ def program_forecast(device, cameras, u_range: tuple[float, float],
                                  mid_height=0.5 * (u_range[0] + u_range[1]), options=config.views)
         n_refs = len(selection.references)
         area_mrf = area_mrf_options(config, n_refs)
-        sweep = area_sweep_options(config, n_refs)
+        area_sweep = area_sweep_options(config, n_refs)
         method = area_mrf.method
         requests = []
         for r in selection.references:
             srcs = list(selection.sources[r])
             gsd = ground_sample_distance(cams[r].P, (0.0, 0.0, 0.5 * (u_range[0] + u_range[1])))
             mrf = reference_mrf_options(config, area_mrf, n_refs, gsd)
+            sweep = reference_sweep_options(config, area_sweep, n_refs, gsd)
             if method == "none":
                 engine, wta = PlaneSweep(device, sweep), True
             else:

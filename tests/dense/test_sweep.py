@@ -91,7 +91,9 @@ def _errors(res, truth):
                                          ("consensus_grad_weight", 65.0),
                                          ("census_ring_weight", -0.5),
                                          ("census_ring_weight", float("nan")),
-                                         ("consensus_census_ring_weight", 65.0)])
+                                         ("consensus_census_ring_weight", 65.0),
+                                         ("dense_consensus_census_ring_weight", -1.0),
+                                         ("dense_consensus_census_ring_weight", float("inf"))])
 def test_bad_options_name_the_field(field, value):
     with pytest.raises(OptionsError, match=field):
         SweepOptions(**{field: value})
@@ -110,6 +112,16 @@ def test_consensus_options_change_only_the_gradient_and_ring_weights():
     assert codes.for_consensus() == codes.replace(census_ring_weight=2.0)
     narrow = o.replace(census_window=(1, 9))
     assert narrow.for_consensus() == narrow.replace(census_ring_weight=2.0)
+
+
+def test_dense_pixel_options_change_only_the_ring_weight():
+    """for_dense_pixels() sets census_ring_weight to dense_consensus_census_ring_weight after
+    the area's for_consensus(); None keeps the area's."""
+    o = SweepOptions(consensus_census_ring_weight=2.0, dense_consensus_census_ring_weight=8.0)
+    area = o.for_consensus()
+    assert area.for_dense_pixels() == area.replace(census_ring_weight=8.0)
+    unset = area.replace(dense_consensus_census_ring_weight=None)
+    assert unset.for_dense_pixels() == unset
 
 
 @pytest.mark.parametrize("window", [(5, 5), (3, 3), (7, 9), (1, 9), (9, 7)])

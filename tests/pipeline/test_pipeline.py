@@ -22,7 +22,9 @@ from satsweep.pipeline.sweeps import (
     area_mrf_options,
     area_sweep_options,
     reference_mrf_options,
+    reference_sweep_options,
 )
+from satsweep.products.fusion import CONSENSUS_MIN_REFERENCES
 from satsweep.products.ply import read_ply
 
 # A small camera-fit grid keeps the test fast; the approximation error stays far below 0.01 px.
@@ -812,6 +814,26 @@ def test_references_finer_than_the_cells_sweep_without_the_filter(n_references, 
     assert config.mrf.sgm_dense_consensus_gf_radius != config.mrf.sgm_consensus_gf_radius
     with pytest.raises(InputError, match="ground sample distance"):
         reference_mrf_options(config, area, n_references, 0.0)
+
+
+@pytest.mark.parametrize("n_references,resolution,gsd_m,dense", [
+    (CONSENSUS_MIN_REFERENCES, 0.5, 0.3, True),   # (0.5 / 0.3)^2 = 2.8 pixels per cell
+    (CONSENSUS_MIN_REFERENCES, 0.5, 0.5, False),  # one pixel per cell
+    (CONSENSUS_MIN_REFERENCES, 0.5, 0.36, False),  # 1.93 per cell: under the 2 of the rule
+    (NARROW_FILTER_MIN_REFERENCES, 1.0, 0.5, True),
+    (CONSENSUS_MIN_REFERENCES - 1, 0.5, 0.3, False),  # a median fusion: the area's census
+])
+def test_references_finer_than_the_cells_weigh_the_census_ring_more(n_references, resolution,
+                                                                    gsd_m, dense):
+    config = PipelineConfig().override("dsm", resolution=resolution)
+    area = area_sweep_options(config, n_references)
+    sweep = reference_sweep_options(config, area, n_references, gsd_m)
+    want = config.sweep.dense_consensus_census_ring_weight if dense else area.census_ring_weight
+    assert sweep == area.replace(census_ring_weight=want)
+    assert (config.sweep.dense_consensus_census_ring_weight
+            != config.sweep.consensus_census_ring_weight)
+    with pytest.raises(InputError, match="ground sample distance"):
+        reference_sweep_options(config, area, n_references, float("nan"))
 
 
 def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
