@@ -797,43 +797,40 @@ def test_many_references_of_a_consensus_are_swept_with_the_narrower_filter(n_ref
     assert config.sweep.consensus_census_ring_weight != config.sweep.census_ring_weight
 
 
-@pytest.mark.parametrize("n_references,resolution,gsd_m,dense", [
+@pytest.mark.parametrize("n_references,resolution,gsd_m,finer", [
     (NARROW_FILTER_MIN_REFERENCES, 0.5, 0.3, True),   # (0.5 / 0.3)^2 = 2.8 pixels per cell
     (NARROW_FILTER_MIN_REFERENCES, 0.5, 0.5, False),  # one pixel per cell
     (NARROW_FILTER_MIN_REFERENCES, 0.5, 0.36, False),  # 1.93 per cell: under the 2 of the rule
     (NARROW_FILTER_MIN_REFERENCES, 1.0, 0.5, True),
-    (NARROW_FILTER_MIN_REFERENCES - 1, 0.5, 0.3, False),  # no narrower filter in the area
+    (NARROW_FILTER_MIN_REFERENCES - 1, 0.5, 0.3, True),  # a consensus, no narrower filter
+    (CONSENSUS_MIN_REFERENCES - 1, 0.5, 0.3, True),  # a median fusion: the area's options
 ])
-def test_references_finer_than_the_cells_sweep_without_the_filter(n_references, resolution,
-                                                                   gsd_m, dense):
+def test_references_finer_than_the_cells_sweep_without_the_filter_and_weigh_the_ring(
+        n_references, resolution, gsd_m, finer):
+    """A reference of pixels finer than the DSM's cells: no cost filter where the area narrows
+    it (reference_mrf_options), the census's ring weighted more wherever the area makes a
+    consensus (reference_sweep_options); any other reference takes the area's options."""
     config = PipelineConfig().override("dsm", resolution=resolution)
-    area = area_mrf_options(config, n_references)
-    mrf = reference_mrf_options(config, area, n_references, gsd_m)
-    want = config.mrf.sgm_dense_consensus_gf_radius if dense else area.sgm_sweep_gf_radius
-    assert mrf == area.replace(sgm_sweep_gf_radius=want)
+    area_mrf = area_mrf_options(config, n_references)
+    mrf = reference_mrf_options(config, area_mrf, n_references, gsd_m)
+    dense_mrf = finer and n_references >= NARROW_FILTER_MIN_REFERENCES
+    want = config.mrf.sgm_dense_consensus_gf_radius if dense_mrf else area_mrf.sgm_sweep_gf_radius
+    assert mrf == area_mrf.replace(sgm_sweep_gf_radius=want)
+    area_sweep = area_sweep_options(config, n_references)
+    sweep = reference_sweep_options(config, area_sweep, n_references, gsd_m)
+    dense_sweep = finer and n_references >= CONSENSUS_MIN_REFERENCES
+    ring = (config.sweep.dense_consensus_census_ring_weight if dense_sweep
+            else area_sweep.census_ring_weight)
+    assert sweep == area_sweep.replace(census_ring_weight=ring)
+    # the rules change something
     assert config.mrf.sgm_dense_consensus_gf_radius != config.mrf.sgm_consensus_gf_radius
-    with pytest.raises(InputError, match="ground sample distance"):
-        reference_mrf_options(config, area, n_references, 0.0)
-
-
-@pytest.mark.parametrize("n_references,resolution,gsd_m,dense", [
-    (CONSENSUS_MIN_REFERENCES, 0.5, 0.3, True),   # (0.5 / 0.3)^2 = 2.8 pixels per cell
-    (CONSENSUS_MIN_REFERENCES, 0.5, 0.5, False),  # one pixel per cell
-    (CONSENSUS_MIN_REFERENCES, 0.5, 0.36, False),  # 1.93 per cell: under the 2 of the rule
-    (NARROW_FILTER_MIN_REFERENCES, 1.0, 0.5, True),
-    (CONSENSUS_MIN_REFERENCES - 1, 0.5, 0.3, False),  # a median fusion: the area's census
-])
-def test_references_finer_than_the_cells_weigh_the_census_ring_more(n_references, resolution,
-                                                                    gsd_m, dense):
-    config = PipelineConfig().override("dsm", resolution=resolution)
-    area = area_sweep_options(config, n_references)
-    sweep = reference_sweep_options(config, area, n_references, gsd_m)
-    want = config.sweep.dense_consensus_census_ring_weight if dense else area.census_ring_weight
-    assert sweep == area.replace(census_ring_weight=want)
     assert (config.sweep.dense_consensus_census_ring_weight
             != config.sweep.consensus_census_ring_weight)
-    with pytest.raises(InputError, match="ground sample distance"):
-        reference_sweep_options(config, area, n_references, float("nan"))
+    for bad in (0.0, float("nan")):
+        with pytest.raises(InputError, match="ground sample distance"):
+            reference_mrf_options(config, area_mrf, n_references, bad)
+        with pytest.raises(InputError, match="ground sample distance"):
+            reference_sweep_options(config, area_sweep, n_references, bad)
 
 
 def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
