@@ -42,6 +42,12 @@ def radius_px(radius_m: float, gsd_m: float) -> int:
     return min(max(wanted_radius_px(radius_m, gsd_m), 1), MEDIAN_MAX_RADIUS_PX)
 
 
+def median_program(radius: int) -> tuple[str, dict]:
+    """The (source, defines) of the weighted median's program for a window of ``radius`` px
+    (``Device.build``; the program forecast asks for the same)."""
+    return "median", {"MEDIAN_RADIUS": int(radius)}
+
+
 def _check(height: np.ndarray, valid: np.ndarray, guide: np.ndarray, radius: int,
            sigma: float) -> None:
     if height.ndim != 2 or valid.shape != height.shape or guide.shape != height.shape:
@@ -81,7 +87,7 @@ def weighted_median(device, height: np.ndarray, valid: np.ndarray, guide: np.nda
             "guide": np.ascontiguousarray(guide, np.float32)}
     memory = DeviceMemory(device.context) if memory is None else memory
     queue = device.queue
-    prg = device.build("median", {"MEDIAN_RADIUS": int(radius)})
+    prg = device.build(*median_program(radius))
     local = (16, 16)
     glob = tuple(-(-n // l) * l for n, l in zip((w, h), local))
     result = np.empty((h, w), np.float32)

@@ -195,15 +195,13 @@ def similarity_from_matches(counts: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(s), s, np.where(via > 0.0, via, np.nan))
 
 
-def appearance_similarity(acquisitions: Sequence["AcquisitionMetadata | None"],
-                          images: Sequence[np.ndarray], cameras: "CameraSet", aoi: "AOI",
-                          height: float, *, matches: np.ndarray | None = None
-                          ) -> tuple[np.ndarray, np.ndarray]:
-    """(similarity, source): the (n, n) similarity of every pair of views, and where each came
-    from ("metadata", "tie points" or "images"): the metadata where both views have it, else
-    ``matches`` (the sparse stage's probe counts, :func:`similarity_from_matches`) where given
-    and known, else measured from the images (1 where nothing can say)."""
-    n = len(images)
+def known_similarity(acquisitions: Sequence["AcquisitionMetadata | None"], *,
+                     matches: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(similarity, source) of every pair of views from what is known before the images are
+    compared: the metadata where both views have it, else ``matches`` (the sparse stage's probe
+    counts, :func:`similarity_from_matches`) where given and known; "images" (similarity 1)
+    where neither says (:func:`appearance_similarity` measures those)."""
+    n = len(acquisitions)
     sim = np.eye(n)
     source = np.full((n, n), "images", dtype=object)
     for i in range(n):
@@ -217,6 +215,20 @@ def appearance_similarity(acquisitions: Sequence["AcquisitionMetadata | None"],
         use = (source != "metadata") & np.isfinite(from_matches)
         sim = np.where(use, from_matches, sim)
         source[use] = "tie points"
+    rest = (source == "images") & ~np.eye(n, dtype=bool)
+    sim = np.where(rest, 1.0, sim)
+    return sim, source
+
+
+def appearance_similarity(acquisitions: Sequence["AcquisitionMetadata | None"],
+                          images: Sequence[np.ndarray], cameras: "CameraSet", aoi: "AOI",
+                          height: float, *, matches: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """(similarity, source): the (n, n) similarity of every pair of views, and where each came
+    from ("metadata", "tie points" or "images"): :func:`known_similarity`, and for the pairs
+    that neither the metadata nor ``matches`` tell, measured from the images (1 where nothing
+    can say)."""
+    sim, source = known_similarity(acquisitions, matches=matches)
     rest = source == "images"
     np.fill_diagonal(rest, False)
     if rest.any():

@@ -97,7 +97,7 @@ class SweepOptions(Options):
     consensus_census_ring_weight: float | None = 2.0  # ... in an area whose DSM is the consensus
     # of the reference views' height maps ([dsm] fusion); None: census_ring_weight
     dense_consensus_census_ring_weight: float | None = 8.0  # ... there, for a reference of
-    # pixels finer than the DSM's cells (pipeline.sweeps.reference_sweep_options); None: as the
+    # pixels finer than the DSM's cells (pipeline.sweeps.reference_options); None: as the
     # area's. On the issue-form 0.3 m stacks (19 views, 8 references) 2 -> 8, DFC MAE m: seeds
     # 11 13 and held-out 14-18 1.090 1.080 0.764 1.029 1.162 0.454 0.826 -> 1.075 1.089 0.758
     # 0.979 1.160 0.437 0.830, seeds 7 and 12 0.788 0.749 -> 0.780 0.736 (lower on 7 of 9);

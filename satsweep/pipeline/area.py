@@ -234,9 +234,23 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
     if job.split_above_px > 0.0 and worst > job.split_above_px:
         return Split(max_error_px=float(worst))
 
-    # The kernels the sweep stage will need, built in the background meanwhile.
+    from satsweep.dense.similarity import known_similarity, leaf_season
+
+    # The sun's angles where the metadata give a date-time without them (reported as computed).
+    lon, lat = job.aoi.center
+    acquisitions = [with_computed_sun(s.acquisition, lon=lon, lat=lat) for s in sources]
+    seasons = [leaf_season(a, lat) for a in acquisitions]
+    matches = (None if tied.sparse is None
+               else tied.sparse.match_counts([v.path for v in views]))
+    with_similarity = len(cameras.views) >= MIN_VIEWS_FOR_SIMILARITY
+    known, known_source = (known_similarity(acquisitions, matches=matches) if with_similarity
+                           else (None, None))
+    # The kernels the sweep stage will need, built in the background meanwhile (the selection
+    # forecast from the similarity known so far: the metadata's, the tie points').
     ctx.device.prebuild(program_forecast(ctx.device, cameras,
-                                         enu_height_range(cameras.frame, job.aoi, alt), config))
+                                         enu_height_range(cameras.frame, job.aoi, alt), config,
+                                         similarity=known, similarity_source=known_source,
+                                         leaf_season=seasons))
     borrowed = (None if job.borrowed_shifts is None
                 else [job.borrowed_shifts[v.path] for v in views])
     cameras, adjustment = correct_pointing(cameras, views, tied.sparse, tied.untied, config,
@@ -252,26 +266,19 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
                                                            report=rep)
 
     from satsweep.dense.selection import select_views
-    from satsweep.dense.similarity import leaf_season
 
     u_range = enu_height_range(cameras.frame, job.aoi, alt)
     mid = 0.5 * (u_range[0] + u_range[1])
-    # The sun's angles where the metadata give a date-time without them (reported as computed).
-    lon, lat = job.aoi.center
-    acquisitions = [with_computed_sun(s.acquisition, lon=lon, lat=lat) for s in sources]
     with rep.stage("select"):
         similarity = similarity_source = None
-        if len(cameras.views) >= MIN_VIEWS_FOR_SIMILARITY:
+        if with_similarity:
             from satsweep.dense.similarity import appearance_similarity
 
             similarity, similarity_source = appearance_similarity(
-                acquisitions, images, cameras, job.aoi, mid,
-                matches=(None if tied.sparse is None
-                         else tied.sparse.match_counts([v.path for v in views])))
+                acquisitions, images, cameras, job.aoi, mid, matches=matches)
         selection = select_views([v.camera for v in cameras.views], mid_height=mid,
                                  options=config.views, names=names, similarity=similarity,
-                                 similarity_source=similarity_source,
-                                 leaf_season=[leaf_season(a, lat) for a in acquisitions])
+                                 similarity_source=similarity_source, leaf_season=seasons)
         for w in selection.warnings:
             rep.warn(w)
     sweeps = sweep_references(ctx.device, cameras, images, selection, u_range, config, rep,

@@ -144,40 +144,33 @@ def area_mrf_options(config: PipelineConfig, n_references: int) -> MRFOptions:
     return config.mrf
 
 
-def _finer_than_cells(config: PipelineConfig, gsd_m: float) -> bool:
-    """Whether pixels of ``gsd_m`` metres on the ground are finer than the DSM's cells: at
-    least DENSE_CENTRES_PER_CELL pixel centres per cell."""
+def reference_options(config: PipelineConfig, area_sweep: SweepOptions, area_mrf: MRFOptions,
+                      n_references: int, gsd_m: float) -> tuple[SweepOptions, MRFOptions]:
+    """The (sweep, MRF) options of one reference of an area of ``n_references`` (``area_sweep``,
+    ``area_mrf``: ``area_sweep_options``, ``area_mrf_options``) whose pixels are ``gsd_m``
+    metres on the ground. Where those pixels are finer than the DSM's cells (at least
+    DENSE_CENTRES_PER_CELL pixel centres per cell): the sweep's ``for_dense_pixels`` where the
+    area's maps make a consensus (``SweepOptions.dense_consensus_census_ring_weight``), the
+    MRF's ``for_dense_pixels`` where the area also narrows the filter; else the area's. The
+    sweep stage and the program forecast both take them from here, so they agree."""
     from satsweep.products.fusion import DENSE_CENTRES_PER_CELL  # noqa: PLC0415
 
     if not (math.isfinite(gsd_m) and gsd_m > 0.0):
         raise InputError(None, f"a reference's ground sample distance {gsd_m!r} m must be > 0")
-    return (config.dsm.resolution / gsd_m) ** 2 >= DENSE_CENTRES_PER_CELL
+    dense = (config.dsm.resolution / gsd_m) ** 2 >= DENSE_CENTRES_PER_CELL
+    consensus = config.dsm.fusion_for(n_references) == "consensus"
+    narrow = n_references >= NARROW_FILTER_MIN_REFERENCES and consensus
+    sweep = area_sweep.for_dense_pixels() if dense and consensus else area_sweep
+    mrf = area_mrf.for_dense_pixels() if dense and narrow else area_mrf
+    return sweep, mrf
 
 
-def reference_mrf_options(config: PipelineConfig, area_mrf: MRFOptions, n_references: int,
-                          gsd_m: float) -> MRFOptions:
-    """The MRF options of one reference of an area of ``n_references`` (``area_mrf``:
-    ``area_mrf_options``) whose pixels are ``gsd_m`` metres on the ground: ``for_dense_pixels``
-    where the area narrows the filter and those pixels are finer than the DSM's cells (at least
-    DENSE_CENTRES_PER_CELL of them per cell), else the area's."""
-    dense = _finer_than_cells(config, gsd_m)
-    narrow = (n_references >= NARROW_FILTER_MIN_REFERENCES
-              and config.dsm.fusion_for(n_references) == "consensus")
-    if narrow and dense:
-        return area_mrf.for_dense_pixels()
-    return area_mrf
+def reference_gsd(camera_P: np.ndarray, u_range: tuple[float, float]) -> float:
+    """A reference's ground sample distance (m) at the AOI's centre, mid-range (the sweep
+    stage's and the program forecast's, for ``reference_options``)."""
+    from satsweep.geometry.camera import ground_sample_distance  # noqa: PLC0415
 
-
-def reference_sweep_options(config: PipelineConfig, area_sweep: SweepOptions, n_references: int,
-                            gsd_m: float) -> SweepOptions:
-    """The sweep options of one reference of an area of ``n_references`` (``area_sweep``:
-    ``area_sweep_options``) whose pixels are ``gsd_m`` metres on the ground:
-    ``for_dense_pixels`` where the area's maps make a consensus and those pixels are finer than
-    the DSM's cells (``SweepOptions.dense_consensus_census_ring_weight``), else the area's."""
-    dense = _finer_than_cells(config, gsd_m)
-    if dense and config.dsm.fusion_for(n_references) == "consensus":
-        return area_sweep.for_dense_pixels()
-    return area_sweep
+    return ground_sample_distance(camera_P, (0.0, 0.0, 0.5 * (u_range[0] + u_range[1])))
 
 
 def area_sweep_options(config: PipelineConfig, n_references: int) -> SweepOptions:
@@ -205,12 +198,11 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
     window holds data (``_no_data_check``). With ``median_radius_m`` in the area's MRF options
     (``area_mrf_options``: a consensus of many maps), each map then takes the weighted median of
     that radius (``satsweep.dense.median``; timed as the "mrf" stage). A reference of finer
-    pixels than the DSM's cells may filter its costs less (``reference_mrf_options``) and
-    weigh its census's 3 x 3 ring more (``reference_sweep_options``).
+    pixels than the DSM's cells may filter its costs less and weigh its census's 3 x 3 ring
+    more (``reference_options``).
     """
     from satsweep.dense.planes import plane_heights, view_homographies
     from satsweep.dense.sweep import PlaneSweep
-    from satsweep.geometry.camera import ground_sample_distance
 
     out = []
     progress = rep.progress("sweep", len(selection.references))
@@ -222,11 +214,9 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
         ref_proj = cameras.views[r].projection
         src_projs = [cameras.views[s].projection for s in srcs]
         shape = images[r].shape
-        # (the AOI's centre, mid-range)
-        gsd = ground_sample_distance(cameras.views[r].camera.P,
-                                     (0.0, 0.0, float(np.mean(u_range))))
-        mrf = reference_mrf_options(config, area_mrf, len(selection.references), gsd)
-        sweep = reference_sweep_options(config, area_sweep, len(selection.references), gsd)
+        gsd = reference_gsd(cameras.views[r].camera.P, u_range)
+        sweep, mrf = reference_options(config, area_sweep, area_mrf, len(selection.references),
+                                       gsd)
         swept = mrf_sweep_options(sweep, mrf)  # the sweep options as run
         window = reference_window(cameras.views[r].camera, cameras.frame, aoi, alt_range, shape,
                                   context_px=max(REFERENCE_CONTEXT_PX, swept.tile_margin))

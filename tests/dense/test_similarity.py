@@ -11,6 +11,7 @@ from satsweep.dense.similarity import (
     SEASON_SCALE_DAYS,
     SUN_SCALE_DEG,
     appearance_similarity,
+    known_similarity,
     metadata_similarity,
     similarity_from_matches,
 )
@@ -71,6 +72,29 @@ def test_metadata_then_tie_points_decide_each_pair():
     assert source[0, 1] == "metadata" and sim[0, 1] == 1.0
     assert source[0, 2] == source[2, 1] == "tie points"
     assert abs(sim[0, 2] - 0.5) < EXACT and abs(sim[1, 2] - 1.0) < EXACT
+
+
+def test_known_similarity_leaves_to_the_images_what_nothing_else_tells():
+    """Before the images are compared (the program forecast's selection): the metadata where
+    both views have them, the probe matches where probed, and "images" with similarity 1 for
+    the rest (view 3: no metadata, never probed); the same values as appearance_similarity's
+    for every pair the images do not decide."""
+    t0 = "2019-06-01T10:31:12Z"
+    acq = [AcquisitionMetadata(acquisition_time_utc=t0, sun_azimuth_deg=150.0, sun_elevation_deg=60.0),
+           AcquisitionMetadata(acquisition_time_utc="2019-06-01T10:31:40Z", sun_azimuth_deg=150.0,
+                               sun_elevation_deg=60.0),
+           None, None]
+    c = np.full((4, 4), NAN)
+    for (i, j), k in {(0, 1): 10.0, (0, 2): 40.0, (1, 2): 80.0}.items():
+        c[i, j] = c[j, i] = k
+    sim, source = known_similarity(acq, matches=c)
+    assert source[0, 1] == "metadata" and sim[0, 1] == 1.0
+    assert source[0, 2] == source[1, 2] == "tie points" and abs(sim[0, 2] - 0.5) < EXACT
+    assert all(source[i, 3] == source[3, i] == "images" and sim[i, 3] == 1.0 for i in range(3))
+    assert (np.diag(sim) == 1.0).all()
+    first = appearance_similarity(acq[:3], [None] * 3, None, None, 0.0, matches=c[:3, :3])
+    np.testing.assert_array_equal(first[0], sim[:3, :3])
+    assert (first[1] == source[:3, :3]).all()
 
 
 def test_metadata_similarity_of_two_dates():

@@ -21,8 +21,7 @@ from satsweep.pipeline.sweeps import (
     NARROW_FILTER_MIN_REFERENCES,
     area_mrf_options,
     area_sweep_options,
-    reference_mrf_options,
-    reference_sweep_options,
+    reference_options,
 )
 from satsweep.products.fusion import CONSENSUS_MIN_REFERENCES
 from satsweep.products.ply import read_ply
@@ -537,14 +536,10 @@ def test_cameras_and_reconstruct_take_one_range_from_the_tie_points(scene, tmp_p
     assert rc == 0 and f"altitudes {choice.range} (tie points)" in out
 
 
-@pytest.mark.parametrize("mrf, search", [("sgm", "coarse_to_fine"), ("sgm", "full"),
-                                         ("none", "full")])
-def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, tmp_path,
-                                                                         monkeypatch, mrf,
-                                                                         search):
-    """The kernels prebuilt while the cameras are adjusted are exactly the ones the sweep stage
-    then asks for (none built in the foreground, none built for nothing), bundle adjustment and
-    skew correction included; with the coarse-to-fine search, its coarse pass's programs too."""
+def _record_builds(monkeypatch) -> tuple[set, set, list]:
+    """(forecast, asked, foreground): the programs prebuilt (``Device.prebuild``), those the
+    run asked for (``Device.build``), and those of them it had to build itself (neither built
+    nor pending when asked), as the run fills them in."""
     from satsweep.opencl import device as sdev
 
     forecast, asked, foreground = set(), set(), []
@@ -565,6 +560,18 @@ def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, t
 
     monkeypatch.setattr(sdev.Device, "build", build)
     monkeypatch.setattr(sdev.Device, "prebuild", prebuild)
+    return forecast, asked, foreground
+
+
+@pytest.mark.parametrize("mrf, search", [("sgm", "coarse_to_fine"), ("sgm", "full"),
+                                         ("none", "full")])
+def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, tmp_path,
+                                                                         monkeypatch, mrf,
+                                                                         search):
+    """The kernels prebuilt while the cameras are adjusted are exactly the ones the sweep stage
+    then asks for (none built in the foreground, none built for nothing), bundle adjustment and
+    skew correction included; with the coarse-to-fine search, its coarse pass's programs too."""
+    forecast, asked, foreground = _record_builds(monkeypatch)
     res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "reconstruct": {"adjust": "on"},
                                                  "mrf": {"method": mrf},
                                                  "sweep": {"search": search}})
@@ -580,6 +587,48 @@ def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, t
     assert foreground == [] and forecast == asked, (foreground, forecast ^ asked)
     assert {k[0] for k in forecast} == ({"census", "sweep", "guided_filter", "sgm", "wta"}
                                         if mrf == "sgm" else {"census", "sweep", "guided_filter", "wta"})
+
+
+# A stack of 7 views of 6 dates with their metadata (0.3 m pixels: finer than the DSM's
+# cells): 7 references fused by the consensus, each map through the weighted median. On this
+# seed the references' sources chosen with the dates' similarity and leaf states differ from
+# those of the geometry alone (checked below), as on the issue-form stacks.
+MULTIDATE_FORECAST = dict(seed=0, n_views=7, acquisitions=6, size_px=256, gsd_m=0.3, cell_m=0.15,
+                          bias_px=1.0, max_off_nadir_deg=20.0)
+
+
+def test_programs_forecast_on_a_multidate_stack_are_those_the_sweep_builds(tmp_path,
+                                                                          monkeypatch):
+    """On a stack of several dates the forecast chooses the references and their sources as
+    the selection stage does (the dates' similarity and leaf states, known from the metadata
+    before the images are compared): every program the sweep stage asks for (each source
+    count's sweep, each plane count's SGM, the weighted median) was prebuilt, none for
+    nothing."""
+    from satsweep.dense import selection as sel
+    from satsweep.synth.scene import SynthOptions, generate_scene
+
+    scene = generate_scene(tmp_path / "scene", SynthOptions(**MULTIDATE_FORECAST))
+    choices = []  # (with similarity, selection, geometry-only selection) per select_views call
+    real_select = sel.select_views
+
+    def select_views(cameras, **kwargs):
+        got = real_select(cameras, **kwargs)
+        alone = real_select(cameras, mid_height=kwargs["mid_height"], options=kwargs["options"])
+        choices.append((kwargs.get("similarity") is not None, got, alone))
+        return got
+
+    monkeypatch.setattr(sel, "select_views", select_views)
+    forecast, asked, foreground = _record_builds(monkeypatch)
+    res = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
+                      config=PipelineConfig(), verbose=False)
+    assert res.report["dsm"]["fusion"] == "consensus"
+    assert all(v["median_radius_px"] for v in res.report["sweep"])
+    (f_sim, f_sel, f_alone), (r_sim, r_sel, _) = choices  # the forecast's, then the stage's
+    assert f_sim and r_sim
+    assert (f_sel.references, f_sel.sources) == (r_sel.references, r_sel.sources)
+    assert (f_alone.references, f_alone.sources) != (r_sel.references, r_sel.sources)
+    assert {k[0] for k in asked} >= {"sweep", "sgm", "median"}
+    assert foreground == [] and forecast == asked, (foreground, forecast ^ asked)
 
 
 def test_config_written_is_the_config_used(reconstruction):
@@ -808,16 +857,15 @@ def test_many_references_of_a_consensus_are_swept_with_the_narrower_filter(n_ref
 def test_references_finer_than_the_cells_sweep_without_the_filter_and_weigh_the_ring(
         n_references, resolution, gsd_m, finer):
     """A reference of pixels finer than the DSM's cells: no cost filter where the area narrows
-    it (reference_mrf_options), the census's ring weighted more wherever the area makes a
-    consensus (reference_sweep_options); any other reference takes the area's options."""
+    it, the census's ring weighted more wherever the area makes a consensus; any other
+    reference takes the area's options (reference_options)."""
     config = PipelineConfig().override("dsm", resolution=resolution)
     area_mrf = area_mrf_options(config, n_references)
-    mrf = reference_mrf_options(config, area_mrf, n_references, gsd_m)
+    area_sweep = area_sweep_options(config, n_references)
+    sweep, mrf = reference_options(config, area_sweep, area_mrf, n_references, gsd_m)
     dense_mrf = finer and n_references >= NARROW_FILTER_MIN_REFERENCES
     want = config.mrf.sgm_dense_consensus_gf_radius if dense_mrf else area_mrf.sgm_sweep_gf_radius
     assert mrf == area_mrf.replace(sgm_sweep_gf_radius=want)
-    area_sweep = area_sweep_options(config, n_references)
-    sweep = reference_sweep_options(config, area_sweep, n_references, gsd_m)
     dense_sweep = finer and n_references >= CONSENSUS_MIN_REFERENCES
     ring = (config.sweep.dense_consensus_census_ring_weight if dense_sweep
             else area_sweep.census_ring_weight)
@@ -828,9 +876,7 @@ def test_references_finer_than_the_cells_sweep_without_the_filter_and_weigh_the_
             != config.sweep.consensus_census_ring_weight)
     for bad in (0.0, float("nan")):
         with pytest.raises(InputError, match="ground sample distance"):
-            reference_mrf_options(config, area_mrf, n_references, bad)
-        with pytest.raises(InputError, match="ground sample distance"):
-            reference_sweep_options(config, area_sweep, n_references, bad)
+            reference_options(config, area_sweep, area_mrf, n_references, bad)
 
 
 def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
