@@ -29,9 +29,9 @@ def program_forecast(device, cameras, u_range: tuple[float, float], config: Pipe
     ``similarity`` and ``leaf_season`` as ``select_views`` does: on a stack of several dates
     they choose the references and their sources (and so each sweep's source count and plane
     count); the similarity known before the images are compared is enough
-    (``similarity.known_similarity``: the metadata's or the tie points'). Adjusting the principal points
-    moves every plane's homography by the same translation, which leaves the plane spacing, and
-    so the plane count, as it is. A wrong forecast costs only background time. [] where the
+    (``similarity.known_similarity``: the metadata's or the tie points'). Adjusting the
+    principal points moves every plane's homography by the same translation, which leaves the
+    plane spacing, and so the plane count, as it is. A wrong forecast costs only background time. [] where the
     forecast itself fails (the sweep stage then meets the error and reports it)."""
     from satsweep.dense.median import median_program, radius_px
     from satsweep.dense.planes import plane_heights

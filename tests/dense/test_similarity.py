@@ -80,7 +80,8 @@ def test_known_similarity_leaves_to_the_images_what_nothing_else_tells():
     the rest (view 3: no metadata, never probed); the same values as appearance_similarity's
     for every pair the images do not decide."""
     t0 = "2019-06-01T10:31:12Z"
-    acq = [AcquisitionMetadata(acquisition_time_utc=t0, sun_azimuth_deg=150.0, sun_elevation_deg=60.0),
+    acq = [AcquisitionMetadata(acquisition_time_utc=t0, sun_azimuth_deg=150.0,
+                               sun_elevation_deg=60.0),
            AcquisitionMetadata(acquisition_time_utc="2019-06-01T10:31:40Z", sun_azimuth_deg=150.0,
                                sun_elevation_deg=60.0),
            None, None]
