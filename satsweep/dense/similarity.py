@@ -229,6 +229,14 @@ def appearance_similarity(acquisitions: Sequence["AcquisitionMetadata | None"],
     that neither the metadata nor ``matches`` tell, measured from the images (1 where nothing
     can say)."""
     sim, source = known_similarity(acquisitions, matches=matches)
+    return with_measured_similarity(sim, source, images, cameras, aoi, height)
+
+
+def with_measured_similarity(sim: np.ndarray, source: np.ndarray,
+                             images: Sequence[np.ndarray], cameras: "CameraSet", aoi: "AOI",
+                             height: float) -> tuple[np.ndarray, np.ndarray]:
+    """``known_similarity``'s (similarity, source) with the pairs it left to the images
+    ("images") measured from them (:func:`image_similarity`; 1 where nothing can say)."""
     rest = source == "images"
     np.fill_diagonal(rest, False)
     if rest.any():

@@ -240,11 +240,12 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
     lon, lat = job.aoi.center
     acquisitions = [with_computed_sun(s.acquisition, lon=lon, lat=lat) for s in sources]
     seasons = [leaf_season(a, lat) for a in acquisitions]
-    matches = (None if tied.sparse is None
-               else tied.sparse.match_counts([v.path for v in views]))
     with_similarity = len(cameras.views) >= MIN_VIEWS_FOR_SIMILARITY
-    known, known_source = (known_similarity(acquisitions, matches=matches) if with_similarity
-                           else (None, None))
+    known = known_source = None
+    if with_similarity:
+        matches = (None if tied.sparse is None
+                   else tied.sparse.match_counts([v.path for v in views]))
+        known, known_source = known_similarity(acquisitions, matches=matches)
     # The kernels the sweep stage will need, built in the background meanwhile (the selection
     # forecast from the similarity known so far: the metadata's, the tie points').
     ctx.device.prebuild(program_forecast(ctx.device, cameras,
@@ -271,11 +272,11 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
     mid = 0.5 * (u_range[0] + u_range[1])
     with rep.stage("select"):
         similarity = similarity_source = None
-        if with_similarity:
-            from satsweep.dense.similarity import appearance_similarity
+        if with_similarity:  # the forecast's similarity, the images measuring what it left
+            from satsweep.dense.similarity import with_measured_similarity
 
-            similarity, similarity_source = appearance_similarity(
-                acquisitions, images, cameras, job.aoi, mid, matches=matches)
+            similarity, similarity_source = with_measured_similarity(
+                known, known_source, images, cameras, job.aoi, mid)
         selection = select_views([v.camera for v in cameras.views], mid_height=mid,
                                  options=config.views, names=names, similarity=similarity,
                                  similarity_source=similarity_source, leaf_season=seasons)

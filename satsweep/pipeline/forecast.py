@@ -31,8 +31,9 @@ def program_forecast(device, cameras, u_range: tuple[float, float], config: Pipe
     count); the similarity known before the images are compared is enough
     (``similarity.known_similarity``: the metadata's or the tie points'). Adjusting the
     principal points moves every plane's homography by the same translation, which leaves the
-    plane spacing, and so the plane count, as it is. A wrong forecast costs only background time. [] where the
-    forecast itself fails (the sweep stage then meets the error and reports it)."""
+    plane spacing, and so the plane count, as it is. A wrong forecast costs only background
+    time. [] where the forecast itself fails (the sweep stage then meets the error and reports
+    it)."""
     from satsweep.dense.median import median_program, radius_px
     from satsweep.dense.planes import plane_heights
     from satsweep.dense.selection import select_views
