@@ -113,11 +113,12 @@ def main(argv=None) -> int:
     voxels = args.size * args.size * args.planes * args.sources
     print(f"device: {device.info.label}")
     budget = None if args.memory_budget_gb is None else int(args.memory_budget_gb * 2**30)
-    runs = []
+    runs, first_options = [], None
     for kernel in args.census_kernel:
         for ring in args.census_ring_weight:
             options = SweepOptions(cost_filter=args.filter, census_kernel=kernel,
                                    census_ring_weight=ring, memory_budget_bytes=budget)
+            first_options = first_options or options
             runs.append(_time_engine(device, options, ref_img, srcs, hom, heights, voxels,
                                      args.repeat))
     out = dict(runs[0])
@@ -141,13 +142,10 @@ def main(argv=None) -> int:
               f"{runs[0]['census_ring_weight']:g}): "
               f"engine {r['engine_seconds'] / runs[0]['engine_seconds']:.2f}, sweep stage "
               f"{r['stage_seconds'].get('sweep', 0) / runs[0]['stage_seconds'].get('sweep', 1):.2f}")
-    options = SweepOptions(cost_filter=args.filter, census_kernel=args.census_kernel[0],
-                           census_ring_weight=args.census_ring_weight[0],
-                           memory_budget_bytes=budget)
     best = runs[0]["engine_seconds"]
     if args.numpy_planes > 0:
         n_sub = min(args.numpy_planes, args.planes)
-        t_sub = _numpy_reference(ref_img, srcs, hom, heights, options, n_sub)
+        t_sub = _numpy_reference(ref_img, srcs, hom, heights, first_options, n_sub)
         t_np = t_sub * args.planes / n_sub
         out.update({"numpy_planes_measured": n_sub, "numpy_seconds_measured": t_sub,
                     "numpy_seconds_scaled": t_np, "numpy_gvoxel_per_s": voxels / t_np / 1e9,
