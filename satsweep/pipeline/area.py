@@ -155,6 +155,12 @@ class Wait:
     reason: str
 
 
+def _acquisition_day(acquisition) -> str | None:
+    """The UTC day of an acquisition (``AcquisitionMetadata``; None where it is unknown)."""
+    when = None if acquisition is None else acquisition.acquisition_datetime
+    return None if when is None else when.date().isoformat()
+
+
 def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     """Every stage from the altitude range to the DSM rasters, for one area on its grid."""
     config, rep = ctx.config, ctx.report
@@ -189,7 +195,9 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
                                        details={**altitude.details, "widened": list(widened)})
     _check_range_ends(dense.sweeps, altitude, job, ctx)
     rasters = area_rasters(dense.sweeps, dense.cameras, dense.images, job.grid, config, rep,
-                           ortho_images=dense.ortho_images)
+                           ortho_images=dense.ortho_images,
+                           leaf_season=dense.selection.leaf_season,
+                           dates=[_acquisition_day(a) for a in dense.acquisitions])
     views = dense.views
     record = AreaRecord(altitude=altitude,
                         crops=[(v.path, (int(v.x0), int(v.y0), int(v.width), int(v.height)))

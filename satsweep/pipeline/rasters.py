@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import Sequence
 
 import numpy as np
 
@@ -60,22 +61,29 @@ class AreaRasters:
     per_view_raster: list[str] = dataclasses.field(default_factory=list)  # max, upper_quartile
     vertical_offsets_m: list[float] | None = None  # per reference view, the offset removed from
     # its raster before the consensus ([dsm] coregister); None: not co-registered
+    leaf_on_crown_cells: int | None = None  # cells given the crowns' tops of the views of dates
+    # in leaf ([dsm] leaf_on_crowns); None: the rule did not run (fewer than two such views)
 
     def to_report(self) -> dict:
         return {"fusion": self.fusion, "cross_check": self.cross_check,
                 "per_view_filled_fraction": self.per_view_filled_fraction,
                 "per_view_raster": self.per_view_raster,
                 "vertical_offsets_m": self.vertical_offsets_m,
+                "leaf_on_crown_cells": self.leaf_on_crown_cells,
                 "enu_to_map": self.enu_to_map}
 
 
 def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *,
-                 ortho_images=None) -> AreaRasters:
+                 ortho_images=None, leaf_season: Sequence[float | None] | None = None,
+                 dates: Sequence[str | None] | None = None) -> AreaRasters:
     """The "dsm" stage of one area on its ``grid``: each reference view's height map
     (``per_view``: ``sweeps.ReferenceHeights``) -> cross-check -> points over each pixel's
     footprint (ENU -> UTM) -> per-view rasters -> fusion, with the orthophoto of
     ``ortho_images``' values (the views' in the cameras' pixels; None: no orthophoto) and one
-    cloud (x, y, z, grey colours) per reference view."""
+    cloud (x, y, z, grey colours) per reference view. ``leaf_season`` and ``dates`` (per view,
+    as ``similarity.leaf_season`` and the acquisition's day; None: unknown) give the consensus
+    the crowns' tops of the views of dates in leaf (``[dsm] leaf_on_crowns``)."""
+    from satsweep.dense.selection import LEAF_ON_SEASON
     from satsweep.geometry.camera import ground_sample_distance
     from satsweep.products.fusion import (
         FOOTPRINT_EDGE_PX,
@@ -84,6 +92,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         dropped_edge_pixels,
         flat_cells,
         fuse_dsms,
+        leaf_on_crown_tops,
         rasterise_dense_view_cells,
         rasterise_max_cells,
         small_raised_pixels,
@@ -132,7 +141,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                        for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
         rasters, conf_rasters, orthos, clouds, view_rules = [], [], [], [], []
-        offsets_m = None
+        offsets_m = leaf_cells = None
         for pv, P, centre, height, keep in zip(per_view, projections, centres, heights, checked):
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
                 centre, height, keep, P, to_map, subsamples=d.subsamples)
@@ -195,6 +204,23 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 rasters = [r - np.float32(o) for r, o in zip(rasters, offsets)]
                 clouds = [(x, y, z - o, c) for (x, y, z, c), o in zip(clouds, offsets)]
             fused, count, members = consensus(rasters)
+            in_leaf = [k for k, pv in enumerate(per_view)
+                       if leaf_season is not None and dates is not None
+                       and leaf_season[pv.index] is not None
+                       and leaf_season[pv.index] >= LEAF_ON_SEASON
+                       and dates[pv.index] is not None]
+            if d.leaf_on_crowns and len(in_leaf) >= 2:
+                fused, raised = leaf_on_crown_tops(
+                    fused, [rasters[k] for k in in_leaf],
+                    [dates[per_view[k].index] for k in in_leaf],
+                    tolerance_m=d.consensus_tolerance_m, resolution_m=grid.resolution,
+                    max_area_m2=d.small_object_area_m2)
+                leaf_cells = int(raised.sum())
+                with np.errstate(invalid="ignore"):  # the views that agree with a raised cell
+                    near = np.stack([np.abs(r - fused) <= d.consensus_tolerance_m
+                                     for r in rasters])
+                members = np.where(raised[None], near, members)
+                count = np.where(raised, near.sum(axis=0), count)
             # The confidence of the views that agree on the cell's height.
             conf = _nanmean_stack([np.where(m, c, np.nan) for m, c in zip(members, conf_rasters)],
                                   grid.shape)
@@ -223,5 +249,6 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                        fusion=fusion, cross_check=check,
                        per_view_filled_fraction=[float(np.isfinite(a).mean()) for a in rasters],
                        per_view_raster=view_rules, vertical_offsets_m=offsets_m,
+                       leaf_on_crown_cells=leaf_cells,
                        enu_to_map={"polynomial": to_map.accurate,
                                    "max_error_m": to_map.max_error_m})

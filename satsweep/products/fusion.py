@@ -16,6 +16,7 @@ Stages (host code, float64 numpy, vectorised):
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from typing import Literal, Sequence
 
@@ -132,6 +133,16 @@ FOOTPRINT_EDGE_PX = 0.49
 # the step pixels kept alone: 1.103 and 1.178 m on seeds 11 and 16. Views of a pixel per cell
 # (their highest point per cell already) are left as they were.
 SMALL_OBJECT_TOP = True
+# Crowns' tops from the views of dates in leaf ([dsm] leaf_on_crowns): in winter a deciduous
+# crown shows the ground through its branches, and the consensus of all dates puts a crown's
+# cells between the two (issue-form seed 11: crowns 2.85 m too low on average). A cell takes the
+# mean of the highest two leaf-on reference rasters (of two dates) that agree within the
+# consensus tolerance, where that lies more than LEAF_TOP_RISE_M above the consensus (less: the
+# consensus holds the crown already) and belongs to a small raised object (small_raised_pixels
+# over the cells: not a roof; buildings keep their consensus). Offline on seeds 11 / 13 / 16
+# (the dumped rasters, a plain mean-offset MAE): 1.075 / 1.089 / 1.189 -> 1.058 / 1.064 / 1.155
+# m (docs/measurements.md, twenty-fourth session).
+LEAF_TOP_RISE_M = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -179,6 +190,10 @@ class DSMOptions(Options):
     # (view_raster), the pixels of those small raised objects keep their step pixels
     # (edge_min_confidence) and each cell takes the highest of their points where that lies
     # above the quartile: a tree crown's top, as the truth's highest point per cell
+    leaf_on_crowns: bool = True  # consensus: where two reference views of dates in leaf (the
+    # metadata's date; of two different dates) agree on a small raised object's top above the
+    # cell's consensus height, the cell takes it (leafless crowns show the ground below them);
+    # views without a date take no part (leaf_on_crown_tops)
     consensus_min_distinct_views: int = 3  # consensus: the agreeing height maps must be matched
     # from at least this many distinct views in all (A against B and B against A are one pair;
     # at most the views there are)
@@ -195,6 +210,7 @@ class DSMOptions(Options):
                 "consensus_min_share", "consensus_min_distinct_views", "coregister",
                 "visibility_check", "visibility_far_m", "visibility_slack_px",
                 "visibility_slack_confidence", "small_object_area_m2", "small_object_top",
+                "leaf_on_crowns",
                 "view_raster", "edge_min_confidence")
 
     def check(self) -> None:
@@ -714,6 +730,35 @@ def _distinct_views(inside: np.ndarray, view_sets: Sequence[Sequence[int]]) -> n
         count += (union & np.uint64(1)).astype(np.int64)
         union >>= np.uint64(1)
     return count
+
+
+def leaf_on_crown_tops(fused: np.ndarray, rasters: Sequence[np.ndarray],
+                       dates: Sequence[str | None], *, tolerance_m: float, resolution_m: float,
+                       max_area_m2: float) -> tuple[np.ndarray, np.ndarray]:
+    """Crowns' tops from the reference views of dates in leaf (``LEAF_TOP_RISE_M``).
+
+    ``rasters``: those views' rasters (the consensus's grid), ``dates`` each one's acquisition
+    date (None: unknown, the view takes no part). A cell's candidate is the mean of the highest
+    pair of rasters of different dates within ``tolerance_m`` of each other; the cell takes it
+    where it lies more than ``LEAF_TOP_RISE_M`` above ``fused`` (a known height) and is part of a
+    small raised object (``small_raised_pixels`` of the candidates over the fused cells, regions
+    of at most ``max_area_m2``). Returns (a float32 copy of ``fused``, (H, W) bool: the cells
+    raised)."""
+    f = np.asarray(fused, dtype=np.float32)
+    best = np.full(f.shape, np.nan)
+    for i, j in itertools.combinations(range(len(rasters)), 2):
+        if dates[i] is None or dates[j] is None or dates[i] == dates[j]:
+            continue
+        a, b = (np.asarray(rasters[k], dtype=np.float64) for k in (i, j))
+        with np.errstate(invalid="ignore"):
+            pair = np.where(np.abs(a - b) <= tolerance_m, 0.5 * (a + b), np.nan)
+        best = np.fmax(best, pair)
+    with np.errstate(invalid="ignore"):
+        raised = np.isfinite(best) & np.isfinite(f) & (best > f + LEAF_TOP_RISE_M)
+    if raised.any():
+        top = np.where(np.isfinite(best), best, f)
+        raised &= small_raised_pixels(top, resolution_m, max_area_m2)
+    return np.where(raised, best, f).astype(np.float32), raised
 
 
 # -- hole filling ------------------------------------------------------------------------------

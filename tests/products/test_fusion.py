@@ -1089,3 +1089,43 @@ def test_vertical_offsets_of_rasters_against_a_plain_loop():
     np.testing.assert_allclose(got[:3], shifts, atol=0.01)
     assert got[3] == 0.0
     assert not flat[5, 6] and not flat[19, 30]  # beside the NaN, on a wall
+
+
+def test_leaf_on_crown_tops_raise_crowns_only():
+    """0.5 m cells of flat ground at 0 m: the consensus (``fused``) has a crown at the ground's
+    height (the leafless dates' view) and a 20 x 20 m block at 10 m. Three views of dates in
+    leaf: two of different dates see the crown 6 m up (within the tolerance of each other),
+    and all three see the block 3 m above the consensus. The crown's cells take the pair's mean;
+    the block (not a small raised object) and the ground keep the consensus. A pair of one date,
+    a pair that disagrees, a rise under LEAF_TOP_RISE_M and views without a date raise
+    nothing."""
+    rows, cols = np.mgrid[0:100, 0:120]
+    crown = (rows - 25) ** 2 + (cols - 25) ** 2 <= 6 ** 2  # 3 m radius
+    block = (rows >= 50) & (rows < 90) & (cols >= 60) & (cols < 100)
+    fused = np.where(block, 10.0, 0.0).astype(np.float32)
+    fused[0, 0] = np.nan  # an empty cell stays empty
+    a = np.where(crown, 6.2, 0.0) + np.where(block, 3.0, 0.0) + fused
+    b = np.where(crown, 5.8, 0.0) + np.where(block, 3.0, 0.0) + fused
+    c = np.where(crown, np.nan, 0.0) + np.where(block, 3.0, 0.0) + fused
+    kw = dict(tolerance_m=1.0, resolution_m=0.5, max_area_m2=150.0)
+    out, raised = dsm.leaf_on_crown_tops(fused, [a, b, c], ["2019-06-01", "2019-07-01",
+                                                           "2019-08-01"], **kw)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(raised, crown)
+    np.testing.assert_allclose(out[crown], 6.0, atol=1e-6)
+    np.testing.assert_array_equal(out[~crown], fused[~crown])
+    # One date: one measurement, nothing raised; nor without dates.
+    assert not dsm.leaf_on_crown_tops(fused, [a, b], ["2019-06-01"] * 2, **kw)[1].any()
+    assert not dsm.leaf_on_crown_tops(fused, [a, b], [None, "2019-07-01"], **kw)[1].any()
+    # Views that disagree by more than the tolerance.
+    far = np.where(crown, 9.0, 0.0) + fused
+    assert not dsm.leaf_on_crown_tops(fused, [a, far], ["2019-06-01", "2019-07-01"],
+                                      **kw)[1].any()
+    # A rise of less than LEAF_TOP_RISE_M: the consensus holds the crown already.
+    low = fused + np.where(crown, 0.9 * dsm.LEAF_TOP_RISE_M, 0.0)
+    assert not dsm.leaf_on_crown_tops(fused, [low, low], ["2019-06-01", "2019-07-01"],
+                                      **kw)[1].any()
+    # No small raised object without an area.
+    assert not dsm.leaf_on_crown_tops(fused, [a, b], ["2019-06-01", "2019-07-01"],
+                                      tolerance_m=1.0, resolution_m=0.5,
+                                      max_area_m2=0.0)[1].any()
