@@ -63,6 +63,8 @@ class AreaRasters:
     # its raster before the consensus ([dsm] coregister); None: not co-registered
     leaf_on_crown_cells: int | None = None  # cells given the crowns' tops of the views of dates
     # in leaf ([dsm] leaf_on_crowns); None: the rule did not run (fewer than two such views)
+    crown_hole_cells: int | None = None  # empty cells given a small raised object's height that
+    # views of two dates agree on ([dsm] crown_holes); None: the rule did not run
 
     def to_report(self) -> dict:
         return {"fusion": self.fusion, "cross_check": self.cross_check,
@@ -70,7 +72,17 @@ class AreaRasters:
                 "per_view_raster": self.per_view_raster,
                 "vertical_offsets_m": self.vertical_offsets_m,
                 "leaf_on_crown_cells": self.leaf_on_crown_cells,
+                "crown_hole_cells": self.crown_hole_cells,
                 "enu_to_map": self.enu_to_map}
+
+
+def _agreeing_views(rasters, fused: np.ndarray, cells: np.ndarray, members: np.ndarray,
+                    count: np.ndarray, tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The consensus's members and counts, ``cells`` (given new heights after it) taking the
+    views within ``tolerance_m`` of their new height."""
+    with np.errstate(invalid="ignore"):
+        near = np.stack([np.abs(r - fused) <= tolerance_m for r in rasters])
+    return np.where(cells[None], near, members), np.where(cells, near.sum(axis=0), count)
 
 
 def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *,
@@ -82,13 +94,15 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
     ``ortho_images``' values (the views' in the cameras' pixels; None: no orthophoto) and one
     cloud (x, y, z, grey colours) per reference view. ``leaf_season`` and ``dates`` (per view,
     as ``similarity.leaf_season`` and the acquisition's day; None: unknown) give the consensus
-    the crowns' tops of the views of dates in leaf (``[dsm] leaf_on_crowns``)."""
+    the crowns' tops of the views of dates in leaf (``[dsm] leaf_on_crowns``) and of the views
+    of two dates where it leaves a crown's cell empty (``[dsm] crown_holes``)."""
     from satsweep.dense.selection import LEAF_ON_SEASON
     from satsweep.geometry.camera import ground_sample_distance
     from satsweep.products.fusion import (
         FOOTPRINT_EDGE_PX,
         consensus_dsms,
         cross_check_heights,
+        crown_hole_tops,
         dropped_edge_pixels,
         flat_cells,
         fuse_dsms,
@@ -141,7 +155,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                        for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
         rasters, conf_rasters, orthos, clouds, view_rules = [], [], [], [], []
-        offsets_m = leaf_cells = None
+        offsets_m = leaf_cells = hole_cells = None
         for pv, P, centre, height, keep in zip(per_view, projections, centres, heights, checked):
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
                 centre, height, keep, P, to_map, subsamples=d.subsamples)
@@ -204,23 +218,25 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 rasters = [r - np.float32(o) for r, o in zip(rasters, offsets)]
                 clouds = [(x, y, z - o, c) for (x, y, z, c), o in zip(clouds, offsets)]
             fused, count, members = consensus(rasters)
+            view_dates = [None if dates is None else dates[pv.index] for pv in per_view]
             in_leaf = [k for k, pv in enumerate(per_view)
-                       if leaf_season is not None and dates is not None
+                       if view_dates[k] is not None and leaf_season is not None
                        and leaf_season[pv.index] is not None
-                       and leaf_season[pv.index] >= LEAF_ON_SEASON
-                       and dates[pv.index] is not None]
+                       and leaf_season[pv.index] >= LEAF_ON_SEASON]
+            tol = d.consensus_tolerance_m
             if d.leaf_on_crowns and len(in_leaf) >= 2:
                 fused, raised = leaf_on_crown_tops(
-                    fused, [rasters[k] for k in in_leaf],
-                    [dates[per_view[k].index] for k in in_leaf],
-                    tolerance_m=d.consensus_tolerance_m, resolution_m=grid.resolution,
+                    fused, [rasters[k] for k in in_leaf], [view_dates[k] for k in in_leaf],
+                    tolerance_m=tol, resolution_m=grid.resolution,
                     max_area_m2=d.small_object_area_m2)
                 leaf_cells = int(raised.sum())
-                with np.errstate(invalid="ignore"):  # the views that agree with a raised cell
-                    near = np.stack([np.abs(r - fused) <= d.consensus_tolerance_m
-                                     for r in rasters])
-                members = np.where(raised[None], near, members)
-                count = np.where(raised, near.sum(axis=0), count)
+                members, count = _agreeing_views(rasters, fused, raised, members, count, tol)
+            if d.crown_holes and sum(v is not None for v in view_dates) >= 2:
+                fused, filled = crown_hole_tops(fused, rasters, view_dates, tolerance_m=tol,
+                                                resolution_m=grid.resolution,
+                                                max_area_m2=d.small_object_area_m2)
+                hole_cells = int(filled.sum())
+                members, count = _agreeing_views(rasters, fused, filled, members, count, tol)
             # The confidence of the views that agree on the cell's height.
             conf = _nanmean_stack([np.where(m, c, np.nan) for m, c in zip(members, conf_rasters)],
                                   grid.shape)
@@ -249,6 +265,6 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                        fusion=fusion, cross_check=check,
                        per_view_filled_fraction=[float(np.isfinite(a).mean()) for a in rasters],
                        per_view_raster=view_rules, vertical_offsets_m=offsets_m,
-                       leaf_on_crown_cells=leaf_cells,
+                       leaf_on_crown_cells=leaf_cells, crown_hole_cells=hole_cells,
                        enu_to_map={"polynomial": to_map.accurate,
                                    "max_error_m": to_map.max_error_m})

@@ -631,44 +631,53 @@ def test_programs_forecast_on_a_multidate_stack_are_those_the_sweep_builds(tmp_p
     assert foreground == [] and forecast == asked, (foreground, forecast ^ asked)
 
 
-@pytest.mark.parametrize("leaf_on_crowns", [True, False])
-def test_the_consensus_takes_crowns_tops_from_the_references_of_dates_in_leaf(
-        tmp_path, monkeypatch, leaf_on_crowns):
+@pytest.mark.parametrize("crown_rules", [True, False])
+def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypatch,
+                                                             crown_rules):
     """On the stack of several dates above, the rule of ``[dsm] leaf_on_crowns`` gets the
     rasters of the references whose metadata date is in leaf (leaf_season >= LEAF_ON_SEASON),
-    each with its acquisition's day, and the report counts the cells it raised; off, it does
-    not run."""
+    that of ``[dsm] crown_holes`` every reference's, each with its acquisition's day, and the
+    report counts the cells each changed; off, they do not run."""
     from satsweep.dense.selection import LEAF_ON_SEASON
     from satsweep.products import fusion
     from satsweep.synth.scene import SynthOptions, generate_scene
 
     scene = generate_scene(tmp_path / "scene", SynthOptions(**MULTIDATE_FORECAST))
-    calls = []
-    real = fusion.leaf_on_crown_tops
+    calls = {}
 
-    def record(fused, rasters, dates, **kwargs):
-        out = real(fused, rasters, dates, **kwargs)
-        calls.append((len(rasters), list(dates), int(out[1].sum())))
-        return out
+    def recording(name):
+        real = getattr(fusion, name)
 
-    monkeypatch.setattr(fusion, "leaf_on_crown_tops", record)
-    config = PipelineConfig().override("dsm", leaf_on_crowns=leaf_on_crowns)
+        def record(fused, rasters, dates, **kwargs):
+            out = real(fused, rasters, dates, **kwargs)
+            calls.setdefault(name, []).append((len(rasters), list(dates), int(out[1].sum())))
+            return out
+        return record
+
+    for name in ("leaf_on_crown_tops", "crown_hole_tops"):
+        monkeypatch.setattr(fusion, name, recording(name))
+    config = PipelineConfig().override("dsm", leaf_on_crowns=crown_rules,
+                                       crown_holes=crown_rules)
     res = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
                       config=config, verbose=False)
     rep = res.report
     assert rep["dsm"]["fusion"] == "consensus"
+    if not crown_rules:
+        assert calls == {}
+        assert rep["dsm"]["leaf_on_crown_cells"] is None
+        assert rep["dsm"]["crown_hole_cells"] is None
+        return
     seasons = {v["name"]: v["leaf_season"] for v in rep["view_selection"]["views"]}
     refs = [r["reference"] for r in rep["view_selection"]["references"]]
     in_leaf = [r for r in refs if seasons[r] is not None and seasons[r] >= LEAF_ON_SEASON]
-    if not leaf_on_crowns:
-        assert calls == [] and rep["dsm"]["leaf_on_crown_cells"] is None
-        return
     assert len(in_leaf) >= 2  # the stack exercises the rule
     days = {v.image.name: v.date_time[:10] for v in scene.views}  # the scene's own record
-    (n, dates, raised), = calls
-    assert n == len(in_leaf)
-    assert dates == [days[r] for r in in_leaf]
+    (n, dates, raised), = calls["leaf_on_crown_tops"]
+    assert n == len(in_leaf) and dates == [days[r] for r in in_leaf]
     assert rep["dsm"]["leaf_on_crown_cells"] == raised
+    (n, dates, filled), = calls["crown_hole_tops"]
+    assert n == len(refs) and dates == [days[r] for r in refs]
+    assert rep["dsm"]["crown_hole_cells"] == filled
 
 
 def test_config_written_is_the_config_used(reconstruction):

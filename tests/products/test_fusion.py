@@ -1129,3 +1129,31 @@ def test_leaf_on_crown_tops_raise_crowns_only():
     assert not dsm.leaf_on_crown_tops(fused, [a, b], ["2019-06-01", "2019-07-01"],
                                       tolerance_m=1.0, resolution_m=0.5,
                                       max_area_m2=0.0)[1].any()
+
+
+def test_crown_hole_tops_fill_empty_crown_cells_only():
+    """0.5 m cells of flat ground at 0 m and a 20 x 20 m block at 10 m; the consensus left a
+    crown's cells empty, and a strip of ground beside the block. Two views of different dates
+    agree on the crown 6 m up; on the strip they agree on the block's height (its roof seen
+    beside its wall). The crown's empty cells take the pair's mean; the strip (part of the
+    block's large region) and every known cell keep the consensus, to be filled as before.
+    One date, views without dates, or views that disagree fill nothing."""
+    rows, cols = np.mgrid[0:100, 0:120]
+    crown = (rows - 25) ** 2 + (cols - 25) ** 2 <= 6 ** 2
+    block = (rows >= 50) & (rows < 90) & (cols >= 60) & (cols < 100)
+    strip = (rows >= 50) & (rows < 90) & (cols >= 100) & (cols < 104)
+    truth = np.where(block, 10.0, 0.0) + np.where(crown, 6.0, 0.0)
+    fused = np.where(crown | strip, np.nan, truth).astype(np.float32)
+    a = truth + np.where(crown, 0.2, 0.0) + np.where(strip, 10.0, 0.0)
+    b = truth - np.where(crown, 0.2, 0.0) + np.where(strip, 10.0, 0.0)
+    kw = dict(tolerance_m=1.0, resolution_m=0.5, max_area_m2=150.0)
+    out, filled = dsm.crown_hole_tops(fused, [a, b], ["2019-01-05", "2019-07-01"], **kw)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(filled, crown)
+    np.testing.assert_allclose(out[crown], 6.0, atol=1e-6)
+    np.testing.assert_array_equal(out[~crown], fused[~crown])  # NaN where it was empty
+    for dates in (["2019-01-05"] * 2, [None, "2019-07-01"]):
+        assert not dsm.crown_hole_tops(fused, [a, b], dates, **kw)[1].any()
+    far = truth + np.where(crown, 3.0, 0.0)
+    assert not dsm.crown_hole_tops(fused, [a, far], ["2019-01-05", "2019-07-01"],
+                                   **kw)[1].any()
