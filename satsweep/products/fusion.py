@@ -139,9 +139,10 @@ SMALL_OBJECT_TOP = True
 # mean of the highest two leaf-on reference rasters (of two dates) that agree within the
 # consensus tolerance, where that lies more than LEAF_TOP_RISE_M above the consensus (less: the
 # consensus holds the crown already) and belongs to a small raised object (small_raised_pixels
-# over the cells: not a roof; buildings keep their consensus). Offline on seeds 11 / 13 / 16
-# (the dumped rasters, a plain mean-offset MAE): 1.075 / 1.089 / 1.189 -> 1.058 / 1.064 / 1.155
-# m (docs/measurements.md, twenty-fourth session).
+# over the cells: not a roof; buildings keep their consensus). Issue-form stacks, DFC MAE m
+# (twenty-fourth session): 11 1.075 -> 1.062, 13 1.089 -> 1.072, 16 1.160 -> 1.135, 14 0.758
+# -> 0.741, seven others within 0.005 m; with any two dated views instead of those in leaf, the
+# same mean but ground, roads and plazas raised on seeds 8, 9, 15 (docs/measurements.md).
 LEAF_TOP_RISE_M = 1.0
 # Crowns' empty cells ([dsm] crown_holes): where the views scatter on a crown (each date redraws
 # its leaves; leafless dates see the ground) the consensus leaves the cell empty and the hole
@@ -748,10 +749,11 @@ def _highest_agreeing_pair(rasters: Sequence[np.ndarray], dates: Sequence[str | 
     """Per cell, the mean of the highest pair of ``rasters`` of two different known ``dates``
     within ``tolerance_m`` of each other (NaN where no such pair)."""
     best = np.full(shape, np.nan)
+    heights = [np.asarray(r, dtype=np.float64) for r in rasters]
     for i, j in itertools.combinations(range(len(rasters)), 2):
         if dates[i] is None or dates[j] is None or dates[i] == dates[j]:
             continue
-        a, b = (np.asarray(rasters[k], dtype=np.float64) for k in (i, j))
+        a, b = heights[i], heights[j]
         with np.errstate(invalid="ignore"):
             pair = np.where(np.abs(a - b) <= tolerance_m, 0.5 * (a + b), np.nan)
         best = np.fmax(best, pair)
