@@ -37,6 +37,8 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 if TYPE_CHECKING:  # pragma: no cover
+    import datetime
+
     from satsweep.geometry.aoi import AOI
     from satsweep.geometry.camera import CameraSet
     from satsweep.io.metadata import AcquisitionMetadata
@@ -71,6 +73,27 @@ def _sun_vector(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
 
 
+def same_pass(ta: "datetime.datetime", tb: "datetime.datetime") -> bool:
+    """Whether two acquisition times are one pass (less than ``SAME_PASS_S`` apart)."""
+    return abs((ta - tb).total_seconds()) < SAME_PASS_S
+
+
+def acquisition_passes(acquisitions: Sequence["AcquisitionMetadata | None"]) -> list[int | None]:
+    """Per acquisition, a label of its pass (``same_pass``: in time order, an acquisition within
+    ``SAME_PASS_S`` of the previous one shares its pass); None where the metadata give no
+    date-time. Two views of one pass see one scene (the same transients, the same leaves), so
+    their agreement is one measurement."""
+    times = [None if a is None else a.acquisition_datetime for a in acquisitions]
+    order = sorted((i for i, t in enumerate(times) if t is not None), key=lambda i: times[i])
+    passes: list[int | None] = [None] * len(times)
+    label, previous = -1, None
+    for i in order:
+        if previous is None or not same_pass(times[previous], times[i]):
+            label += 1
+        passes[i], previous = label, i
+    return passes
+
+
 def metadata_similarity(a: "AcquisitionMetadata | None",
                         b: "AcquisitionMetadata | None") -> float | None:
     """The similarity of two acquisitions from their metadata (see the module docstring), or
@@ -80,7 +103,7 @@ def metadata_similarity(a: "AcquisitionMetadata | None",
     ta, tb = a.acquisition_datetime, b.acquisition_datetime
     if ta is None or tb is None:
         return None
-    if abs((ta - tb).total_seconds()) < SAME_PASS_S:
+    if same_pass(ta, tb):
         return 1.0
     if None in (a.sun_azimuth_deg, a.sun_elevation_deg, b.sun_azimuth_deg, b.sun_elevation_deg):
         return None

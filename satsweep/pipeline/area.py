@@ -155,12 +155,6 @@ class Wait:
     reason: str
 
 
-def _acquisition_day(acquisition) -> str | None:
-    """The UTC day of an acquisition (``AcquisitionMetadata``; None where it is unknown)."""
-    when = None if acquisition is None else acquisition.acquisition_datetime
-    return None if when is None else when.date().isoformat()
-
-
 def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     """Every stage from the altitude range to the DSM rasters, for one area on its grid."""
     config, rep = ctx.config, ctx.report
@@ -194,10 +188,12 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
         altitude = dataclasses.replace(altitude, range=rng,
                                        details={**altitude.details, "widened": list(widened)})
     _check_range_ends(dense.sweeps, altitude, job, ctx)
+    from satsweep.dense.similarity import acquisition_passes
+
     rasters = area_rasters(dense.sweeps, dense.cameras, dense.images, job.grid, config, rep,
                            ortho_images=dense.ortho_images,
                            leaf_season=dense.selection.leaf_season,
-                           dates=[_acquisition_day(a) for a in dense.acquisitions])
+                           passes=acquisition_passes(dense.acquisitions))
     views = dense.views
     record = AreaRecord(altitude=altitude,
                         crops=[(v.path, (int(v.x0), int(v.y0), int(v.width), int(v.height)))

@@ -64,7 +64,7 @@ class AreaRasters:
     leaf_on_crown_cells: int | None = None  # cells given the crowns' tops of the views of dates
     # in leaf ([dsm] leaf_on_crowns); None: the rule did not run (fewer than two such views)
     crown_hole_cells: int | None = None  # empty cells given a small raised object's height that
-    # views of two dates agree on ([dsm] crown_holes); None: the rule did not run
+    # views of two passes agree on ([dsm] crown_holes); None: the rule did not run
 
     def to_report(self) -> dict:
         return {"fusion": self.fusion, "cross_check": self.cross_check,
@@ -87,15 +87,15 @@ def _agreeing_views(rasters, fused: np.ndarray, cells: np.ndarray, members: np.n
 
 def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *,
                  ortho_images=None, leaf_season: Sequence[float | None] | None = None,
-                 dates: Sequence[str | None] | None = None) -> AreaRasters:
+                 passes: Sequence[int | None] | None = None) -> AreaRasters:
     """The "dsm" stage of one area on its ``grid``: each reference view's height map
     (``per_view``: ``sweeps.ReferenceHeights``) -> cross-check -> points over each pixel's
     footprint (ENU -> UTM) -> per-view rasters -> fusion, with the orthophoto of
     ``ortho_images``' values (the views' in the cameras' pixels; None: no orthophoto) and one
-    cloud (x, y, z, grey colours) per reference view. ``leaf_season`` and ``dates`` (per view,
-    as ``similarity.leaf_season`` and the acquisition's day; None: unknown) give the consensus
-    the crowns' tops of the views of dates in leaf (``[dsm] leaf_on_crowns``) and of the views
-    of two dates where it leaves a crown's cell empty (``[dsm] crown_holes``)."""
+    cloud (x, y, z, grey colours) per reference view. ``leaf_season`` and ``passes`` (per view,
+    as ``similarity.leaf_season`` and ``similarity.acquisition_passes``; None: unknown) give the
+    consensus the crowns' tops of the views of dates in leaf (``[dsm] leaf_on_crowns``) and of
+    the views of two passes where it leaves a crown's cell empty (``[dsm] crown_holes``)."""
     from satsweep.dense.selection import LEAF_ON_SEASON
     from satsweep.geometry.camera import ground_sample_distance
     from satsweep.products.fusion import (
@@ -218,21 +218,21 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 rasters = [r - np.float32(o) for r, o in zip(rasters, offsets)]
                 clouds = [(x, y, z - o, c) for (x, y, z, c), o in zip(clouds, offsets)]
             fused, count, members = consensus(rasters)
-            view_dates = [None if dates is None else dates[pv.index] for pv in per_view]
+            view_passes = [None if passes is None else passes[pv.index] for pv in per_view]
             in_leaf = [k for k, pv in enumerate(per_view)
-                       if view_dates[k] is not None and leaf_season is not None
+                       if view_passes[k] is not None and leaf_season is not None
                        and leaf_season[pv.index] is not None
                        and leaf_season[pv.index] >= LEAF_ON_SEASON]
             tol = d.consensus_tolerance_m
             if d.leaf_on_crowns and len(in_leaf) >= 2:
                 fused, raised = leaf_on_crown_tops(
-                    fused, [rasters[k] for k in in_leaf], [view_dates[k] for k in in_leaf],
+                    fused, [rasters[k] for k in in_leaf], [view_passes[k] for k in in_leaf],
                     tolerance_m=tol, resolution_m=grid.resolution,
                     max_area_m2=d.small_object_area_m2)
                 leaf_cells = int(raised.sum())
                 members, count = _agreeing_views(rasters, fused, raised, members, count, tol)
-            if d.crown_holes and sum(v is not None for v in view_dates) >= 2:
-                fused, filled = crown_hole_tops(fused, rasters, view_dates, tolerance_m=tol,
+            if d.crown_holes and sum(v is not None for v in view_passes) >= 2:
+                fused, filled = crown_hole_tops(fused, rasters, view_passes, tolerance_m=tol,
                                                 resolution_m=grid.resolution,
                                                 max_area_m2=d.small_object_area_m2)
                 hole_cells = int(filled.sum())

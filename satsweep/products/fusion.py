@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from typing import Literal, Sequence
+from typing import Hashable, Literal, Sequence
 
 import numpy as np
 
@@ -136,7 +136,7 @@ SMALL_OBJECT_TOP = True
 # Crowns' tops from the views of dates in leaf ([dsm] leaf_on_crowns): in winter a deciduous
 # crown shows the ground through its branches, and the consensus of all dates puts a crown's
 # cells between the two (issue-form seed 11: crowns 2.85 m too low on average). A cell takes the
-# mean of the highest two leaf-on reference rasters (of two dates) that agree within the
+# mean of the highest two leaf-on reference rasters (of two passes) that agree within the
 # consensus tolerance, where that lies more than LEAF_TOP_RISE_M above the consensus (less: the
 # consensus holds the crown already) and belongs to a small raised object (small_raised_pixels
 # over the cells: not a roof; buildings keep their consensus). Issue-form stacks, DFC MAE m
@@ -148,7 +148,7 @@ LEAF_TOP_RISE_M = 1.0
 # its leaves; leafless dates see the ground) the consensus leaves the cell empty and the hole
 # filling gives it its rim's lowest height, the ground's (issue-form seed 16: 1468 crown cells,
 # 9 m too low, 12% of the error). Such a cell takes the highest pair of reference rasters of
-# two dates that agree there, where that is a small raised object. Issue-form stacks, DFC MAE
+# two passes that agree there, where that is a small raised object. Issue-form stacks, DFC MAE
 # m (twenty-fourth session, after leaf_on_crowns): 16 1.135 -> 1.093, 13 1.072 -> 1.059, 11
 # 1.062 -> 1.055, 18 0.828 -> 0.816, 8 0.845 -> 0.851, 9 0.949 -> 0.956, the others within
 # 0.006 m (docs/measurements.md).
@@ -200,11 +200,11 @@ class DSMOptions(Options):
     # (edge_min_confidence) and each cell takes the highest of their points where that lies
     # above the quartile: a tree crown's top, as the truth's highest point per cell
     leaf_on_crowns: bool = True  # consensus: where two reference views of dates in leaf (the
-    # metadata's date; of two different dates) agree on a small raised object's top above the
-    # cell's consensus height, the cell takes it (leafless crowns show the ground below them);
-    # views without a date take no part (leaf_on_crown_tops)
+    # metadata's date; of two passes) agree on a small raised object's top above the cell's
+    # consensus height, the cell takes it (leafless crowns show the ground below them); views
+    # without a date take no part (leaf_on_crown_tops)
     crown_holes: bool = True  # consensus: a cell no group agrees on, on a small raised object
-    # that two reference views of different dates (the metadata's days) agree on, takes their
+    # that two reference views of different passes (the metadata's times) agree on, takes their
     # height rather than the hole filling's (its rim's lowest: the ground; crown_hole_tops)
     consensus_min_distinct_views: int = 3  # consensus: the agreeing height maps must be matched
     # from at least this many distinct views in all (A against B and B against A are one pair;
@@ -744,14 +744,14 @@ def _distinct_views(inside: np.ndarray, view_sets: Sequence[Sequence[int]]) -> n
     return count
 
 
-def _highest_agreeing_pair(rasters: Sequence[np.ndarray], dates: Sequence[str | None],
+def _highest_agreeing_pair(rasters: Sequence[np.ndarray], passes: Sequence[Hashable | None],
                            tolerance_m: float, shape: tuple[int, ...]) -> np.ndarray:
-    """Per cell, the mean of the highest pair of ``rasters`` of two different known ``dates``
+    """Per cell, the mean of the highest pair of ``rasters`` of two different known ``passes``
     within ``tolerance_m`` of each other (NaN where no such pair)."""
     best = np.full(shape, np.nan)
     heights = [np.asarray(r, dtype=np.float64) for r in rasters]
     for i, j in itertools.combinations(range(len(rasters)), 2):
-        if dates[i] is None or dates[j] is None or dates[i] == dates[j]:
+        if passes[i] is None or passes[j] is None or passes[i] == passes[j]:
             continue
         a, b = heights[i], heights[j]
         with np.errstate(invalid="ignore"):
@@ -761,19 +761,19 @@ def _highest_agreeing_pair(rasters: Sequence[np.ndarray], dates: Sequence[str | 
 
 
 def leaf_on_crown_tops(fused: np.ndarray, rasters: Sequence[np.ndarray],
-                       dates: Sequence[str | None], *, tolerance_m: float, resolution_m: float,
-                       max_area_m2: float) -> tuple[np.ndarray, np.ndarray]:
+                       passes: Sequence[Hashable | None], *, tolerance_m: float,
+                       resolution_m: float, max_area_m2: float) -> tuple[np.ndarray, np.ndarray]:
     """Crowns' tops from the reference views of dates in leaf (``LEAF_TOP_RISE_M``).
 
-    ``rasters``: those views' rasters (the consensus's grid), ``dates`` each one's acquisition
-    date (None: unknown, the view takes no part). A cell's candidate is the mean of the highest
-    pair of rasters of different dates within ``tolerance_m`` of each other; the cell takes it
-    where it lies more than ``LEAF_TOP_RISE_M`` above ``fused`` (a known height) and is part of a
-    small raised object (``small_raised_pixels`` of the candidates over the fused cells, regions
-    of at most ``max_area_m2``). Returns (a float32 copy of ``fused``, (H, W) bool: the cells
-    raised)."""
+    ``rasters``: those views' rasters (the consensus's grid), ``passes`` each one's acquisition
+    pass (``similarity.acquisition_passes``; None: unknown, the view takes no part). A cell's
+    candidate is the mean of the highest pair of rasters of different passes within
+    ``tolerance_m`` of each other; the cell takes it where it lies more than
+    ``LEAF_TOP_RISE_M`` above ``fused`` (a known height) and is part of a small raised object
+    (``small_raised_pixels`` of the candidates over the fused cells, regions of at most
+    ``max_area_m2``). Returns (a float32 copy of ``fused``, (H, W) bool: the cells raised)."""
     f = np.asarray(fused, dtype=np.float32)
-    best = _highest_agreeing_pair(rasters, dates, tolerance_m, f.shape)
+    best = _highest_agreeing_pair(rasters, passes, tolerance_m, f.shape)
     with np.errstate(invalid="ignore"):
         raised = np.isfinite(best) & np.isfinite(f) & (best > f + LEAF_TOP_RISE_M)
     if raised.any():
@@ -783,20 +783,20 @@ def leaf_on_crown_tops(fused: np.ndarray, rasters: Sequence[np.ndarray],
 
 
 def crown_hole_tops(fused: np.ndarray, rasters: Sequence[np.ndarray],
-                    dates: Sequence[str | None], *, tolerance_m: float, resolution_m: float,
-                    max_area_m2: float) -> tuple[np.ndarray, np.ndarray]:
+                    passes: Sequence[Hashable | None], *, tolerance_m: float,
+                    resolution_m: float, max_area_m2: float) -> tuple[np.ndarray, np.ndarray]:
     """Empty cells of the consensus on small raised objects (``[dsm] crown_holes``).
 
-    ``rasters``: every reference view's (the consensus's grid), ``dates`` each one's acquisition
-    date (None: unknown, the view takes no part). A cell that ``fused`` leaves empty takes the
-    mean of the highest pair of rasters of different dates within ``tolerance_m`` of each other
-    where that is part of a small raised object (``small_raised_pixels`` of the fused cells with
-    those pairs in its empty ones, regions of at most ``max_area_m2``): the hole filling would
-    give it its rim's lowest height, the ground's. Returns (a float32 copy of ``fused``, (H, W)
-    bool: the cells filled)."""
+    ``rasters``: every reference view's (the consensus's grid), ``passes`` each one's acquisition
+    pass (``similarity.acquisition_passes``; None: unknown, the view takes no part). A cell that
+    ``fused`` leaves empty takes the mean of the highest pair of rasters of different passes
+    within ``tolerance_m`` of each other where that is part of a small raised object
+    (``small_raised_pixels`` of the fused cells with those pairs in its empty ones, regions of
+    at most ``max_area_m2``): the hole filling would give it its rim's lowest height, the
+    ground's. Returns (a float32 copy of ``fused``, (H, W) bool: the cells filled)."""
     f = np.asarray(fused, dtype=np.float32)
     empty = ~np.isfinite(f)
-    best = _highest_agreeing_pair(rasters, dates, tolerance_m, f.shape)
+    best = _highest_agreeing_pair(rasters, passes, tolerance_m, f.shape)
     filled = empty & np.isfinite(best)
     if filled.any():
         filled &= small_raised_pixels(np.where(empty, best, f), resolution_m, max_area_m2)

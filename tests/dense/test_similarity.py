@@ -8,6 +8,8 @@ import math
 import numpy as np
 
 from satsweep.dense.similarity import (
+    SAME_PASS_S,
+    acquisition_passes,
     SEASON_SCALE_DAYS,
     SUN_SCALE_DEG,
     appearance_similarity,
@@ -129,3 +131,23 @@ def test_leaf_season_over_the_year_and_the_hemispheres():
     assert on("2019-01-15", lat=TROPICS_LAT_DEG - 1.0) == 1.0
     assert leaf_season(AcquisitionMetadata(), 48.85) is None
     assert leaf_season(None, 48.85) is None
+
+
+def test_acquisition_passes_group_views_of_one_pass():
+    """Views acquired less than SAME_PASS_S apart (in time order, each within it of the one
+    before) share a label; another day, or the same day hours later, is another pass; views
+    without a date-time have none. Given out of order, the labels still group the same views."""
+    def at(t):
+        return AcquisitionMetadata(acquisition_time_utc=t)
+
+    assert 9 * 60 < SAME_PASS_S  # 10:30 and 10:39 are one pass
+    acq = [at("2019-06-01T10:30:00Z"), None, at("2019-06-01T14:30:00Z"),
+           at("2019-06-01T10:39:00Z"), at("2019-07-16T10:30:00Z"), AcquisitionMetadata()]
+    passes = acquisition_passes(acq)
+    assert passes[1] is None and passes[5] is None
+    assert passes[0] == passes[3]
+    assert len({passes[0], passes[2], passes[4]}) == 3
+    order = [4, 3, 2, 1, 0, 5]
+    again = acquisition_passes([acq[i] for i in order])
+    for i, j in ((0, 3), (0, 2), (2, 4)):
+        assert (again[order.index(i)] == again[order.index(j)]) == (passes[i] == passes[j])

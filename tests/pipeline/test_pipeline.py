@@ -636,7 +636,7 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
                                                              crown_rules):
     """On the stack of several dates above, the rule of ``[dsm] leaf_on_crowns`` gets the
     rasters of the references whose metadata date is in leaf (leaf_season >= LEAF_ON_SEASON),
-    that of ``[dsm] crown_holes`` every reference's, each with its acquisition's day, and the
+    that of ``[dsm] crown_holes`` every reference's, each with its acquisition's pass, and the
     report counts the cells each changed; off, they do not run."""
     from satsweep.dense.selection import LEAF_ON_SEASON
     from satsweep.products import fusion
@@ -648,9 +648,9 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     def recording(name):
         real = getattr(fusion, name)
 
-        def record(fused, rasters, dates, **kwargs):
-            out = real(fused, rasters, dates, **kwargs)
-            calls.setdefault(name, []).append((len(rasters), list(dates), int(out[1].sum())))
+        def record(fused, rasters, passes, **kwargs):
+            out = real(fused, rasters, passes, **kwargs)
+            calls.setdefault(name, []).append((len(rasters), list(passes), int(out[1].sum())))
             return out
         return record
 
@@ -671,12 +671,20 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     refs = [r["reference"] for r in rep["view_selection"]["references"]]
     in_leaf = [r for r in refs if seasons[r] is not None and seasons[r] >= LEAF_ON_SEASON]
     assert len(in_leaf) >= 2  # the stack exercises the rule
-    days = {v.image.name: v.date_time[:10] for v in scene.views}  # the scene's own record
-    (n, dates, raised), = calls["leaf_on_crown_tops"]
-    assert n == len(in_leaf) and dates == [days[r] for r in in_leaf]
+    # The scene's own record of each view's acquisition (pass): the labels each rule gets
+    # must group the references as it does.
+    acquisition = {v.image.name: v.acquisition for v in scene.views}
+
+    def same_grouping(labels, names):
+        return all((labels[i] == labels[j]) == (acquisition[a] == acquisition[b])
+                   for i, a in enumerate(names) for j, b in enumerate(names))
+
+    (n, passes, raised), = calls["leaf_on_crown_tops"]
+    assert n == len(in_leaf) and None not in passes and same_grouping(passes, in_leaf)
     assert rep["dsm"]["leaf_on_crown_cells"] == raised
-    (n, dates, filled), = calls["crown_hole_tops"]
-    assert n == len(refs) and dates == [days[r] for r in refs]
+    (n, passes, filled), = calls["crown_hole_tops"]
+    assert n == len(refs) and None not in passes and same_grouping(passes, refs)
+    assert len(set(passes)) >= 2  # references of several passes
     assert rep["dsm"]["crown_hole_cells"] == filled
 
 

@@ -1094,10 +1094,10 @@ def test_vertical_offsets_of_rasters_against_a_plain_loop():
 def test_leaf_on_crown_tops_raise_crowns_only():
     """0.5 m cells of flat ground at 0 m: the consensus (``fused``) has a crown at the ground's
     height (the leafless dates' view) and a 20 x 20 m block at 10 m. Three views of dates in
-    leaf: two of different dates see the crown 6 m up (within the tolerance of each other),
+    leaf: two of different passes see the crown 6 m up (within the tolerance of each other),
     and all three see the block 3 m above the consensus. The crown's cells take the pair's mean;
-    the block (not a small raised object) and the ground keep the consensus. A pair of one date,
-    a pair that disagrees, a rise under LEAF_TOP_RISE_M and views without a date raise
+    the block (not a small raised object) and the ground keep the consensus. A pair of one pass,
+    a pair that disagrees, a rise under LEAF_TOP_RISE_M and views without a known pass raise
     nothing."""
     rows, cols = np.mgrid[0:100, 0:120]
     crown = (rows - 25) ** 2 + (cols - 25) ** 2 <= 6 ** 2  # 3 m radius
@@ -1108,36 +1108,35 @@ def test_leaf_on_crown_tops_raise_crowns_only():
     b = np.where(crown, 5.8, 0.0) + np.where(block, 3.0, 0.0) + fused
     c = np.where(crown, np.nan, 0.0) + np.where(block, 3.0, 0.0) + fused
     kw = dict(tolerance_m=1.0, resolution_m=0.5, max_area_m2=150.0)
-    out, raised = dsm.leaf_on_crown_tops(fused, [a, b, c], ["2019-06-01", "2019-07-01",
-                                                           "2019-08-01"], **kw)
+    out, raised = dsm.leaf_on_crown_tops(fused, [a, b, c], [0, 1, 2], **kw)
     assert out.dtype == np.float32
     np.testing.assert_array_equal(raised, crown)
     np.testing.assert_allclose(out[crown], 6.0, atol=1e-6)
     np.testing.assert_array_equal(out[~crown], fused[~crown])
-    # One date: one measurement, nothing raised; nor without dates.
-    assert not dsm.leaf_on_crown_tops(fused, [a, b], ["2019-06-01"] * 2, **kw)[1].any()
-    assert not dsm.leaf_on_crown_tops(fused, [a, b], [None, "2019-07-01"], **kw)[1].any()
+    # One pass: one measurement, nothing raised; nor without a known pass.
+    assert not dsm.leaf_on_crown_tops(fused, [a, b], [0] * 2, **kw)[1].any()
+    assert not dsm.leaf_on_crown_tops(fused, [a, b], [None, 1], **kw)[1].any()
     # Views that disagree by more than the tolerance.
     far = np.where(crown, 9.0, 0.0) + fused
-    assert not dsm.leaf_on_crown_tops(fused, [a, far], ["2019-06-01", "2019-07-01"],
+    assert not dsm.leaf_on_crown_tops(fused, [a, far], [0, 1],
                                       **kw)[1].any()
     # A rise of less than LEAF_TOP_RISE_M: the consensus holds the crown already.
     low = fused + np.where(crown, 0.9 * dsm.LEAF_TOP_RISE_M, 0.0)
-    assert not dsm.leaf_on_crown_tops(fused, [low, low], ["2019-06-01", "2019-07-01"],
+    assert not dsm.leaf_on_crown_tops(fused, [low, low], [0, 1],
                                       **kw)[1].any()
     # No small raised object without an area.
-    assert not dsm.leaf_on_crown_tops(fused, [a, b], ["2019-06-01", "2019-07-01"],
+    assert not dsm.leaf_on_crown_tops(fused, [a, b], [0, 1],
                                       tolerance_m=1.0, resolution_m=0.5,
                                       max_area_m2=0.0)[1].any()
 
 
 def test_crown_hole_tops_fill_empty_crown_cells_only():
     """0.5 m cells of flat ground at 0 m and a 20 x 20 m block at 10 m; the consensus left a
-    crown's cells empty, and a strip of ground beside the block. Two views of different dates
+    crown's cells empty, and a strip of ground beside the block. Two views of different passes
     agree on the crown 6 m up; on the strip they agree on the block's height (its roof seen
     beside its wall). The crown's empty cells take the pair's mean; the strip (part of the
     block's large region) and every known cell keep the consensus, to be filled as before.
-    One date, views without dates, or views that disagree fill nothing."""
+    One pass, views without a known pass, or views that disagree fill nothing."""
     rows, cols = np.mgrid[0:100, 0:120]
     crown = (rows - 25) ** 2 + (cols - 25) ** 2 <= 6 ** 2
     block = (rows >= 50) & (rows < 90) & (cols >= 60) & (cols < 100)
@@ -1147,13 +1146,13 @@ def test_crown_hole_tops_fill_empty_crown_cells_only():
     a = truth + np.where(crown, 0.2, 0.0) + np.where(strip, 10.0, 0.0)
     b = truth - np.where(crown, 0.2, 0.0) + np.where(strip, 10.0, 0.0)
     kw = dict(tolerance_m=1.0, resolution_m=0.5, max_area_m2=150.0)
-    out, filled = dsm.crown_hole_tops(fused, [a, b], ["2019-01-05", "2019-07-01"], **kw)
+    out, filled = dsm.crown_hole_tops(fused, [a, b], [0, 1], **kw)
     assert out.dtype == np.float32
     np.testing.assert_array_equal(filled, crown)
     np.testing.assert_allclose(out[crown], 6.0, atol=1e-6)
     np.testing.assert_array_equal(out[~crown], fused[~crown])  # NaN where it was empty
-    for dates in (["2019-01-05"] * 2, [None, "2019-07-01"]):
-        assert not dsm.crown_hole_tops(fused, [a, b], dates, **kw)[1].any()
+    for passes in ([0] * 2, [None, 1]):
+        assert not dsm.crown_hole_tops(fused, [a, b], passes, **kw)[1].any()
     far = truth + np.where(crown, 3.0, 0.0)
-    assert not dsm.crown_hole_tops(fused, [a, far], ["2019-01-05", "2019-07-01"],
+    assert not dsm.crown_hole_tops(fused, [a, far], [0, 1],
                                    **kw)[1].any()
