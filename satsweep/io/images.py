@@ -11,6 +11,7 @@ GeoTIFFs (DSMs, DEMs) are read and written by :mod:`satsweep.io.geotiff`.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -146,12 +147,21 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
 def _grey(data: np.ndarray, axes: str, rows: slice, cols: slice, rgb: bool) -> np.ndarray:
     """The window ``rows``, ``cols`` of the page's pixels ``data``: the first band, or the
     luminance of an RGB image (see read_image)."""
+    if rgb:
+        return luminance(_colour(data, axes, rows, cols))
     if axes == "YXS":
-        return luminance(data[rows, cols, :3]) if rgb else np.array(data[rows, cols, 0])
+        return np.array(data[rows, cols, 0])
     if axes == "SYX":
-        return luminance(np.stack([data[k, rows, cols] for k in range(3)], axis=-1)) if rgb \
-            else np.array(data[0, rows, cols])
+        return np.array(data[0, rows, cols])
     return np.array(data[rows, cols])
+
+
+def _colour(data: np.ndarray, axes: str, rows: slice, cols: slice) -> np.ndarray:
+    """The window ``rows``, ``cols`` of an RGB page's pixels ``data`` as (H, W, 3) red, green,
+    blue."""
+    if axes == "SYX":
+        return np.stack([data[k, rows, cols] for k in range(3)], axis=-1)
+    return np.array(data[rows, cols, :3])
 
 
 def _segment_shape(page) -> tuple[int, int]:
@@ -172,7 +182,7 @@ def _segmented(page) -> bool:
     return bool(page.is_tiled) or seg_rows < int(page.imagelength)
 
 
-def _read_segments(tif, page, rows: slice, cols: slice) -> np.ndarray:
+def _read_segments(tif, page, rows: slice, cols: slice, colour: bool = False) -> np.ndarray:
     """The window of the first band (native byte order), or of an RGB image's luminance,
     decoding only the tiles or strips that it overlaps: a small AOI of a large compressed or
     tiled scene reads a small part of the file.
@@ -210,6 +220,8 @@ def _read_segments(tif, page, rows: slice, cols: slice) -> np.ndarray:
                     target[..., band] = part[..., 0]
                 else:
                     target[...] = part[..., :bands]
+    if colour and rgb:
+        return out
     return luminance(out) if rgb else out[..., 0]
 
 
@@ -274,6 +286,36 @@ def read_image(path: str | os.PathLike, *, window: Sequence[int] | None = None) 
     return out.astype(out.dtype.newbyteorder("="), copy=False)
 
 
+# The vegetation index of RGB deliveries: the normalised green-red difference (G - R) / (G + R)
+# (Tucker 1979), which needs no near-infrared band: leaves are greener than they are red, soil,
+# asphalt, roofs and shadows about as red as green. 0 where both bands are 0.
+def vegetation_index(rgb: np.ndarray) -> np.ndarray:
+    """(..., 3) red, green, blue samples -> float32 (G - R) / (G + R), in [-1, 1]."""
+    r, g = (rgb[..., k].astype(np.float32) for k in (0, 1))
+    total = r + g
+    return np.where(total > 0, (g - r) / np.where(total > 0, total, 1.0), 0.0).astype(np.float32)
+
+
+def read_vegetation_index(path: str | os.PathLike, *, window: Sequence[int] | None = None
+                          ) -> np.ndarray | None:
+    """The ``vegetation_index`` of an RGB image (photometric RGB) over ``window`` (as
+    ``read_image``'s), float32; None for an image of one band (panchromatic, a grey TIFF), which
+    has no colour to tell leaves by. ImageFormatError naming the file as ``read_image``."""
+    path = os.fspath(path)
+    with _open_tiff(path) as (tif, page):
+        _check_layout(path, page)
+        if not _is_rgb(page):
+            return None
+        size = int(page.imagewidth), int(page.imagelength)
+        out = None  # a window outside the image: the caller's error, raised below
+        if _window_inside(window, *size):
+            out = _read_window(path, tif, page, window, *_window_slices(window, *size),
+                               colour=True)
+    if out is None:
+        raise ValueError(f"window {window} is not inside the {size[0]}x{size[1]} image")
+    return vegetation_index(out)
+
+
 def _window_inside(window, width: int, height: int) -> bool:
     if window is None:
         return True
@@ -281,9 +323,10 @@ def _window_inside(window, width: int, height: int) -> bool:
     return 0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height
 
 
-def _read_window(path: str, tif, page, window, rows: slice, cols: slice) -> np.ndarray:
+def _read_window(path: str, tif, page, window, rows: slice, cols: slice,
+                 colour: bool = False) -> np.ndarray:
     """The pixels of ``rows``, ``cols`` of the first band, or of an RGB image's luminance (see
-    ``read_image``)."""
+    ``read_image``); with ``colour``, an RGB image's (H, W, 3) bands instead."""
     dtype = page.dtype.newbyteorder(tif.byteorder)
     mappable = (
         window is not None
@@ -297,12 +340,14 @@ def _read_window(path: str, tif, page, window, rows: slice, cols: slice) -> np.n
         rgb = _is_rgb(page)
         if mappable:
             data = np.memmap(path, dtype=dtype, mode="r", offset=page.dataoffsets[0], shape=page.shape)
-            out = _grey(data, page.axes, rows, cols, rgb)
+            out = (_colour if colour and rgb else functools.partial(_grey, rgb=rgb))(
+                data, page.axes, rows, cols)
             del data
         elif window is not None and _segmented(page):
-            out = _read_segments(tif, page, rows, cols)
+            out = _read_segments(tif, page, rows, cols, colour=colour)
         else:
-            out = _grey(page.asarray(), page.axes, rows, cols, rgb)
+            out = (_colour if colour and rgb else functools.partial(_grey, rgb=rgb))(
+                page.asarray(), page.axes, rows, cols)
     except Exception as exc:  # noqa: BLE001 - any decoder failure on this file is a format error
         raise ImageFormatError(path, _decode_problem(page, exc)) from None
     return out

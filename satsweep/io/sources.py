@@ -47,6 +47,13 @@ class ImageSource:
 
         return read_image(self.path, window=window)
 
+    def read_vegetation(self, window: Sequence[int] | None = None) -> np.ndarray | None:
+        """The vegetation index of ``window`` (``satsweep.io.images.read_vegetation_index``);
+        None for an image without colour."""
+        from satsweep.io.images import read_vegetation_index
+
+        return read_vegetation_index(self.path, window=window)
+
     def footprint(self, aoi: "AOI", alt_range: "AltitudeRange", *, margin_px: int = 0,
                   warn_partial: bool = True) -> tuple[int, int, int, int]:
         """The pixel box (x0, y0, x1, y1), ends excluded, that sees the AOI cube, widened by

@@ -130,6 +130,9 @@ AUTUMN_LEAF_FACTOR = 1.3
 # Albedo of bare branches (panchromatic) and the amplitude of their texture.
 BRANCH_ALBEDO = 0.14
 BRANCH_TEXTURE = 0.03
+# How green the deciduous leaves are in autumn, against 1 in spring and summer and 0 for bare
+# branches (``town.greenness``: the colour of the 8-bit RGB deliveries).
+AUTUMN_LEAFINESS = 0.3
 # Amplitude of the leaves' texture drawn again on each date (the leaves move, the crown's
 # self-shadowing follows the sun), as large as the crown's own fine texture (0.035).
 LEAF_TEXTURE_CHANGE = 0.035
@@ -413,7 +416,8 @@ def radiometric_dn(radiance: np.ndarray, *, gain: float, offset_dn: float, gamma
 def _copy_grid(grid: SurfaceGrid) -> SurfaceGrid:
     return dataclasses.replace(grid, top=grid.top.copy(), slope_e=grid.slope_e.copy(),
                                slope_n=grid.slope_n.copy(), material=grid.material.copy(),
-                               albedo=grid.albedo.copy(), wall_albedo=grid.wall_albedo.copy())
+                               albedo=grid.albedo.copy(), wall_albedo=grid.wall_albedo.copy(),
+                               leafiness=None if grid.leafiness is None else grid.leafiness.copy())
 
 
 def _window(grid: SurfaceGrid, e0: float, n0: float, e1: float, n1: float) -> tuple[slice, slice]:
@@ -462,6 +466,10 @@ def _change_vegetation(g: SurfaceGrid, truth: SurfaceGrid, acq: Acquisition, see
     if acq.leaf_factor != 1.0 and acq.leaf_factor > 0.0:
         g.albedo[j[deciduous], i[deciduous]] = np.clip(
             g.albedo[j[deciduous], i[deciduous]] * acq.leaf_factor, 0.02, 0.4).astype(np.float32)
+    if g.leafiness is None:
+        g.leafiness = np.ones(g.top.shape, np.float32)
+    if acq.leaf_factor == AUTUMN_LEAF_FACTOR:  # the deciduous leaves turning
+        g.leafiness[j[deciduous], i[deciduous]] = AUTUMN_LEAFINESS
     if acq.leaf_density < 1.0 and np.any(deciduous):
         holes = fractal_noise(rng, shape, (CROWN_HOLE_SCALE_M / c, 0.5 * CROWN_HOLE_SCALE_M / c))[jj, ii]
         limit = np.quantile(holes[deciduous], 1.0 - acq.leaf_density)
@@ -477,6 +485,7 @@ def _change_vegetation(g: SurfaceGrid, truth: SurfaceGrid, acq: Acquisition, see
             b = np.nonzero(deciduous & ~hole)[0]
             g.albedo[j[b], i[b]] = np.clip(BRANCH_ALBEDO + BRANCH_TEXTURE * leaves[b], 0.02, 0.4).astype(np.float32)
             g.wall_albedo[j[b], i[b]] = g.albedo[j[b], i[b]]
+            g.leafiness[j[b], i[b]] = 0.0
 
 
 def _change_materials(g: SurfaceGrid, truth: SurfaceGrid, acq: Acquisition, seed: int) -> None:

@@ -84,6 +84,7 @@ from satsweep.synth.town import (
     SurfaceGrid,
     build_surface,
     cast_rays,
+    greenness,
     shade,
     sun_vector,
 )
@@ -431,12 +432,22 @@ def render_radiance(grid: SurfaceGrid, shadows: ShadowMap, camera: PushbroomCame
     Each pixel averages ``supersampling**2`` rays through a regular sub-grid of the pixel
     (offsets ``(k + 0.5) / s - 0.5``); each ray shows the first surface point along it.
     """
+    return render_radiance_greenness(grid, shadows, camera, supersampling=supersampling, rows=rows)[0]
+
+
+def render_radiance_greenness(grid: SurfaceGrid, shadows: ShadowMap, camera: PushbroomCamera, *,
+                              supersampling: int, rows: tuple[int, int] | None = None
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """(radiance, greenness) images of ``camera`` over rows [r0, r1): the radiance as
+    ``render_radiance``'s, and each pixel's greenness (``town.greenness`` of its rays, weighted
+    by their radiance, 0..1: how green the light it receives is)."""
     s = int(supersampling)
     r0, r1 = (0, camera.height) if rows is None else rows
     off = (np.arange(s) + 0.5) / s - 0.5
     width = camera.width
     rows_per_chunk = max(1, RENDER_CHUNK_RAYS // (width * s * s))
     out = np.empty((r1 - r0, width))
+    green = np.empty((r1 - r0, width))
     for a in range(r0, r1, rows_per_chunk):
         b = min(a + rows_per_chunk, r1)
         rr = (np.arange(a, b)[:, None] + off[None, :]).reshape(-1)  # sub-rows
@@ -444,9 +455,12 @@ def render_radiance(grid: SurfaceGrid, shadows: ShadowMap, camera: PushbroomCame
         R, C = np.meshgrid(rr, cc, indexing="ij")
         origin, direction = camera.ray(col=C.ravel(), row=R.ravel())
         hits = cast_rays(grid, origin, direction)
-        rad = shade(grid, hits, shadows).reshape(b - a, s, width, s)
-        out[a - r0:b - r0] = rad.mean(axis=(1, 3))
-    return out
+        rad = shade(grid, hits, shadows)
+        g = (rad * greenness(grid, hits)).reshape(b - a, s, width, s).mean(axis=(1, 3))
+        rad = rad.reshape(b - a, s, width, s).mean(axis=(1, 3))
+        out[a - r0:b - r0] = rad
+        green[a - r0:b - r0] = np.where(rad > 0.0, g / np.where(rad > 0.0, rad, 1.0), 0.0)
+    return out, green
 
 
 def to_dn(radiance: np.ndarray, *, noise_dn: float, rng: np.random.Generator) -> np.ndarray:
@@ -473,15 +487,26 @@ PRODUCTS = ("dn16", "rgb8")
 RGB8_CLIP_PERCENT = (0.5, 99.5)
 RGB8_GAMMA = 1.6
 RGB8_CHANNELS = ((0.97, 0.0), (1.0, 0.0), (0.9, 0.03))
+# Vegetation's colour: a pixel of greenness g (``render_radiance_greenness``) and stretched
+# value x gets RGB8_GREEN[c] * g * x added to channel c: green up, red and blue down, with a
+# sum weighted by the luminance weights (``satsweep.io.images.LUMA_WEIGHTS``) of zero, so that
+# the grey image satsweep matches is the grey scene's (to the 8-bit rounding). A crown in leaf
+# then has a normalised green-red difference (G - R) / (G + R) of about 0.33, grass 0.17, the
+# rest 0.015.
+RGB8_GREEN = (-0.35, 0.25, -(0.587 * 0.25 - 0.299 * 0.35) / 0.114)
 
 
-def to_rgb8(dn: np.ndarray) -> np.ndarray:
+def to_rgb8(dn: np.ndarray, greenness: np.ndarray | None = None) -> np.ndarray:
     """A view's digital numbers as an 8-bit RGB delivery (H, W, 3): stretched from its
     RGB8_CLIP_PERCENT quantiles to [0, 1], raised to 1 / RGB8_GAMMA, each channel's response
-    applied, rounded to 8 bits. Shadows keep a few grey levels, as they do in such products."""
+    applied, vegetation coloured by ``greenness`` (per pixel, 0..1; None: none, see
+    RGB8_GREEN), rounded to 8 bits. Shadows keep a few grey levels, as they do in such
+    products."""
     lo, hi = np.percentile(dn, RGB8_CLIP_PERCENT)
     x = np.clip((dn.astype(np.float64) - lo) / max(float(hi - lo), 1.0), 0.0, 1.0) ** (1.0 / RGB8_GAMMA)
     rgb = np.stack([gain * x + offset for gain, offset in RGB8_CHANNELS], axis=-1)
+    if greenness is not None:
+        rgb += (np.asarray(greenness, np.float64) * x)[..., None] * np.asarray(RGB8_GREEN)
     return np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
 
 
@@ -770,7 +795,8 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
         for k in indices:
             cam, (th, az), bias = design.cameras[k], angles[k], biases[k]
             t1 = time.perf_counter()
-            radiance = render_radiance(surface, shadows, cam, supersampling=options.supersampling)
+            radiance, green = render_radiance_greenness(surface, shadows, cam,
+                                                        supersampling=options.supersampling)
             rng = np.random.default_rng([options.seed, 2000 + k])
             if acq is None:
                 image = to_dn(radiance, noise_dn=options.noise_dn, rng=rng)
@@ -779,7 +805,7 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
                 image = to_dn_radiometric(radiance, gain=vp.gain, offset_dn=vp.offset_dn, gamma=vp.gamma,
                                           noise_dn=options.noise_dn, rng=rng)
             if options.product == "rgb8":
-                image = to_rgb8(image)
+                image = to_rgb8(image, green)
             rpc, fit_res, check = fit_view_rpc(cam, frame, lon_range=lon_range, lat_range=lat_range,
                                                alt_range=alt_cube, bias_px=bias, seed=options.seed + k)
             name = view_name(k)

@@ -96,6 +96,9 @@ class SurfaceGrid:
     # material, albedo and wall albedo before the crowns were drawn (what a leafless crown lets
     # through). None when the grid was not drawn by build_surface.
     under_trees: "UnderTrees | None" = None
+    # (ny, nx) float32: how green each tree cell's leaves are on the surface's date (1: leaves
+    # in summer, less in autumn, 0: bare branches); None: 1 everywhere (a single-date scene).
+    leafiness: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -903,6 +906,24 @@ WINDOW_BAND_M = (0.9, 2.2)
 WINDOW_PERIOD_M = 2.6
 WINDOW_WIDTH_M = 1.4
 WINDOW_DARKENING = 0.45
+
+
+# Vegetation's colour in the 8-bit RGB deliveries (``satsweep.synth.scene.to_rgb8``): the
+# greenness of a hit is TREE_GREENNESS times its cell's leafiness on a crown (its top or its
+# flank), GRASS_GREENNESS on grass and soil, 0 elsewhere (roads, paving, roofs, facades, cars).
+# Real pansharpened RGB shows leaves green and lawns a duller green; what a vegetation index
+# has to tell apart is a crown from a lawn, and a crown in leaf from one without leaves.
+TREE_GREENNESS = 1.0
+GRASS_GREENNESS = 0.5
+
+
+def greenness(grid: SurfaceGrid, hits: RayHits) -> np.ndarray:
+    """Per hit, the greenness of the surface it shows (see TREE_GREENNESS), 0..1."""
+    mat = grid.material[hits.j, hits.i]
+    leaves = (np.ones(mat.shape) if grid.leafiness is None
+              else grid.leafiness[hits.j, hits.i].astype(np.float64))
+    out = np.where(mat == TREE, TREE_GREENNESS * leaves, 0.0)
+    return np.where(mat == GROUND, GRASS_GREENNESS, out)
 
 
 def shade(grid: SurfaceGrid, hits: RayHits, shadows: ShadowMap) -> np.ndarray:

@@ -110,6 +110,57 @@ def test_read_image_windows_by_segment(tmp_path, kwargs, data, band0):
         _same(got, whole[y0:y1, x0:x1])
 
 
+def _ngrdi(rgb):
+    """Reference (G - R) / (G + R) in float64, 0 where both are 0."""
+    r, g = (rgb[..., k].astype(np.float64) for k in (0, 1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(r + g > 0, (g - r) / (r + g), 0.0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, data",
+    [
+        ({"photometric": "rgb"}, _ramp((70, 90, 3), np.uint8)),
+        ({"photometric": "rgb", "byteorder": ">"}, _ramp((70, 90, 3), np.uint16)),
+        ({"photometric": "rgb", "tile": (16, 16), "compression": "zlib"},
+         _ramp((70, 90, 3), np.uint8)),
+        ({"photometric": "rgb", "planarconfig": "separate", "rowsperstrip": 8,
+          "compression": "zlib"}, _ramp((3, 70, 90), np.uint16)),
+    ],
+    ids=["rgb-contig", "rgb-bigendian", "rgb-tiled", "rgb-separate-strips"],
+)
+def test_read_vegetation_index_of_rgb_windows(tmp_path, kwargs, data):
+    """The normalised green-red difference of an RGB image's windows (memory-mapped, by
+    segment, whole), against a float64 reference of tifffile's bands."""
+    path = tmp_path / "img.tif"
+    tifffile.imwrite(path, data, **kwargs)
+    bands = tifffile.imread(path)
+    if bands.shape[0] == 3:
+        bands = np.moveaxis(bands, 0, -1)
+    whole = _ngrdi(bands)
+    assert np.ptp(whole) > 0.5  # the ramp has green and red pixels
+    got = sio.read_vegetation_index(path)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, whole, rtol=LUMA_RTOL, atol=LUMA_RTOL)
+    for x0, y0, x1, y1 in _SEGMENT_WINDOWS:
+        got = sio.read_vegetation_index(path, window=(x0, y0, x1, y1))
+        np.testing.assert_allclose(got, whole[y0:y1, x0:x1], rtol=LUMA_RTOL, atol=LUMA_RTOL)
+
+
+def test_read_vegetation_index_is_none_without_colour(tmp_path):
+    """A grey image (and a grey image of several planes) has no vegetation index; a window
+    outside an RGB image is the caller's error."""
+    path = tmp_path / "img.tif"
+    tifffile.imwrite(path, _ramp((37, 53), np.uint16))
+    assert sio.read_vegetation_index(path) is None
+    tifffile.imwrite(path, _ramp((3, 37, 53), np.uint16), photometric="minisblack",
+                     planarconfig="separate")
+    assert sio.read_vegetation_index(path, window=(0, 0, 10, 10)) is None
+    tifffile.imwrite(path, _ramp((37, 53, 3), np.uint8), photometric="rgb")
+    with pytest.raises(ValueError, match="not inside"):
+        sio.read_vegetation_index(path, window=(0, 0, 60, 10))
+
+
 def test_read_image_window_decodes_only_its_segments(tmp_path):
     # A tile that the window does not overlap is made undecodable: the whole image can no longer
     # be read, the window still can, so the reader did not decode that tile.

@@ -5,6 +5,7 @@ realism check: a cross-date pair degrades where a same-date pair of the same geo
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import json
 import math
@@ -31,15 +32,27 @@ from satsweep.synth.scene import (
     DN_MAX,
     DN_PER_RADIANCE,
     MULTIDATE_FIELDS,
+    RGB8_CHANNELS,
+    RGB8_GREEN,
     SCENE_FILE,
     Scene,
     SynthOptions,
     design_scene,
     generate_scene,
     render_radiance,
+    render_radiance_greenness,
     truth_dsm,
 )
-from satsweep.synth.town import PLAZA, ROAD, TREE, ShadowMap, build_surface, sun_vector
+from satsweep.synth.town import (
+    GRASS_GREENNESS,
+    PLAZA,
+    ROAD,
+    TREE,
+    TREE_GREENNESS,
+    ShadowMap,
+    build_surface,
+    sun_vector,
+)
 from tools.diag_multidate_pairs import (
     CROSS_DATE_PAIR,
     SAME_DATE_PAIR,
@@ -393,10 +406,11 @@ def test_cli_multidate_flags(tmp_path, capsys):
 
 
 def test_rgb8_views_are_8bit_rgb_stretched_per_image(tmp_path):
-    """product="rgb8": every view an 8-bit RGB image whose green channel is that view's own DN
-    stretched from its 0.5% to its 99.5% quantile (gamma RGB8_GAMMA), checked against the same
-    scene in DN: an independent stretch of those numbers, within the rounding of 8 bits; the RPC
-    tag and the rest of the scene as they are; the pipeline's reader takes its luminance."""
+    """product="rgb8": every view an 8-bit RGB image whose luminance (the pipeline's reader's
+    grey image) is that view's own DN stretched from its 0.5% to its 99.5% quantile (gamma
+    RGB8_GAMMA), checked against the same scene in DN: an independent stretch of those numbers,
+    within the rounding of 8 bits (vegetation's colour leaves it alone, RGB8_GREEN); the RPC tag
+    and the rest of the scene as they are."""
     opts = SynthOptions(seed=2, n_views=2, acquisitions=2, size_px=64, gsd_m=2.0, max_off_nadir_deg=15.0)
     dn = generate_scene(tmp_path / "dn", opts)
     rgb = generate_scene(tmp_path / "rgb", opts.replace(product="rgb8"))
@@ -405,8 +419,16 @@ def test_rgb8_views_are_8bit_rgb_stretched_per_image(tmp_path):
         img = tifffile.imread(b.image)
         assert img.dtype == np.uint8 and img.shape == grey.shape + (3,)
         lo, hi = np.percentile(grey, (0.5, 99.5))
-        expected = np.clip((grey - lo) / (hi - lo), 0.0, 1.0) ** (1.0 / 1.6) * 255.0
-        assert np.abs(img[..., 1] - expected).max() <= 0.5 + 1e-9  # rounding to 8 bits
+        x = np.clip((grey - lo) / (hi - lo), 0.0, 1.0) ** (1.0 / 1.6)
+        # The luminance of the bands' responses (RGB8_CHANNELS, LUMA_WEIGHTS).
+        expected_luma = sum(w * (gain * x + offset) * 255.0
+                            for w, (gain, offset) in zip((0.299, 0.587, 0.114), RGB8_CHANNELS))
+        luma = read_image(b.image).astype(np.float64)
+        # Each band rounded to 8 bits: the luminance within half a level; bands clipped at 0 or
+        # 255 (the stretch's ends, a green crown's brightest pixels) are not compared.
+        unclipped = np.all((img > 0) & (img < 255), axis=-1)
+        assert unclipped.mean() > 0.9
+        assert np.abs(luma - expected_luma)[unclipped].max() <= 0.5 + 1e-6
         assert 0.0 < np.mean(img[..., 1] == 0) < 0.02 and 0.0 < np.mean(img[..., 1] == 255) < 0.02
         with tifffile.TiffFile(a.image) as ta, tifffile.TiffFile(b.image) as tb:
             assert tb.pages[0].tags[50844].value == ta.pages[0].tags[50844].value  # the RPC tag
@@ -416,6 +438,81 @@ def test_rgb8_views_are_8bit_rgb_stretched_per_image(tmp_path):
     assert "product" not in json.loads((dn.directory / SCENE_FILE).read_text())["options"]
     with pytest.raises(OptionsError, match="product"):
         SynthOptions(product="png")
+
+
+# A normalised green-red difference of bands of at least COLOUR_MIN_LEVEL (8-bit levels), each
+# rounded by half a level at most, is within about 0.5 / COLOUR_MIN_LEVEL of the unrounded one.
+COLOUR_MIN_LEVEL = 40
+COLOUR_TOL = 0.5 / COLOUR_MIN_LEVEL + 1e-3
+
+
+def test_rgb8_views_show_vegetation_green(tmp_path):
+    """product="rgb8": each pixel's normalised green-red difference (G - R) / (G + R) is that of
+    its greenness g (render_radiance_greenness on its date's surface: the share of its light
+    that leaves and grass send), the bands' responses plus g times RGB8_GREEN, within the
+    rounding of 8 bits; the scene has pixels of crowns (g near 1), of grass (GRASS_GREENNESS)
+    and of neither (0)."""
+    opts = SynthOptions(seed=2, n_views=2, acquisitions=2, size_px=64, gsd_m=2.0,
+                        max_off_nadir_deg=15.0, product="rgb8")
+    scene = generate_scene(tmp_path / "rgb", opts)
+    truth = scene.surface()
+    (gr, _), (gg, _), (gb, _) = RGB8_CHANNELS
+    seen = []
+    for view in scene.views:
+        acq = scene.acquisitions[view.acquisition]
+        day = scene.acquisition_surface(view.acquisition, grid=truth)
+        shadows = ShadowMap(day, sun_vector(elevation_deg=acq.sun_elevation_deg,
+                                            azimuth_deg=acq.sun_azimuth_deg))
+        _, g = render_radiance_greenness(day, shadows, view.camera, supersampling=opts.supersampling)
+        img = tifffile.imread(view.image).astype(np.float64)
+        r, gn = img[..., 0], img[..., 1]
+        ok = (r >= COLOUR_MIN_LEVEL) & (gn >= COLOUR_MIN_LEVEL) & (img < 255).all(axis=-1)
+        with np.errstate(invalid="ignore"):  # black pixels: not compared
+            ngrdi = (gn - r) / (gn + r)
+        red, green = gr + RGB8_GREEN[0] * g, gg + RGB8_GREEN[1] * g
+        want = (green - red) / (green + red)
+        assert ok.mean() > 0.5
+        assert np.abs(ngrdi - want)[ok].max() <= COLOUR_TOL
+        seen.append(g[ok])
+    g = np.concatenate(seen)
+    assert (g > 0.9).sum() > 20 and (np.abs(g - GRASS_GREENNESS) < 0.05).sum() > 20
+    assert (g == 0.0).sum() > 20
+
+
+def test_greenness_of_leaves_grass_and_the_rest():
+    """town.greenness per hit: TREE_GREENNESS times the cell's leafiness on a crown (1 without
+    a leafiness grid), GRASS_GREENNESS on grass and soil, 0 on roads and roofs; a leafless
+    date's crowns keep branches of leafiness 0, its evergreens 1."""
+    from types import SimpleNamespace
+
+    from satsweep.synth.town import GROUND, ROOF, greenness
+
+    grid = build_surface(seed=3, e_min=-60.0, n_min=-60.0, e_max=60.0, n_max=60.0, cell_m=0.5,
+                         aoi_half_m=50.0)
+    mat = grid.material
+    j, i = np.nonzero(np.ones(mat.shape, bool))
+    hits = SimpleNamespace(j=j, i=i)
+    g = greenness(grid, hits).reshape(mat.shape)
+    assert np.any(mat == TREE) and np.any(mat == GROUND) and np.any(mat == ROOF)
+    np.testing.assert_array_equal(g[mat == TREE], TREE_GREENNESS)
+    np.testing.assert_array_equal(g[mat == GROUND], GRASS_GREENNESS)
+    np.testing.assert_array_equal(g[(mat != TREE) & (mat != GROUND)], 0.0)
+    leafy = dataclasses.replace(grid, leafiness=np.full(mat.shape, 0.25, np.float32))
+    np.testing.assert_allclose(greenness(leafy, hits).reshape(mat.shape)[mat == TREE],
+                               0.25 * TREE_GREENNESS)
+
+
+def test_leafless_dates_keep_branches_without_leaves(md, md_truth):
+    """The winter acquisition's crowns: the cells keeping branches are trees of leafiness 0
+    (bare), the evergreens' cells 1; no summer-like date sets any."""
+    winter = md.acquisitions[0]
+    assert winter.leaf_factor == 0.0  # branches
+    day = md.acquisition_surface(winter.index, grid=md_truth)
+    tree = day.material == TREE
+    leaf = day.leafiness[tree]
+    assert np.any(leaf == 0.0) and np.any(leaf == 1.0)
+    assert np.all((leaf == 0.0) | (leaf == 1.0))
+    assert md_truth.leafiness is None
 
 
 # -- realism -----------------------------------------------------------------------------------
