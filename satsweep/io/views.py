@@ -49,6 +49,8 @@ class View:
     y0: int  # row of the crop's first pixel in the original image
     valid: np.ndarray | None = None  # bool mask of the pixels that hold data (None: all do);
     # see validity_mask
+    vegetation: np.ndarray | None = None  # float32 vegetation index of the crop's pixels
+    # (satsweep.io.images.vegetation_index; None: an image without colour, or not read)
 
     @property
     def height(self) -> int:
@@ -188,10 +190,12 @@ def load_views(
     *,
     margin_px: int = DEFAULT_MARGIN_PX,
     warn_partial: bool = True,
+    vegetation: bool = False,
 ) -> list[View]:
     """Each image's window that sees the AOI cube, with the RPC of the crop; one View per image,
     in order. ``images`` are paths or ``ImageSource`` objects (``satsweep.io.sources``: then no
-    header or RPC is read again).
+    header or RPC is read again). With ``vegetation``, each colour image's crop also gives its
+    vegetation index (``View.vegetation``).
 
     Raises InputError for fewer than two images or an image given twice, ImageFormatError /
     RPCError naming a bad image or RPC, AOIError naming an image that does not see the AOI.
@@ -205,7 +209,9 @@ def load_views(
         crop = source.read((x0, y0, x1, y1))
         views.append(View(path=source.path, image=_pixels(crop),
                           rpc=source.rpc.cropped(x0=x0, y0=y0), x0=x0, y0=y0,
-                          valid=validity_mask(crop, source.nodata)))
+                          valid=validity_mask(crop, source.nodata),
+                          vegetation=(source.read_vegetation((x0, y0, x1, y1))
+                                      if vegetation else None)))
         log.info("%s: crop x=%d..%d, y=%d..%d of %dx%d", source.path, x0, x1, y0, y1,
                  source.shape[1], source.shape[0])
     return views

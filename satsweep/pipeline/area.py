@@ -35,6 +35,7 @@ from satsweep.pipeline.prepare import (
     ortho_values,
     skew_correct_masks,
     skew_correct_views,
+    vegetation_values,
 )
 from satsweep.pipeline.rasters import AreaRasters, area_rasters
 from satsweep.pipeline.sweeps import ReferenceHeights, sweep_references
@@ -193,7 +194,8 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     rasters = area_rasters(dense.sweeps, dense.cameras, dense.images, job.grid, config, rep,
                            ortho_images=dense.ortho_images,
                            leaf_season=dense.selection.leaf_season,
-                           passes=acquisition_passes(dense.acquisitions))
+                           passes=acquisition_passes(dense.acquisitions),
+                           vegetation_images=dense.vegetation_images)
     views = dense.views
     record = AreaRecord(altitude=altitude,
                         crops=[(v.path, (int(v.x0), int(v.y0), int(v.width), int(v.height)))
@@ -216,6 +218,8 @@ class _Dense:
     views: list[Any]
     images: list[np.ndarray]
     ortho_images: list[np.ndarray] | None
+    vegetation_images: list[np.ndarray] | None  # per view, its vegetation index (None: not
+    # every image has colour, or [dsm] green_crowns is off)
     cameras: "CameraSet"
     adjustment: Adjustment
     acquisitions: list[Any]
@@ -264,9 +268,14 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
     if adjustment.postponed is not None:
         return Wait(adjustment.postponed)
     ortho_images = ortho_values(views) if config.reconstruct.write_ortho else None
+    vegetation = vegetation_values(views) if config.dsm.green_crowns else None
     masks = [v.valid for v in views]
     if config.reconstruct.skew_correct:
         masks = skew_correct_masks(cameras, masks)
+        if vegetation is not None:
+            from satsweep.geometry.skew import skew_correct_set
+
+            _, vegetation = skew_correct_set(cameras, vegetation)
         cameras, images, ortho_images = skew_correct_views(cameras, images, ortho_images,
                                                            report=rep)
 
@@ -289,6 +298,7 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
     sweeps = sweep_references(ctx.device, cameras, images, selection, u_range, config, rep,
                               names, aoi=job.aoi, alt_range=alt, valid_masks=masks)
     return _Dense(views=list(views), images=list(images), ortho_images=ortho_images,
+                  vegetation_images=vegetation,
                   cameras=cameras, adjustment=adjustment, acquisitions=acquisitions,
                   selection=selection, sweeps=list(sweeps))
 

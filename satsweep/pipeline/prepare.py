@@ -132,7 +132,8 @@ def crop_views(sources: Sequence["ImageSource"], aoi: "AOI", alt_range: "Altitud
 
     with _stage(report, "views"):
         views = load_views(sources, aoi, alt_range,
-                           margin_px=config.reconstruct.crop_margin_px + int(extra_margin_px))
+                           margin_px=config.reconstruct.crop_margin_px + int(extra_margin_px),
+                           vegetation=config.dsm.green_crowns)
         kept = []
         for v in views:
             fraction = 1.0 if v.valid is None else float(np.mean(v.valid))
@@ -301,6 +302,15 @@ def ortho_values(views: Sequence["View"]) -> list[np.ndarray]:
     """The orthophoto's grey levels: the crops' own values (sensor units, the same for every
     tile, where each tile's tonemap stretches its own crop)."""
     return [np.asarray(v.image, np.float32) for v in views]
+
+
+def vegetation_values(views: Sequence["View"]) -> list[np.ndarray] | None:
+    """Each view's vegetation index (``View.vegetation``) where every view has one (colour
+    images); None otherwise: a stack that mixes panchromatic and colour images tells leaves in
+    some views only, and the crowns' rule (``[dsm] green_crowns``) compares views."""
+    if not views or any(v.vegetation is None for v in views):
+        return None
+    return [np.asarray(v.vegetation, np.float32) for v in views]
 
 
 def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",

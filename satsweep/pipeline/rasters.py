@@ -65,6 +65,8 @@ class AreaRasters:
     # in leaf ([dsm] leaf_on_crowns); None: the rule did not run (fewer than two such views)
     crown_hole_cells: int | None = None  # empty cells given a small raised object's height that
     # views of two passes agree on ([dsm] crown_holes); None: the rule did not run
+    green_crown_cells: int | None = None  # cells given the highest height of the views that see
+    # leaves there ([dsm] green_crowns); None: the rule did not run (no colour images)
 
     def to_report(self) -> dict:
         return {"fusion": self.fusion, "cross_check": self.cross_check,
@@ -73,6 +75,7 @@ class AreaRasters:
                 "vertical_offsets_m": self.vertical_offsets_m,
                 "leaf_on_crown_cells": self.leaf_on_crown_cells,
                 "crown_hole_cells": self.crown_hole_cells,
+                "green_crown_cells": self.green_crown_cells,
                 "enu_to_map": self.enu_to_map}
 
 
@@ -87,7 +90,8 @@ def _agreeing_views(rasters, fused: np.ndarray, cells: np.ndarray, members: np.n
 
 def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *,
                  ortho_images=None, leaf_season: Sequence[float | None] | None = None,
-                 passes: Sequence[int | None] | None = None) -> AreaRasters:
+                 passes: Sequence[int | None] | None = None,
+                 vegetation_images: Sequence[np.ndarray] | None = None) -> AreaRasters:
     """The "dsm" stage of one area on its ``grid``: each reference view's height map
     (``per_view``: ``sweeps.ReferenceHeights``) -> cross-check -> points over each pixel's
     footprint (ENU -> UTM) -> per-view rasters -> fusion, with the orthophoto of
@@ -95,7 +99,10 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
     cloud (x, y, z, grey colours) per reference view. ``leaf_season`` and ``passes`` (per view,
     as ``similarity.leaf_season`` and ``similarity.acquisition_passes``; None: unknown) give the
     consensus the crowns' tops of the views of dates in leaf (``[dsm] leaf_on_crowns``) and of
-    the views of two passes where it leaves a crown's cell empty (``[dsm] crown_holes``)."""
+    the views of two passes where it leaves a crown's cell empty (``[dsm] crown_holes``).
+    ``vegetation_images`` (per view, its vegetation index in the cameras' pixels; None: images
+    without colour) give it the crowns' tops of the views that see leaves there (``[dsm]
+    green_crowns``)."""
     from satsweep.dense.selection import LEAF_ON_SEASON
     from satsweep.geometry.camera import ground_sample_distance
     from satsweep.products.fusion import (
@@ -106,6 +113,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         dropped_edge_pixels,
         flat_cells,
         fuse_dsms,
+        green_crown_tops,
         leaf_on_crown_tops,
         rasterise_dense_view_cells,
         rasterise_max_cells,
@@ -154,8 +162,8 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
-        rasters, conf_rasters, orthos, clouds, view_rules = [], [], [], [], []
-        offsets_m = leaf_cells = hole_cells = None
+        rasters, conf_rasters, orthos, clouds, view_rules, greens = [], [], [], [], [], []
+        offsets_m = leaf_cells = hole_cells = green_cells = None
         for pv, P, centre, height, keep in zip(per_view, projections, centres, heights, checked):
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
                 centre, height, keep, P, to_map, subsamples=d.subsamples)
@@ -196,6 +204,9 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             if ortho_images is not None:
                 grey = np.ravel(ortho_images[pv.index])[spix]
                 orthos.append(value_at_highest(cells, sz, grey, grid))
+            if vegetation_images is not None:
+                greens.append(value_at_highest(
+                    cells, sz, np.ravel(vegetation_images[pv.index])[spix], grid))
             if not config.reconstruct.write_cloud:
                 continue
             gray = np.clip(np.nan_to_num(images[pv.index]) * 255.0, 0, 255).astype(np.uint8)
@@ -237,6 +248,12 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                                                 max_area_m2=d.small_object_area_m2)
                 hole_cells = int(filled.sum())
                 members, count = _agreeing_views(rasters, fused, filled, members, count, tol)
+            if d.green_crowns and vegetation_images is not None:
+                fused, raised = green_crown_tops(fused, rasters, greens,
+                                                 resolution_m=grid.resolution,
+                                                 max_area_m2=d.small_object_area_m2)
+                green_cells = int(raised.sum())
+                members, count = _agreeing_views(rasters, fused, raised, members, count, tol)
             # The confidence of the views that agree on the cell's height.
             conf = _nanmean_stack([np.where(m, c, np.nan) for m, c in zip(members, conf_rasters)],
                                   grid.shape)
@@ -266,5 +283,6 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                        per_view_filled_fraction=[float(np.isfinite(a).mean()) for a in rasters],
                        per_view_raster=view_rules, vertical_offsets_m=offsets_m,
                        leaf_on_crown_cells=leaf_cells, crown_hole_cells=hole_cells,
+                       green_crown_cells=green_cells,
                        enu_to_map={"polynomial": to_map.accurate,
                                    "max_error_m": to_map.max_error_m})

@@ -637,12 +637,15 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     """On the stack of several dates above, the rule of ``[dsm] leaf_on_crowns`` gets the
     rasters of the references whose metadata date is in leaf (leaf_season >= LEAF_ON_SEASON),
     that of ``[dsm] crown_holes`` every reference's, each with its acquisition's pass, and the
-    report counts the cells each changed; off, they do not run."""
+    report counts the cells each changed; off, they do not run. Of 8-bit RGB images, ``[dsm]
+    green_crowns`` gets every reference's raster and its vegetation index, leaves seen on the
+    crowns; of grey images (with the rule on) it does not run."""
     from satsweep.dense.selection import LEAF_ON_SEASON
     from satsweep.products import fusion
     from satsweep.synth.scene import SynthOptions, generate_scene
 
-    scene = generate_scene(tmp_path / "scene", SynthOptions(**MULTIDATE_FORECAST))
+    product = "rgb8" if crown_rules else "dn16"
+    scene = generate_scene(tmp_path / "scene", SynthOptions(**MULTIDATE_FORECAST, product=product))
     calls = {}
 
     def recording(name):
@@ -656,6 +659,16 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
 
     for name in ("leaf_on_crown_tops", "crown_hole_tops"):
         monkeypatch.setattr(fusion, name, recording(name))
+    green_tops = fusion.green_crown_tops
+
+    def record_green(fused, rasters, vegetation, **kwargs):
+        out = green_tops(fused, rasters, vegetation, **kwargs)
+        leafy = max(float(np.mean(np.asarray(v) >= fusion.VEGETATION_INDEX_MIN)) for v in vegetation)
+        calls.setdefault("green_crown_tops", []).append((len(rasters), len(vegetation), leafy,
+                                                         int(out[1].sum())))
+        return out
+
+    monkeypatch.setattr(fusion, "green_crown_tops", record_green)
     config = PipelineConfig().override("dsm", leaf_on_crowns=crown_rules,
                                        crown_holes=crown_rules)
     res = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
@@ -666,6 +679,7 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
         assert calls == {}
         assert rep["dsm"]["leaf_on_crown_cells"] is None
         assert rep["dsm"]["crown_hole_cells"] is None
+        assert rep["dsm"]["green_crown_cells"] is None  # no colour
         return
     seasons = {v["name"]: v["leaf_season"] for v in rep["view_selection"]["views"]}
     refs = [r["reference"] for r in rep["view_selection"]["references"]]
@@ -686,6 +700,10 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     assert n == len(refs) and None not in passes and same_grouping(passes, refs)
     assert len(set(passes)) >= 2  # references of several passes
     assert rep["dsm"]["crown_hole_cells"] == filled
+    (n, n_vegetation, leafy, raised), = calls["green_crown_tops"]
+    assert n == n_vegetation == len(refs)
+    assert leafy > 0.01  # some reference sees leaves
+    assert rep["dsm"]["green_crown_cells"] == raised
 
 
 def test_config_written_is_the_config_used(reconstruction):

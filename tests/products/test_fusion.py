@@ -1156,3 +1156,50 @@ def test_crown_hole_tops_fill_empty_crown_cells_only():
     far = truth + np.where(crown, 3.0, 0.0)
     assert not dsm.crown_hole_tops(fused, [a, far], [0, 1],
                                    **kw)[1].any()
+
+
+def test_green_crown_tops_raise_crowns_the_green_views_see():
+    """0.5 m cells of flat ground at 0 m: the consensus (``fused``) has a crown at 2 m (between
+    the ground that leafless dates see and its top), a hole in the crown, and a 20 x 20 m block
+    at 10 m. Views a and a2 see leaves on the crown at 7 and 6.5 m; view b sees the ground
+    through it at 0 m (no leaves). Views c and c2 see a roof garden on the block 3 m above the
+    consensus, a lawn at the ground's height, and grass in a strip beside the block at the
+    roof's height (matched with the roof: one region with it in their rasters). The crown's
+    cells (its hole too) take the highest green height, 7 m; every other cell keeps the
+    consensus. One green view, views whose index is under VEGETATION_INDEX_MIN, or a rise under
+    GREEN_TOP_RISE_M raise nothing."""
+    assert dsm.GREEN_MIN_VIEWS == 2
+    rows, cols = np.mgrid[0:100, 0:120]
+    crown = (rows - 25) ** 2 + (cols - 25) ** 2 <= 6 ** 2  # 3 m radius
+    hole = crown & (rows == 25) & (cols >= 24) & (cols <= 26)
+    block = (rows >= 50) & (rows < 90) & (cols >= 60) & (cols < 100)
+    strip = (rows >= 50) & (rows < 90) & (cols >= 100) & (cols < 104)
+    lawn = (rows >= 50) & (rows < 90) & (cols >= 2) & (cols < 40)
+    fused = (np.where(block, 10.0, 0.0) + np.where(crown, 2.0, 0.0)).astype(np.float32)
+    fused[hole] = np.nan
+    fused[0, 0] = np.nan  # an empty cell nobody sees green stays empty
+    green, grey = dsm.VEGETATION_INDEX_MIN + 0.05, dsm.VEGETATION_INDEX_MIN - 0.05
+    ground = np.where(block, 10.0, 0.0)
+    a = np.where(crown, 7.0, ground)
+    a2 = np.where(crown, 6.5, ground)
+    va = np.where(crown, green, grey)
+    b = ground
+    vb = np.full(a.shape, grey)
+    c = np.where(block | strip, 13.0, 0.0)
+    vc = np.where(block | lawn | strip, green, grey)
+    kw = dict(resolution_m=0.5, max_area_m2=150.0)
+    out, raised = dsm.green_crown_tops(fused, [a, a2, b, c, c], [va, va, vb, vc, vc], **kw)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(raised, crown)
+    np.testing.assert_array_equal(out[crown], 7.0)
+    np.testing.assert_array_equal(out[~crown], fused[~crown])  # NaN where it was empty
+    # One view seeing leaves: nothing; nor two that are not green enough.
+    assert not dsm.green_crown_tops(fused, [a, b], [va, va], **kw)[1].any()
+    assert not dsm.green_crown_tops(fused, [a, a2], [np.full(a.shape, grey)] * 2, **kw)[1].any()
+    # Green but less than GREEN_TOP_RISE_M above the consensus (its empty cells are raised).
+    low = np.where(crown, 2.0 + 0.9 * dsm.GREEN_TOP_RISE_M, 0.0)
+    np.testing.assert_array_equal(dsm.green_crown_tops(fused, [low, low], [va, va], **kw)[1],
+                                  hole)
+    # No small raised object without an area.
+    assert not dsm.green_crown_tops(fused, [a, a2], [va, va], resolution_m=0.5,
+                                    max_area_m2=0.0)[1].any()
