@@ -272,12 +272,8 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
     masks = [v.valid for v in views]
     if config.reconstruct.skew_correct:
         masks = skew_correct_masks(cameras, masks)
-        if vegetation is not None:
-            from satsweep.geometry.skew import skew_correct_set
-
-            _, vegetation = skew_correct_set(cameras, vegetation)
-        cameras, images, ortho_images = skew_correct_views(cameras, images, ortho_images,
-                                                           report=rep)
+        cameras, images, ortho_images, vegetation = skew_correct_views(
+            cameras, images, ortho_images, vegetation_images=vegetation, report=rep)
 
     from satsweep.dense.selection import select_views
 

@@ -246,9 +246,11 @@ def _fill_nan(image: np.ndarray) -> np.ndarray:
 
 def skew_correct_views(cameras: "CameraSet", images: Sequence[np.ndarray],
                        ortho_images: Sequence[np.ndarray] | None = None, *,
+                       vegetation_images: Sequence[np.ndarray] | None = None,
                        report: "RunReport | None" = None):
     """The "skew" step: (cameras without skew, images sheared alike with 0 where no pixel maps,
-    ortho images sheared alike (None stays None))."""
+    ortho images and vegetation images sheared alike, NaN where no pixel maps (None stays
+    None))."""
     from satsweep.geometry.skew import skew_correct_set
 
     with _stage(report, "skew"):
@@ -256,7 +258,9 @@ def skew_correct_views(cameras: "CameraSet", images: Sequence[np.ndarray],
         sheared = [_fill_nan(im) for im in sheared]
         if ortho_images is not None:
             _, ortho_images = skew_correct_set(cameras, ortho_images)
-    return corrected, sheared, ortho_images
+        if vegetation_images is not None:
+            _, vegetation_images = skew_correct_set(cameras, vegetation_images)
+    return corrected, sheared, ortho_images, vegetation_images
 
 
 def skew_correct_masks(cameras: "CameraSet", masks: Sequence[np.ndarray | None]
@@ -338,6 +342,6 @@ def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
     masks = [v.valid for v in views]
     if config.reconstruct.skew_correct:
         masks = skew_correct_masks(cameras, masks)
-        cameras, images, ortho = skew_correct_views(cameras, images, ortho, report=report)
+        cameras, images, ortho, _ = skew_correct_views(cameras, images, ortho, report=report)
     return PreparedViews(views=views, images=list(images), ortho_images=ortho, cameras=cameras,
                          adjustment=adjustment, valid=masks)
