@@ -97,6 +97,9 @@ class AreaRecord:
     selection: "Selection"
     sweeps: list[ReferenceHeights]
     rasters: AreaRasters
+    vegetation_shares: list[float | None] = dataclasses.field(default_factory=list)  # per
+    # view, the share of its crop's pixels holding data that show vegetation (None: no colour,
+    # or [dsm] green_crowns off)
 
     @property
     def names(self) -> list[str]:
@@ -107,8 +110,11 @@ class AreaRecord:
         names = [name for name, _ in self.crops]
         return {
             "altitude_range": self.altitude.to_report(),
-            "views": [{"image": path, "crop": list(box), "acquisition": acquisition}
-                      for (path, box), acquisition in zip(self.crops, self.acquisitions)],
+            "views": [{"image": path, "crop": list(box), "acquisition": acquisition,
+                       "vegetation_share": share}
+                      for (path, box), acquisition, share
+                      in zip(self.crops, self.acquisitions,
+                             self.vegetation_shares or [None] * len(self.crops))],
             "cameras": {"approx_error_px": {os.path.basename(n): v.camera.error.to_dict()
                                             for n, v in zip(names, self.cameras.views)},
                         "warnings": list(self.cameras.warnings)},
@@ -204,11 +210,26 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
                                       for a in dense.acquisitions],
                         cameras=dense.cameras, adjustment=dense.adjustment,
                         sparse=None if sparse is None else sparse.to_dict(),
-                        selection=dense.selection, sweeps=dense.sweeps, rasters=rasters)
+                        selection=dense.selection, sweeps=dense.sweeps, rasters=rasters,
+                        vegetation_shares=[vegetation_share(v) for v in views])
     own = dense.adjustment.own_shifts
     return AreaResult(rasters=rasters, cameras=dense.cameras,
                       shifts=None if own is None else {v.path: s for v, s in zip(views, own)},
                       record=record)
+
+
+def vegetation_share(view) -> float | None:
+    """The share of a view's crop pixels holding data whose vegetation index reaches the
+    crowns' rule's threshold (``fusion.VEGETATION_INDEX_MIN``), rounded to 1e-4; None for a
+    view without a vegetation index."""
+    from satsweep.products.fusion import VEGETATION_INDEX_MIN
+
+    if view.vegetation is None:
+        return None
+    valid = np.ones(view.vegetation.shape, bool) if view.valid is None else view.valid
+    if not valid.any():
+        return None
+    return round(float(np.mean(view.vegetation[valid] >= VEGETATION_INDEX_MIN)), 4)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -680,6 +680,7 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
         assert rep["dsm"]["leaf_on_crown_cells"] is None
         assert rep["dsm"]["crown_hole_cells"] is None
         assert rep["dsm"]["green_crown_cells"] is None  # no colour
+        assert all(v["vegetation_share"] is None for v in rep["views"])
         return
     seasons = {v["name"]: v["leaf_season"] for v in rep["view_selection"]["views"]}
     refs = [r["reference"] for r in rep["view_selection"]["references"]]
@@ -704,6 +705,15 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     assert n == n_vegetation == len(refs)
     assert leafy > 0.01  # some reference sees leaves
     assert rep["dsm"]["green_crown_cells"] == raised
+    # Each view's share of vegetation pixels, against the index read again over its crop.
+    from satsweep.io.images import read_vegetation_index
+
+    for v in rep["views"]:
+        x0, y0, w, h = v["crop"]
+        index = read_vegetation_index(v["image"], window=(x0, y0, x0 + w, y0 + h))
+        want = float(np.mean(index >= fusion.VEGETATION_INDEX_MIN))
+        assert v["vegetation_share"] == pytest.approx(want, abs=1e-4)
+    assert max(v["vegetation_share"] for v in rep["views"]) > 0.01
 
 
 def test_config_written_is_the_config_used(reconstruction):
