@@ -220,10 +220,10 @@ class DSMOptions(Options):
     crown_holes: bool = True  # consensus: a cell no group agrees on, on a small raised object
     # that two reference views of different passes (the metadata's times) agree on, takes their
     # height rather than the hole filling's (its rim's lowest: the ground; crown_hole_tops)
-    green_crowns: bool = True  # consensus: where reference views of colour images see
-    # vegetation (VEGETATION_INDEX_MIN) on a small raised object above the cell's consensus
-    # height, the cell takes the highest of those views' heights (green_crown_tops); images of
-    # one band take no part
+    green_crowns: bool = True  # consensus: where two or more reference views of colour
+    # images see vegetation (VEGETATION_INDEX_MIN) on a small raised object of their own maps
+    # more than 1 m above the cell's consensus height, the cell takes the highest of those
+    # views' heights (green_crown_tops); a stack with an image of one band takes no part
     consensus_min_distinct_views: int = 3  # consensus: the agreeing height maps must be matched
     # from at least this many distinct views in all (A against B and B against A are one pair;
     # at most the views there are)
