@@ -162,7 +162,7 @@ LEAF_TOP_RISE_M = 1.0
 # twenty-fifth session), DFC MAE m, seeds 13 / 16: 1.058 / 1.082 -> 0.987 / 0.956; the others
 # within 0.016 m either way (raising crowns moves the protocol's mean offset, which the
 # too-high ground beside walls already pulls up). One such view was enough (13 / 16 0.945 /
-# 0.910) but raised crowns' rims and grass beside them (8, 11, 15 worse by 0.018-0.032).
+# 0.910) but raised crowns' rims and grass beside them (8, 11, 15 worse by 0.018-0.055).
 VEGETATION_INDEX_MIN = 0.1
 GREEN_TOP_RISE_M = 1.0
 GREEN_MIN_VIEWS = 2
@@ -832,11 +832,14 @@ def green_crown_tops(fused: np.ndarray, rasters: Sequence[np.ndarray],
     VEGETATION_INDEX_MIN and the cell is part of a small raised object of its own raster
     (``small_raised_pixels``, regions of at most ``max_area_m2``: a crown, not a lawn, nor
     grass beside a building matched at its roof's height, which joins the roof's region). A
-    cell that at least GREEN_MIN_VIEWS views speak for takes the highest of their heights
-    where that lies more than
-    GREEN_TOP_RISE_M above ``fused`` (or ``fused`` is empty) and SMALL_OBJECT_MIN_HEIGHT_M above
-    the ground around it (``small_raised_pixels`` of any area over the fused cells with those
-    heights). Returns (a float32 copy of ``fused``, (H, W) bool: the cells raised)."""
+    cell that at least GREEN_MIN_VIEWS views speak for takes the highest of their heights where
+    that lies more than GREEN_TOP_RISE_M above ``fused`` (or ``fused`` is empty) and
+    SMALL_OBJECT_MIN_HEIGHT_M above the ground around it (``small_raised_pixels`` of any area
+    over the fused cells with those heights). Returns (a float32 copy of ``fused``, (H, W)
+    bool: the cells raised)."""
+    if len(rasters) != len(vegetation):
+        raise ValueError(f"green_crown_tops: {len(rasters)} rasters but {len(vegetation)} "
+                         "vegetation rasters")
     f = np.asarray(fused, dtype=np.float32)
     best = np.full(f.shape, np.nan)
     speaking = np.zeros(f.shape, np.int64)

@@ -1203,3 +1203,5 @@ def test_green_crown_tops_raise_crowns_the_green_views_see():
     # No small raised object without an area.
     assert not dsm.green_crown_tops(fused, [a, a2], [va, va], resolution_m=0.5,
                                     max_area_m2=0.0)[1].any()
+    with pytest.raises(ValueError, match="2 rasters but 1 vegetation"):
+        dsm.green_crown_tops(fused, [a, a2], [va], **kw)
