@@ -273,17 +273,36 @@ def read_image(path: str | os.PathLike, *, window: Sequence[int] | None = None) 
     Raises ImageFormatError naming the file when it is missing, not a TIFF, truncated, or of an
     unsupported layout (volumes, 1-bit, complex samples) or compression.
     """
+    return _read_checked(path, window, colour=False)[0]
+
+
+def _read_checked(path: str | os.PathLike, window: Sequence[int] | None, *,
+                  colour: bool) -> tuple[np.ndarray, bool]:
+    """(the window's pixels in native byte order, whether the image is RGB): ``read_image``'s
+    pixels, or with ``colour`` an RGB image's (H, W, 3) bands instead of their luminance."""
     path = os.fspath(path)
     with _open_tiff(path) as (tif, page):
         _check_layout(path, page)
         size = int(page.imagewidth), int(page.imagelength)
+        rgb = _is_rgb(page)
         if not _window_inside(window, *size):
             out = None  # the caller's error, raised below (not the file's)
         else:
-            out = _read_window(path, tif, page, window, *_window_slices(window, *size))
+            out = _read_window(path, tif, page, window, *_window_slices(window, *size),
+                               colour=colour)
     if out is None:
         raise ValueError(f"window {window} is not inside the {size[0]}x{size[1]} image")
-    return out.astype(out.dtype.newbyteorder("="), copy=False)
+    return out.astype(out.dtype.newbyteorder("="), copy=False), rgb
+
+
+def read_image_and_vegetation(path: str | os.PathLike, *, window: Sequence[int] | None = None
+                              ) -> tuple[np.ndarray, np.ndarray | None]:
+    """(``read_image``, ``read_vegetation_index``) of one window from one read: an RGB image's
+    bands are decoded once and give both; an image of one band gives (its pixels, None)."""
+    out, rgb = _read_checked(path, window, colour=True)
+    if not rgb:
+        return out, None
+    return luminance(out), vegetation_index(out)
 
 
 # The vegetation index of RGB deliveries: the normalised green-red difference (G - R) / (G + R)
@@ -302,18 +321,11 @@ def read_vegetation_index(path: str | os.PathLike, *, window: Sequence[int] | No
     ``read_image``'s), float32; None for an image of one band (panchromatic, a grey TIFF), which
     has no colour to tell leaves by. ImageFormatError naming the file as ``read_image``."""
     path = os.fspath(path)
-    with _open_tiff(path) as (tif, page):
+    with _open_tiff(path) as (_, page):
         _check_layout(path, page)
         if not _is_rgb(page):
-            return None
-        size = int(page.imagewidth), int(page.imagelength)
-        out = None  # a window outside the image: the caller's error, raised below
-        if _window_inside(window, *size):
-            out = _read_window(path, tif, page, window, *_window_slices(window, *size),
-                               colour=True)
-    if out is None:
-        raise ValueError(f"window {window} is not inside the {size[0]}x{size[1]} image")
-    return vegetation_index(out)
+            return None  # nothing decoded
+    return read_image_and_vegetation(path, window=window)[1]
 
 
 def _window_inside(window, width: int, height: int) -> bool:

@@ -47,12 +47,14 @@ class ImageSource:
 
         return read_image(self.path, window=window)
 
-    def read_vegetation(self, window: Sequence[int] | None = None) -> np.ndarray | None:
-        """The vegetation index of ``window`` (``satsweep.io.images.read_vegetation_index``);
-        None for an image without colour."""
-        from satsweep.io.images import read_vegetation_index
+    def read_with_vegetation(self, window: Sequence[int] | None = None
+                             ) -> tuple[np.ndarray, np.ndarray | None]:
+        """(``read``'s pixels, the vegetation index) of ``window`` from one read
+        (``satsweep.io.images.read_image_and_vegetation``); the index is None for an image
+        without colour."""
+        from satsweep.io.images import read_image_and_vegetation
 
-        return read_vegetation_index(self.path, window=window)
+        return read_image_and_vegetation(self.path, window=window)
 
     def footprint(self, aoi: "AOI", alt_range: "AltitudeRange", *, margin_px: int = 0,
                   warn_partial: bool = True) -> tuple[int, int, int, int]:

@@ -206,12 +206,13 @@ def load_views(
     for source in open_sources(images):
         x0, y0, x1, y1 = source.footprint(aoi, alt_range, margin_px=margin_px,
                                           warn_partial=warn_partial)
-        crop = source.read((x0, y0, x1, y1))
+        if vegetation:
+            crop, index = source.read_with_vegetation((x0, y0, x1, y1))
+        else:
+            crop, index = source.read((x0, y0, x1, y1)), None
         views.append(View(path=source.path, image=_pixels(crop),
                           rpc=source.rpc.cropped(x0=x0, y0=y0), x0=x0, y0=y0,
-                          valid=validity_mask(crop, source.nodata),
-                          vegetation=(source.read_vegetation((x0, y0, x1, y1))
-                                      if vegetation else None)))
+                          valid=validity_mask(crop, source.nodata), vegetation=index))
         log.info("%s: crop x=%d..%d, y=%d..%d of %dx%d", source.path, x0, x1, y0, y1,
                  source.shape[1], source.shape[0])
     return views

@@ -204,7 +204,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             if ortho_images is not None:
                 grey = np.ravel(ortho_images[pv.index])[spix]
                 orthos.append(value_at_highest(cells, sz, grey, grid))
-            if vegetation_images is not None:
+            if vegetation_images is not None and fusion == "consensus":
                 greens.append(value_at_highest(
                     cells, sz, np.ravel(vegetation_images[pv.index])[spix], grid))
             if not config.reconstruct.write_cloud:

@@ -60,6 +60,7 @@ from satsweep.geometry.rpc import RPCModel
 from satsweep.geometry.rpc_formats import rpc_tiff_extratag, write_rpc_txt
 from satsweep.io.atomic import atomic_output, check_output_dir
 from satsweep.io.geotiff import write_geotiff, write_tiff
+from satsweep.io.images import LUMA_WEIGHTS
 from satsweep.options import Options
 from satsweep.products.grid import DSMGrid, dsm_grid_for_aoi
 from satsweep.synth.multidate import (
@@ -493,7 +494,7 @@ RGB8_CHANNELS = ((0.97, 0.0), (1.0, 0.0), (0.9, 0.03))
 # the grey image satsweep matches is the grey scene's (to the 8-bit rounding). A crown in leaf
 # then has a normalised green-red difference (G - R) / (G + R) of about 0.33, grass 0.17, the
 # rest 0.015.
-RGB8_GREEN = (-0.35, 0.25, -(0.587 * 0.25 - 0.299 * 0.35) / 0.114)
+RGB8_GREEN = (-0.35, 0.25, -(LUMA_WEIGHTS[1] * 0.25 - LUMA_WEIGHTS[0] * 0.35) / LUMA_WEIGHTS[2])
 
 
 def to_rgb8(dn: np.ndarray, greenness: np.ndarray | None = None) -> np.ndarray:

@@ -147,6 +147,33 @@ def test_read_vegetation_index_of_rgb_windows(tmp_path, kwargs, data):
         np.testing.assert_allclose(got, whole[y0:y1, x0:x1], rtol=LUMA_RTOL, atol=LUMA_RTOL)
 
 
+@pytest.mark.parametrize(
+    "kwargs, data",
+    [
+        ({"photometric": "rgb", "byteorder": ">"}, _ramp((70, 90, 3), np.uint16)),
+        ({"photometric": "rgb", "tile": (16, 16), "compression": "zlib"},
+         _ramp((70, 90, 3), np.uint8)),
+        ({}, _ramp((70, 90), np.uint16)),
+    ],
+    ids=["rgb-bigendian", "rgb-tiled", "grey"],
+)
+def test_read_image_and_vegetation_in_one_read_equal_the_two_readers(tmp_path, kwargs, data):
+    """One read gives exactly what read_image and read_vegetation_index give apart (None for
+    a grey image), over every window."""
+    path = tmp_path / "img.tif"
+    tifffile.imwrite(path, data, **kwargs)
+    for window in [None] + _SEGMENT_WINDOWS:
+        image, index = sio.read_image_and_vegetation(path, window=window)
+        expected = sio.read_image(path, window=window)
+        assert image.dtype == expected.dtype
+        np.testing.assert_array_equal(image, expected)
+        veg = sio.read_vegetation_index(path, window=window)
+        if veg is None:
+            assert index is None
+        else:
+            np.testing.assert_array_equal(index, veg)
+
+
 def test_read_vegetation_index_is_none_without_colour(tmp_path):
     """A grey image (and a grey image of several planes) has no vegetation index; a window
     outside an RGB image is the caller's error."""
