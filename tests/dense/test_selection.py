@@ -128,20 +128,32 @@ def test_dissimilar_sources_left_out_beside_a_close_one():
 
 def test_sources_all_of_other_dates_are_all_kept():
     """The metadata say that no source shares the reference's conditions (all under
-    CLOSE_SIMILARITY): none is left out, the most similar first; similarities from tie points
-    (which do not tell a pass from a like date) keep the cut."""
+    CLOSE_SIMILARITY): none is left out, the most similar first."""
     from satsweep.dense.selection import CLOSE_SIMILARITY
 
     cams, sim, labels = _similar_stack("metadata")
     assert sim[0, 1:].max() < CLOSE_SIMILARITY
     sel = select_views(cams, mid_height=0.0, similarity=sim, similarity_source=labels)
     assert sel.sources[0][0] == 1 and sorted(sel.sources[0]) == [1, 2, 3]
-    cams, sim, labels = _similar_stack("tie points")
+
+
+@pytest.mark.parametrize("label", ["tie points", "images"])
+def test_measured_similarity_only_ranks(label):
+    """A similarity measured from tie points or images is relative to the stack's best pair:
+    it orders the sources (the most similar first) but min_similarity leaves none out, where
+    the same values from the metadata keep only the close source (see the test above with a
+    source at 1) or, given bare (no labels), keep the cut."""
+    cams, sim, labels = _similar_stack(label)
     sel = select_views(cams, mid_height=0.0, similarity=sim, similarity_source=labels)
-    assert sel.sources[0] == (1,)
-    # and without labels (similarity measured from the images, or given bare) likewise
-    sel = select_views(cams, mid_height=0.0, similarity=sim)
-    assert sel.sources[0] == (1,)
+    assert sel.sources[0][0] == 1 and sorted(sel.sources[0]) == [1, 2, 3]
+    sim[0, 1] = sim[1, 0] = 1.0
+    sel = select_views(cams, mid_height=0.0, similarity=sim, similarity_source=labels)
+    assert sel.sources[0][0] == 1 and sorted(sel.sources[0]) == [1, 2, 3]
+    metadata = select_views(cams, mid_height=0.0, similarity=sim,
+                            similarity_source=np.full((4, 4), "metadata", dtype=object))
+    assert metadata.sources[0] == (1,)
+    bare = select_views(cams, mid_height=0.0, similarity=sim)
+    assert bare.sources[0] == (1,)
 
 
 def _one_sided_stack():
