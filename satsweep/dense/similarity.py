@@ -26,7 +26,9 @@ Apart from how alike two views look, a view's date says how much of the vegetati
 (``leaf_season``): a DSM holds the top of the canopy (an airborne lidar's first return, the
 highest point of each cell), which deciduous trees show only in leaf; a leafless crown shows
 the ground through its branches, and a height map matched on a winter date puts most of a
-crown at the ground's height.
+crown at the ground's height. Where no view has a date but every image has colour,
+``leaf_state_from_vegetation`` estimates it from the images: the share of each view's pixels
+among the greenest of the stack (crowns in leaf), scaled from the stack's least to its most.
 """
 
 from __future__ import annotations
@@ -66,6 +68,19 @@ GRID_CELL_M = 2.0
 # Fewer common grid cells than this leave the measured similarity unknown (then 1: no
 # preference).
 MIN_COMMON_CELLS = 64
+# Leaf state from colour (leaf_state_from_vegetation). The stack's greenest level: this
+# quantile of every view's vegetation index pooled (leaves in full leaf where some view has
+# them); a pixel counts as canopy green from halfway between the vegetation threshold
+# (fusion.VEGETATION_INDEX_MIN: leaves, grass) and that level, which leaves out the paler
+# grass and the autumn and winter crowns. Issue-form synthetic stacks (8-bit RGB, one view per
+# date, docs/measurements.md): greenest level 0.345, threshold 0.22; the share 0.02-0.03 of a
+# view's pixels in winter and autumn, 0.08-0.14 from April to early October.
+CANOPY_QUANTILE = 0.99
+# A stack whose greenest view's share is under LEAF_SHARE_RATIO times its palest's, or exceeds
+# it by less than LEAF_SHARE_SPREAD of the pixels, shows no season in its colours (all dates in
+# leaf, evergreen, or all leafless): its leaf state stays unknown.
+LEAF_SHARE_RATIO = 2.0
+LEAF_SHARE_SPREAD = 0.02
 
 
 def _sun_vector(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
@@ -134,6 +149,41 @@ def leaf_season(acquisition: "AcquisitionMetadata | None", lat: float) -> float 
     if doy < LEAF_FALL_DOY[0]:
         return 1.0
     return (LEAF_FALL_DOY[1] - doy) / (LEAF_FALL_DOY[1] - LEAF_FALL_DOY[0])
+
+
+def leaf_state_from_vegetation(indices: Sequence[np.ndarray | None],
+                                valid: Sequence[np.ndarray | None] | None = None
+                                ) -> list[float] | None:
+    """Each view's leaf state in [0, 1] estimated from its vegetation index image
+    (``satsweep.io.images.vegetation_index``; ``valid``: per view, the pixels holding data, None
+    for all): the share of its pixels at least as green as canopy (``CANOPY_QUANTILE``), scaled
+    from the stack's least share (0) to its most (1). None where some view has no index, where
+    the stack has no vegetation, or where its shares show no season (``LEAF_SHARE_RATIO``,
+    ``LEAF_SHARE_SPREAD``). A stand-in for ``leaf_season`` on stacks without dates: it cannot
+    tell early spring's green but thin leaves from summer's."""
+    from satsweep.products.fusion import VEGETATION_INDEX_MIN
+
+    if not indices or any(x is None for x in indices):
+        return None
+    masks = [None] * len(indices) if valid is None else list(valid)
+    if len(masks) != len(indices):
+        raise ValueError(f"{len(indices)} vegetation images but {len(masks)} masks")
+    values = []
+    for x, m in zip(indices, masks):
+        x = np.asarray(x, np.float64)
+        keep = np.isfinite(x) if m is None else (np.asarray(m, bool) & np.isfinite(x))
+        if not keep.any():
+            return None
+        values.append(x[keep])
+    greenest = float(np.quantile(np.concatenate(values), CANOPY_QUANTILE))
+    if greenest <= VEGETATION_INDEX_MIN:
+        return None
+    threshold = 0.5 * (VEGETATION_INDEX_MIN + greenest)
+    share = np.array([float(np.mean(v >= threshold)) for v in values])
+    low, high = float(share.min()), float(share.max())
+    if high < LEAF_SHARE_RATIO * low or high - low < LEAF_SHARE_SPREAD:
+        return None
+    return [float(v) for v in (share - low) / (high - low)]
 
 
 def _ground_grid(cameras: "CameraSet", aoi: "AOI", height: float) -> tuple[np.ndarray, ...]:

@@ -269,6 +269,14 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
     lon, lat = job.aoi.center
     acquisitions = [with_computed_sun(s.acquisition, lon=lon, lat=lat) for s in sources]
     seasons = [leaf_season(a, lat) for a in acquisitions]
+    seasons_from = "metadata" if any(v is not None for v in seasons) else None
+    if seasons_from is None and config.views.leaf_from_colour:
+        from satsweep.dense.similarity import leaf_state_from_vegetation
+
+        estimated = leaf_state_from_vegetation([v.vegetation for v in views],
+                                               [v.valid for v in views])
+        if estimated is not None:
+            seasons, seasons_from = estimated, "colour"
     with_similarity = len(cameras.views) >= MIN_VIEWS_FOR_SIMILARITY
     known = known_source = None
     if with_similarity:
@@ -309,7 +317,8 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
                 known, known_source, images, cameras, job.aoi, mid)
         selection = select_views([v.camera for v in cameras.views], mid_height=mid,
                                  options=config.views, names=names, similarity=similarity,
-                                 similarity_source=similarity_source, leaf_season=seasons)
+                                 similarity_source=similarity_source, leaf_season=seasons,
+                                 leaf_season_from=seasons_from)
         for w in selection.warnings:
             rep.warn(w)
     sweeps = sweep_references(ctx.device, cameras, images, selection, u_range, config, rep,

@@ -133,7 +133,7 @@ def crop_views(sources: Sequence["ImageSource"], aoi: "AOI", alt_range: "Altitud
     with _stage(report, "views"):
         views = load_views(sources, aoi, alt_range,
                            margin_px=config.reconstruct.crop_margin_px + int(extra_margin_px),
-                           vegetation=config.dsm.green_crowns)
+                           vegetation=config.dsm.green_crowns or config.views.leaf_from_colour)
         kept = []
         for v in views:
             fraction = 1.0 if v.valid is None else float(np.mean(v.valid))

@@ -151,3 +151,58 @@ def test_acquisition_passes_group_views_of_one_pass():
     again = acquisition_passes([acq[i] for i in order])
     for i, j in ((0, 3), (0, 2), (2, 4)):
         assert (again[order.index(i)] == again[order.index(j)]) == (passes[i] == passes[j])
+
+
+def _canopy_views(green_shares, size=100, seed=0):
+    """Vegetation index images: every view has grass (0.17) on a fifth of its pixels, the rest
+    0.01, and on ``green_shares`` of its pixels canopy in leaf (0.34, more than 1% of the stack's
+    pixels: the greenest level)."""
+    rng = np.random.default_rng(seed)
+    views = []
+    for share in green_shares:
+        x = np.full(size * size, 0.01)
+        order = rng.permutation(size * size)
+        n_green = int(round(share * size * size))
+        x[order[:n_green]] = 0.34
+        x[order[n_green:n_green + size * size // 5]] = 0.17
+        views.append(x.reshape(size, size))
+    return views
+
+
+def test_leaf_state_from_vegetation_scales_each_views_canopy_share():
+    """The share of each view's pixels at least halfway between VEGETATION_INDEX_MIN and the
+    stack's CANOPY_QUANTILE (the canopy here: grass stays under it), scaled from the palest
+    view to the greenest, against the shares the images were built with."""
+    from satsweep.dense.similarity import leaf_state_from_vegetation
+
+    shares = [0.02, 0.12, 0.07, 0.03]
+    views = _canopy_views(shares)
+    expected = [(s - 0.02) / (0.12 - 0.02) for s in shares]
+    got = leaf_state_from_vegetation(views)
+    assert np.allclose(got, expected, atol=EXACT)
+    # valid masks: pixels outside them do not count (view 1's canopy half masked out)
+    masks = [np.ones((100, 100), bool) for _ in views]
+    green = views[1] >= 0.3
+    masks[1] = ~(green & (np.arange(100)[:, None] < 50))
+    share_1 = float(np.mean(views[1][masks[1]] >= 0.3))
+    got = leaf_state_from_vegetation(views, masks)
+    high = max(share_1, 0.07)
+    assert np.allclose(got[1], (share_1 - 0.02) / (high - 0.02), atol=EXACT)
+
+
+def test_leaf_state_unknown_without_a_season_in_the_colours():
+    """None where a view has no index (a panchromatic image), where no pixel is greener than
+    the vegetation threshold, and where the shares differ too little (LEAF_SHARE_SPREAD) or by
+    too small a ratio (LEAF_SHARE_RATIO): every date alike."""
+    from satsweep.dense.similarity import (LEAF_SHARE_RATIO, LEAF_SHARE_SPREAD,
+                                           leaf_state_from_vegetation)
+
+    views = _canopy_views([0.02, 0.12])
+    assert leaf_state_from_vegetation([views[0], None]) is None
+    assert leaf_state_from_vegetation([np.full((10, 10), 0.05)] * 3) is None
+    low = 0.10
+    assert leaf_state_from_vegetation(_canopy_views([low, low * LEAF_SHARE_RATIO - 0.01])) is None
+    close = _canopy_views([0.01, 0.01 + LEAF_SHARE_SPREAD - 0.005])
+    assert leaf_state_from_vegetation(close) is None
+    apart = _canopy_views([0.01, 0.01 + LEAF_SHARE_SPREAD + 0.005])
+    assert leaf_state_from_vegetation(apart) == [0.0, 1.0]

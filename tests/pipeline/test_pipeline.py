@@ -716,6 +716,53 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     assert max(v["vegetation_share"] for v in rep["views"]) > 0.01
 
 
+@pytest.mark.parametrize("from_colour", [True, False])
+def test_leaf_state_from_colour_without_dates(tmp_path, from_colour):
+    """A stack like the one above in 8-bit RGB without its metadata: no view has a date, so the
+    selection's leaf state comes from the images' colour (``[views] leaf_from_colour``; report:
+    ``leaf_season_from``), each view's the estimate from the index read again over its reported
+    crop, and every view of a date whose deciduous crowns are green (the scene's own record:
+    neither leafless nor autumn) ranks above every other. Off, the leaf state is unknown."""
+    from satsweep.dense.similarity import leaf_state_from_vegetation
+    from satsweep.io.images import read_vegetation_index
+    from satsweep.synth.multidate import AUTUMN_LEAF_FACTOR
+    from satsweep.synth.scene import SynthOptions, generate_scene
+
+    # At Jacksonville's latitude (the default, Paris, has no winter dates with the sun high
+    # enough), seed 2: two green dates (June, August), three of autumn, two leafless.
+    options = dict(MULTIDATE_FORECAST, seed=2, product="rgb8", write_metadata=False,
+                   location=(-81.66, 30.32))
+    scene = generate_scene(tmp_path / "scene", SynthOptions(**options))
+    # Without the sparse stage (the scene's range given), which at this size cannot tie the
+    # December view to the others: every view reaches the selection.
+    config = (PipelineConfig().override("views", leaf_from_colour=from_colour)
+              .override("reconstruct", adjust="off"))
+    rep = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
+                      alt_range=_alt(scene), config=config, verbose=False).report
+    selected = rep["view_selection"]
+    assert len(selected["views"]) == len(scene.views)
+    if not from_colour:
+        assert selected["leaf_season_from"] is None
+        assert all(v["leaf_season"] is None for v in selected["views"])
+        return
+    assert selected["leaf_season_from"] == "colour"
+    indices = []
+    for v in rep["views"]:
+        x0, y0, w, h = v["crop"]
+        indices.append(read_vegetation_index(v["image"], window=(x0, y0, x0 + w, y0 + h)))
+    want = leaf_state_from_vegetation(indices)
+    got = [v["leaf_season"] for v in selected["views"]]
+    assert got == pytest.approx(want, abs=1e-9)
+    factor = {Path(v.image).name: scene.acquisitions[v.acquisition].leaf_factor
+              for v in scene.views}
+    green = [s for v, s in zip(selected["views"], got)
+             if factor[v["name"]] not in (0.0, AUTUMN_LEAF_FACTOR)]
+    other = [s for v, s in zip(selected["views"], got)
+             if factor[v["name"]] in (0.0, AUTUMN_LEAF_FACTOR)]
+    assert green and other  # the stack has both
+    assert min(green) > max(other)
+
+
 def test_config_written_is_the_config_used(reconstruction):
     again = PipelineConfig.from_toml(reconstruction.out_dir / "config.toml")
     assert again == PipelineConfig.from_mapping(FAST_CAMERA)
