@@ -184,7 +184,7 @@ RULES = [
     "x their difference in leaf state from the reference; leaf_season from the metadata's date and "
     "the AOI's latitude, or where no view is dated and every image has colour (leaf_from_colour) "
     "from the share of each view's pixels as green as the stack's canopy, scaled from the "
-    "stack's palest view (0) to its greenest (1) (unknown: no preference)",
+    "pale views' median share (0) to the green views' (1) (unknown: no preference)",
     "similarity: from the acquisition metadata when both views have it (1 within one pass, else "
     "sun-direction and season terms), else from the sparse stage's tie points (each pair's "
     "matches among the strongest features over the stack's largest), else measured (gradient "

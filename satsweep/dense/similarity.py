@@ -28,7 +28,8 @@ highest point of each cell), which deciduous trees show only in leaf; a leafless
 the ground through its branches, and a height map matched on a winter date puts most of a
 crown at the ground's height. Where no view has a date but every image has colour,
 ``leaf_state_from_vegetation`` estimates it from the images: the share of each view's pixels
-among the greenest of the stack (crowns in leaf), scaled from the stack's least to its most.
+among the greenest of the stack (crowns in leaf), scaled from the pale views' level to the
+green views'.
 """
 
 from __future__ import annotations
@@ -76,7 +77,12 @@ MIN_COMMON_CELLS = 64
 # date, docs/measurements.md): greenest level 0.345, threshold 0.22; the share 0.02-0.03 of a
 # view's pixels in winter and autumn, 0.08-0.14 from April to early October.
 CANOPY_QUANTILE = 0.99
-# A stack whose greenest view's share is under LEAF_SHARE_RATIO times its palest's, or exceeds
+# Each view's index is first taken relative to its own neutral level, this quantile of it (the
+# crops of a town are mostly roofs, roads and soil): a colour cast or haze that differs between
+# the dates (each image is stretched on its own) moves every pixel's index alike. Synthetic
+# stacks have none (neutral 0.014-0.015 in every view; the estimates move by under 0.01).
+NEUTRAL_QUANTILE = 0.25
+# A stack whose green views' level is under LEAF_SHARE_RATIO times its pale views', or exceeds
 # it by less than LEAF_SHARE_SPREAD of the pixels, shows no season in its colours (all dates in
 # leaf, evergreen, or all leafless): its leaf state stays unknown.
 LEAF_SHARE_RATIO = 2.0
@@ -156,10 +162,13 @@ def leaf_state_from_vegetation(indices: Sequence[np.ndarray | None],
                                 ) -> list[float] | None:
     """Each view's leaf state in [0, 1] estimated from its vegetation index image
     (``satsweep.io.images.vegetation_index``; ``valid``: per view, the pixels holding data, None
-    for all): the share of its pixels at least as green as canopy (``CANOPY_QUANTILE``), scaled
-    from the stack's least share (0) to its most (1). None where some view has no index, where
-    the stack has no vegetation, or where its shares show no season (``LEAF_SHARE_RATIO``,
-    ``LEAF_SHARE_SPREAD``). A stand-in for ``leaf_season`` on stacks without dates: it cannot
+    for all), each relative to its own neutral level (``NEUTRAL_QUANTILE``): the share of its
+    pixels at least as green as canopy (``CANOPY_QUANTILE``), scaled
+    from the pale views' level (0) to the green ones' (1): the median share of the views below
+    and above halfway between the least and the most share, clipped to [0, 1] (an oblique view
+    sees more of the crowns' sides than a steep one of the same date). None where some view has
+    no index, where the stack has no vegetation, or where the two levels show no season
+    (``LEAF_SHARE_RATIO``, ``LEAF_SHARE_SPREAD``). A stand-in for ``leaf_season`` on stacks without dates: it cannot
     tell early spring's green but thin leaves from summer's."""
     from satsweep.products.fusion import VEGETATION_INDEX_MIN
 
@@ -174,16 +183,19 @@ def leaf_state_from_vegetation(indices: Sequence[np.ndarray | None],
         keep = np.isfinite(x) if m is None else (np.asarray(m, bool) & np.isfinite(x))
         if not keep.any():
             return None
-        values.append(x[keep])
+        values.append(x[keep] - np.quantile(x[keep], NEUTRAL_QUANTILE))
     greenest = float(np.quantile(np.concatenate(values), CANOPY_QUANTILE))
     if greenest <= VEGETATION_INDEX_MIN:
         return None
     threshold = 0.5 * (VEGETATION_INDEX_MIN + greenest)
     share = np.array([float(np.mean(v >= threshold)) for v in values])
-    low, high = float(share.min()), float(share.max())
+    # The two groups' levels: the views' shares split halfway between the least and the most.
+    middle = 0.5 * (float(share.min()) + float(share.max()))
+    low = float(np.median(share[share <= middle]))
+    high = float(np.median(share[share > middle])) if (share > middle).any() else low
     if high < LEAF_SHARE_RATIO * low or high - low < LEAF_SHARE_SPREAD:
         return None
-    return [float(v) for v in (share - low) / (high - low)]
+    return [float(v) for v in np.clip((share - low) / (high - low), 0.0, 1.0)]
 
 
 def _ground_grid(cameras: "CameraSet", aoi: "AOI", height: float) -> tuple[np.ndarray, ...]:

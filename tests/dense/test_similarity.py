@@ -171,23 +171,41 @@ def _canopy_views(green_shares, size=100, seed=0):
 
 def test_leaf_state_from_vegetation_scales_each_views_canopy_share():
     """The share of each view's pixels at least halfway between VEGETATION_INDEX_MIN and the
-    stack's CANOPY_QUANTILE (the canopy here: grass stays under it), scaled from the palest
-    view to the greenest, against the shares the images were built with."""
+    stack's CANOPY_QUANTILE above the view's neutral level (NEUTRAL_QUANTILE: the 0.01 of most
+    pixels; the canopy here, grass stays under it), scaled from the pale views' median share
+    to the green views', against the shares the images were built with."""
     from satsweep.dense.similarity import leaf_state_from_vegetation
 
-    shares = [0.02, 0.12, 0.07, 0.03]
+    shares = [0.02, 0.12, 0.10, 0.03, 0.13]
     views = _canopy_views(shares)
-    expected = [(s - 0.02) / (0.12 - 0.02) for s in shares]
+    # halfway 0.075: the pale views 0.02 and 0.03 (level 0.025), the green ones 0.10, 0.12
+    # and 0.13 (level 0.12)
+    expected = [min(1.0, max(0.0, (s - 0.025) / (0.12 - 0.025))) for s in shares]
     got = leaf_state_from_vegetation(views)
     assert np.allclose(got, expected, atol=EXACT)
-    # valid masks: pixels outside them do not count (view 1's canopy half masked out)
+    assert got[0] == 0.0 and got[4] == 1.0 and 0.0 < got[3] < got[2] < got[1] == 1.0
+    # valid masks: pixels outside them do not count (view 2's canopy half masked out: 0.10 ->
+    # about 0.053, a pale view now; the green level the median of 0.12 and 0.13)
     masks = [np.ones((100, 100), bool) for _ in views]
-    green = views[1] >= 0.3
-    masks[1] = ~(green & (np.arange(100)[:, None] < 50))
-    share_1 = float(np.mean(views[1][masks[1]] >= 0.3))
+    green = views[2] >= 0.3
+    masks[2] = ~(green & (np.arange(100)[:, None] < 50))
+    share_2 = float(np.mean(views[2][masks[2]] >= 0.3))
+    assert 0.03 < share_2 < 0.075
     got = leaf_state_from_vegetation(views, masks)
-    high = max(share_1, 0.07)
-    assert np.allclose(got[1], (share_1 - 0.02) / (high - 0.02), atol=EXACT)
+    low = float(np.median([0.02, 0.03, share_2]))
+    assert np.allclose(got[2], (share_2 - low) / (0.125 - low), atol=EXACT)
+
+
+def test_leaf_state_from_vegetation_ignores_each_views_colour_cast():
+    """A cast that moves every pixel's index of a view alike (each date's image stretched on
+    its own, haze) leaves the estimate as it was: each view is taken from its neutral level."""
+    from satsweep.dense.similarity import leaf_state_from_vegetation
+
+    views = _canopy_views([0.02, 0.12, 0.08, 0.03])
+    plain = leaf_state_from_vegetation(views)
+    assert 0.0 < plain[2] < 1.0
+    cast = [v + c for v, c in zip(views, (0.0, 0.02, 0.12, -0.10))]
+    assert np.allclose(leaf_state_from_vegetation(cast), plain, atol=EXACT)
 
 
 def test_leaf_state_unknown_without_a_season_in_the_colours():
