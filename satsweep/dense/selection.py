@@ -129,8 +129,8 @@ class ViewSelectionOptions(Options):
     # colour, the leaf state of the two rules above is estimated from the images' greenest
     # pixels (similarity.leaf_state_from_vegetation); false: unknown without dates. Issue-form
     # stacks without metadata, DFC MAE m, seeds 7, 8, 11-18: 0.713 0.910 1.220 0.774 1.255 0.862
-    # 0.939 1.415 0.438 0.850 -> 0.731 0.800 1.154 0.761 1.003 0.802 1.015 1.064 0.430 0.807
-    # (mean 0.938 -> 0.857; with their metadata, twenty-fifth session: 0.833)
+    # 0.939 1.415 0.438 0.850 -> 0.711 0.878 1.154 0.755 1.037 0.693 1.089 1.064 0.436 0.787
+    # (mean 0.938 -> 0.860; with their metadata, twenty-fifth session: 0.833)
 
     ADVANCED = ("min_b_over_h", "max_b_over_h", "target_b_over_h", "min_overlap",
                 "similarity_weight", "min_similarity", "side_coverage", "leaf_on_references",

@@ -163,13 +163,13 @@ def leaf_state_from_vegetation(indices: Sequence[np.ndarray | None],
     """Each view's leaf state in [0, 1] estimated from its vegetation index image
     (``satsweep.io.images.vegetation_index``; ``valid``: per view, the pixels holding data, None
     for all), each relative to its own neutral level (``NEUTRAL_QUANTILE``): the share of its
-    pixels at least as green as canopy (``CANOPY_QUANTILE``), scaled
-    from the pale views' level (0) to the green ones' (1): the median share of the views below
-    and above halfway between the least and the most share, clipped to [0, 1] (an oblique view
-    sees more of the crowns' sides than a steep one of the same date). None where some view has
+    pixels at least as green as canopy (``CANOPY_QUANTILE``), scaled from the pale views' level
+    (0) to the green ones' (1): the median share of the views below and above halfway between
+    the least and the most share, clipped to [0, 1] (an oblique view sees more of the crowns'
+    sides than a steep one of the same date). None where some view has
     no index, where the stack has no vegetation, or where the two levels show no season
-    (``LEAF_SHARE_RATIO``, ``LEAF_SHARE_SPREAD``). A stand-in for ``leaf_season`` on stacks without dates: it cannot
-    tell early spring's green but thin leaves from summer's."""
+    (``LEAF_SHARE_RATIO``, ``LEAF_SHARE_SPREAD``). A stand-in for ``leaf_season`` on stacks
+    without dates: it cannot tell early spring's green but thin leaves from summer's."""
     from satsweep.products.fusion import VEGETATION_INDEX_MIN
 
     if not indices or any(x is None for x in indices):
