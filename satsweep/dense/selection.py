@@ -120,17 +120,15 @@ class ViewSelectionOptions(Options):
     # degrees of nadir), where some view does; 0: no such rule
     leaf_on_references: float = 0.5  # share of the references (rounded up) taken from views
     # of dates in leaf (similarity.leaf_season >= LEAF_ON_SEASON, from the metadata's date and
-    # the AOI's latitude) where the stack has such views: the DSM holds the canopy's top, which
-    # leafless crowns do not show; 0: no such rule
+    # the AOI's latitude, or from colour: leaf_from_colour) where the stack has such views:
+    # the DSM holds the canopy's top, which leafless crowns do not show; 0: no such rule
     leaf_state_weight: float = 1.0  # weight of the difference in leaf state between a
-    # reference and a source (|leaf_season difference|, 0 where either date is unknown) in the
+    # reference and a source (|leaf_season difference|, 0 where either is unknown) in the
     # source's rank, beside similarity_weight x (1 - similarity)
     leaf_from_colour: bool = True  # where no view's metadata give a date and every image has
     # colour, the leaf state of the two rules above is estimated from the images' greenest
-    # pixels (similarity.leaf_state_from_vegetation); false: unknown without dates. Issue-form
-    # stacks without metadata, DFC MAE m, seeds 7, 8, 11-18: 0.713 0.910 1.220 0.774 1.255 0.862
-    # 0.939 1.415 0.438 0.850 -> 0.711 0.878 1.154 0.755 1.037 0.693 1.089 1.064 0.436 0.787
-    # (mean 0.938 -> 0.860; with their metadata, twenty-fifth session: 0.833)
+    # pixels (similarity.leaf_state_from_vegetation; measured in docs/measurements.md,
+    # twenty-sixth session); false: unknown without dates
 
     ADVANCED = ("min_b_over_h", "max_b_over_h", "target_b_over_h", "min_overlap",
                 "similarity_weight", "min_similarity", "side_coverage", "leaf_on_references",
