@@ -79,8 +79,11 @@ REFERENCE_DISSIMILARITY_DEG = 30.0
 # holes or blunders there. Ranking only, the issue-form stacks generated without metadata
 # (docs/measurements.md, twenty-sixth session), DFC MAE m, seeds 7, 8, 11-18: 0.861 1.503
 # 1.206 0.854 1.169 0.885 0.995 1.425 1.810 0.928 -> 0.713 0.910 1.220 0.774 1.255 0.862 0.939
-# 1.415 0.438 0.850 (mean 1.164 -> 0.938); tools/bench_multidate.py v10 --no-metadata seeds
-# 0-5, within 1 m: 94.6 91.1 92.8 95.8 89.5 92.5 -> 94.8 92.2 93.3 96.0 90.5 95.0%.
+# 1.415 0.438 0.850 (mean 1.164 -> 0.938). It costs the small grey stacks of passes of two
+# views (tools/bench_multidate.py v10 --no-metadata, seeds 0-5), whose references' own pass
+# serves them well: within 1 m 94.8 92.2 93.3 96.0 90.5 95.0 -> 94.6 91.1 92.8 95.8 89.5 92.5%,
+# DFC MAE mean 0.590 -> 0.627 m; keeping two sources at least instead: 93.17% there (from
+# 93.63) but the issue-form stacks lose most of the gain (17 / 8 / 13: 0.546 / 1.088 / 1.159).
 CLOSE_SIMILARITY = 0.9
 # A view sees the side of the buildings that faces azimuth a (the wall, and the ground in front
 # of it) when its own azimuth (towards the camera) lies within this angle of a; a view within
