@@ -72,7 +72,7 @@ MIN_COMMON_CELLS = 64
 # Leaf state from colour (leaf_state_from_vegetation). The stack's greenest level: this
 # quantile of every view's vegetation index pooled (leaves in full leaf where some view has
 # them); a pixel counts as canopy green from halfway between the vegetation threshold
-# (fusion.VEGETATION_INDEX_MIN: leaves, grass) and that level, which leaves out the paler
+# (io.images.VEGETATION_INDEX_MIN: leaves, grass) and that level, which leaves out the paler
 # grass and the autumn and winter crowns. Issue-form synthetic stacks (8-bit RGB, one view per
 # date, docs/measurements.md): greenest level 0.345, threshold 0.22; the share 0.02-0.03 of a
 # view's pixels in winter and autumn, 0.08-0.14 from April to early October.
@@ -170,7 +170,7 @@ def leaf_state_from_vegetation(indices: Sequence[np.ndarray | None],
     no index, where the stack has no vegetation, or where the two levels show no season
     (``LEAF_SHARE_RATIO``, ``LEAF_SHARE_SPREAD``). A stand-in for ``leaf_season`` on stacks
     without dates: it cannot tell early spring's green but thin leaves from summer's."""
-    from satsweep.products.fusion import VEGETATION_INDEX_MIN
+    from satsweep.io.images import VEGETATION_INDEX_MIN
 
     if not indices or any(x is None for x in indices):
         return None

@@ -308,6 +308,11 @@ def read_image_and_vegetation(path: str | os.PathLike, *, window: Sequence[int] 
 # The vegetation index of RGB deliveries: the normalised green-red difference (G - R) / (G + R)
 # (Tucker 1979), which needs no near-infrared band: leaves are greener than they are red, soil,
 # asphalt, roofs and shadows about as red as green. 0 where both bands are 0.
+# A pixel shows vegetation (leaves, and grass) from this index on: the threshold of the crowns'
+# rule (satsweep.products.fusion.green_crown_tops, measured there), of the report's
+# vegetation share per view, and the lower end of the canopy threshold of the leaf state from
+# colour (satsweep.dense.similarity.leaf_state_from_vegetation).
+VEGETATION_INDEX_MIN = 0.1
 def vegetation_index(rgb: np.ndarray) -> np.ndarray:
     """(..., 3) red, green, blue samples -> float32 (G - R) / (G + R), in [-1, 1]."""
     r, g = (rgb[..., k].astype(np.float32) for k in (0, 1))
@@ -350,16 +355,15 @@ def _read_window(path: str, tif, page, window, rows: slice, cols: slice,
     )
     try:
         rgb = _is_rgb(page)
+        take = _colour if colour and rgb else functools.partial(_grey, rgb=rgb)
         if mappable:
             data = np.memmap(path, dtype=dtype, mode="r", offset=page.dataoffsets[0], shape=page.shape)
-            out = (_colour if colour and rgb else functools.partial(_grey, rgb=rgb))(
-                data, page.axes, rows, cols)
+            out = take(data, page.axes, rows, cols)
             del data
         elif window is not None and _segmented(page):
             out = _read_segments(tif, page, rows, cols, colour=colour)
         else:
-            out = (_colour if colour and rgb else functools.partial(_grey, rgb=rgb))(
-                page.asarray(), page.axes, rows, cols)
+            out = take(page.asarray(), page.axes, rows, cols)
     except Exception as exc:  # noqa: BLE001 - any decoder failure on this file is a format error
         raise ImageFormatError(path, _decode_problem(page, exc)) from None
     return out

@@ -99,7 +99,7 @@ class AreaRecord:
     rasters: AreaRasters
     vegetation_shares: list[float | None] = dataclasses.field(default_factory=list)  # per
     # view, the share of its crop's pixels holding data that show vegetation (None: no colour,
-    # or [dsm] green_crowns off)
+    # or not read: [dsm] green_crowns and [views] leaf_from_colour both off)
 
     @property
     def names(self) -> list[str]:
@@ -220,9 +220,9 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
 
 def vegetation_share(view) -> float | None:
     """The share of a view's crop pixels holding data whose vegetation index reaches the
-    crowns' rule's threshold (``fusion.VEGETATION_INDEX_MIN``), rounded to 1e-4; None for a
+    crowns' rule's threshold (``images.VEGETATION_INDEX_MIN``), rounded to 1e-4; None for a
     view without a vegetation index."""
-    from satsweep.products.fusion import VEGETATION_INDEX_MIN
+    from satsweep.io.images import VEGETATION_INDEX_MIN
 
     if view.vegetation is None:
         return None

@@ -23,6 +23,7 @@ from typing import Hashable, Literal, Sequence
 import numpy as np
 
 from satsweep.errors import OptionsError
+from satsweep.io.images import VEGETATION_INDEX_MIN
 from satsweep.options import Options
 from satsweep.products.grid import DSMGrid
 from satsweep.products.points import Points, points_to_utm, project_points, solve_ground_en
@@ -154,16 +155,15 @@ LEAF_TOP_RISE_M = 1.0
 # 0.006 m (docs/measurements.md).
 
 # Crowns' tops from colour ([dsm] green_crowns): a view whose image shows vegetation at a cell's
-# highest point (satsweep.io.images.vegetation_index at least VEGETATION_INDEX_MIN: leaves, and
-# grass, which the rule tells from crowns by height) sees the crown there, not the ground
-# through it; where at least GREEN_MIN_VIEWS such views put the cell on a small raised object
-# of their own maps, the highest of their heights is the crown's top if it lies more than
+# highest point (satsweep.io.images.vegetation_index at least its VEGETATION_INDEX_MIN:
+# leaves, and grass, which the rule tells from crowns by height) sees the crown there, not the
+# ground through it; where at least GREEN_MIN_VIEWS such views put the cell on a small raised
+# object of their own maps, the highest of their heights is the crown's top if it lies more than
 # GREEN_TOP_RISE_M above the consensus. Issue-form stacks with colour (docs/measurements.md,
 # twenty-fifth session), DFC MAE m, seeds 13 / 16: 1.058 / 1.082 -> 0.987 / 0.956; the others
 # within 0.016 m either way (raising crowns moves the protocol's mean offset, which the
 # too-high ground beside walls already pulls up). One such view was enough (13 / 16 0.945 /
 # 0.910) but raised crowns' rims and grass beside them (8, 11, 15 worse by 0.018-0.055).
-VEGETATION_INDEX_MIN = 0.1
 GREEN_TOP_RISE_M = 1.0
 GREEN_MIN_VIEWS = 2
 

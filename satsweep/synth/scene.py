@@ -796,8 +796,11 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
         for k in indices:
             cam, (th, az), bias = design.cameras[k], angles[k], biases[k]
             t1 = time.perf_counter()
-            radiance, green = render_radiance_greenness(surface, shadows, cam,
-                                                        supersampling=options.supersampling)
+            if options.product == "rgb8":  # the colour of vegetation: rgb8 deliveries only
+                radiance, green = render_radiance_greenness(surface, shadows, cam,
+                                                            supersampling=options.supersampling)
+            else:
+                radiance = render_radiance(surface, shadows, cam, supersampling=options.supersampling)
             rng = np.random.default_rng([options.seed, 2000 + k])
             if acq is None:
                 image = to_dn(radiance, noise_dn=options.noise_dn, rng=rng)
