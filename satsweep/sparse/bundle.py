@@ -108,6 +108,13 @@ class BundleOptions(Options):
     # with many more tie points between dates, the tighter loss leaves out those that moving
     # shadows bias (tools/bench_multidate.py v10 seeds 0-5, worst correction 0.150 -> 0.128 px
     # on average; without the extension 0.1 did not help: 0.209 -> 0.216 px)
+    extended_loss: Literal["linear", "huber", "soft_l1", "cauchy", "arctan"] = "cauchy"  # ... and
+    # the loss there: tie points between dates that a moving shadow or the sun's shading biases
+    # pull each date's views one way by 0.1-0.3 px, coherently; a loss whose pull fades with the
+    # residual (Cauchy) lets the unbiased majority set the shifts where soft_l1's keeps pulling.
+    # Worst view after the gauge, pipeline crops, mean over seeds: v10 multi-date seeds 0-5 0.127
+    # -> 0.088 px, issue-form 0.3 m stacks (seeds 11-16, 19 views) 0.074 -> 0.056 px
+    # (docs/measurements.md, twenty-seventh session)
     initial_threshold_px: float = 10.0  # tracks leaving an observation farther (px) before the
     # adjustment are dropped
     coarse_threshold_px: float = 4.0  # observations farther (px) after the first solve go
@@ -120,7 +127,8 @@ class BundleOptions(Options):
     # paths): their corrections are held at zero and the others are corrected to agree with
     # them (ASP's fixed cameras, S2P's reference image); (): the gauge of smallest corrections
 
-    ADVANCED = ("loss", "loss_scale_px", "extended_loss_scale_px", "initial_threshold_px",
+    ADVANCED = ("loss", "loss_scale_px", "extended_loss_scale_px", "extended_loss",
+                "initial_threshold_px",
                 "coarse_threshold_px", "fine_threshold_px", "min_observations", "max_evaluations",
                 "max_shift_sigma_px")
 
@@ -245,6 +253,13 @@ _FINE_XTOL = 1e-5
 # rejection at thresholds of pixels.
 _SCREEN_FTOL = 1e-6
 _SCREEN_XTOL = 1e-3
+# A non-convex loss's last solve (from the screening solves' soft_l1 solution) stops after this
+# many cost evaluations: its reweighted steps crawl (80-110 to _FINE_FTOL), while the shifts at
+# 30 lie within 0.001 px of the converged ones on tools/bench_ba.py's 20 views and within 0.004
+# / 0.005 px on the multi-date v10 seeds 0 / 5 (tools/bench_multidate.py's crops).
+_NON_CONVEX_MAX_EVALUATIONS = 30
+# Robust losses whose cost is not convex (several minima; their reweighted steps converge slowly).
+_NON_CONVEX = ("cauchy", "arctan")
 
 
 def _inverse_spd3(U: Sequence[np.ndarray]) -> list[np.ndarray]:
@@ -452,7 +467,9 @@ def adjust_observations(cameras: Sequence[Any], obs: Observations, options: Bund
     ``cameras``: objects with a 3x4 ``P`` (ENU -> pixels). Steps: anchors = triangulation with the
     original cameras (tracks with errors above ``initial_threshold_px`` dropped); solve; drop
     observations above ``coarse_threshold_px``; re-anchor and solve; drop those above
-    ``fine_threshold_px``; re-anchor and solve. Raises CameraError naming the views left with
+    ``fine_threshold_px``; re-anchor and solve (with a non-convex ``loss``, the two screening
+    solves take soft_l1 and the last one at most _NON_CONVEX_MAX_EVALUATIONS evaluations).
+    Raises CameraError naming the views left with
     fewer than ``min_observations`` observations.
     """
     P = projection_stack(cameras)
@@ -462,8 +479,12 @@ def adjust_observations(cameras: Sequence[Any], obs: Observations, options: Bund
     _check_coverage(obs, V, names, options.min_observations, "after triangulation")
     shifts, X = np.zeros((V, 2)), anchors.copy()
     evaluations = []
+    # The screening solves only sort the observations by their errors: a non-convex loss there
+    # converges slowly (its reweighted steps crawl) for no better screen, so they take soft_l1
+    # and the last solve starts from their solution.
+    screen = options.replace(loss="soft_l1") if options.loss in _NON_CONVEX else options
     for threshold in (options.coarse_threshold_px, options.fine_threshold_px):
-        shifts, X, nfev = _solve(P, obs, anchors, shifts, X, options, ftol=_SCREEN_FTOL,
+        shifts, X, nfev = _solve(P, obs, anchors, shifts, X, screen, ftol=_SCREEN_FTOL,
                                  xtol=_SCREEN_XTOL)
         evaluations.append(nfev)
         keep = _errors(P, obs, X, shifts) <= threshold
@@ -475,7 +496,11 @@ def adjust_observations(cameras: Sequence[Any], obs: Observations, options: Bund
         # an outlier move by metres, which the joint solver would approach in many small steps).
         anchors = triangulate_observations(obs, P)[0]
         X = triangulate_observations(obs, _shifted(P, shifts))[0]
-    shifts, X, nfev = _solve(P, obs, anchors, shifts, X, options, ftol=_FINE_FTOL,
+    final = options
+    if options.loss in _NON_CONVEX:
+        final = options.replace(max_evaluations=min(options.max_evaluations,
+                                                    _NON_CONVEX_MAX_EVALUATIONS))
+    shifts, X, nfev = _solve(P, obs, anchors, shifts, X, final, ftol=_FINE_FTOL,
                              xtol=_FINE_XTOL)
     evaluations.append(nfev)
     before = _errors(P, obs, anchors, np.zeros((V, 2)))

@@ -38,7 +38,8 @@ wide one) gives everything the dense stages need from tie points:
    warp; on local contrast in pairs of views whose grey levels differ, as another date's do; of
    each pair of views the best registered ``refine_keep_fraction``), then the principal-point bundle
    adjustment with the anchor regulariser (0.01 px^2/m^2) and a robust loss whose quadratic
-   zone ends at 0.3 px (0.1 px once the tracks are extended: ``extended_loss_scale_px``), its
+   zone ends at 0.3 px (once the tracks are extended, a Cauchy loss from 0.1 px:
+   ``extended_loss``, ``extended_loss_scale_px``), its
    anchors triangulated with the coarsely corrected cameras.
    A view left with fewer than ``min_observations`` observations, or carrying the least
    determined direction of the shifts when that is uncertain by more than
@@ -594,8 +595,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
                                    at_least=_MIN_BEST_REGISTERED)
         t0 = time.perf_counter()
         try:
-            fine_options = (b.replace(loss_scale_px=b.extended_loss_scale_px)
-                            if extended else b)
+            fine_options = (b.replace(loss_scale_px=b.extended_loss_scale_px,
+                                      loss=b.extended_loss) if extended else b)
             fine = adjust_observations(local_fine, fine_obs, fine_options,
                                        names=[names[v] for v in kept])
         except TooFewObservations as exc:
