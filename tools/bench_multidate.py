@@ -18,7 +18,9 @@ IARPA MVS3DM (median |error| and completeness within 1 m after its alignment) an
 absolute error after the NCC shift and the mean vertical offset; valid fraction); the table
 also gives the MVS3DM alignment's horizontal shift and the share of the truth's cells it compares
 (those a shift moves off the DSM's border count as incomplete: about 0.8 points per row or column
-of cells at 384 px, so whole-cell shifts move a small scene's figure by that much). The best
+of cells at 384 px, so whole-cell shifts move a small scene's figure by that much), and the
+pointing corrections' error: the worst view's correction against its true bias after removing
+the unobservable motion of the scene, as tools/bench_ba.py measures it ("point px"). The best
 single same-date pair of the scene (each pair of views of one pass) is the reference the issue
 compares the 10-view result with: at least 5 points more completeness within 1 m.
 
@@ -36,6 +38,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import os
 import sys
 import tempfile
@@ -109,6 +112,35 @@ def score(dsm: Path, truth: Path) -> dict:
             "mvs_compared": mvs["compared_cells"] / report["truth_cells"]}
 
 
+def pointing_error(scene: Scene, views: list[int], shifts: dict) -> float | None:
+    """Worst view's pointing correction against the scene's true bias (px, the largest
+    component), after removing the motion of the whole scene that no image can see (as
+    tools/bench_ba.py's): ``shifts`` maps the views' file names to the run's corrections
+    (report ``ba.principal_point_shift_px``). Each view's gauge Jacobian d(pixel)/d(east,
+    north, up) is its RPC's, by central differences of 1 m at the AOI's centre and the middle of
+    the truth's heights. None without corrections (adjustment off, or fewer than 2 views)."""
+    names = [scene.views[i].image.name for i in views]
+    if not shifts or any(n not in shifts for n in names):
+        return None
+    aoi = scene.aoi
+    lon, lat = (aoi.lon_min + aoi.lon_max) / 2.0, (aoi.lat_min + aoi.lat_max) / 2.0
+    alt = sum(scene.alt_range) / 2.0
+    m_lat = 111_132.954  # metres per degree of latitude (enough for a 1 m finite difference)
+    m_lon = m_lat * math.cos(math.radians(lat))
+    steps = [(1.0 / m_lon, 0.0, 0.0), (0.0, 1.0 / m_lat, 0.0), (0.0, 0.0, 1.0)]
+    A = np.zeros((len(views), 2, 3))
+    for k, i in enumerate(views):
+        rpc = scene.views[i].rpc()
+        for j, (dlon, dlat, dalt) in enumerate(steps):
+            hi = rpc.projection(lon=lon + dlon, lat=lat + dlat, alt=alt + dalt)
+            lo = rpc.projection(lon=lon - dlon, lat=lat - dlat, alt=alt - dalt)
+            A[k, :, j] = [(float(hi[0]) - float(lo[0])) / 2.0, (float(hi[1]) - float(lo[1])) / 2.0]
+    diff = (np.array([shifts[n] for n in names], np.float64)
+            - np.array([scene.views[i].bias_px for i in views], np.float64))
+    dX = np.linalg.lstsq(A.reshape(-1, 3), -diff.ravel(), rcond=None)[0]
+    return float(np.abs(diff + A @ dX).max())
+
+
 def run(scene: Scene, views: list[int], out: Path, args, config: PipelineConfig) -> dict:
     images = [scene.views[i].image for i in views]
     alt = None
@@ -129,6 +161,8 @@ def run(scene: Scene, views: list[int], out: Path, args, config: PipelineConfig)
            "truth_range": list(scene.alt_range),
            "references": len(rep.get("sweep", [])), "fusion": rep["dsm"].get("fusion"),
            **score(result.dsm_path, scene.truth_dsm)}
+    row["pointing_px"] = pointing_error(
+        scene, views, rep.get("ba", {}).get("principal_point_shift_px", {}))
     lo, hi = row["altitude_range"]
     t_lo, t_hi = scene.alt_range
     row["range_holds_truth"] = lo is not None and lo <= t_lo and hi >= t_hi
@@ -220,10 +254,14 @@ def main(argv=None) -> int:
     return 0
 
 
+def _px(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
 def print_table(rows: list[dict]) -> None:
     print(f"{'seed':>4} {'kind':<15} {'k':>3} {'refs':>4} {'med m':>6} {'<1m %':>6} "
           f"{'MAE m':>6} {'valid':>6} {'shift m':>10} {'cmp %':>6} {'range (truth)':>26} "
-          f"{'sparse s':>8} {'total s':>7}")
+          f"{'point px':>8} {'sparse s':>8} {'total s':>7}")
     for r in rows:
         if "error" in r:
             print(f"{r['seed']:>4} {r['kind']:<15} {r['k']:>3} error: {r['error']}")
@@ -237,7 +275,7 @@ def print_table(rows: list[dict]) -> None:
               f"{r['dfc_valid']:>6.3f} {f'{dx:+.1f},{dy:+.1f}':>10} "
               f"{100 * r['mvs_compared']:>6.1f} "
               f"{f'{lo:.0f}..{hi:.0f} ({t_lo:.0f}..{t_hi:.0f})':>26} "
-              f"{sparse:>8.1f} {r['seconds']:>7.1f}")
+              f"{_px(r.get('pointing_px')):>8} {sparse:>8.1f} {r['seconds']:>7.1f}")
     for seed in sorted({r["seed"] for r in rows}):
         pairs = [r for r in rows if r["seed"] == seed and r["kind"] == "same-date pair"
                  and "error" not in r]
