@@ -20,7 +20,8 @@ also gives the MVS3DM alignment's horizontal shift and the share of the truth's 
 (those a shift moves off the DSM's border count as incomplete: about 0.8 points per row or column
 of cells at 384 px, so whole-cell shifts move a small scene's figure by that much), and the
 pointing corrections' error: the worst view's correction against its true bias after removing
-the unobservable motion of the scene, as tools/bench_ba.py measures it ("point px"). The best
+the unobservable motion of the scene, as tools/bench_ba.py measures it ("point px", over the
+views the run kept; json ``pointing_views``). The best
 single same-date pair of the scene (each pair of views of one pass) is the reference the issue
 compares the 10-view result with: at least 5 points more completeness within 1 m.
 
@@ -118,9 +119,11 @@ def pointing_error(scene: Scene, views: list[int], shifts: dict) -> float | None
     tools/bench_ba.py's): ``shifts`` maps the views' file names to the run's corrections
     (report ``ba.principal_point_shift_px``). Each view's gauge Jacobian d(pixel)/d(east,
     north, up) is its RPC's, by central differences of 1 m at the AOI's centre and the middle of
-    the truth's heights. None without corrections (adjustment off, or fewer than 2 views)."""
+    the truth's heights. Views the run dropped (no correction) take no part; None with fewer
+    than two corrected views (adjustment off)."""
+    views = [i for i in views if scene.views[i].image.name in shifts]
     names = [scene.views[i].image.name for i in views]
-    if not shifts or any(n not in shifts for n in names):
+    if len(views) < 2:
         return None
     aoi = scene.aoi
     lon, lat = (aoi.lon_min + aoi.lon_max) / 2.0, (aoi.lat_min + aoi.lat_max) / 2.0
@@ -161,8 +164,9 @@ def run(scene: Scene, views: list[int], out: Path, args, config: PipelineConfig)
            "truth_range": list(scene.alt_range),
            "references": len(rep.get("sweep", [])), "fusion": rep["dsm"].get("fusion"),
            **score(result.dsm_path, scene.truth_dsm)}
-    row["pointing_px"] = pointing_error(
-        scene, views, rep.get("ba", {}).get("principal_point_shift_px", {}))
+    shifts = rep.get("ba", {}).get("principal_point_shift_px", {}) or {}
+    row["pointing_px"] = pointing_error(scene, views, shifts)
+    row["pointing_views"] = sum(scene.views[i].image.name in shifts for i in views)
     lo, hi = row["altitude_range"]
     t_lo, t_hi = scene.alt_range
     row["range_holds_truth"] = lo is not None and lo <= t_lo and hi >= t_hi
