@@ -453,27 +453,43 @@ def test_widened_range_needs_most_references_at_one_end():
     from satsweep.pipeline.area import (
         RANGE_WIDEN_FRACTION,
         RANGE_WIDEN_M,
+        RANGE_WIDEN_TOP_FRACTION,
         widened_range,
     )
 
     rng = AltitudeRange(100.0, 140.0)
     high, low = RANGE_WIDEN_FRACTION * 1.5, RANGE_WIDEN_FRACTION * 0.5
+    # Over the top's own threshold, under the floor's (a tower's roof that no tie point holds).
+    tower, none = RANGE_WIDEN_TOP_FRACTION * 1.2, RANGE_WIDEN_TOP_FRACTION * 0.5
+    assert none < tower < low
 
     def sweeps(*ends):
         return [SimpleNamespace(at_range_ends=e) for e in ends]
 
     # Three of four at the top: widened there, by the larger of the step and half the span.
-    wider, end, hits = widened_range(rng, sweeps((0, high), (0, high), (0, high), (0, 0)))
-    assert (end, hits) == (1, 3)
+    wider, end, hits, fraction = widened_range(rng, sweeps((0, high), (0, high), (0, high),
+                                                           (0, 0)))
+    assert (end, hits, fraction) == (1, 3, RANGE_WIDEN_FRACTION)
     assert (wider.min, wider.max) == (100.0, 140.0 + max(RANGE_WIDEN_M, 20.0))
     wide = AltitudeRange(0.0, 100.0)
-    wider, end, _ = widened_range(wide, sweeps((high, 0), (high, 0)))
+    wider, end, _, _ = widened_range(wide, sweeps((high, 0), (high, 0)))
     assert end == 0 and (wider.min, wider.max) == (-max(RANGE_WIDEN_M, 50.0), 100.0)
     # Half of eight or one of four (views of other dates matching their shadows at the floor),
-    # or one of two: not enough; a lone reference decides alone.
+    # or one of two: not enough at the floor; a lone reference decides alone.
     assert widened_range(rng, sweeps(*[(high, 0)] * 4 + [(low, 0)] * 4)) is None
     assert widened_range(rng, sweeps((high, 0), (low, 0), (0, 0), (0, 0))) is None
     assert widened_range(rng, sweeps((high, 0), (low, 0))) is None
-    assert widened_range(rng, sweeps((0, high)))[1:] == (1, 1)
-    assert widened_range(rng, sweeps((low, low), (low, low))) is None
+    assert widened_range(rng, sweeps((0, high)))[1:] == (1, 1, RANGE_WIDEN_FRACTION)
+    assert widened_range(rng, sweeps((low, none), (low, none))) is None
     assert widened_range(rng, []) is None
+    # The top on less: most references over its own, lower fraction (a tower's roof).
+    wider, end, hits, fraction = widened_range(
+        rng, sweeps(*[(0, tower)] * 6 + [(0, none)] * 2))
+    assert (end, hits, fraction) == (1, 6, RANGE_WIDEN_TOP_FRACTION)
+    assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
+    assert widened_range(rng, sweeps(*[(low, tower)] * 3))[1:] == (1, 3, RANGE_WIDEN_TOP_FRACTION)
+    assert widened_range(rng, sweeps((low, tower), (low, tower))) is None  # too few to tell
+    assert widened_range(rng, sweeps(*[(0, tower)] * 5 + [(0, none)] * 3)) is None
+    assert widened_range(rng, sweeps((0, tower), (0, none))) is None
+    # Not the floor: it needs its own fraction in most references whatever the top's rule.
+    assert widened_range(rng, sweeps(*[(low, 0)] * 8)) is None
