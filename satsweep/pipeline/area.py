@@ -371,8 +371,8 @@ def widened_range(rng: AltitudeRange, sweeps: Sequence[ReferenceHeights]
                   ) -> tuple[AltitudeRange, int, int, float] | None:
     """The range widened at the end that the references hit (RANGE_WIDEN_SHARE of them, and two
     or the one there is, over RANGE_WIDEN_FRACTION; the top also over RANGE_WIDEN_TOP_FRACTION
-    with RANGE_WIDEN_TOP_MIN_REFERENCES references or more), with that end (0: floor, 1: top), how many hit it and the
-    fraction they passed; None when no end is hit so."""
+    with RANGE_WIDEN_TOP_MIN_REFERENCES references or more), with that end (0: floor, 1: top),
+    how many hit it and the fraction they passed; None when no end is hit so."""
     if not sweeps:
         return None
     need = max(min(2, len(sweeps)), int(np.ceil(RANGE_WIDEN_SHARE * len(sweeps))))

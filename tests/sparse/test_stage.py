@@ -248,7 +248,8 @@ def test_views_of_other_dates_are_tied_through_local_contrast(synthetic_scene):
     assert np.abs(resid).max() < np.abs(_motion(plain, scene)[0]).max()
     # Their adjustment's Cauchy loss (BundleOptions.extended_loss) lets the tie points that
     # another date's shadows bias pull less than soft_l1 does (measured 0.021 against 0.043 px).
-    soft = sparse_stage(views, scene.aoi, prior, bundle_options=BundleOptions(extended_loss="soft_l1"))
+    soft = sparse_stage(views, scene.aoi, prior,
+                        bundle_options=BundleOptions(extended_loss="soft_l1"))
     assert soft.kept == result.kept
     assert np.abs(resid).max() < np.abs(_motion(soft, scene)[0]).max()
 
