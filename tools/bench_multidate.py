@@ -39,7 +39,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import math
 import os
 import sys
 import tempfile
@@ -54,6 +53,7 @@ sys.path.insert(0, str(REPO))
 from satsweep.config import PipelineConfig  # noqa: E402
 from satsweep.errors import SatsweepError  # noqa: E402
 from satsweep.geometry.altitude import AltitudeRange  # noqa: E402
+from satsweep.geometry.geodesy import ENUFrame  # noqa: E402
 from satsweep.pipeline.run import reconstruct  # noqa: E402
 from satsweep.products.evaluate import EvaluateOptions, evaluate_dsm  # noqa: E402
 from satsweep.synth.scene import Scene, SynthOptions, generate_scene, parse_location  # noqa: E402
@@ -118,26 +118,22 @@ def pointing_error(scene: Scene, views: list[int], shifts: dict) -> float | None
     component), after removing the motion of the whole scene that no image can see (as
     tools/bench_ba.py's): ``shifts`` maps the views' file names to the run's corrections
     (report ``ba.principal_point_shift_px``). Each view's gauge Jacobian d(pixel)/d(east,
-    north, up) is its RPC's, by central differences of 1 m at the AOI's centre and the middle of
-    the truth's heights. Views the run dropped (no correction) take no part; None with fewer
+    north, up) is its RPC's, by central differences of 1 m in the ENU frame of the AOI's centre
+    at the middle of the truth's heights. Views the run dropped (no correction) take no part; None with fewer
     than two corrected views (adjustment off)."""
     views = [i for i in views if scene.views[i].image.name in shifts]
     names = [scene.views[i].image.name for i in views]
     if len(views) < 2:
         return None
     aoi = scene.aoi
-    lon, lat = (aoi.lon_min + aoi.lon_max) / 2.0, (aoi.lat_min + aoi.lat_max) / 2.0
-    alt = sum(scene.alt_range) / 2.0
-    m_lat = 111_132.954  # metres per degree of latitude (enough for a 1 m finite difference)
-    m_lon = m_lat * math.cos(math.radians(lat))
-    steps = [(1.0 / m_lon, 0.0, 0.0), (0.0, 1.0 / m_lat, 0.0), (0.0, 0.0, 1.0)]
+    frame = ENUFrame(lon0=(aoi.lon_min + aoi.lon_max) / 2.0, lat0=(aoi.lat_min + aoi.lat_max) / 2.0,
+                     alt0=sum(scene.alt_range) / 2.0)
+    step = np.vstack([np.eye(3), -np.eye(3)])  # +-1 m along east, north, up
+    lon, lat, alt = frame.to_geodetic(e=step[:, 0], n=step[:, 1], u=step[:, 2])
     A = np.zeros((len(views), 2, 3))
     for k, i in enumerate(views):
-        rpc = scene.views[i].rpc()
-        for j, (dlon, dlat, dalt) in enumerate(steps):
-            hi = rpc.projection(lon=lon + dlon, lat=lat + dlat, alt=alt + dalt)
-            lo = rpc.projection(lon=lon - dlon, lat=lat - dlat, alt=alt - dalt)
-            A[k, :, j] = [(float(hi[0]) - float(lo[0])) / 2.0, (float(hi[1]) - float(lo[1])) / 2.0]
+        col, row = scene.views[i].rpc().projection(lon=lon, lat=lat, alt=alt)
+        A[k] = (np.stack([col, row])[:, :3] - np.stack([col, row])[:, 3:]) / 2.0
     diff = (np.array([shifts[n] for n in names], np.float64)
             - np.array([scene.views[i].bias_px for i in views], np.float64))
     dX = np.linalg.lstsq(A.reshape(-1, 3), -diff.ravel(), rcond=None)[0]

@@ -277,14 +277,17 @@ def read_image(path: str | os.PathLike, *, window: Sequence[int] | None = None) 
 
 
 def _read_checked(path: str | os.PathLike, window: Sequence[int] | None, *,
-                  colour: bool) -> tuple[np.ndarray, bool]:
+                  colour: bool, rgb_only: bool = False) -> tuple[np.ndarray | None, bool]:
     """(the window's pixels in native byte order, whether the image is RGB): ``read_image``'s
-    pixels, or with ``colour`` an RGB image's (H, W, 3) bands instead of their luminance."""
+    pixels, or with ``colour`` an RGB image's (H, W, 3) bands instead of their luminance; with
+    ``rgb_only``, (None, False) for an image of one band, nothing decoded."""
     path = os.fspath(path)
     with _open_tiff(path) as (tif, page):
         _check_layout(path, page)
         size = int(page.imagewidth), int(page.imagelength)
         rgb = _is_rgb(page)
+        if rgb_only and not rgb:
+            return None, False
         if not _window_inside(window, *size):
             out = None  # the caller's error, raised below (not the file's)
         else:
@@ -305,14 +308,16 @@ def read_image_and_vegetation(path: str | os.PathLike, *, window: Sequence[int] 
     return luminance(out), vegetation_index(out)
 
 
-# The vegetation index of RGB deliveries: the normalised green-red difference (G - R) / (G + R)
-# (Tucker 1979), which needs no near-infrared band: leaves are greener than they are red, soil,
-# asphalt, roofs and shadows about as red as green. 0 where both bands are 0.
 # A pixel shows vegetation (leaves, and grass) from this index on: the threshold of the crowns'
 # rule (satsweep.products.fusion.green_crown_tops, measured there), of the report's
 # vegetation share per view, and the lower end of the canopy threshold of the leaf state from
 # colour (satsweep.dense.similarity.leaf_state_from_vegetation).
 VEGETATION_INDEX_MIN = 0.1
+
+
+# The vegetation index of RGB deliveries: the normalised green-red difference (G - R) / (G + R)
+# (Tucker 1979), which needs no near-infrared band: leaves are greener than they are red, soil,
+# asphalt, roofs and shadows about as red as green. 0 where both bands are 0.
 def vegetation_index(rgb: np.ndarray) -> np.ndarray:
     """(..., 3) red, green, blue samples -> float32 (G - R) / (G + R), in [-1, 1]."""
     r, g = (rgb[..., k].astype(np.float32) for k in (0, 1))
@@ -325,12 +330,8 @@ def read_vegetation_index(path: str | os.PathLike, *, window: Sequence[int] | No
     """The ``vegetation_index`` of an RGB image (photometric RGB) over ``window`` (as
     ``read_image``'s), float32; None for an image of one band (panchromatic, a grey TIFF), which
     has no colour to tell leaves by. ImageFormatError naming the file as ``read_image``."""
-    path = os.fspath(path)
-    with _open_tiff(path) as (_, page):
-        _check_layout(path, page)
-        if not _is_rgb(page):
-            return None  # nothing decoded
-    return read_image_and_vegetation(path, window=window)[1]
+    out, rgb = _read_checked(path, window, colour=True, rgb_only=True)
+    return vegetation_index(out) if rgb else None
 
 
 def _window_inside(window, width: int, height: int) -> bool:
