@@ -56,14 +56,20 @@ def _scene(folder: str, views: int, seed: int, size: int, bias: float):
     return scene, time.perf_counter() - t
 
 
-def _gauge_error(cameras, shifts: np.ndarray, biases: np.ndarray, point) -> tuple[np.ndarray, np.ndarray]:
-    """Per-view residual (V, 2) of shifts - biases after the best unobservable motion, and dX."""
-    from satsweep.sparse.bundle import gauge_jacobians
-
-    A = gauge_jacobians(cameras, point)
-    diff = shifts - biases
+def gauge_removed(A: np.ndarray, shifts: np.ndarray, biases: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-view residual (V, 2) of shifts - biases after the motion of the scene (ENU m) that
+    no image sees, fitted by least squares to the views' Jacobians ``A`` (V, 2, 3), and that
+    motion dX."""
+    diff = np.asarray(shifts, np.float64) - np.asarray(biases, np.float64)
     dX = np.linalg.lstsq(A.reshape(-1, 3), -diff.ravel(), rcond=None)[0]
     return diff + A @ dX, dX
+
+
+def _gauge_error(cameras, shifts: np.ndarray, biases: np.ndarray, point) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`gauge_removed` with the Jacobians of perspective ``cameras`` at ``point``."""
+    from satsweep.sparse.bundle import gauge_jacobians
+
+    return gauge_removed(gauge_jacobians(cameras, point), shifts, biases)
 
 
 def _run_sparse(scene, prior_extra: float, repeat: int) -> dict:

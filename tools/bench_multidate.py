@@ -58,6 +58,8 @@ from satsweep.pipeline.run import reconstruct  # noqa: E402
 from satsweep.products.evaluate import EvaluateOptions, evaluate_dsm  # noqa: E402
 from satsweep.synth.scene import Scene, SynthOptions, generate_scene, parse_location  # noqa: E402
 
+from bench_ba import gauge_removed  # noqa: E402
+
 # Margin around the truth's altitude range when --given-range is asked for (m).
 ALT_MARGIN_M = 5.0
 # The figure: completeness within 1 m of 10 views at least this much above the best
@@ -134,10 +136,9 @@ def pointing_error(scene: Scene, views: list[int], shifts: dict) -> float | None
     for k, i in enumerate(views):
         col, row = scene.views[i].rpc().projection(lon=lon, lat=lat, alt=alt)
         A[k] = (np.stack([col, row])[:, :3] - np.stack([col, row])[:, 3:]) / 2.0
-    diff = (np.array([shifts[n] for n in names], np.float64)
-            - np.array([scene.views[i].bias_px for i in views], np.float64))
-    dX = np.linalg.lstsq(A.reshape(-1, 3), -diff.ravel(), rcond=None)[0]
-    return float(np.abs(diff + A @ dX).max())
+    residual, _ = gauge_removed(A, [shifts[n] for n in names],
+                                [scene.views[i].bias_px for i in views])
+    return float(np.abs(residual).max())
 
 
 def run(scene: Scene, views: list[int], out: Path, args, config: PipelineConfig) -> dict:
