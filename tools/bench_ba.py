@@ -65,21 +65,28 @@ def gauge_removed(A: np.ndarray, shifts: np.ndarray, biases: np.ndarray) -> tupl
     return diff + A @ dX, dX
 
 
-def _gauge_error(cameras, shifts: np.ndarray, biases: np.ndarray, point) -> tuple[np.ndarray, np.ndarray]:
+def gauge_error(cameras, shifts: np.ndarray, biases: np.ndarray, point) -> tuple[np.ndarray, np.ndarray]:
     """:func:`gauge_removed` with the Jacobians of perspective ``cameras`` at ``point``."""
     from satsweep.sparse.bundle import gauge_jacobians
 
     return gauge_removed(gauge_jacobians(cameras, point), shifts, biases)
 
 
-def _run_sparse(scene, prior_extra: float, repeat: int) -> dict:
+def sparse_inputs(scene, prior_extra: float = 0.0):
+    """(views, prior range) the sparse stage gets in --mode sparse: the crops ``satsweep
+    reconstruct`` takes at the RPCs' own altitude range widened by ``prior_extra`` m."""
     from satsweep.geometry.altitude import AltitudeRange, altitude_range_from_rpcs
     from satsweep.io.views import load_views
-    from satsweep.sparse.stage import sparse_stage
 
     rpc = altitude_range_from_rpcs([v.rpc() for v in scene.views], warn=False)
     prior = AltitudeRange(rpc.min - prior_extra, rpc.max + prior_extra)
-    views = load_views([v.image for v in scene.views], scene.aoi, prior)
+    return load_views([v.image for v in scene.views], scene.aoi, prior), prior
+
+
+def _run_sparse(scene, prior_extra: float, repeat: int) -> dict:
+    from satsweep.sparse.stage import sparse_stage
+
+    views, prior = sparse_inputs(scene, prior_extra)
     best = None
     for _ in range(max(1, repeat)):
         t, c = time.perf_counter(), time.process_time()
@@ -92,8 +99,8 @@ def _run_sparse(scene, prior_extra: float, repeat: int) -> dict:
     biases = np.array([v.bias_px for v in scene.views])
     cams = [res.tied.cameras[v] for v in kept]
     centroid = res.tied.points.mean(axis=0)
-    resid, dX = _gauge_error(cams, res.corrections_px[kept], biases[kept], centroid)
-    coarse, _ = _gauge_error(cams, res.coarse_corrections_px[kept], biases[kept], centroid)
+    resid, dX = gauge_error(cams, res.corrections_px[kept], biases[kept], centroid)
+    coarse, _ = gauge_error(cams, res.coarse_corrections_px[kept], biases[kept], centroid)
     lo, hi = scene.alt_range
     alt = res.altitude_range
     d = res.to_dict()
@@ -142,7 +149,7 @@ def _run_adjust(scene, repeat: int) -> dict:
     total, report = best
     biases = np.array([v.bias_px for v in scene.views])
     shifts = np.array(report.principal_point_shift_px)
-    resid, dX = _gauge_error([v.camera for v in cams.views], shifts, biases, (0.0, 0.0, 0.0))
+    resid, dX = gauge_error([v.camera for v in cams.views], shifts, biases, (0.0, 0.0, 0.0))
     return {"seconds": total, "stages": {k: round(v, 3) for k, v in report.seconds.items()},
             "error_px": float(np.abs(resid).max()), "motion_m": [round(float(x), 2) for x in dX],
             "points": report.n_points, "reprojection_px": report.reproj_after_px[0],

@@ -39,15 +39,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tools"))  # bench_ba, also when imported as tools.diag_tie_errors
 
-from satsweep.geometry.altitude import AltitudeRange, altitude_range_from_rpcs  # noqa: E402
-from satsweep.io.views import load_views  # noqa: E402
+from satsweep.products.points import solve_ground_en  # noqa: E402
 from satsweep.sparse import stage as sparse_stage_module  # noqa: E402
-from satsweep.sparse.bundle import gauge_jacobians, shift_principal_point  # noqa: E402
+from satsweep.sparse.bundle import shift_principal_point  # noqa: E402
 from satsweep.sparse.tracks import Observations  # noqa: E402
 from satsweep.sparse.triangulation import project, projection_stack  # noqa: E402
 from satsweep.synth.scene import Scene  # noqa: E402
 
-from bench_ba import gauge_removed  # noqa: E402
+from bench_ba import gauge_error, sparse_inputs  # noqa: E402
 
 # Ray casting: heights stepped down by this much (m) from above the truth's highest cell.
 RAY_STEP_M = 0.02
@@ -101,11 +100,10 @@ class TruthSurface:
             idx = np.flatnonzero(alive)
             if not len(idx):
                 break
-            Pv = P[views[idx]]
-            H = Pv[:, :, [0, 1, 3]].copy()  # (east, north, 1) -> pixel on the plane u = up
-            H[:, :, 2] += Pv[:, :, 2] * up
-            en = np.linalg.solve(H, np.c_[xy[idx], np.ones(len(idx))][..., None])[..., 0]
-            X = np.c_[en[:, :2] / en[:, 2:], np.full(len(idx), up)]
+            X = np.full((len(idx), 3), up)
+            for v in np.unique(views[idx]):
+                k = views[idx] == v
+                X[k, 0], X[k, 1] = solve_ground_en(P[v], col=xy[idx[k], 0], row=xy[idx[k], 1], u=up)
             with np.errstate(invalid="ignore"):  # off the surface: NaN, never a hit
                 hit = self.above(X) <= 0.0
             points[idx[hit]] = X[hit]
@@ -139,9 +137,9 @@ def observation_errors(P: np.ndarray, obs: Observations, surface: TruthSurface) 
 
 def _worst_view(scene: Scene, result) -> float:
     kept = list(result.kept)
-    cams = [result.tied.cameras[v] for v in kept]
-    A = gauge_jacobians(cams, result.tied.points.mean(axis=0))
-    residual, _ = gauge_removed(A, result.corrections_px[kept], [scene.views[v].bias_px for v in kept])
+    residual, _ = gauge_error([result.tied.cameras[v] for v in kept], result.corrections_px[kept],
+                              np.array([scene.views[v].bias_px for v in kept]),
+                              result.tied.points.mean(axis=0))
     return float(np.abs(residual).max())
 
 
@@ -151,9 +149,7 @@ def _median(a: np.ndarray) -> float | None:
 
 def diagnose(scene_dir: str, oracle: str, threshold: float, across_only: bool) -> dict:
     scene = Scene.load(scene_dir)
-    rpc = altitude_range_from_rpcs([v.rpc() for v in scene.views], warn=False)
-    prior = AltitudeRange(rpc.min, rpc.max)
-    views = load_views([v.image for v in scene.views], scene.aoi, prior)
+    views, prior = sparse_inputs(scene)
     index = {Path(v.path).name: k for k, v in enumerate(views)}
     original = sparse_stage_module.adjust_observations
     captured: dict = {}

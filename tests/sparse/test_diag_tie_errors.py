@@ -7,11 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from satsweep.geometry.altitude import AltitudeRange, altitude_range_from_rpcs
-from satsweep.io.views import load_views
 from satsweep.sparse.bundle import shift_principal_point
 from satsweep.sparse.stage import SparseOptions, fit_cameras
 from satsweep.sparse.triangulation import projection_stack
+from tools.bench_ba import sparse_inputs
 from tools.diag_tie_errors import FLAT_M, FLAT_RADIUS_M, RAY_STEP_M, TruthSurface, diagnose
 
 # Three dates of two views with pointing errors up to 32 px (as test_stage's multi-date scene).
@@ -39,9 +38,7 @@ def test_ray_casts_land_on_the_scene_surface(scene):
     """Pixels of two views cast through their true cameras land on the true surface: where it
     is flat, at the altitude ``Scene.surface_altitude`` gives for their lon/lat; everywhere,
     where the synthetic pushbroom camera sees them."""
-    rpc = altitude_range_from_rpcs([v.rpc() for v in scene.views], warn=False)
-    prior = AltitudeRange(rpc.min, rpc.max)
-    views = load_views([v.image for v in scene.views], scene.aoi, prior)
+    views, prior = sparse_inputs(scene)
     frame, cams, _ = fit_cameras(views, scene.aoi, prior, SparseOptions().camera_grid)
     P = projection_stack([shift_principal_point(c, v.bias_px) for c, v in zip(cams, scene.views)])
     surface = TruthSurface(scene, frame)
