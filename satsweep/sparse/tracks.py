@@ -240,11 +240,34 @@ _LK_EPS_PX = 1e-3
 # standard deviation plus _CONTRAST_FLOOR (8-bit grey levels: flat areas stay flat, not
 # amplified noise), mapped to 8 bits as 128 + _CONTRAST_GAIN x that. Not everywhere: on views
 # of one date it registers less precisely (tools/bench_ba.py, 50 px biases, 3/5/10 views:
-# corrections within 0.054-0.061 px of the truth, against 0.027-0.036 on the grey levels). Its
-# residuals are ranked after every grey-level one (+ CONTRAST_RANK) in best_registered.
+# corrections within 0.054-0.061 px of the truth, against 0.027-0.036 on the grey levels, at a
+# scale of 3 px). Its residuals are ranked after every grey-level one (+ CONTRAST_RANK) in
+# best_registered. Two scales: (_CONTRAST_SIGMA_PX, _CONTRAST_GAIN) and (_FINE_CONTRAST_SIGMA_PX,
+# _FINE_CONTRAST_GAIN); the pairs registered wholly on contrast are registered at both, and when
+# in most of them the fine scale's ties agree better with one relative pointing of the two views
+# (across_spread), every pair on contrast takes the fine scale, else the other.
 _CONTRAST_SIGMA_PX = 3.0
 _CONTRAST_FLOOR = 2.0
 _CONTRAST_GAIN = 40.0
+# At a pixel's scale the transform keeps each pixel's pattern against its nearest neighbours, as
+# a census does; the wider one reaches across the edges between surfaces that the sun lights
+# differently from date to date (roof faces, shadows: what biases the ties between dates), and
+# what lies beyond such an edge pulls the registration. The fine scale is noisier, though: where
+# the views' grey levels differ for other reasons (the real Pleiades pair of one pass, on the
+# tests' AOI, goes wholly onto contrast) its ties scatter more (that pair, every tie forced onto
+# contrast: 0.106 against 0.087 px mean reprojection error after the adjustment; forced, the
+# one-date stacks of tools/bench_ba.py likewise 0.048-0.063 against 0.041-0.058 px), and there
+# the fine scale's spread is 1.08-1.39 times the other's (three AOIs), on the synthetic
+# multi-date stacks a median of 0.76-0.86 times. A choice per pair by the same measure lost most
+# of the gain (10-view stacks 0.075 px against 0.066): the spread is noisy per pair and misses a
+# bias shared by a pair's ties, so the stack decides. The gain maps the usual +-3 deviations
+# onto 68..188 rather than clipping them. Worst view's correction against the truth after the
+# gauge (tools/bench_multidate.py's measure, mean over seeds), 3 px only -> this choice:
+# 10-view multi-date stacks seeds 0-5 0.088 -> 0.066 px, held-out seeds 6-9 0.042 -> 0.038,
+# 5 views 0.047 -> 0.037, 20 views 0.066 -> 0.055, the 0.3 m stacks of 19 views (seeds 11-16)
+# 0.056 -> 0.039 (docs/measurements.md, twenty-ninth session).
+_FINE_CONTRAST_SIGMA_PX = 1.0
+_FINE_CONTRAST_GAIN = 20.0
 CONTRAST_RANK = 256.0
 # A pair of views is registered wholly on local contrast when the median residual of its
 # grey-level registrations (mean absolute difference of the windows, 8-bit levels) exceeds this:
@@ -259,24 +282,63 @@ _CONTRAST_PAIR_RESIDUAL = 8.0
 _CONTRAST_PAIR_FAILED = 0.2
 
 
-def local_contrast_u8(grey_u8: np.ndarray) -> np.ndarray:
-    """An 8-bit grey image (``_to_u8`` of a tonemapped one) as 8-bit local contrast (see
-    _CONTRAST_SIGMA_PX): gain, offset and any monotonic grey-level change that is locally affine
-    leave it unchanged."""
+def local_contrast_u8(grey_u8: np.ndarray, sigma_px: float = _CONTRAST_SIGMA_PX,
+                      gain: float = _CONTRAST_GAIN) -> np.ndarray:
+    """An 8-bit grey image (``_to_u8`` of a tonemapped one) as 8-bit local contrast at the scale
+    ``sigma_px`` (see _CONTRAST_SIGMA_PX): gain, offset and any monotonic grey-level change that
+    is locally affine leave it unchanged."""
     import cv2
 
     x = grey_u8.astype(np.float32)
-    d = x - cv2.GaussianBlur(x, (0, 0), _CONTRAST_SIGMA_PX)
-    s = cv2.sqrt(cv2.GaussianBlur(cv2.multiply(d, d), (0, 0), _CONTRAST_SIGMA_PX)) + _CONTRAST_FLOOR
+    d = x - cv2.GaussianBlur(x, (0, 0), sigma_px)
+    s = cv2.sqrt(cv2.GaussianBlur(cv2.multiply(d, d), (0, 0), sigma_px)) + _CONTRAST_FLOOR
     # (OpenCV's arithmetic: a third of numpy's time on 1000 px views; convertScaleAbs rounds and
     # saturates at 255, the max at 0.)
-    return cv2.convertScaleAbs(cv2.max(cv2.divide(d, s, scale=_CONTRAST_GAIN) + 128.0, 0.0))
+    return cv2.convertScaleAbs(cv2.max(cv2.divide(d, s, scale=gain) + 128.0, 0.0))
+
+
+# across_spread: the epipolar line of a point of view w in view v through the points of its ray
+# at the ENU heights 0 and _ACROSS_PROBE_M (the cameras' pinhole lines are straight: any two
+# heights give the same line); a pair compares its two registrations on at least _ACROSS_MIN_TIES
+# tie points that both registered (else it keeps the coarser scale's).
+_ACROSS_PROBE_M = 100.0
+_ACROSS_MIN_TIES = 8
+# Rays whose two points lie closer than this (px) in the other view: no parallax between the
+# views (one viewpoint, or cameras that ignore height), where every tie point should move alike.
+_NO_PARALLAX_PX = 1e-6
+# A spread below this (px) counts as this much in the two scales' ratio (ties that agree exactly).
+_SPREAD_FLOOR_PX = 1e-6
+
+
+def across_spread(camera_w: Any, camera_v: Any, xy_w: np.ndarray, xy_v: np.ndarray) -> float:
+    """How well the tie points ``xy_w`` (view w) -> ``xy_v`` (view v) agree with one relative
+    pointing of the two views: the median absolute deviation (px) of their offsets across the
+    epipolar lines, in view v, of the rays of ``xy_w`` (cameras with a 3x4 ``P``, ENU ->
+    pixels). Heights move a tie point along its line; a pointing error moves every tie point
+    across by about the same amount; what varies across is the registration's error."""
+    Pw, Pv = np.asarray(camera_w.P, np.float64), np.asarray(camera_v.P, np.float64)
+    ends = []
+    for u in (0.0, _ACROSS_PROBE_M):
+        Hw, Hv = Pw[:, [0, 1, 3]].copy(), Pv[:, [0, 1, 3]].copy()
+        Hw[:, 2] += u * Pw[:, 2]
+        Hv[:, 2] += u * Pv[:, 2]
+        ground = np.linalg.solve(Hw, np.c_[xy_w, np.ones(len(xy_w))].T)  # (e, n, 1) per point
+        q = Hv @ ground
+        ends.append((q[:2] / q[2]).T)
+    d = xy_v - ends[0]
+    direction = ends[1] - ends[0]
+    length = np.linalg.norm(direction, axis=1, keepdims=True)
+    if not np.all(length > _NO_PARALLAX_PX):  # views without parallax: the whole offset
+        return float(np.median(np.hypot(*(d - np.median(d, axis=0)).T)))
+    direction /= length
+    across = direction[:, 0] * d[:, 1] - direction[:, 1] * d[:, 0]
+    return float(np.median(np.abs(across - np.median(across))))
 
 
 def register_observations(obs: Observations, images: Sequence[np.ndarray], cameras: Sequence[Any], *,
                           window_px: int, max_shift_px: float, keep_fraction: float = 1.0,
-                          at_least: int = 0,
-                          threads: int = 1) -> tuple[Observations, np.ndarray, int]:
+                          at_least: int = 0, threads: int = 1,
+                          choice: dict | None = None) -> tuple[Observations, np.ndarray, int]:
     """Register each track's observations to its first one, to a fraction of a pixel.
 
     SIFT places a keypoint to ~0.3-0.5 px (~1 px at half resolution), and those errors reach the
@@ -298,9 +360,13 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     dropped. In the other pairs, what fails on the grey levels is registered again on local
     contrast where fewer registered than :func:`best_registered` with ``keep_fraction`` and
     ``at_least`` would keep (elsewhere it would keep none of them: they rank after) and at least
-    _CONTRAST_PAIR_FAILED of the pair failed. The pairs run in up to ``threads`` threads (the
-    same result as one). Returns the observations,
-    the residual of each (mean absolute difference of the two windows' 8-bit grey levels after
+    _CONTRAST_PAIR_FAILED of the pair failed. The contrast's scale (_CONTRAST_SIGMA_PX or
+    _FINE_CONTRAST_SIGMA_PX) is the one under which the pairs wholly on contrast agree better
+    with one relative pointing each (:func:`across_spread`, median over those pairs). The pairs
+    run in up to ``threads`` threads (the same result as one). ``choice``, a dict, receives
+    ``contrast_sigma_px`` (the scale taken; None when no pair needed contrast) and
+    ``fine_spread_ratio`` (the median ratio, None when no pair compared). Returns the observations, the
+    residual of each (mean absolute difference of the two windows' 8-bit grey levels after
     the registration, or of their local contrast plus CONTRAST_RANK; 0 for first observations)
     and the number of observations dropped.
     """
@@ -320,9 +386,10 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, _LK_ITERATIONS, _LK_EPS_PX)
 
     def register(head_u8: np.ndarray, other_u8: np.ndarray, H: np.ndarray, sel: np.ndarray,
-                 rank: float) -> None:
+                 rank: float, out_xy: np.ndarray, out_residual: np.ndarray) -> None:
         """Observations ``sel`` (of one view, their tracks' first in the view of ``head_u8``)
-        registered on these images: ``xy`` and ``residual`` (+ ``rank``) where it succeeds."""
+        registered on these images: ``out_xy`` and ``out_residual`` (+ ``rank``) where it
+        succeeds."""
         h, wd = head_u8.shape
         warped = cv2.warpPerspective(other_u8, H, (wd, h),
                                      flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
@@ -336,8 +403,8 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
         with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
             err = lk_err.ravel().astype(np.float64)
         ok = (status.ravel() == 1) & np.isfinite(shift) & (shift <= max_shift_px) & np.isfinite(err)
-        xy[sel[ok]] = back[ok]
-        residual[sel[ok]] = rank + err[ok]
+        out_xy[sel[ok]] = back[ok]
+        out_residual[sel[ok]] = rank + err[ok]
 
     grey = map_in_threads(_to_u8, images, max_threads=threads, name="register")
     pairs = []  # (view of the first observations, other view, their observations)
@@ -348,30 +415,64 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     # view w pixels -> view v pixels
     homography = {(w, v): planes[v] @ np.linalg.inv(planes[w]) for w, v, _ in pairs}
 
-    def on(images_u8, rank):  # one pair's registration on these images
+    def on(images_u8, rank, out_xy=xy, out_residual=residual):  # a pair's registration on these
         return lambda job: register(images_u8[job[0]], images_u8[job[1]], homography[job[:2]],
-                                    job[2], rank)
+                                    job[2], rank, out_xy, out_residual)
 
     # The pairs' observations are disjoint and each registration reads only the keypoints: the
     # pairs run in any order, in threads, and give what one loop over them gives.
     map_in_threads(on(grey, 0.0), pairs, max_threads=threads, name="register")
-    again = []
+    whole, again = [], []
     for w, v, pair in pairs:
         done = np.isfinite(residual[pair])
         if not done.any() or np.median(residual[pair[done]]) > _CONTRAST_PAIR_RESIDUAL:
             # the two views' grey levels differ: the whole pair on contrast
             xy[pair], residual[pair] = obs.xy[pair], np.inf
-            again.append((w, v, pair))
+            whole.append((w, v, pair))
         else:
             failed = pair[~done]
             wanted = max(int(np.ceil(keep_fraction * len(pair))), at_least)
             if (len(failed) and len(pair) - len(failed) < wanted
                     and len(failed) >= _CONTRAST_PAIR_FAILED * len(pair)):
                 again.append((w, v, failed))
-    needed = sorted({k for w, v, _ in again for k in (w, v)})  # only the views that need it
-    contrast = dict(zip(needed, map_in_threads(lambda k: local_contrast_u8(grey[k]), needed,
-                                               max_threads=threads, name="register")))
-    map_in_threads(on(contrast, CONTRAST_RANK), again, max_threads=threads, name="register")
+
+    made: dict = {}  # (view, sigma_px, gain) -> its local contrast
+
+    def contrast_of(jobs, sigma_px, gain):  # only the views that need it, each made once
+        needed = sorted({k for w, v, _ in jobs for k in (w, v)} - {k for k, *scale in made
+                                                                     if scale == [sigma_px, gain]})
+        made.update(zip([(k, sigma_px, gain) for k in needed],
+                        map_in_threads(lambda k: local_contrast_u8(grey[k], sigma_px, gain),
+                                       needed, max_threads=threads, name="register")))
+        return {k: image for (k, *scale), image in made.items() if scale == [sigma_px, gain]}
+
+    # The pairs wholly on contrast at both scales; the stack takes the fine one for every pair
+    # on contrast where its ties agree better with one relative pointing in most such pairs.
+    scale = (_CONTRAST_SIGMA_PX, _CONTRAST_GAIN)
+    if whole:
+        map_in_threads(on(contrast_of(whole, *scale), CONTRAST_RANK), whole, max_threads=threads,
+                       name="register")
+        fine_xy, fine_residual = obs.xy.copy(), np.full(len(xy), np.inf)
+        map_in_threads(on(contrast_of(whole, _FINE_CONTRAST_SIGMA_PX, _FINE_CONTRAST_GAIN),
+                          CONTRAST_RANK, fine_xy, fine_residual), whole, max_threads=threads,
+                       name="register")
+        ratios = []
+        for w, v, pair in whole:
+            both = pair[np.isfinite(residual[pair]) & np.isfinite(fine_residual[pair])]
+            if len(both) >= _ACROSS_MIN_TIES:
+                coarse = across_spread(cameras[w], cameras[v], obs.xy[head[both]], xy[both])
+                fine = across_spread(cameras[w], cameras[v], obs.xy[head[both]], fine_xy[both])
+                ratios.append(fine / max(coarse, _SPREAD_FLOOR_PX))
+        if ratios and np.median(ratios) < 1.0:
+            scale = (_FINE_CONTRAST_SIGMA_PX, _FINE_CONTRAST_GAIN)
+            for w, v, pair in whole:
+                xy[pair], residual[pair] = fine_xy[pair], fine_residual[pair]
+    if again:
+        map_in_threads(on(contrast_of(again, *scale), CONTRAST_RANK), again, max_threads=threads,
+                       name="register")
+    if choice is not None:
+        choice.update(contrast_sigma_px=float(scale[0]) if whole or again else None,
+                      fine_spread_ratio=float(np.median(ratios)) if whole and ratios else None)
     keep = np.isfinite(residual)
     registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
     index = registered.subset_index(keep)

@@ -556,6 +556,37 @@ PAIR_ALT_MIN, PAIR_ALT_MAX, PAIR_ALT_CENTRE = 2300.0, 2380.0, 2340.0  # metres, 
 PAIR_AOI_HALF_SIZE_M = 150.0
 
 
+# The tests' AOI over the pair where its registrations go wholly onto local contrast (the grey
+# levels of these two crops of one pass differ by more than _CONTRAST_PAIR_RESIDUAL).
+ONE_PASS_AOI = (55.6488, -21.2320, 55.6518, -21.2292)
+
+
+def test_one_pass_pair_keeps_the_coarse_contrast_scale(pleiades_pair, monkeypatch):
+    """Two real views of one pass registered on local contrast: their ties scatter more across
+    the epipolar line at the fine scale (a pixel's, which sees the images' noise), so the stage
+    keeps the coarse one; forced onto the fine scale, the adjustment's own residuals grow
+    (measured: mean 0.101 against 0.086 px after it)."""
+    from satsweep.geometry.altitude import AltitudeRange
+    from satsweep.geometry.aoi import AOI
+    from satsweep.io.views import load_views
+    from satsweep.sparse import tracks
+    from satsweep.sparse.stage import sparse_stage
+
+    paths = [pleiades_pair / "img_01.tif", pleiades_pair / "img_02.tif"]
+    aoi, alt = AOI(*ONE_PASS_AOI), AltitudeRange(PAIR_ALT_MIN, PAIR_ALT_MAX)
+    views = load_views(paths, aoi, alt)
+    chosen = sparse_stage(views, aoi, alt)
+    report = chosen.to_dict()
+    assert report["refine_on_local_contrast"] > 0
+    assert report["refine_contrast_fine_spread_ratio"] > 1.0
+    assert report["refine_contrast_sigma_px"] == tracks._CONTRAST_SIGMA_PX
+    monkeypatch.setattr(tracks, "_CONTRAST_SIGMA_PX", tracks._FINE_CONTRAST_SIGMA_PX)
+    monkeypatch.setattr(tracks, "_CONTRAST_GAIN", tracks._FINE_CONTRAST_GAIN)
+    fine = sparse_stage(views, aoi, alt)
+    assert fine.to_dict()["refine_contrast_sigma_px"] == tracks._FINE_CONTRAST_SIGMA_PX
+    assert np.mean(fine.tied.fine.errors_after) > np.mean(chosen.tied.fine.errors_after)
+
+
 def test_pleiades_pair_adjustment(pleiades_pair, tmp_path):
     from satsweep.geometry.altitude import AltitudeRange
     from satsweep.geometry.aoi import AOI

@@ -181,6 +181,45 @@ def test_registration_of_another_dates_pair_on_local_contrast():
         assert err.max() < REGISTRATION_TOL_PX, err.max()
 
 
+class _AffineCamera:
+    """A satellite-like affine camera: pixels = A (e, n, u) + b (its P's last row 0 0 0 1)."""
+
+    def __init__(self, A, b):
+        self.A = np.asarray(A, np.float64)
+        self.P = np.vstack([np.c_[self.A, b], [0.0, 0.0, 0.0, 1.0]])
+
+    def project(self, X):
+        return X @ self.A.T + self.P[:2, 3]
+
+
+def test_across_spread_measures_the_scatter_across_epipolar_lines():
+    """across_spread is the median absolute deviation of the tie points' offsets across the
+    epipolar lines: heights (along the lines) and one shift of the whole view (the relative
+    pointing) leave it at zero, offsets across them give their own MAD. The epipolar direction
+    of the reference is derived here otherwise: the image in view v of the direction that view
+    w's affine camera does not see (the null vector of its 2 x 3 block)."""
+    w = _AffineCamera([[2.0, 0.0, 0.1], [0.0, 2.0, -0.2]], [500.0, 500.0])
+    v = _AffineCamera([[2.0, 0.05, 0.6], [-0.05, 2.0, 0.3]], [480.0, 510.0])
+    rng = np.random.default_rng(5)
+    X = np.c_[rng.uniform(-100.0, 100.0, (9, 2)), rng.uniform(0.0, 40.0, 9)]
+    ray = np.cross(w.A[0], w.A[1])
+    t = v.A @ ray
+    normal = np.array([-t[1], t[0]]) / np.hypot(*t)
+    xy_w, xy_v = w.project(X), v.project(X) + [0.7, -0.4]
+    assert sparse_tracks.across_spread(w, v, xy_w, xy_v) == pytest.approx(0.0, abs=1e-9)
+    across = np.array([0.1, -0.1, 0.3, -0.3, 0.2, 0.0, 0.05, -0.25, 0.4])
+    expected = np.median(np.abs(across - np.median(across)))
+    moved = xy_v + across[:, None] * normal
+    assert sparse_tracks.across_spread(w, v, xy_w, moved) == pytest.approx(expected, abs=1e-9)
+    # the same offsets along the lines: heights, nothing to measure
+    along = xy_v + across[:, None] * t / np.hypot(*t)
+    assert sparse_tracks.across_spread(w, v, xy_w, along) == pytest.approx(0.0, abs=1e-9)
+    # one viewpoint (no parallax): the whole 2-D offsets' spread around their median
+    deviation = np.array([[0.1, 0.0], [-0.1, 0.0], [0.0, 0.2], [0.0, -0.2], [0.0, 0.0]])
+    assert sparse_tracks.across_spread(w, w, xy_w[:5], xy_w[:5] + [0.7, -0.4] + deviation) \
+        == pytest.approx(0.1, abs=1e-9)
+
+
 def test_registration_failures_fall_back_to_local_contrast():
     """In a pair whose grey levels mostly agree (view 1's right part alone is of another date),
     the observations the grey levels lose are registered again on local contrast and ranked
