@@ -436,15 +436,14 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
                     and len(failed) >= _CONTRAST_PAIR_FAILED * len(pair)):
                 again.append((w, v, failed))
 
-    made: dict = {}  # (view, sigma_px, gain) -> its local contrast
+    made: dict = {}  # (sigma_px, gain) -> {view: its local contrast}
 
     def contrast_of(jobs, sigma_px, gain):  # only the views that need it, each made once
-        needed = sorted({k for w, v, _ in jobs for k in (w, v)} - {k for k, *scale in made
-                                                                     if scale == [sigma_px, gain]})
-        made.update(zip([(k, sigma_px, gain) for k in needed],
-                        map_in_threads(lambda k: local_contrast_u8(grey[k], sigma_px, gain),
-                                       needed, max_threads=threads, name="register")))
-        return {k: image for (k, *scale), image in made.items() if scale == [sigma_px, gain]}
+        views = made.setdefault((sigma_px, gain), {})
+        needed = sorted({k for w, v, _ in jobs for k in (w, v)} - set(views))
+        views.update(zip(needed, map_in_threads(lambda k: local_contrast_u8(grey[k], sigma_px, gain),
+                                                needed, max_threads=threads, name="register")))
+        return views
 
     # The pairs wholly on contrast at both scales; the stack takes the fine one for every pair
     # on contrast where its ties agree better with one relative pointing in most such pairs.
