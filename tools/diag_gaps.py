@@ -44,8 +44,8 @@ MARCH_TOP_M = 60.0
 MARCH_SLACK_M = 0.1
 # Views that see a gap's floor, for the bounds on what the gaps cost.
 SEEN_BY = (3, 5, 8)
-# Correct cells: aligned error within this (m), as the completeness's threshold.
-CORRECT_M = 1.0
+# Correct cells: aligned error within this (m), the completeness's threshold.
+CORRECT_M = EvaluateOptions().threshold_m
 
 
 def gap_cells(truth: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray]:

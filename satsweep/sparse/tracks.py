@@ -448,6 +448,7 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     # The pairs wholly on contrast at both scales; the stack takes the fine one for every pair
     # on contrast where its ties agree better with one relative pointing in most such pairs.
     scale = (_CONTRAST_SIGMA_PX, _CONTRAST_GAIN)
+    ratios: list[float] = []  # per pair compared: the fine scale's spread over the other's
     if whole:
         map_in_threads(on(contrast_of(whole, *scale), CONTRAST_RANK), whole, max_threads=threads,
                        name="register")
@@ -455,7 +456,6 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
         map_in_threads(on(contrast_of(whole, _FINE_CONTRAST_SIGMA_PX, _FINE_CONTRAST_GAIN),
                           CONTRAST_RANK, fine_xy, fine_residual), whole, max_threads=threads,
                        name="register")
-        ratios = []
         for w, v, pair in whole:
             both = pair[np.isfinite(residual[pair]) & np.isfinite(fine_residual[pair])]
             if len(both) >= _ACROSS_MIN_TIES:
@@ -471,7 +471,7 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
                        name="register")
     if choice is not None:
         choice.update(contrast_sigma_px=float(scale[0]) if whole or again else None,
-                      fine_spread_ratio=float(np.median(ratios)) if whole and ratios else None)
+                      fine_spread_ratio=float(np.median(ratios)) if ratios else None)
     keep = np.isfinite(residual)
     registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
     index = registered.subset_index(keep)
