@@ -71,6 +71,10 @@ if TYPE_CHECKING:  # pragma: no cover
     from satsweep.pipeline.tiling import Tile
     from satsweep.products.grid import DSMGrid
 
+# A tile's share seen by each image (``TileOutcome.seen_shares``) is measured on at most this
+# many cell centres per side: 1/64 of a tile's side, finer than "about N%" needs.
+SEEN_SAMPLES = 64
+
 # The environment variable that names a running Dask scheduler (as --scheduler does).
 SCHEDULER_ENV = "SATSWEEP_SCHEDULER"
 # A finished task's record in its folder, written last; and the prefix of the files that mark
@@ -172,6 +176,9 @@ class TileOutcome:
     error: dict | None = None  # error: the SatsweepError to raise in the run
     bands: list[str] = dataclasses.field(default_factory=list)  # done: the rasters saved
     cloud_points: int = 0  # done: points in its cloud piece
+    seen_shares: dict[str, float] = dataclasses.field(default_factory=dict)  # done and unseen
+    # tiles of a larger AOI: per image that sees the tile, the share of its core cells inside
+    # the image (at their fused heights, else the middle of its altitude range; ``_seen_shares``)
     report: dict = dataclasses.field(default_factory=dict)  # timings_s, peak_memory_mb, warnings
     device: dict | None = None  # the device it ran on
     worker: dict = dataclasses.field(default_factory=dict)  # host, pid, peak_memory_mb
@@ -330,7 +337,8 @@ def run_tile_task(task: TileTask, in_process: bool = False) -> TileOutcome:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / f"{START_MARK}{os.getpid()}-{secrets.token_hex(4)}").touch()
     verbose = in_process and task.settings.verbose
-    report = RunReport("tile", verbose=verbose, stream=sys.stderr if in_process else io.StringIO())
+    report = RunReport("tile", verbose=verbose, stream=sys.stderr if in_process else io.StringIO(),
+                       where="" if task.whole else f"cells {task.tile.core}: ")
     device = None
     with _warnings_to(report):
         try:
@@ -339,7 +347,7 @@ def run_tile_task(task: TileTask, in_process: bool = False) -> TileOutcome:
         except SatsweepError as exc:
             kind = "failed" if (not task.whole and is_data_error(exc)) else "error"
             if kind == "failed":
-                report.warn(f"cells {task.tile.core}: {exc}: left without heights")
+                report.warn(f"{exc}: left without heights")
             outcome = TileOutcome(kind=kind, core=task.tile.core,
                                   images=[s.path for s in task.sources], reason=str(exc),
                                   error=_error_record(exc))
@@ -372,7 +380,8 @@ def _run_tile(task: TileTask, report: "RunReport", device: "Device") -> TileOutc
         prior = prior_altitude_range(sources, tile.aoi, alt_range=s.alt_range, dem=s.dem)
         sources = sources_seeing(sources, tile.aoi, prior)
         if len(sources) < 2:
-            return TileOutcome(kind="unseen", core=tile.core, images=[x.path for x in sources])
+            return TileOutcome(kind="unseen", core=tile.core, images=[x.path for x in sources],
+                               seen_shares=_seen_shares(sources, tile, prior))
     seen = [x.path for x in sources]
     if task.seeing is not None and list(task.seeing) != seen:  # cannot happen: same inputs
         raise RuntimeError(f"cells {tile.core}: seen by {seen}, was {list(task.seeing)}")
@@ -382,7 +391,7 @@ def _run_tile(task: TileTask, report: "RunReport", device: "Device") -> TileOutc
                 else {path: list(v) for path, v in zip(seen, task.borrowed_shifts)})
     job = AreaJob(sources=sources, aoi=tile.aoi, grid=tile.grid,
                   split_above_px=task.split_above_px, borrowed_shifts=borrowed,
-                  may_wait=task.may_wait)
+                  may_wait=task.may_wait, whole=task.whole)
     result = run_area(job, ctx)
     if isinstance(result, Split):
         return TileOutcome(kind="split", core=tile.core, images=seen,
@@ -406,7 +415,39 @@ def _run_tile(task: TileTask, report: "RunReport", device: "Device") -> TileOutc
                        entry=json.loads(to_json(result.record.to_report())),
                        shifts=(None if result.shifts is None
                                else [result.shifts.get(path) for path in seen]),
-                       bands=list(core), cloud_points=points)
+                       bands=list(core), cloud_points=points,
+                       seen_shares=({} if task.whole else
+                                    _seen_shares(sources, tile, result.record.altitude.range,
+                                                 core["dsm"])))
+
+
+def _seen_shares(sources: Sequence["ImageSource"], tile: "Tile", alt_range: "AltitudeRange",
+                 dsm: np.ndarray | None = None) -> dict[str, float]:
+    """Per image, the share of the tile's core cells it sees: cell centres (at most
+    SEEN_SAMPLES per side, evenly spread) at their height in ``dsm`` (the core's, where it has
+    one) or else at the middle of ``alt_range``, projected by the image's RPC inside its
+    pixels."""
+    from satsweep.geometry.geodesy import utm_to_lonlat
+
+    rows, cols = tile.core_in_window
+    g = tile.grid
+    r = np.linspace(rows.start + 0.5, rows.stop - 0.5, min(SEEN_SAMPLES, rows.stop - rows.start))
+    c = np.linspace(cols.start + 0.5, cols.stop - 0.5, min(SEEN_SAMPLES, cols.stop - cols.start))
+    x, y = np.meshgrid(g.x_min + c * g.resolution, g.y_max - r * g.resolution)
+    lon, lat = utm_to_lonlat(x=x.ravel(), y=y.ravel(), epsg=g.epsg)
+    alt = np.full(lon.shape, 0.5 * (alt_range.min + alt_range.max))
+    if dsm is not None:  # the core's own heights at the sampled cells
+        z = dsm[np.floor(r - rows.start).astype(int)[:, None],
+                np.floor(c - cols.start).astype(int)[None, :]].ravel()
+        alt = np.where(np.isfinite(z), z, alt)
+    shares = {}
+    for s in sources:
+        col, row = s.rpc.projection(lon=lon, lat=lat, alt=alt)
+        height, width = s.shape[0], s.shape[1]
+        with np.errstate(invalid="ignore"):
+            inside = (col >= -0.5) & (col <= width - 0.5) & (row >= -0.5) & (row <= height - 0.5)
+        shares[s.path] = round(float(np.mean(inside)), 4)
+    return shares
 
 
 # -- runners ---------------------------------------------------------------------------------------

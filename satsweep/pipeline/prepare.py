@@ -121,11 +121,14 @@ class PreparedViews:
 
 def crop_views(sources: Sequence["ImageSource"], aoi: "AOI", alt_range: "AltitudeRange",
                config: "PipelineConfig", *, report: "RunReport | None" = None,
-               extra_margin_px: int = 0) -> tuple[list["View"], list[np.ndarray]]:
+               extra_margin_px: int = 0,
+               warn_partial: bool = True) -> tuple[list["View"], list[np.ndarray]]:
     """The "views" step: each image's crop of the AOI cube (``[reconstruct] crop_margin_px``
     around it) and the crop tonemapped (its no-data pixels flat, ``View.valid``). A view with
     less than ``MIN_VALID_FRACTION`` of its crop holding data is left out with a warning naming
-    it; InputError when fewer than two views remain."""
+    it; InputError when fewer than two views remain. ``warn_partial``: warn about an image that
+    sees only part of ``aoi`` (off for a tile of a larger AOI: the run warns once per image,
+    ``satsweep.pipeline.scheduler``)."""
     from satsweep.errors import InputError
     from satsweep.io.images import tonemap
     from satsweep.io.views import load_views
@@ -133,6 +136,7 @@ def crop_views(sources: Sequence["ImageSource"], aoi: "AOI", alt_range: "Altitud
     with _stage(report, "views"):
         views = load_views(sources, aoi, alt_range,
                            margin_px=config.reconstruct.crop_margin_px + int(extra_margin_px),
+                           warn_partial=warn_partial,
                            vegetation=config.dsm.green_crowns or config.views.leaf_from_colour)
         kept = []
         for v in views:

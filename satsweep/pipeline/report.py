@@ -108,7 +108,8 @@ class RunReport:
     mark, so the stage where it rises is the one that set the peak.
     """
 
-    def __init__(self, command: str, *, verbose: bool = True, stream: TextIO | None = None):
+    def __init__(self, command: str, *, verbose: bool = True, stream: TextIO | None = None,
+                 where: str = ""):
         self.data: dict[str, Any] = {
             "satsweep_version": __version__,
             "command": command,
@@ -123,6 +124,7 @@ class RunReport:
         }
         self.verbose = verbose
         self.stream = stream if stream is not None else sys.stderr
+        self.where = where  # put before each warning (a tile's: which cells it is about)
         self._t0 = time.perf_counter()
 
     def log(self, message: str) -> None:
@@ -134,12 +136,13 @@ class RunReport:
         """A warning: always printed, and kept in the report's ``warnings``. ``doubtful``: the
         warning says the result itself may be wrong (``satsweep reconstruct --strict`` then
         exits non-zero). A warning already given (the same words: another tile, or an area swept
-        again over a widened altitude range) is not repeated."""
-        entry = {"message": message, "doubtful": bool(doubtful)}
+        again over a widened altitude range) is not repeated. The report's ``where`` comes
+        first."""
+        entry = {"message": self.where + message, "doubtful": bool(doubtful)}
         if entry in self.data["warnings"]:
             return
         self.data["warnings"].append(entry)
-        print(f"warning: {message}", file=self.stream, flush=True)
+        print(f"warning: {entry['message']}", file=self.stream, flush=True)
 
     @property
     def doubtful(self) -> bool:

@@ -78,6 +78,8 @@ class Mosaic:
     unseen: list[dict[str, Any]]  # the tiles seen by fewer than two images
     failed: list[dict[str, Any]]  # the tiles their data defeated: cells, images, reason
     outcomes: list[TileOutcome]  # every task's, reused or computed
+    seen_shares: dict[str, float] = dataclasses.field(default_factory=dict)  # tiled runs: per
+    # image, the share of the AOI it sees (``aoi_seen_shares``)
     computed_outcomes: list[TileOutcome] = dataclasses.field(default_factory=list)  # this run's
     reused: int = 0  # tasks whose results an earlier run had finished (--resume)
     computed: int = 0  # tasks run by this run
@@ -192,6 +194,13 @@ def reconstruct_areas(sources: Sequence["ImageSource"], aoi: "AOI", grid: "DSMGr
         rep.warn(f"{len(mosaic.unseen)} tile(s), {100 * cells / (grid.width * grid.height):.1f}% "
                  "of the AOI, are seen by fewer than two images: left without heights (report: "
                  "tiling.unseen)")
+    if several:  # one line per image for the whole AOI, not one per tile at an image's edge
+        from satsweep.io.views import PARTIAL_AOI_WARN_FRACTION
+
+        mosaic.seen_shares = aoi_seen_shares(mosaic.outcomes, [s.path for s in sources])
+        for path, share in mosaic.seen_shares.items():
+            if share < PARTIAL_AOI_WARN_FRACTION:
+                rep.warn(f"{path}: the image sees only about {100 * share:.0f}% of the AOI")
     failed.sort(key=lambda item: item[0])
     mosaic.failed = [{"core_cells": list(o.core), "images": [os.path.basename(p) for p in o.images],
                       "reason": o.reason} for _, o in failed]
@@ -201,6 +210,20 @@ def reconstruct_areas(sources: Sequence["ImageSource"], aoi: "AOI", grid: "DSMGr
         raise InputError(None, f"no tile of the AOI is seen by two of the images "
                                f"({', '.join(s.name for s in sources)})")
     return mosaic
+
+
+def aoi_seen_shares(outcomes: Sequence[TileOutcome], images: Sequence[str]) -> dict[str, float]:
+    """Per image of ``images``, the share of the AOI it sees: the mean over the tiles that were
+    done or unseen (the others were cut again, retried, or their data failed them) of the share
+    of each tile it sees (``TileOutcome.seen_shares``; 0 where it does not see the tile),
+    weighted by the tile's cells, rounded to 1e-4."""
+    final = [o for o in outcomes if o.kind in ("done", "unseen")]
+    cells = [(o.core[1] - o.core[0]) * (o.core[3] - o.core[2]) for o in final]
+    total = sum(cells)
+    if total == 0:
+        return {}
+    return {path: round(sum(n * o.seen_shares.get(path, 0.0) for n, o in zip(cells, final))
+                        / total, 4) for path in images}
 
 
 def _borrowed(finished: list[tuple[tuple, FinishedArea]], images: Sequence[str]):

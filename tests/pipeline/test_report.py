@@ -37,6 +37,21 @@ def test_a_warning_is_given_once():
     assert rep.doubtful
 
 
+def test_a_tiles_warnings_say_which_cells_they_are_about():
+    """A tile's report puts its cells before each warning, so the same words from two tiles
+    are two warnings, each printed once."""
+    stream = io.StringIO()
+    tiles = [RunReport("tile", stream=stream, where=f"cells {core}: ")
+             for core in ((0, 10, 0, 10), (0, 10, 10, 20))]
+    for rep in tiles + tiles[:1]:
+        rep.warn("view_01.tif: dropped by the sparse stage")
+    assert stream.getvalue().splitlines() == [
+        "warning: cells (0, 10, 0, 10): view_01.tif: dropped by the sparse stage",
+        "warning: cells (0, 10, 10, 20): view_01.tif: dropped by the sparse stage"]
+    assert [w["message"] for w in tiles[1].data["warnings"]] == [
+        "cells (0, 10, 10, 20): view_01.tif: dropped by the sparse stage"]
+
+
 def test_progress_throttles_but_always_prints_the_end():
     stream = io.StringIO()
     p = Progress("tiles", 100, stream=stream, interval_s=3600)
