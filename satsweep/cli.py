@@ -204,6 +204,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
         crop_views,
         fit_cameras,
         open_run_sources,
+        sources_seeing_the_aoi,
     )
 
     if args.fixed_view and not args.adjust:
@@ -217,6 +218,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     aoi = parse_aoi(args.aoi)
     # The views, their pointing corrections and the altitude range as reconstruct takes them.
     sources = open_run_sources(args.images, config, rpc_dir=args.rpc_dir)
+    sources, _ = sources_seeing_the_aoi(sources, aoi, config)  # (views elsewhere: warned)
     tied = tie_and_range(sources, aoi, alt_range=_cli_altitude_range(args),
                          dem=args.dem, config=config, adjust=args.adjust)
     sparse, alt = tied.sparse, tied.altitude.range  # (doubts about them: logged warnings)

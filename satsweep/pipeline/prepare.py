@@ -306,6 +306,40 @@ def open_run_sources(paths: Sequence["ImageSource | str | os.PathLike"],
     return sources
 
 
+def sources_seeing_the_aoi(sources: Sequence["ImageSource"], aoi: "AOI",
+                           config: "PipelineConfig", *, report: "RunReport | None" = None
+                           ) -> tuple[list["ImageSource"], list[dict]]:
+    """The sources whose image sees the AOI cube at its own RPC's heights (offset +- scale: the
+    widest it could see it at), and a record per source left out (image, reason). A view of
+    another place (its RPC puts the AOI outside its pixels) is left out with a warning naming
+    it, as the sparse stage leaves out a view it cannot tie; checked before anything else, so
+    that its RPC's heights do not narrow the others' common range. Raises that image's AOIError
+    when it is a ``[bundle] fixed_views`` image (the user trusts it) or fewer than two images
+    remain."""
+    from satsweep.errors import AOIError
+    from satsweep.geometry.altitude import altitude_range_from_rpcs
+    from satsweep.sparse.stage import fixed_view_indices
+
+    fixed, _ = fixed_view_indices(config.bundle.fixed_views, [s.path for s in sources],
+                                  [s.name for s in sources])
+    kept, elsewhere = [], []
+    for k, source in enumerate(sources):
+        try:
+            source.footprint(aoi, altitude_range_from_rpcs([source.rpc], warn=False),
+                             warn_partial=False)
+        except AOIError as exc:
+            if k in fixed:
+                raise
+            elsewhere.append((source, exc))
+            continue
+        kept.append(source)
+    if elsewhere and len(kept) < 2:
+        raise elsewhere[0][1]
+    for _, exc in elsewhere:
+        _warn(report, f"{exc}: left out")
+    return kept, [{"image": source.path, "reason": str(exc)} for source, exc in elsewhere]
+
+
 def ortho_values(views: Sequence["View"]) -> list[np.ndarray]:
     """The orthophoto's grey levels: the crops' own values (sensor units, the same for every
     tile, where each tile's tonemap stretches its own crop)."""

@@ -102,7 +102,7 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
         resolve_device_spec,
         worker_device,
     )
-    from satsweep.pipeline.prepare import open_run_sources
+    from satsweep.pipeline.prepare import open_run_sources, sources_seeing_the_aoi
     from satsweep.pipeline.tiling import plan_tiles
     from satsweep.products.grid import dsm_grid_for_aoi
 
@@ -118,6 +118,9 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     sources = open_run_sources(paths, config, rpc_dir=rpc_dir)
     rep["inputs"]["rpcs"] = [None if s.rpc.source is None else os.fspath(s.rpc.source)
                              for s in sources]  # where each image's RPC was read
+    sources, elsewhere = sources_seeing_the_aoi(sources, aoi, config, report=rep)
+    if elsewhere:  # views of other places
+        rep["inputs"]["left_out"] = elsewhere
     for source in sources:
         for problem in (source.acquisition.warnings if source.acquisition is not None else ()):
             rep.warn(problem)

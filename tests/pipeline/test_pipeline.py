@@ -14,7 +14,7 @@ from satsweep.cli import main
 from satsweep.config import PipelineConfig
 from satsweep.dense.mrf import MRFOptions
 from satsweep.dense.sweep import SweepOptions
-from satsweep.errors import InputError, OptionsError, OutputExistsError
+from satsweep.errors import AOIError, InputError, OptionsError, OutputExistsError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.pipeline.run import reconstruct
 from satsweep.pipeline.sweeps import (
@@ -428,18 +428,20 @@ def test_a_tile_without_matches_takes_the_other_tiles_pointing_corrections(scene
     np.testing.assert_array_equal(borrowed, np.median(np.array(own), axis=0))
 
 
-def _cropped_view(scene, tmp_path, columns: int) -> Path:
-    """The scene's view 1 cut to its first ``columns`` columns (same RPC: the crop starts at 0)."""
+def _cropped_view(scene, tmp_path, columns: int, *, view: int = 1, start: int = 0) -> Path:
+    """The scene's view ``view`` cut to ``columns`` columns from column ``start`` (its RPC
+    cropped alike)."""
     from satsweep.geometry.rpc import RPCModel
     from satsweep.geometry.rpc_formats import rpc_tiff_extratag
     from satsweep.io.geotiff import write_tiff
     from satsweep.io.images import read_image
 
-    src = scene.views[1].image
+    src = scene.views[view].image
     out = tmp_path / "narrow" / src.name
     out.parent.mkdir(parents=True)
-    write_tiff(out, read_image(src)[:, :columns],
-               extratags=[rpc_tiff_extratag(RPCModel.from_image(src))])
+    rpc = RPCModel.from_image(src).cropped(x0=start, y0=0)
+    write_tiff(out, read_image(src)[:, start:start + columns],
+               extratags=[rpc_tiff_extratag(rpc)])
     return out
 
 
@@ -481,7 +483,8 @@ def test_tiles_take_the_images_that_see_them(scene, reconstruction, tmp_path):
     tiles it no longer sees are left without heights (reported), the others are reconstructed;
     the run says once how much of the AOI the cut view sees (not once per tile at its edge,
     and not of a tile's footprint), and each tile's warnings name its cells; when no tile is
-    seen by two images the run fails with one line naming the images."""
+    seen by two images the run fails with one line naming the images (and an image that sees
+    none of the AOI, with the error naming it)."""
     # The AOI spans about columns 37..155 of view 1: its first 70 columns see the tiles of one
     # side only, once the tiles' context is small.
     narrow = _cropped_view(scene, tmp_path, columns=70)
@@ -518,8 +521,15 @@ def test_tiles_take_the_images_that_see_them(scene, reconstruction, tmp_path):
               and "are seen by fewer than two images" not in w["message"]]
     assert all(m.startswith(tuple(f"cells {c}: " for c in cells)) for m in others), others
 
-    blind = _cropped_view(scene, tmp_path / "blind", columns=8)
+    # view 0 cut to its first 70 columns and view 1 to its last ones: each sees the tiles of
+    # its own side only
+    west = _cropped_view(scene, tmp_path / "west", columns=70, view=0)
+    east = _cropped_view(scene, tmp_path / "east", columns=100, start=125)
     with pytest.raises(InputError, match="no tile of the AOI is seen by two"):
+        reconstruct([west, east], scene.aoi, tmp_path / "none",
+                    alt_range=_alt(scene), config=config, verbose=False)
+    blind = _cropped_view(scene, tmp_path / "blind", columns=8)
+    with pytest.raises(AOIError, match="blind/narrow/view_01.tif.*does not see the AOI"):
         reconstruct([scene.views[0].image, blind], scene.aoi, tmp_path / "none",
                     alt_range=_alt(scene), config=config, verbose=False)
 
@@ -932,6 +942,46 @@ def _cli_error(capsys, args) -> str:
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("satsweep: error:"), err
     return lines[0]
+
+
+def _view_elsewhere(scene, folder: Path) -> Path:
+    """The scene's view 1 with an RPC one degree of longitude east: a view of another place."""
+    from satsweep.geometry.rpc import RPCModel
+    from satsweep.geometry.rpc_formats import rpc_tiff_extratag
+    from satsweep.io.geotiff import write_tiff
+    from satsweep.io.images import read_image
+
+    src = scene.views[1].image
+    rpc = RPCModel.from_image(src)
+    out = folder / f"elsewhere_{src.name}"
+    folder.mkdir(parents=True, exist_ok=True)
+    write_tiff(out, read_image(src),
+               extratags=[rpc_tiff_extratag(rpc._replace(lon_offset=rpc.lon_offset + 1.0))])
+    return out
+
+
+def test_a_view_of_another_place_is_left_out_with_a_warning(scene, reconstruction, tmp_path):
+    """An image whose RPC does not see the AOI (at its own heights) among others that do is left
+    out, named in a warning and in report.json's inputs: the run is the one without it, to the
+    bit. Alone with one other image, it stops the run with the error naming it."""
+    elsewhere = _view_elsewhere(scene, tmp_path / "elsewhere")
+    images = [v.image for v in scene.views]
+    res = reconstruct([*images, elsewhere], scene.aoi, tmp_path / "out",
+                      alt_range=_alt(scene), config=PipelineConfig.from_mapping(FAST_CAMERA),
+                      verbose=False)
+    rep = json.loads((res.out_dir / "report.json").read_text())
+    (left,) = rep["inputs"]["left_out"]
+    assert left["image"] == str(elsewhere) and "does not see the AOI" in left["reason"]
+    assert [w["message"] for w in rep["warnings"]
+            if str(elsewhere) in w["message"]] == [f"{left['reason']}: left out"]
+    assert rep["inputs"]["images"] == [str(p) for p in [*images, elsewhere]]
+    with rasterio.open(res.dsm_path) as a, rasterio.open(reconstruction.dsm_path) as b:
+        np.testing.assert_array_equal(a.read(1), b.read(1))
+    with pytest.raises(AOIError, match=f"{elsewhere.name}.*does not see the AOI"):
+        reconstruct([images[0], elsewhere], scene.aoi, tmp_path / "two",
+                    alt_range=_alt(scene), config=PipelineConfig.from_mapping(FAST_CAMERA),
+                    verbose=False)
+    assert not (tmp_path / "two").exists()
 
 
 def test_cli_bad_inputs(scene, tmp_path, capsys):
