@@ -358,7 +358,8 @@ def vegetation_values(views: Sequence["View"]) -> list[np.ndarray] | None:
 def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
                   alt_range: "AltitudeRange", config: "PipelineConfig | None" = None, *,
                   report: "RunReport | None" = None) -> PreparedViews:
-    """Every step in order, as a reconstruction takes them over ``alt_range``: the sparse stage
+    """Every step in order, as a reconstruction takes them over ``alt_range``: the images of
+    other places left out (``sources_seeing_the_aoi``, with a warning), the sparse stage
     (per ``[reconstruct] adjust``; the views it cannot tie left out with a warning), crops,
     cameras, their pointing correction (``correct_pointing``, without waiting), the skew
     correction per ``[reconstruct] skew_correct``. ``sources``: ``ImageSource`` objects or image
@@ -368,6 +369,7 @@ def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
 
     config = config if config is not None else PipelineConfig()
     sources = open_run_sources(sources, config)
+    sources, _ = sources_seeing_the_aoi(sources, aoi, config, report=report)
     tied = tie_and_range(sources, aoi, alt_range=alt_range, dem=None,
                          config=config, adjust=config.reconstruct.adjust != "off",
                          report=report)
