@@ -78,8 +78,6 @@ class AreaJob:
     borrowed_shifts: dict[str, Sequence[float]] | None = None  # per image path, other tiles'
     # pointing corrections (dcx, dcy) px
     may_wait: bool = False  # Wait (rather than skip) when the views cannot be adjusted
-    whole: bool = True  # the run's whole AOI (False: a tile of it, whose images' partial
-    # views of it are not worth a warning each)
 
     @property
     def names(self) -> list[str]:
@@ -255,9 +253,9 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
     """Crops, cameras, pointing correction, view selection and sweeps over ``alt``."""
     config, rep = ctx.config, ctx.report
     sources = tied.sources
+    # (an image that sees part of the AOI: the run warns once, from its areas' shares)
     views, images = crop_views(sources, job.aoi, alt, config, report=rep,
-                               extra_margin_px=tied.correction_margin_px,
-                               warn_partial=job.whole)
+                               extra_margin_px=tied.correction_margin_px, warn_partial=False)
     kept = {v.path for v in views}  # the views holding data over the area
     sources = [src for src in sources if src.path in kept]
     names = [v.name for v in views]

@@ -82,8 +82,8 @@ SCHEDULER_ENV = "SATSWEEP_SCHEDULER"
 OUTCOME_FILE = "outcome.json"
 START_MARK = ".start-"
 # The version of the folder layout: part of the fingerprint, so that folders of another layout
-# are never reused.
-CACHE_LAYOUT = 1
+# are never reused (2: outcomes hold each image's share of the area, ``seen_shares``).
+CACHE_LAYOUT = 2
 # Seconds to wait for a running scheduler to answer (--scheduler).
 SCHEDULER_TIMEOUT_S = 30.0
 # Workers on a GPU device when none is asked for: two device contexts share the GPU, so that
@@ -176,9 +176,9 @@ class TileOutcome:
     error: dict | None = None  # error: the SatsweepError to raise in the run
     bands: list[str] = dataclasses.field(default_factory=list)  # done: the rasters saved
     cloud_points: int = 0  # done: points in its cloud piece
-    seen_shares: dict[str, float] = dataclasses.field(default_factory=dict)  # done and unseen
-    # tiles of a larger AOI: per image that sees the tile, the share of its core cells inside
-    # the image (at their fused heights, else the middle of its altitude range; ``_seen_shares``)
+    seen_shares: dict[str, float] = dataclasses.field(default_factory=dict)  # done and unseen:
+    # per image that sees the area, the share of its core cells inside the image (at their
+    # fused heights, else the middle of its altitude range; ``_seen_shares``)
     report: dict = dataclasses.field(default_factory=dict)  # timings_s, peak_memory_mb, warnings
     device: dict | None = None  # the device it ran on
     worker: dict = dataclasses.field(default_factory=dict)  # host, pid, peak_memory_mb
@@ -391,7 +391,7 @@ def _run_tile(task: TileTask, report: "RunReport", device: "Device") -> TileOutc
                 else {path: list(v) for path, v in zip(seen, task.borrowed_shifts)})
     job = AreaJob(sources=sources, aoi=tile.aoi, grid=tile.grid,
                   split_above_px=task.split_above_px, borrowed_shifts=borrowed,
-                  may_wait=task.may_wait, whole=task.whole)
+                  may_wait=task.may_wait)
     result = run_area(job, ctx)
     if isinstance(result, Split):
         return TileOutcome(kind="split", core=tile.core, images=seen,
@@ -416,9 +416,8 @@ def _run_tile(task: TileTask, report: "RunReport", device: "Device") -> TileOutc
                        shifts=(None if result.shifts is None
                                else [result.shifts.get(path) for path in seen]),
                        bands=list(core), cloud_points=points,
-                       seen_shares=({} if task.whole else
-                                    _seen_shares(sources, tile, result.record.altitude.range,
-                                                 core["dsm"])))
+                       seen_shares=_seen_shares(sources, tile, result.record.altitude.range,
+                                                core["dsm"]))
 
 
 def _seen_shares(sources: Sequence["ImageSource"], tile: "Tile", alt_range: "AltitudeRange",

@@ -127,8 +127,8 @@ def crop_views(sources: Sequence["ImageSource"], aoi: "AOI", alt_range: "Altitud
     around it) and the crop tonemapped (its no-data pixels flat, ``View.valid``). A view with
     less than ``MIN_VALID_FRACTION`` of its crop holding data is left out with a warning naming
     it; InputError when fewer than two views remain. ``warn_partial``: warn about an image that
-    sees only part of ``aoi`` (off for a tile of a larger AOI: the run warns once per image,
-    ``satsweep.pipeline.scheduler``)."""
+    sees only part of ``aoi`` (off in a reconstruction, which warns once per image from the
+    shares its areas measure on their DSMs, ``satsweep.pipeline.scheduler``)."""
     from satsweep.errors import InputError
     from satsweep.io.images import tonemap
     from satsweep.io.views import load_views

@@ -189,9 +189,8 @@ def _finish(mosaic: Mosaic, settings, rep: RunReport, out: OutputFolder,
                      "splits": mosaic.splits, "unseen": mosaic.unseen}
     if mosaic.failed:
         rep["tiling"]["failed"] = mosaic.failed
-    if mosaic.seen_shares:
-        rep["tiling"]["aoi_seen_share"] = {os.path.basename(path): share
-                                           for path, share in mosaic.seen_shares.items()}
+    rep["tiling"]["aoi_seen_share"] = {os.path.basename(path): share
+                                       for path, share in mosaic.seen_shares.items()}
     if mosaic.tiled:
         if settings.alt_range is not None:  # else each tile's range is in its entry
             rep["altitude_range"] = {"min": settings.alt_range.min,

@@ -78,8 +78,8 @@ class Mosaic:
     unseen: list[dict[str, Any]]  # the tiles seen by fewer than two images
     failed: list[dict[str, Any]]  # the tiles their data defeated: cells, images, reason
     outcomes: list[TileOutcome]  # every task's, reused or computed
-    seen_shares: dict[str, float] = dataclasses.field(default_factory=dict)  # tiled runs: per
-    # image, the share of the AOI it sees (``aoi_seen_shares``)
+    seen_shares: dict[str, float] = dataclasses.field(default_factory=dict)  # per image, the
+    # share of the AOI it sees (``aoi_seen_shares``)
     computed_outcomes: list[TileOutcome] = dataclasses.field(default_factory=list)  # this run's
     reused: int = 0  # tasks whose results an earlier run had finished (--resume)
     computed: int = 0  # tasks run by this run
@@ -194,13 +194,14 @@ def reconstruct_areas(sources: Sequence["ImageSource"], aoi: "AOI", grid: "DSMGr
         rep.warn(f"{len(mosaic.unseen)} tile(s), {100 * cells / (grid.width * grid.height):.1f}% "
                  "of the AOI, are seen by fewer than two images: left without heights (report: "
                  "tiling.unseen)")
-    if several:  # one line per image for the whole AOI, not one per tile at an image's edge
-        from satsweep.io.views import PARTIAL_AOI_WARN_FRACTION
+    # One line per image for the whole AOI (not one per tile at an image's edge, nor one per
+    # area swept again or cut), from the areas' shares.
+    from satsweep.io.views import PARTIAL_AOI_WARN_FRACTION
 
-        mosaic.seen_shares = aoi_seen_shares(mosaic.outcomes, [s.path for s in sources])
-        for path, share in mosaic.seen_shares.items():
-            if share < PARTIAL_AOI_WARN_FRACTION:
-                rep.warn(f"{path}: the image sees only about {100 * share:.0f}% of the AOI")
+    mosaic.seen_shares = aoi_seen_shares(mosaic.outcomes, [s.path for s in sources])
+    for path, share in mosaic.seen_shares.items():
+        if share < PARTIAL_AOI_WARN_FRACTION:
+            rep.warn(f"{path}: the image sees only about {100 * share:.0f}% of the AOI")
     failed.sort(key=lambda item: item[0])
     mosaic.failed = [{"core_cells": list(o.core), "images": [os.path.basename(p) for p in o.images],
                       "reason": o.reason} for _, o in failed]
