@@ -2,7 +2,9 @@
 
 The AOI is a WGS84 lon/lat bounding box in degrees, given on the command line as
 ``LON_MIN,LAT_MIN,LON_MAX,LAT_MAX`` or as a GeoJSON file (RFC 7946: WGS84 lon/lat; the box of all
-polygon coordinates is used). Boxes that cross the antimeridian are not supported.
+polygon coordinates is used; a file with the older ``crs`` member naming an EPSG code, as GDAL
+and QGIS write for a projected layer, is mapped to lon/lat first). Boxes that cross the
+antimeridian are not supported.
 
 The altitude range swept over it is :mod:`satsweep.geometry.altitude`.
 """
@@ -138,8 +140,10 @@ def parse_aoi(spec: str | os.PathLike) -> AOI:
     """Parse ``LON_MIN,LAT_MIN,LON_MAX,LAT_MAX`` or a GeoJSON file into an AOI.
 
     A GeoJSON file may hold a Polygon or MultiPolygon geometry, a Feature, a FeatureCollection or a
-    GeometryCollection; the AOI is the bounding box of all polygon coordinates. Malformed GeoJSON
-    raises InputError naming the file; a malformed number list raises AOIError.
+    GeometryCollection; the AOI is the bounding box of all polygon coordinates (in lon/lat: a
+    GeoJSON 2008 ``crs`` member naming an EPSG code maps them there first, each edge sampled).
+    Malformed GeoJSON raises InputError naming the file; a malformed number list raises
+    AOIError.
     """
     text = os.fspath(spec)
     parts = [p.strip() for p in text.split(",")]
@@ -168,11 +172,13 @@ def _aoi_from_geojson(path: str) -> AOI:
         ) from None
     except OSError as exc:
         raise InputError(path, f"cannot read ({exc.strerror})") from None
-    _check_geojson_crs(path, doc)
+    epsg = _geojson_crs_epsg(path, doc)
     positions: list[np.ndarray] = []
     _collect_polygons(path, doc, positions, where="top level")
     if not positions:
         raise InputError(path, "GeoJSON holds no Polygon or MultiPolygon coordinates")
+    if epsg is not None:  # a projected CRS (GeoJSON 2008, as GDAL writes it): to lon/lat
+        positions = [_ring_to_lonlat(path, ring, epsg) for ring in positions]
     if len(positions) > 1 or not _is_box(positions[0]):
         log.warning("%s: the AOI is the lon/lat bounding box of its %d polygon ring(s); the DSM "
                     "covers the whole box", path, len(positions))
@@ -203,18 +209,49 @@ def _is_box(ring: np.ndarray) -> bool:
     return box > 0.0 and abs(area - box) <= 1e-9 * box
 
 
-def _check_geojson_crs(path: str, doc: Any) -> None:
-    """Reject the obsolete GeoJSON 2008 ``crs`` member unless it names WGS84 lon/lat."""
+def _geojson_crs_epsg(path: str, doc: Any) -> int | None:
+    """The EPSG code of the obsolete GeoJSON 2008 ``crs`` member (a named CRS, as GDAL writes
+    for a layer that is not in WGS84: ``urn:ogc:def:crs:EPSG::32631`` or ``EPSG:32631``); None
+    without one or for WGS84 lon/lat (RFC 7946's only CRS). InputError for any other form."""
     if not isinstance(doc, dict) or "crs" not in doc or doc["crs"] is None:
-        return
+        return None
     crs = doc["crs"]
     name = crs.get("properties", {}).get("name", "") if isinstance(crs, dict) else ""
     if not isinstance(name, str):
         name = repr(name)
-    if not any(tag in name.upper() for tag in ("CRS84", "EPSG::4326", "EPSG:4326")):
+    upper = name.upper().strip()
+    if "CRS84" in upper or upper.endswith(("EPSG::4326", "EPSG:4326")):
+        return None
+    code = upper.rsplit(":", 1)[-1] if "EPSG:" in upper else ""
+    if not code.isdigit():
         raise InputError(
-            path, f"GeoJSON declares crs {name or crs!r}: coordinates must be WGS84 lon/lat (RFC 7946)"
-        )
+            path, f"GeoJSON declares crs {name or crs!r}: expected a named EPSG code "
+                  "(urn:ogc:def:crs:EPSG::NNNN) or WGS84 lon/lat (RFC 7946)")
+    return int(code)
+
+
+# Points per edge of a polygon ring in a projected CRS when it is mapped to lon/lat: a straight
+# edge there is a curve in lon/lat, whose bounding box its vertices alone may miss.
+GEOJSON_EDGE_SAMPLES = 32
+
+
+def _ring_to_lonlat(path: str, ring: np.ndarray, epsg: int) -> np.ndarray:
+    """A polygon ring of a projected CRS (EPSG ``epsg``) as (n, 2) lon/lat, each edge sampled
+    at GEOJSON_EDGE_SAMPLES points."""
+    from satsweep.errors import OptionsError
+    from satsweep.geometry.geodesy import crs_to_lonlat
+
+    t = np.linspace(0.0, 1.0, GEOJSON_EDGE_SAMPLES, endpoint=False)
+    a, b = ring, np.roll(ring, -1, axis=0)
+    xy = (a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]).reshape(-1, 2)
+    try:
+        lon, lat = crs_to_lonlat(x=xy[:, 0], y=xy[:, 1], epsg=epsg)
+    except OptionsError as exc:
+        raise InputError(path, f"GeoJSON crs EPSG:{epsg}: {exc}") from None
+    if not (np.isfinite(lon).all() and np.isfinite(lat).all()):
+        raise InputError(path, f"GeoJSON coordinates do not map from EPSG:{epsg} to lon/lat "
+                               "(outside the CRS's area?)")
+    return np.stack([lon, lat], axis=1)
 
 
 def _collect_polygons(path: str, obj: Any, out: list[np.ndarray], *, where: str) -> None:

@@ -24,6 +24,9 @@ WGS84_A = 6378137.0
 WGS84_E2 = 6.69437999014e-3
 # Small boxes: the meridian-arc closed form M * dlat is exact to O(dlat^2) relative; 1e-6 covers it.
 SIZE_REL_TOL = 1e-6
+# A UTM box's lon/lat bounds from 32 samples per edge against 1001: the edges' curvature over
+# 300 m is far below a micro-degree (0.1 m), and the bound is one.
+UTM_BOX_TOLERANCE_DEG = 1e-6
 
 
 # -- AOI ---------------------------------------------------------------------------------------
@@ -135,6 +138,29 @@ def test_parse_aoi_round_trips_to_geojson(tmp_path):
     assert parse(path) == box
 
 
+@pytest.mark.parametrize("name", ["urn:ogc:def:crs:EPSG::32740", "EPSG:32740"])
+def test_parse_aoi_geojson_in_a_projected_crs(tmp_path, caplog, name):
+    """A GeoJSON 2008 file whose ``crs`` names a UTM zone (as GDAL writes a projected layer):
+    the AOI is the lon/lat bounding box of its polygon mapped by pyproj (each edge sampled
+    densely here), and the run says the DSM covers that box."""
+    import pyproj
+
+    x0, y0, x1, y1 = 358000.0, 7651000.0, 358300.0, 7651300.0
+    path = tmp_path / "utm.geojson"
+    path.write_text(json.dumps({**_polygon(x0, y0, x1, y1),
+                                "crs": {"type": "name", "properties": {"name": name}}}))
+    t = np.linspace(0.0, 1.0, 1001)
+    xs = np.concatenate([x0 + t * (x1 - x0), np.full_like(t, x1), x1 - t * (x1 - x0), np.full_like(t, x0)])
+    ys = np.concatenate([np.full_like(t, y0), y0 + t * (y1 - y0), np.full_like(t, y1), y1 - t * (y1 - y0)])
+    lon, lat = pyproj.Transformer.from_crs(32740, 4326, always_xy=True).transform(xs, ys)
+    with caplog.at_level("WARNING", logger="satsweep"):
+        aoi = parse(str(path))
+    got = (aoi.lon_min, aoi.lat_min, aoi.lon_max, aoi.lat_max)
+    np.testing.assert_allclose(got, (lon.min(), lat.min(), lon.max(), lat.max()),
+                               rtol=0, atol=UTM_BOX_TOLERANCE_DEG)
+    assert "bounding box" in caplog.text
+
+
 @pytest.mark.parametrize(
     "text, match",
     [
@@ -149,7 +175,11 @@ def test_parse_aoi_round_trips_to_geojson(tmp_path):
         (json.dumps(_polygon(359000.0, 7651000.0, 360000.0, 7652000.0)), "lon/lat"),
         (json.dumps(_polygon(-179.9, 0.0, 179.9, 1.0)), "antimeridian"),
         (json.dumps({**_polygon(1.0, 2.0, 3.0, 4.0),
-                     "crs": {"type": "name", "properties": {"name": "EPSG:32740"}}}), "crs"),
+                     "crs": {"type": "name", "properties": {"name": "urn:ogc:def:crs:OGC::X"}}}),
+         "crs"),
+        (json.dumps({**_polygon(1.0, 2.0, 3.0, 4.0),
+                     "crs": {"type": "name", "properties": {"name": "EPSG:999999"}}}),
+         "EPSG:999999"),
     ],
 )
 def test_parse_aoi_bad_geojson(tmp_path, text, match):
