@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from satsweep.errors import AOIError, InputError
+from satsweep.errors import AOIError, ImageFormatError, InputError
 
 if TYPE_CHECKING:  # pragma: no cover
     from satsweep.geometry.altitude import AltitudeRange
@@ -109,6 +109,12 @@ def rpc_files_in(rpc_dir: str | os.PathLike, images: Sequence[str | os.PathLike]
     return out
 
 
+def folder_not_image(path: str) -> str:
+    """What is wrong with a folder given as an image (for ImageFormatError)."""
+    return ("is a folder, not an image: give the images in it (for example "
+            f"{os.path.join(path, '*.tif')})")
+
+
 def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
                  rpc_dir: str | os.PathLike | None = None) -> list[ImageSource]:
     """``open_source`` of every path, in order (sources given as such are kept); with
@@ -116,6 +122,9 @@ def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
     adjustment's RPCs, as satsweep writes to rpc/), not its own. InputError for fewer than
     ``MIN_IMAGES`` images, for an image given twice or for one whose RPC the folder lacks."""
     items = [p if isinstance(p, ImageSource) else os.fspath(p) for p in paths]
+    for item in items:  # (before the count: one folder is not "one image")
+        if isinstance(item, str) and os.path.isdir(item):
+            raise ImageFormatError(item, folder_not_image(item))
     if len(items) < MIN_IMAGES:
         raise InputError(None, f"stereo needs at least {MIN_IMAGES} images, got {len(items)}")
     seen: dict[str, str] = {}

@@ -135,6 +135,9 @@ def test_load_views_needs_two_distinct_images(tmp_path, pleiades_pair):
         sv.load_views([img], box, ALT)
     with pytest.raises(InputError, match="given twice"):
         sv.load_views([img, img], box, ALT)
+    # a folder is named as such, not counted as one image
+    with pytest.raises(ImageFormatError, match=f"{pleiades_pair}: is a folder, not an image"):
+        sv.load_views([str(pleiades_pair)], box, ALT)
 
 
 def test_load_views_bad_images_are_named(tmp_path, pleiades_pair):
