@@ -345,6 +345,7 @@ def select_views(cameras: Sequence, *, mid_height: float,
         return similarity_source is not None and similarity_source[r, j] != "metadata"
 
     warnings: list[str] = []
+    quiet: list[str] = []  # what explains a failure but is normal in a stack (repeat orbits)
     remaining = sorted(range(n), key=lambda r: (reference_cost(r), geometry[r].incidence_deg))
     sees = np.array([[g.incidence_deg < NADIR_DEG
                       or abs((g.azimuth_deg - side + 180.0) % 360.0 - 180.0) <= SIDE_HALF_ANGLE_DEG
@@ -378,11 +379,16 @@ def select_views(cameras: Sequence, *, mid_height: float,
         remaining.remove(r)
         cands = [j for j in range(n) if j != r and ov[r, j] >= o.min_overlap]
         flat = [j for j in cands if bh[r, j] < MIN_STEREO_B_OVER_H]
-        if flat:
-            warnings.append(f"{names[r]}: no parallax with {', '.join(names[j] for j in flat)} "
-                            f"(B/H below {MIN_STEREO_B_OVER_H}: the same viewpoint, or a copy of "
-                            "the image)")
-            cands = [j for j in cands if j not in flat]
+        # One viewpoint on another date (a repeat orbit, as real stacks hold): left out as a
+        # source, not worth a warning; one that looks alike (or unknown) may be a copy.
+        copies = [j for j in flat if similarity is None or sim[r, j] >= CLOSE_SIMILARITY]
+        for group, said in ((copies, warnings), ([j for j in flat if j not in copies], quiet)):
+            if group:
+                said.append(f"{names[r]}: no parallax with {', '.join(names[j] for j in group)} "
+                            f"(B/H below {MIN_STEREO_B_OVER_H}: "
+                            + ("the same viewpoint, or a copy of the image)" if said is warnings
+                               else "the same viewpoint on another date)"))
+        cands = [j for j in cands if j not in flat]
         good = [j for j in cands if o.min_b_over_h <= bh[r, j] <= o.max_b_over_h]
         if not good and cands:
             best = min(cands, key=lambda j: _range_distance(bh[r, j], o))
@@ -402,7 +408,7 @@ def select_views(cameras: Sequence, *, mid_height: float,
         sources[r] = tuple(good[: o.max_sources])
         references.append(r)
     if not references:
-        raise CameraError("no stereo pair among the views (" + "; ".join(warnings) + ")")
+        raise CameraError("no stereo pair among the views (" + "; ".join(warnings + quiet) + ")")
     return Selection(references=tuple(references), sources=sources, b_over_h=bh, overlap=ov,
                      geometry=geometry, warnings=tuple(warnings),
                      similarity=None if similarity is None else sim,

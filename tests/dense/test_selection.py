@@ -7,7 +7,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from satsweep.dense.selection import ViewSelectionOptions, b_over_h, select_views, view_geometry
+from satsweep.dense.selection import (
+    CLOSE_SIMILARITY,
+    ViewSelectionOptions,
+    b_over_h,
+    select_views,
+    view_geometry,
+)
 from satsweep.errors import CameraError, OptionsError
 
 ORBIT_M = 600e3
@@ -100,6 +106,26 @@ def test_a_copy_of_a_view_is_no_stereo_pair():
     sel = select_views([cam, dataclasses.replace(cam), satellite(-10, 0)], mid_height=0.0)
     assert 1 not in sel.sources[0] and 0 not in sel.sources[1]
     assert any("no parallax" in w for w in sel.warnings)
+
+
+def test_one_viewpoint_on_another_date_is_no_source_and_no_warning():
+    """A repeat orbit (one viewpoint, two dates, as real stacks hold): the pair is no stereo
+    pair either way, but only a pair that looks alike (or of unknown likeness) may be a copy
+    and is warned about."""
+    cam = satellite(10, 0)
+    cams = [cam, dataclasses.replace(cam), satellite(-10, 0)]
+    for likeness, warned in ((0.3, False), (CLOSE_SIMILARITY, True)):
+        sim = np.ones((3, 3))
+        sim[0, 1] = sim[1, 0] = likeness
+        source = np.full((3, 3), "metadata", dtype=object)
+        sel = select_views(cams, mid_height=0.0, similarity=sim, similarity_source=source)
+        assert 1 not in sel.sources.get(0, ()) and 0 not in sel.sources.get(1, ())
+        assert any("no parallax" in w for w in sel.warnings) == warned, sel.warnings
+    # alone, a repeat orbit still explains why there is no stereo pair
+    sim = np.array([[1.0, 0.3], [0.3, 1.0]])
+    with pytest.raises(CameraError, match="no parallax with view 1.*another date"):
+        select_views(cams[:2], mid_height=0.0, similarity=sim,
+                     similarity_source=np.full((2, 2), "metadata", dtype=object))
 
 
 def test_options_are_checked():
