@@ -505,6 +505,12 @@ def _print_summary(result) -> None:
               f"{a['median_abs_error_m']:.3f} m, {comp} {100 * a[comp]:.1f}%, RMSE "
               f"{a['rmse_m']:.3f} m; unaligned: {u['median_abs_error_m']:.3f} m, "
               f"{100 * u[comp]:.1f}%")
+        d = result.evaluation.get("dfc")
+        if d is not None:
+            print(f"accuracy vs truth (DFC2019, shifted and mean offset removed): mean |error| "
+                  f"{d['mean_abs_error_m']:.3f} m, median {d['median_abs_error_m']:.3f} m, "
+                  f"{100 * d['completeness_1m']:.1f}% within 1 m, {100 * d['valid_fraction']:.1f}% "
+                  "of the truth's cells filled")
 
 
 def _add_demo(sub) -> None:

@@ -248,13 +248,16 @@ def write_corrected_rpcs(folder: str | os.PathLike, sources, shifts) -> list[Pat
 
 
 def evaluate_products(dsm_path: Path, truth, out: OutputFolder, rep: RunReport) -> dict:
-    """The "evaluate" stage: the staged DSM against ``truth`` (IARPA MVS3DM), written to
+    """The "evaluate" stage: the staged DSM against ``truth`` (IARPA MVS3DM; under ``dfc`` the
+    DFC2019 protocol's figures too, as published multi-date results give them), written to
     evaluation/ and to the report."""
-    from satsweep.products.evaluate import evaluate_dsm
+    from satsweep.products.evaluate import EvaluateOptions, evaluate_dsm
 
     with rep.stage("evaluate"):
         evaluation = evaluate_dsm(dsm_path, truth, out_dir=out.path("evaluation"))
         evaluation["prediction"] = os.fspath(out.out_dir / dsm_path.name)  # its final name
+        dfc = evaluate_dsm(dsm_path, truth, EvaluateOptions(protocol="dfc"))
+        evaluation["dfc"] = {k: v for k, v in dfc.items() if k not in ("prediction", "truth")}
         out.path("evaluation/evaluation.json").write_text(to_json(evaluation) + "\n",
                                                           encoding="utf-8")
         rep["evaluation"] = evaluation

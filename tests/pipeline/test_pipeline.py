@@ -263,6 +263,19 @@ def test_report_records_settings_device_timings_and_views(reconstruction):
     assert rep["evaluation"]["prediction"] == str(reconstruction.out_dir / "dsm.tif")
 
 
+def test_the_evaluation_gives_the_dfc_protocol_beside_mvs3dm(scene, reconstruction):
+    """With a truth, the report holds the DFC2019 figures too (the protocol of published
+    multi-date results): those of ``satsweep evaluate --protocol dfc`` on the outputs."""
+    from satsweep.products.evaluate import EvaluateOptions, evaluate_dsm
+
+    rep = json.loads((reconstruction.out_dir / "report.json").read_text())
+    alone = evaluate_dsm(reconstruction.dsm_path, scene.truth_dsm, EvaluateOptions(protocol="dfc"))
+    got = rep["evaluation"]["dfc"]
+    for key in ("mean_abs_error_m", "median_abs_error_m", "completeness_1m", "valid_fraction"):
+        assert got[key] == pytest.approx(alone[key], rel=0, abs=0), key
+    assert got["shift"] == alone["shift"] and "DFC2019" in got["protocol"]
+
+
 # How far inside its reference window a point of the AOI cube may project, in pixels, less than
 # the window's own context: the window is found with the pipeline's perspective cameras, the
 # check uses the exact RPCs, which they approximate to well under 0.05 px, and the adjustment's
