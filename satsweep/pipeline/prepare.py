@@ -307,26 +307,30 @@ def open_run_sources(paths: Sequence["ImageSource | str | os.PathLike"],
 
 
 def sources_seeing_the_aoi(sources: Sequence["ImageSource"], aoi: "AOI",
-                           config: "PipelineConfig", *, report: "RunReport | None" = None
+                           config: "PipelineConfig", *, given: "AltitudeRange | None" = None,
+                           report: "RunReport | None" = None
                            ) -> tuple[list["ImageSource"], list[dict]]:
     """The sources whose image sees the AOI cube at its own RPC's heights (offset +- scale: the
-    widest it could see it at), and a record per source left out (image, reason). A view of
-    another place (its RPC puts the AOI outside its pixels) is left out with a warning naming
-    it, as the sparse stage leaves out a view it cannot tie; checked before anything else, so
-    that its RPC's heights do not narrow the others' common range. Raises that image's AOIError
-    when it is a ``[bundle] fixed_views`` image (the user trusts it) or fewer than two images
-    remain."""
+    widest it could see it at) or at the ``given`` range (the user's or a DEM's: an RPC whose
+    heights miss the scene's is no sign of another place), and a record per source left out
+    (image, reason). A view of another place (its RPC puts the AOI outside its pixels) is left
+    out with a warning naming it, as the sparse stage leaves out a view it cannot tie; checked
+    before anything else, so that its RPC's heights do not narrow the others' common range.
+    Raises that image's AOIError when it is a ``[bundle] fixed_views`` image (the user trusts
+    it) or fewer than two images remain."""
     from satsweep.errors import AOIError
-    from satsweep.geometry.altitude import altitude_range_from_rpcs
+    from satsweep.geometry.altitude import AltitudeRange, altitude_range_from_rpcs
     from satsweep.sparse.stage import fixed_view_indices
 
     fixed, _ = fixed_view_indices(config.bundle.fixed_views, [s.path for s in sources],
                                   [s.name for s in sources])
     kept, elsewhere = [], []
     for k, source in enumerate(sources):
+        own = altitude_range_from_rpcs([source.rpc], warn=False)
+        if given is not None:  # both: the cube's box spans every height between
+            own = AltitudeRange(min(own.min, given.min), max(own.max, given.max))
         try:
-            source.footprint(aoi, altitude_range_from_rpcs([source.rpc], warn=False),
-                             warn_partial=False)
+            source.footprint(aoi, own, warn_partial=False)
         except AOIError as exc:
             if k in fixed:
                 raise
@@ -369,7 +373,7 @@ def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
 
     config = config if config is not None else PipelineConfig()
     sources = open_run_sources(sources, config)
-    sources, _ = sources_seeing_the_aoi(sources, aoi, config, report=report)
+    sources, _ = sources_seeing_the_aoi(sources, aoi, config, given=alt_range, report=report)
     tied = tie_and_range(sources, aoi, alt_range=alt_range, dem=None,
                          config=config, adjust=config.reconstruct.adjust != "off",
                          report=report)

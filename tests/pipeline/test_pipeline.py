@@ -3,6 +3,7 @@ the configuration file, and the bad-input cases of the command line."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -1005,6 +1006,35 @@ def test_a_view_of_another_place_is_left_out_with_a_warning(scene, reconstructio
                     alt_range=_alt(scene), config=PipelineConfig.from_mapping(FAST_CAMERA),
                     verbose=False)
     assert not (tmp_path / "two").exists()
+
+
+def test_an_rpc_whose_heights_miss_the_scene_is_kept_at_the_given_range():
+    """Whether an image sees the AOI is asked at its RPC's own heights and at the range the user
+    (or a DEM) gives: an RPC whose offset +- scale misses the scene is no view of another
+    place when the given range sees it (stand-ins: footprints that meet the image only at
+    heights above 2000 m)."""
+    from satsweep.errors import AOIError
+    from satsweep.pipeline.prepare import sources_seeing_the_aoi
+
+    class Source:
+        def __init__(self, name, alt_offset, alt_scale):
+            self.path = self.name = name
+            self.rpc = dataclasses.make_dataclass("R", ["alt_offset", "alt_scale"])(alt_offset,
+                                                                                     alt_scale)
+
+        def footprint(self, aoi, alt_range, warn_partial=True):
+            if alt_range.max < 2000.0:  # the AOI lies in the image only at its true heights
+                raise AOIError(f"{self.path}: does not see the AOI at {alt_range}")
+            return 0, 0, 10, 10
+
+    ok = [Source("a.tif", 2300.0, 500.0), Source("b.tif", 2300.0, 500.0)]
+    low = Source("low.tif", 0.0, 500.0)  # its RPC's heights: -500..500 m
+    config = PipelineConfig()
+    kept, left = sources_seeing_the_aoi([*ok, low], "AOI", config)
+    assert [s.name for s in kept] == ["a.tif", "b.tif"] and left[0]["image"] == "low.tif"
+    kept, left = sources_seeing_the_aoi([*ok, low], "AOI", config,
+                                        given=AltitudeRange(2250.0, 2400.0))
+    assert [s.name for s in kept] == ["a.tif", "b.tif", "low.tif"] and left == []
 
 
 def test_cli_bad_inputs(scene, tmp_path, capsys):
