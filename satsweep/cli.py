@@ -194,7 +194,6 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     from satsweep.config import PipelineConfig
     from satsweep.errors import OptionsError
     from satsweep.geometry.aoi import parse_aoi
-    from satsweep.geometry.altitude import resolve_altitude_range
     from satsweep.geometry.camera import write_cameras
     from satsweep.geometry.skew import skew_correct_set
     from satsweep.io.atomic import check_output_dir
@@ -219,11 +218,10 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
     aoi = parse_aoi(args.aoi)
     # The views, their pointing corrections and the altitude range as reconstruct takes them.
     sources = open_run_sources(args.images, config, rpc_dir=args.rpc_dir)
-    alt_given = _cli_altitude_range(args)
-    given = (None if alt_given is None and args.dem is None
-             else resolve_altitude_range(alt_range=alt_given, dem=args.dem, aoi=aoi))
-    sources, _ = sources_seeing_the_aoi(sources, aoi, config, given=given)  # (warned)
-    tied = tie_and_range(sources, aoi, alt_range=alt_given,
+    alt_range = _cli_altitude_range(args)
+    sources, _ = sources_seeing_the_aoi(sources, aoi, config, alt_range=alt_range,
+                                        dem=args.dem)  # (views of other places: warned)
+    tied = tie_and_range(sources, aoi, alt_range=alt_range,
                          dem=args.dem, config=config, adjust=args.adjust)
     sparse, alt = tied.sparse, tied.altitude.range  # (doubts about them: logged warnings)
     views, _ = crop_views(tied.sources, aoi, alt, config,

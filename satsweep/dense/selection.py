@@ -382,12 +382,12 @@ def select_views(cameras: Sequence, *, mid_height: float,
         # One viewpoint on another date (a repeat orbit, as real stacks hold): left out as a
         # source, not worth a warning; one that looks alike (or unknown) may be a copy.
         copies = [j for j in flat if similarity is None or sim[r, j] >= CLOSE_SIMILARITY]
-        for group, said in ((copies, warnings), ([j for j in flat if j not in copies], quiet)):
+        repeats = [j for j in flat if j not in copies]
+        for group, said, why in ((copies, warnings, "the same viewpoint, or a copy of the image"),
+                                 (repeats, quiet, "the same viewpoint on another date")):
             if group:
                 said.append(f"{names[r]}: no parallax with {', '.join(names[j] for j in group)} "
-                            f"(B/H below {MIN_STEREO_B_OVER_H}: "
-                            + ("the same viewpoint, or a copy of the image)" if said is warnings
-                               else "the same viewpoint on another date)"))
+                            f"(B/H below {MIN_STEREO_B_OVER_H}: {why})")
         cands = [j for j in cands if j not in flat]
         good = [j for j in cands if o.min_b_over_h <= bh[r, j] <= o.max_b_over_h]
         if not good and cands:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from satsweep.errors import AOIError, InputError
+from satsweep.errors import AOIError, InputError, OptionsError
 
 log = logging.getLogger(__name__)
 
@@ -238,7 +238,6 @@ GEOJSON_EDGE_SAMPLES = 32
 def _ring_to_lonlat(path: str, ring: np.ndarray, epsg: int) -> np.ndarray:
     """A polygon ring of a projected CRS (EPSG ``epsg``) as (n, 2) lon/lat, each edge sampled
     at GEOJSON_EDGE_SAMPLES points."""
-    from satsweep.errors import OptionsError
     from satsweep.geometry.geodesy import crs_to_lonlat
 
     t = np.linspace(0.0, 1.0, GEOJSON_EDGE_SAMPLES, endpoint=False)

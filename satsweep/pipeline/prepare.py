@@ -307,30 +307,48 @@ def open_run_sources(paths: Sequence["ImageSource | str | os.PathLike"],
 
 
 def sources_seeing_the_aoi(sources: Sequence["ImageSource"], aoi: "AOI",
-                           config: "PipelineConfig", *, given: "AltitudeRange | None" = None,
+                           config: "PipelineConfig", *, alt_range: "AltitudeRange | None" = None,
+                           dem: "str | os.PathLike | None" = None,
                            report: "RunReport | None" = None
                            ) -> tuple[list["ImageSource"], list[dict]]:
     """The sources whose image sees the AOI cube at its own RPC's heights (offset +- scale: the
-    widest it could see it at) or at the ``given`` range (the user's or a DEM's: an RPC whose
-    heights miss the scene's is no sign of another place), and a record per source left out
-    (image, reason). A view of another place (its RPC puts the AOI outside its pixels) is left
-    out with a warning naming it, as the sparse stage leaves out a view it cannot tie; checked
-    before anything else, so that its RPC's heights do not narrow the others' common range.
-    Raises that image's AOIError when it is a ``[bundle] fixed_views`` image (the user trusts
-    it) or fewer than two images remain."""
+    widest it could see it at) or, for one that does not, at those and the range that
+    ``alt_range`` or ``dem`` gives (resolved only then: an RPC whose heights miss the scene's
+    is no sign of another place), and a record per source left out (image, reason). A view of
+    another place (its RPC puts the AOI outside its pixels) is left out with a warning naming
+    it, as the sparse stage leaves out a view it cannot tie; checked before anything else, so
+    that its RPC's heights do not narrow the others' common range. Raises that image's AOIError
+    when it is a ``[bundle] fixed_views`` image (the user trusts it) or fewer than two images
+    remain."""
     from satsweep.errors import AOIError
-    from satsweep.geometry.altitude import AltitudeRange, altitude_range_from_rpcs
+    from satsweep.geometry.altitude import (
+        AltitudeRange,
+        altitude_range_from_rpcs,
+        resolve_altitude_range,
+    )
     from satsweep.sparse.stage import fixed_view_indices
 
     fixed, _ = fixed_view_indices(config.bundle.fixed_views, [s.path for s in sources],
                                   [s.name for s in sources])
-    kept, elsewhere = [], []
-    for k, source in enumerate(sources):
+    given: list[AltitudeRange] = []  # the user's or the DEM's range, once resolved
+
+    def sees(source: "ImageSource") -> None:  # AOIError where it does not
         own = altitude_range_from_rpcs([source.rpc], warn=False)
-        if given is not None:  # both: the cube's box spans every height between
-            own = AltitudeRange(min(own.min, given.min), max(own.max, given.max))
         try:
             source.footprint(aoi, own, warn_partial=False)
+        except AOIError:
+            if alt_range is None and dem is None:
+                raise
+            if not given:
+                given.append(resolve_altitude_range(alt_range=alt_range, dem=dem, aoi=aoi))
+            # both: the cube's box spans every height between
+            source.footprint(aoi, AltitudeRange(min(own.min, given[0].min),
+                                                max(own.max, given[0].max)), warn_partial=False)
+
+    kept, elsewhere = [], []
+    for k, source in enumerate(sources):
+        try:
+            sees(source)
         except AOIError as exc:
             if k in fixed:
                 raise
@@ -373,7 +391,8 @@ def prepare_views(sources: Sequence["ImageSource | str"], aoi: "AOI",
 
     config = config if config is not None else PipelineConfig()
     sources = open_run_sources(sources, config)
-    sources, _ = sources_seeing_the_aoi(sources, aoi, config, given=alt_range, report=report)
+    sources, _ = sources_seeing_the_aoi(sources, aoi, config, alt_range=alt_range,
+                                        report=report)
     tied = tie_and_range(sources, aoi, alt_range=alt_range, dem=None,
                          config=config, adjust=config.reconstruct.adjust != "off",
                          report=report)

@@ -103,7 +103,6 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
         resolve_device_spec,
         worker_device,
     )
-    from satsweep.geometry.altitude import resolve_altitude_range
     from satsweep.pipeline.prepare import open_run_sources, sources_seeing_the_aoi
     from satsweep.pipeline.tiling import plan_tiles
     from satsweep.products.grid import dsm_grid_for_aoi
@@ -120,9 +119,8 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     sources = open_run_sources(paths, config, rpc_dir=rpc_dir)
     rep["inputs"]["rpcs"] = [None if s.rpc.source is None else os.fspath(s.rpc.source)
                              for s in sources]  # where each image's RPC was read
-    given = (None if alt_range is None and dem is None
-             else resolve_altitude_range(alt_range=alt_range, dem=dem, aoi=aoi))
-    sources, elsewhere = sources_seeing_the_aoi(sources, aoi, config, given=given, report=rep)
+    sources, elsewhere = sources_seeing_the_aoi(sources, aoi, config, alt_range=alt_range,
+                                                dem=dem, report=rep)
     if elsewhere:  # views of other places
         rep["inputs"]["left_out"] = elsewhere
     for source in sources:

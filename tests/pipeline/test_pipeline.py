@@ -1033,7 +1033,7 @@ def test_an_rpc_whose_heights_miss_the_scene_is_kept_at_the_given_range():
     kept, left = sources_seeing_the_aoi([*ok, low], "AOI", config)
     assert [s.name for s in kept] == ["a.tif", "b.tif"] and left[0]["image"] == "low.tif"
     kept, left = sources_seeing_the_aoi([*ok, low], "AOI", config,
-                                        given=AltitudeRange(2250.0, 2400.0))
+                                        alt_range=AltitudeRange(2250.0, 2400.0))
     assert [s.name for s in kept] == ["a.tif", "b.tif", "low.tif"] and left == []
 
 
