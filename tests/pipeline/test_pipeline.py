@@ -1179,6 +1179,23 @@ def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
     _check_accuracy(result)
 
 
+def test_the_dsm_stage_in_threads_gives_the_sequential_result(scene, reconstruction, tmp_path,
+                                                            monkeypatch):
+    """The DSM stage checks its references' height maps against each other in threads (a view
+    each): the same DSM, counts and cloud as one thread gives."""
+    import satsweep.products.fusion as fusion
+
+    monkeypatch.setattr(fusion, "FUSION_THREADS_MAX", 1)
+    alone = _reconstruct(scene, tmp_path / "out", FAST_CAMERA)
+    assert alone.report["dsm"]["cross_check"] == reconstruction.report["dsm"]["cross_check"]
+    for name in ("dsm.tif", "confidence.tif", "count.tif", "ortho.tif"):
+        with rasterio.open(alone.out_dir / name) as a, \
+                rasterio.open(reconstruction.out_dir / name) as b:
+            np.testing.assert_array_equal(a.read(), b.read(), err_msg=name)
+    np.testing.assert_array_equal(read_ply(alone.out_dir / "cloud.ply")["vertex"],
+                                  read_ply(reconstruction.out_dir / "cloud.ply")["vertex"])
+
+
 def test_the_height_maps_median_is_applied_and_reported(scene, reconstruction, tmp_path):
     """``[mrf] median_radius_m`` set: each reference's map takes the weighted median, its window
     in pixels of the view's ground sample distance (the scene's 0.5 m pixels, 0.5-0.6 m on the
