@@ -17,9 +17,14 @@ import numpy as np
 from satsweep.errors import CameraError
 from satsweep.geometry.camera import CameraSet, PerspectiveCamera
 from satsweep.geometry.parallax import reparametrise
+from satsweep.threads import map_in_threads
 
 # Rows processed at once by the skew-correction resampler (bounds the index arrays' memory).
 _SHEAR_BLOCK_ROWS = 256
+# Views sheared at once by skew_correct_set (numpy's gathers release the GIL; each thread holds
+# one block of rows of temporaries besides its view's output). 19 grey views of 1550 x 1500 px
+# on 2 cores: 1.34-1.51 s -> 0.65-0.73 s, the same images.
+SKEW_THREADS_MAX = 4
 
 
 # -- skew correction -----------------------------------------------------------------------------
@@ -117,10 +122,14 @@ def skew_correct_set(cameras: CameraSet, images: Sequence[np.ndarray]) -> tuple[
     """Skew-correct every view: new cameras (K', P', P4', warp) and the warped images (float32)."""
     if len(images) != len(cameras.views):
         raise CameraError(f"skew_correct_set: {len(images)} images for {len(cameras.views)} views")
-    views, warped = [], []
-    for v, image in zip(cameras.views, images):
+
+    def one(job):
+        v, image = job
         img, cam, W = skew_correct(image, v.camera)
         proj = reparametrise(cam, d=v.projection.d, zbar=v.projection.zbar)
-        views.append(dataclasses.replace(v, camera=cam, projection=proj, warp=W))
-        warped.append(img)
-    return dataclasses.replace(cameras, views=tuple(views)), warped
+        return dataclasses.replace(v, camera=cam, projection=proj, warp=W), img
+
+    done = map_in_threads(one, list(zip(cameras.views, images)), max_threads=SKEW_THREADS_MAX,
+                          name="skew")
+    return (dataclasses.replace(cameras, views=tuple(v for v, _ in done)),
+            [img for _, img in done])

@@ -1179,12 +1179,15 @@ def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
     _check_accuracy(result)
 
 
-def test_the_dsm_stage_in_threads_gives_the_sequential_result(scene, reconstruction, tmp_path,
-                                                            monkeypatch):
-    """The DSM stage checks its references' height maps against each other in threads (a view
-    each): the same DSM, counts and cloud as one thread gives."""
+def test_stages_in_threads_give_the_sequential_result(scene, reconstruction, tmp_path,
+                                                     monkeypatch):
+    """The skew correction shears the views, and the DSM stage checks its references' height maps
+    against each other, in threads (a view each): the same DSM, counts and cloud as one thread
+    gives."""
+    import satsweep.geometry.skew as skew
     import satsweep.products.fusion as fusion
 
+    monkeypatch.setattr(skew, "SKEW_THREADS_MAX", 1)
     monkeypatch.setattr(fusion, "FUSION_THREADS_MAX", 1)
     alone = _reconstruct(scene, tmp_path / "out", FAST_CAMERA)
     assert alone.report["dsm"]["cross_check"] == reconstruction.report["dsm"]["cross_check"]
