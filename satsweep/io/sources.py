@@ -109,10 +109,13 @@ def rpc_files_in(rpc_dir: str | os.PathLike, images: Sequence[str | os.PathLike]
     return out
 
 
-def folder_not_image(path: str) -> str:
-    """What is wrong with a folder given as an image (for ImageFormatError)."""
-    return ("is a folder, not an image: give the images in it (for example "
-            f"{os.path.join(path, '*.tif')})")
+def refuse_folders(paths: Sequence[object]) -> None:
+    """ImageFormatError naming the first folder among ``paths`` given as images (checked before
+    any count: one folder is not "one image"); other items are left alone."""
+    for path in paths:
+        if isinstance(path, str) and os.path.isdir(path):
+            raise ImageFormatError(path, "is a folder, not an image: give the images in it (for "
+                                         f"example {os.path.join(path, '*.tif')})")
 
 
 def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
@@ -122,9 +125,7 @@ def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
     adjustment's RPCs, as satsweep writes to rpc/), not its own. InputError for fewer than
     ``MIN_IMAGES`` images, for an image given twice or for one whose RPC the folder lacks."""
     items = [p if isinstance(p, ImageSource) else os.fspath(p) for p in paths]
-    for item in items:  # (before the count: one folder is not "one image")
-        if isinstance(item, str) and os.path.isdir(item):
-            raise ImageFormatError(item, folder_not_image(item))
+    refuse_folders(items)
     if len(items) < MIN_IMAGES:
         raise InputError(None, f"stereo needs at least {MIN_IMAGES} images, got {len(items)}")
     seen: dict[str, str] = {}

@@ -37,10 +37,10 @@ from pathlib import Path
 from typing import Sequence
 
 from satsweep.config import PipelineConfig
-from satsweep.errors import ImageFormatError, InputError, OptionsError, SatsweepError
+from satsweep.errors import InputError, OptionsError, SatsweepError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.geometry.aoi import AOI
-from satsweep.io.sources import folder_not_image
+from satsweep.io.sources import refuse_folders
 from satsweep.pipeline.outputs import (
     RPC_DIR,
     OutputFolder,
@@ -279,9 +279,7 @@ def _checked_arguments(images, aoi, alt_range, config) -> tuple[list[str], AOI,
         paths = [os.fspath(p) for p in images]
     except TypeError:
         raise OptionsError(f"images: expected a list of image paths, got {images!r}") from None
-    for path in paths:  # (before the count: one folder is not "one image")
-        if os.path.isdir(path):
-            raise ImageFormatError(path, folder_not_image(path))
+    refuse_folders(paths)
     if len(paths) < 2:
         raise OptionsError(f"need at least two images, got {len(paths)}")
     if isinstance(aoi, (str, os.PathLike)):
