@@ -241,13 +241,19 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
  *   [0, w-1] x [0, h-1] of the source (for a tile pixel, the validity rule above).
  *   Work size: global = (ceil(pw / SWEEP_VEC), ph, nb NSRC), each of the first two rounded up to
  *   any multiple; local = any. Work-item (g, py, b NSRC + s) writes positions
- *   [g SWEEP_VEC, (g + 1) SWEEP_VEC) (clipped to pw) of row py.
+ *   [g SWEEP_VEC, (g + 1) SWEEP_VEC) (clipped to pw) of row py, if plane plane0 + b is in that
+ *   group's window: warp_window[2 (py ceil(pw / SWEEP_VEC) + g) + {0, 1}] = [first, end) planes
+ *   (counted like plane0; [0, planes) warps every plane; plane windows of a coarse-to-fine
+ *   sweep skip the rest, whose positions keep what they held).
  * sweep_warped_cost: the census of the warped sources (sweep_warp's output for the same planes,
  *   with its validity) against the reference codes, plus the AD and gradient terms, aggregated
  *   over the sources like sweep_census_cost, into cost[(slot0 + b) th tw + y tw + x].
  *   Work size: global = (ceil(tw / SWEEP_VEC), th, nb), the first two rounded up to any multiple;
  *   local = any. Work-item (g, y, b) writes pixels [g SWEEP_VEC, (g + 1) SWEEP_VEC) (clipped to
- *   tw) of row y for slot b.
+ *   tw) of row y for slot b, if plane plane0 + b (the plane of sweep_warp's slot b) is in that
+ *   group's window cost_window[2 (y ceil(tw / SWEEP_VEC) + g) + {0, 1}] (as warp_window; the
+ *   positions a computed group reads must have been warped for that plane), else the worst
+ *   cost INVALID_COST there (a cost filter may read it).
  */
 /* sweep_warp's per-position form: the sample and validity at warped-buffer index k of the
  * tile-local reference pixel (rx, ry) (the reference form of the vector path, and the path of the
@@ -276,12 +282,16 @@ __kernel void sweep_warp(__global const float *src_img, __global const long *src
                          __global const int *src_size, __global const float *homography,
                          const int tw, const int th, const int tx0, const int ty0,
                          const int ref_w, const int ref_h, const int plane0,
+                         __global const int *warp_window,
                          __global float *warped, __global uchar *seen)
 {
     const int pw = tw + 2 * CENSUS_RX, ph = th + 2 * CENSUS_RY;
     const int px0 = get_global_id(0) * SWEEP_VEC, py = get_global_id(1), bs = get_global_id(2);
     if (px0 >= pw || py >= ph) return;
     const int s = bs % NSRC, b = bs / NSRC;
+    /* planes [first, end) of this group of positions (plane windows): others are not warped */
+    const int2 win = vload2(py * ((pw + SWEEP_VEC - 1) / SWEEP_VEC) + get_global_id(0), warp_window);
+    if (plane0 + b < win.x || plane0 + b >= win.y) return;
     __global const float *H = homography + ((plane0 + b) * NSRC + s) * 9;
     __global const float *img = src_img + src_offset[s];
     const int ry = clamp_index(ty0 - CENSUS_RY + py, ref_h) - ty0;
@@ -365,11 +375,18 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const uch
                                 __global const ulong *ref_code, __global const float *ref_img,
                                 const int tw, const int th, const int tx0, const int ty0,
                                 const int ref_w, const int ref_h, const int slot0,
+                                const int plane0, __global const int *cost_window,
                                 __global float *cost)
 {
     const int x0 = get_global_id(0) * SWEEP_VEC, y = get_global_id(1), b = get_global_id(2);
     if (x0 >= tw || y >= th) return;
     __global float *out = cost + (size_t)(slot0 + b) * tw * th + IDX2(x0, y, tw);
+    /* planes [first, end) of this group of pixels (plane windows): others get the worst cost */
+    const int2 win = vload2(y * ((tw + SWEEP_VEC - 1) / SWEEP_VEC) + get_global_id(0), cost_window);
+    if (plane0 + b < win.x || plane0 + b >= win.y) {
+        for (int i = 0; x0 + i < tw && i < SWEEP_VEC; ++i) out[i] = INVALID_COST;
+        return;
+    }
     /* The vector path needs the group's 8 pixels inside the tile and, for the gradient term,
      * unclamped reference neighbours. */
     int full = x0 + SWEEP_VEC <= tw;
@@ -483,6 +500,33 @@ __kernel void sweep_code_cost(__global const ulong *src_code, __global const lon
         }
     }
     cost[(size_t)b * tw * th + IDX2(x, y, tw)] = aggregate_best(cst, valid);
+}
+
+/* volume_pixel_windows: the interior of a batch of nb cost planes, cost[nb][th][tw] (interior
+ * origin (mx, my) in the tile, size iw x ih), into a RAGGED volume of per-pixel plane windows:
+ * interior pixel i = y iw + x keeps the planes [label_first[i], label_first[i] + label_count[i])
+ * (counted like plane0: from the tile's first plane) as its labels 0 .. label_count[i] - 1 from
+ * volume[label_offset[i]] on; the batch holds planes plane0 .. plane0 + nb - 1, and a pixel
+ * copies those of them in its window (volume[label_offset[i] + plane0 + b - label_first[i]] =
+ * cost[b][my + y][mx + x]).
+ * Work size: global = (iw, ih), each rounded up to any multiple; local = any. Work-item (x, y)
+ *   writes the labels of one pixel that the batch holds. */
+__kernel void volume_pixel_windows(__global const float *cost, const int tw, const int th,
+                                   const int mx, const int my, const int iw, const int ih,
+                                   const int nb, const int plane0,
+                                   __global const int *label_first,
+                                   __global const int *label_count,
+                                   __global const ulong *label_offset, __global float *volume)
+{
+    const int x = get_global_id(0), y = get_global_id(1);
+    if (x >= iw || y >= ih) return;
+    const int i = IDX2(x, y, iw);
+    const int first = label_first[i] - plane0;  /* the window's first plane, in batch slots */
+    const int b0 = max(first, 0), b1 = min(first + label_count[i], nb);
+    __global const float *c = cost + IDX2(mx + x, my + y, tw);
+    __global float *o = volume + label_offset[i] - first;
+    const size_t plane = (size_t)tw * th;
+    for (int b = b0; b < b1; ++b) o[b] = c[b * plane];
 }
 
 /* volume_pixel_major: the interior of a batch of nb filtered cost planes, cost[nb][th][tw]

@@ -71,16 +71,19 @@ def fill_from_nearest(values: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 
 def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: int,
-                  margin: int, max_fraction: float) -> PlaneWindows | None:
+                  margin: int, max_fraction: float,
+                  pixel_fallback: bool = False) -> PlaneWindows | None:
     """Per-block plane windows from a full-resolution map of (fractional) plane indices.
 
     ``plane_index``: (H, W), NaN where the coarse pass found nothing (filled from the nearest
     known pixel). Each block sweeps floor(min) - margin .. ceil(max) + margin (within the
-    planes) of the indices in the block grown by ``halo`` pixels; ``n_planes`` of the result is
+    planes) of the indices in the block grown by ``halo`` pixels (``block`` = 1: each pixel
+    its own window, over the pixels within ``halo`` of it); ``n_planes`` of the result is
     the widest of these windows (SGM is built for every plane whatever the windows,
-    ``sgm.sgm_refine``, so that the pipeline builds its program ahead). Returns None (sweep
-    every plane) when nothing is known or when the blocks would sweep more than
-    ``max_fraction`` of the planes on average.
+    ``sgm.sgm_refine``, so that the pipeline builds its program ahead). When the blocks would
+    sweep more than ``max_fraction`` of the planes on average, windows of one pixel each if
+    ``pixel_fallback`` and they sweep no more; else (or when nothing is known) None: sweep
+    every plane.
     """
     import cv2  # noqa: PLC0415
 
@@ -93,16 +96,21 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
     size = 2 * halo + 1
     kernel = np.ones((size, size), np.uint8)
     # Min / max over the window, pixels outside the image ignored (= scipy's mode "nearest").
-    lo = cv2.erode(idx, kernel, borderType=cv2.BORDER_REPLICATE)
-    hi = cv2.dilate(idx, kernel, borderType=cv2.BORDER_REPLICATE)
+    lo_px = cv2.erode(idx, kernel, borderType=cv2.BORDER_REPLICATE)
+    hi_px = cv2.dilate(idx, kernel, borderType=cv2.BORDER_REPLICATE)
     h, w = idx.shape
-    nby, nbx = -(-h // block), -(-w // block)
-    pad = ((0, nby * block - h), (0, nbx * block - w))
-    lo = np.pad(lo, pad, constant_values=np.inf).reshape(nby, block, nbx, block).min(axis=(1, 3))
-    hi = np.pad(hi, pad, constant_values=-np.inf).reshape(nby, block, nbx, block).max(axis=(1, 3))
-    lo = np.clip(np.floor(lo) - margin, 0, n_planes - 1).astype(np.int64)
-    hi = np.clip(np.ceil(hi) + margin, 0, n_planes - 1).astype(np.int64)
-    count = hi - lo + 1
-    if count.mean() > max_fraction * n_planes:
-        return None
-    return PlaneWindows(block=block, first=lo, n_planes=int(count.max()), count=count)
+    for side in (block, 1) if pixel_fallback and block > 1 else (block,):
+        lo, hi = lo_px, hi_px
+        if side > 1:
+            nby, nbx = -(-h // side), -(-w // side)
+            pad = ((0, nby * side - h), (0, nbx * side - w))
+            lo = np.pad(lo, pad, constant_values=np.inf).reshape(nby, side, nbx, side).min(
+                axis=(1, 3))
+            hi = np.pad(hi, pad, constant_values=-np.inf).reshape(nby, side, nbx, side).max(
+                axis=(1, 3))
+        lo = np.clip(np.floor(lo) - margin, 0, n_planes - 1).astype(np.int64)
+        hi = np.clip(np.ceil(hi) + margin, 0, n_planes - 1).astype(np.int64)
+        count = hi - lo + 1
+        if count.mean() <= max_fraction * n_planes:
+            return PlaneWindows(block=side, first=lo, n_planes=int(count.max()), count=count)
+    return None

@@ -121,11 +121,23 @@ class SweepOptions(Options):
     coarse_plane_stride: int = 4  # coarse_to_fine: the half-resolution pass sweeps every this
     # many planes
     window_block_px: int = 64  # coarse_to_fine: side (px) of the blocks that share a window
+    # (8 or more: each block a tile of its own); 1: each pixel its own window, in tiles as
+    # without windows
     window_halo_px: int = 8  # coarse_to_fine: pixels around a block whose coarse heights its
     # window also spans
     window_margin_planes: int = 4  # coarse_to_fine: planes added below and above each window
     window_max_fraction: float = 0.6  # coarse_to_fine: sweep every plane when the windows would
     # hold more than this fraction of them
+    window_pixel_fallback: bool = False  # coarse_to_fine: where the blocks' windows would hold
+    # more than window_max_fraction, each pixel its own window if those hold no more, before
+    # every plane
+    dense_consensus_window_pixel_fallback: bool | None = True  # ... for a reference of pixels
+    # finer than the DSM's cells in a consensus area (as dense_consensus_census_ring_weight):
+    # at 0.3 m every 64 px block of a city holds a roof and the ground, and such references
+    # take the most time. 19-view 0.3 m stacks of 1700 px: 151 / 178 -> 105 / 119 s, DFC MAE
+    # 0.791 / 0.919 -> 0.824 / 0.867 m; of 850 px (seeds 11-16): mean 0.963 -> 0.972 m. On
+    # 0.5 m stacks (not dense) it costs 0.0-0.4 points within 1 m for no time (v10 seeds 0-5).
+    # None: as the area's
 
     ADVANCED = ("census_window", "cost_mode", "ad_truncation", "grad_weight",
                 "consensus_grad_weight", "grad_truncation", "census_ring_weight",
@@ -134,7 +146,8 @@ class SweepOptions(Options):
                 "box_radius", "subplane", "reject_range_edges", "lr_check", "lr_tolerance_planes",
                 "max_planes_per_batch", "census_kernel", "work_group", "coarse_plane_stride",
                 "window_block_px", "window_halo_px", "window_margin_planes",
-                "window_max_fraction")
+                "window_max_fraction", "window_pixel_fallback",
+                "dense_consensus_window_pixel_fallback")
 
     def check(self) -> None:
         rows, cols = self.census_window
@@ -180,8 +193,9 @@ class SweepOptions(Options):
         wx, wy = self.work_group
         self._require(1 <= wx <= 256 and 1 <= wy <= 256 and wx * wy <= 1024, "work_group",
                       "sizes must be in [1, 256] with a product <= 1024")
-        self._require(8 <= self.window_block_px <= 4096, "window_block_px",
-                      "must be in [8, 4096] pixels")
+        self._require(self.window_block_px == 1 or 8 <= self.window_block_px <= 4096,
+                      "window_block_px", "must be 1 (each pixel its own window) or in [8, 4096] "
+                      "pixels")
         self._require(1 <= self.coarse_plane_stride <= 64, "coarse_plane_stride",
                       "must be in [1, 64] planes")
         self._require(0 <= self.window_halo_px <= 256, "window_halo_px",
@@ -230,6 +244,13 @@ class SweepOptions(Options):
         return {"guided": self.gf_radius, "box": self.box_radius, "none": 0}[self.cost_filter]
 
     @property
+    def slice_filter(self) -> Literal["guided", "box", "none"]:
+        """The filter the sweep runs on each cost slice: ``cost_filter``, or "none" where its
+        radius is 0 (a guided or box filter of radius 0 gives every cost back unchanged, so it
+        is not run: SGM's sweep, ``MRFOptions.sgm_sweep_gf_radius``)."""
+        return self.cost_filter if self.filter_radius > 0 else "none"
+
+    @property
     def tile_margin(self) -> int:
         """Margin (pixels) around a tile so that its interior equals a whole-image computation.
 
@@ -254,9 +275,14 @@ class SweepOptions(Options):
     def for_dense_pixels(self) -> "SweepOptions":
         """The options (an area's, after ``for_consensus``) of a reference whose pixels are
         finer than the DSM's cells: the census's 3 x 3 ring weighs
-        ``dense_consensus_census_ring_weight``."""
-        w = self.dense_consensus_census_ring_weight
-        return self if w is None else self.replace(census_ring_weight=float(w))
+        ``dense_consensus_census_ring_weight``, and windows of one pixel follow blocks as
+        ``dense_consensus_window_pixel_fallback`` says (each when set)."""
+        changes: dict = {}
+        if self.dense_consensus_census_ring_weight is not None:
+            changes["census_ring_weight"] = float(self.dense_consensus_census_ring_weight)
+        if self.dense_consensus_window_pixel_fallback is not None:
+            changes["window_pixel_fallback"] = bool(self.dense_consensus_window_pixel_fallback)
+        return self.replace(**changes) if changes else self
 
     def best_k(self, n_sources: int) -> int:
         """The number of lowest source costs averaged per pixel for ``n_sources`` sources."""
@@ -272,6 +298,7 @@ class WorkSplit:
     n_batches: int = 1  # batches of planes, over all tiles
     peak_device_bytes: int = 0  # the most device memory its buffers held at once
     window_planes: int | None = None  # planes per window of a coarse-to-fine sweep (else None)
+    window_share: float | None = None  # ... the share of its pixels' planes it swept (else None)
 
 
 @dataclasses.dataclass
@@ -433,21 +460,24 @@ def code_buffers() -> tuple[BufferSpec, ...]:
             BufferSpec("codes", np.uint64, lambda s: s.px))
 
 
-def tile_buffers(options: SweepOptions, *, wta: bool = True) -> tuple[BufferSpec, ...]:
+def tile_buffers(options: SweepOptions, *, wta: bool = True,
+                 pixel_windows: bool = False) -> tuple[BufferSpec, ...]:
     """The buffers of one tile: its homographies, the reference codes, the cost of a batch of
     planes with the filter's temporaries (``cost``, ``sums``: see ``PlaneSweep._filter``), the
-    guide fields (guided filter), the split census kernels' warped sources, and with ``wta`` the
-    winner-take-all's state and per-pixel outputs (over the interior)."""
+    guide fields (guided filter), the split census kernels' warped sources and their groups'
+    plane windows (``warp_window``, ``cost_window``: kernels/sweep.cl), with ``wta`` the
+    winner-take-all's state and per-pixel outputs (over the interior), and with
+    ``pixel_windows`` each interior pixel's window in the ragged volume (volume_pixel_windows)."""
     area = lambda t: t.tw * t.th  # noqa: E731
     interior = lambda t: t.iw * t.ih  # noqa: E731
     specs = [BufferSpec("homography", np.float32, lambda t: 9 * t.n_planes * t.n_src),
              BufferSpec("ref_code", np.uint64, area)]
-    if options.cost_filter == "guided":  # [p | I p] sums -> [a | b] -> q
+    if options.slice_filter == "guided":  # [p | I p] sums -> [a | b] -> q
         specs += [BufferSpec("cost", np.float32, lambda t: 2 * t.nb * area(t)),
                   BufferSpec("sums", np.float32, lambda t: 2 * t.nb * area(t)),
                   BufferSpec("guide_i", np.float32, area),
                   BufferSpec("guide_mean", np.float32, lambda t: 2 * area(t))]
-    elif options.cost_filter == "box":
+    elif options.slice_filter == "box":
         specs += [BufferSpec("cost", np.float32, lambda t: t.nb * area(t)),
                   BufferSpec("sums", np.float32, lambda t: t.nb * area(t))]
     else:
@@ -455,7 +485,15 @@ def tile_buffers(options: SweepOptions, *, wta: bool = True) -> tuple[BufferSpec
     if _split_census(options):
         positions = lambda t: _warped_positions(options, (t.tw, t.th), t.nb, t.n_src)  # noqa: E731
         specs += [BufferSpec("warped", np.float32, positions),
-                  BufferSpec("seen", np.uint8, positions)]
+                  BufferSpec("seen", np.uint8, positions),
+                  BufferSpec("warp_window", np.int32,
+                             lambda t: 2 * _group_count(options, (t.tw, t.th), padded=True)),
+                  BufferSpec("cost_window", np.int32,
+                             lambda t: 2 * _group_count(options, (t.tw, t.th), padded=False))]
+    if pixel_windows:
+        specs += [BufferSpec("label_first", np.int32, interior),
+                  BufferSpec("label_count", np.int32, interior),
+                  BufferSpec("label_offset", np.uint64, interior)]
     if wta:
         specs += [BufferSpec("state", np.float32, lambda t: WTA_NSTATE * interior(t)),
                   BufferSpec("plane_index", np.float32, interior),
@@ -469,7 +507,9 @@ def _tile_bytes(options: SweepOptions, sizes: TileSizes) -> int:
     """Device bytes of one tile in the plan: its buffers WITH the winner-take-all's, whether or
     not the sweep runs it, so that a sweep without it (SGM's) is split as the sweep with it is
     (the tiles change the filters' float32 sums), plus the driver's allowance."""
-    return total_bytes(tile_buffers(options), sizes) + _SMALL_BUFFERS_BYTES
+    return max(total_bytes(tile_buffers(options), sizes),
+               total_bytes(tile_buffers(options, wta=False, pixel_windows=True), sizes)) \
+        + _SMALL_BUFFERS_BYTES
 
 
 def _split_census(options: SweepOptions) -> bool:
@@ -481,6 +521,82 @@ def _warp_plane_positions(options: SweepOptions, tile_dims: tuple[int, int], n_s
     census margin."""
     rx, ry = options.census_radii
     return n_src * (tile_dims[0] + 2 * rx) * (tile_dims[1] + 2 * ry)
+
+
+def _group_count(options: SweepOptions, tile_dims: tuple[int, int], *, padded: bool) -> int:
+    """Groups of SWEEP_VEC positions per plane of the split kernels over a tile of ``tile_dims``:
+    sweep_warp's (``padded``: the tile plus the census margin) or sweep_warped_cost's."""
+    rx, ry = options.census_radii if padded else (0, 0)
+    return _ceil_div(tile_dims[0] + 2 * rx, SWEEP_VEC) * (tile_dims[1] + 2 * ry)
+
+
+def group_windows(options: SweepOptions, first: np.ndarray,
+                  end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The split kernels' plane windows (``warp_window``, ``cost_window``) of a tile whose pixel
+    (y, x) needs the filtered costs of planes [first, end) (tile-local plane indices, (th, tw)
+    integer arrays). A pixel's raw cost of a plane is needed where a pixel within the cost
+    filter's reach (``tile_margin``) needs that plane; a group of sweep_warped_cost's pixels
+    computes the union of what its pixels need (and writes the worst cost for the other
+    planes, which the filter may read); a group of sweep_warp's positions warps the union of
+    what the groups whose census reads one of its positions compute, so that every computed
+    cost reads warped sources of its own plane. Each as a flat int32 array of (first, end)
+    pairs in the kernels' group order."""
+    rx, ry = options.census_radii
+    reach = options.tile_margin
+    first = np.asarray(first, dtype=np.int64)
+    end = np.asarray(end, dtype=np.int64)
+    th, tw = first.shape
+    cost_lo, cost_hi = _window_union(first, end, reach, reach)
+    cost = _grouped(cost_lo, cost_hi)
+    # Each pixel computes what its group computes; a warped position (py, px) is read by the
+    # census of the tile pixels within the radii of tile pixel (py - ry, px - rx).
+    pairs = cost.reshape(th, -1, 2)
+    lo = np.repeat(pairs[:, :, 0], SWEEP_VEC, axis=1)[:, :tw]
+    hi = np.repeat(pairs[:, :, 1], SWEEP_VEC, axis=1)[:, :tw]
+    lo = np.pad(lo, ((ry, ry), (rx, rx)), constant_values=_EMPTY_FIRST)
+    hi = np.pad(hi, ((ry, ry), (rx, rx)), constant_values=_EMPTY_END)
+    return _grouped(*_window_union(lo, hi, ry, rx)), cost
+
+
+def every_plane_windows(options: SweepOptions, tile_dims: tuple[int, int],
+                        n_planes: int) -> tuple[np.ndarray, np.ndarray]:
+    """``group_windows`` of a tile of ``tile_dims`` whose every pixel needs all ``n_planes``
+    planes (a sweep without windows), without computing it."""
+    return tuple(np.tile(np.array([0, n_planes], np.int32),
+                         _group_count(options, tile_dims, padded=padded))
+                 for padded in (True, False))
+
+
+# An empty window of planes: the identities of the min of firsts and the max of ends (the
+# first exact in float32, which the unions are computed in, and in int32).
+_EMPTY_FIRST, _EMPTY_END = 2**30, 0
+
+
+def _window_union(first: np.ndarray, end: np.ndarray, ry: int,
+                  rx: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, the union (min of firsts, max of ends) of the windows of the pixels within
+    ``ry`` rows and ``rx`` columns of it (outside the arrays: none): OpenCV's erosion and
+    dilation in float32, exact for plane indices below 2^24."""
+    import cv2  # noqa: PLC0415
+
+    kernel = np.ones((2 * ry + 1, 2 * rx + 1), np.uint8)
+    lo = cv2.erode(np.asarray(first, np.float32), kernel, borderType=cv2.BORDER_CONSTANT,
+                   borderValue=float(_EMPTY_FIRST))
+    hi = cv2.dilate(np.asarray(end, np.float32), kernel, borderType=cv2.BORDER_CONSTANT,
+                    borderValue=float(_EMPTY_END))
+    return lo.astype(np.int64), hi.astype(np.int64)
+
+
+def _grouped(first: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """The union of the windows of each group of SWEEP_VEC pixels of a row, as a flat int32
+    array of (first, end) pairs, row by row."""
+    rows, w = first.shape
+    n = _ceil_div(w, SWEEP_VEC) * SWEEP_VEC - w
+    lo = np.pad(first, ((0, 0), (0, n)), constant_values=_EMPTY_FIRST)
+    hi = np.pad(end, ((0, 0), (0, n)), constant_values=_EMPTY_END)
+    return np.ascontiguousarray(np.stack([lo.reshape(rows, -1, SWEEP_VEC).min(axis=2),
+                                          hi.reshape(rows, -1, SWEEP_VEC).max(axis=2)],
+                                         axis=-1).ravel(), dtype=np.int32)
 
 
 def _warp_chunk(options: SweepOptions, tile_dims: tuple[int, int], nb: int, n_src: int) -> int:
@@ -707,11 +823,11 @@ class PlaneSweep:
     def _filter_request(self) -> tuple[str, dict] | None:
         """The cost-filter program's (source, defines) for the options (None for "none")."""
         o = self.options
-        if o.cost_filter == "none":
+        if o.slice_filter == "none":
             return None
         r = o.filter_radius
         defs = {"BOX_R": r, "BOX_CHUNK": box_chunk(r)}
-        if o.cost_filter == "guided":
+        if o.slice_filter == "guided":
             defs["GF_EPS"] = float(o.gf_eps)
         return "guided_filter", defs
 
@@ -831,7 +947,7 @@ class PlaneSweep:
         # The filter's buffers of a tile, and the guide image in place of the reference's.
         specs = tuple(spec for spec in tile_buffers(o, wta=False)
                       if spec.name in ("cost", "sums", "guide_i", "guide_mean"))
-        guided = o.cost_filter == "guided"
+        guided = o.slice_filter == "guided"
         if guided:
             specs += (BufferSpec("ref_img", np.float32, lambda t: t.tw * t.th),)
         with DeviceMemory(self.device.context).allocate(
@@ -869,6 +985,14 @@ class PlaneSweep:
         # A device volume of windows with their own counts is RAGGED: each block's pixels hold
         # just their window's labels, block after block (label_offset: where each pixel's start).
         ragged = on_device and windows is not None and windows.count is not None
+        # Windows of one pixel each: tiles as without windows, each sweeping the planes of its
+        # pixels' windows, the split kernels skipping the planes out of each group's windows.
+        pixel = windows is not None and windows.block == 1
+        if pixel and (not ragged or wta):
+            raise InputError(None, "plane_windows: windows of one pixel are swept into a device "
+                                   "cost volume, without winner-take-all (SGM's sweep)")
+        if pixel:
+            n_planes = n_total
         label_offset = block_start = None
         if ragged:
             label_offset, block_start = _ragged_layout(windows, ref.shape)
@@ -886,7 +1010,7 @@ class PlaneSweep:
         plan = plan_tiles(o, ref.shape, [s.shape for s in srcs], n_planes, self.budget_bytes(),
                           self.device.max_alloc_bytes, volume_floats=run_sizes.volume_floats)
         tile_w, tile_h = plan.tile_w, plan.tile_h
-        if windows is not None:
+        if windows is not None and not pixel:
             if min(tile_w, w_img) < min(windows.block, w_img) \
                     or min(tile_h, h_img) < min(windows.block, h_img):
                 raise DeviceError(f"memory budget of {self.budget_bytes() / 2**20:.0f} MiB holds "
@@ -935,7 +1059,8 @@ class PlaneSweep:
             volume = volume_k = None
             if on_device:
                 volume = res["volume"]
-                volume_k = self.device.kernel(sweep_prg, "volume_pixel_major")
+                volume_k = self.device.kernel(sweep_prg, "volume_pixel_windows" if pixel
+                                              else "volume_pixel_major")
             elif keep_volume:
                 volume = np.full((n_planes, h_img, w_img), o.max_cost, np.float32) if padded \
                     else np.empty((n_planes, h_img, w_img), np.float32)
@@ -948,7 +1073,17 @@ class PlaneSweep:
                 # where the tile's interior goes in a device volume: (row width, origin x,
                 # origin y, labels per pixel, start)
                 place = (w_img, ix0, iy0, n_planes, 0)
-                if windows is not None:
+                pixel_windows = None
+                if pixel:
+                    # The tile sweeps planes [first, first + count): its pixels' windows.
+                    f = np.asarray(windows.first[ty0:ty1, tx0:tx1], dtype=np.int64)
+                    e = f + np.asarray(windows.count[ty0:ty1, tx0:tx1], dtype=np.int64)
+                    first = int(f.min())
+                    count = int(e.max()) - first
+                    inner = (slice(iy0, iy1), slice(ix0, ix1))
+                    pixel_windows = (f - first, e - first, windows.first[inner] - first,
+                                     windows.count[inner], label_offset[inner])
+                elif windows is not None:
                     bi, bj = iy0 // tile_h, ix0 // tile_w
                     first, count = windows.sweep_range(bi, bj)
                     if ragged:
@@ -957,7 +1092,7 @@ class PlaneSweep:
                 n_batches += self._sweep_tile(
                     tile, plan.planes_per_batch, hom[first:first + count], count, mem, res,
                     src_buf, census_k, sweep_k, filt_prg, wta_prg, (w_img, h_img), outs,
-                    (ix0, iy0), volume, volume_k, place)
+                    (ix0, iy0), volume, volume_k, place, pixel_windows)
                 if wta:
                     outs[0][iy0:iy1, ix0:ix1] += first  # the swept plane index -> the plane's
                 n_tiles += 1
@@ -987,13 +1122,16 @@ class PlaneSweep:
 
     def _sweep_tile(self, tile, nb_max, hom, n_planes, mem, res, src_buf, census_k, sweep_k,
                     filt_prg, wta_prg, ref_size, outs, interior_origin, volume=None,
-                    volume_k=None, place=None) -> int:
+                    volume_k=None, place=None, pixel_windows=None) -> int:
         """Sweep one tile over the n_planes planes of ``hom``, its buffers (``tile_buffers``)
         allocated from ``mem`` for the tile alone; ``res``: the run's buffers (``run_buffers``),
         src_buf the sources' images or codes among them. A kept volume receives the planes as
         each pixel's labels 0 .. n_planes - 1: a host volume at the interior's origin, a device
         volume as ``place`` = (out_w, ox, oy, labels per pixel, start) says (volume_pixel_major).
-        outs = None: no winner-take-all (the volume only)."""
+        With ``pixel_windows`` = (first, end of every tile pixel's window; first, count and
+        volume offset of every interior pixel's), plane indices of ``hom``, a pixel computes
+        the planes of its window only and a ragged device volume receives them
+        (volume_pixel_windows). outs = None: no winner-take-all (the volume only)."""
         import pyopencl as cl  # noqa: PLC0415
 
         o = self.options
@@ -1012,7 +1150,19 @@ class PlaneSweep:
         local = local / local[:, :, 2:3, 2:3]
         hom_f32 = np.ascontiguousarray(local.reshape(n_planes, n_src, 9), dtype=np.float32)
         sizes = TileSizes(tw=tw, th=th, iw=iw, ih=ih, nb=nb_max, n_planes=n_planes, n_src=n_src)
-        with mem.allocate(tile_buffers(o, wta=wta), sizes, host={"homography": hom_f32}) as b:
+        host = {"homography": hom_f32}
+        if _split_census(o):
+            if pixel_windows is None:
+                host["warp_window"], host["cost_window"] = every_plane_windows(o, (tw, th),
+                                                                               n_planes)
+            else:
+                host["warp_window"], host["cost_window"] = group_windows(o, *pixel_windows[:2])
+        if pixel_windows is not None:
+            host["label_first"], host["label_count"], host["label_offset"] = (
+                np.ascontiguousarray(a, dtype=t)
+                for a, t in zip(pixel_windows[2:], (np.int32, np.int32, np.uint64)))
+        with mem.allocate(tile_buffers(o, wta=wta, pixel_windows=pixel_windows is not None),
+                          sizes, host=host) as b:
             hom_buf, code_buf, ref_buf = b["homography"], b["ref_code"], res["ref_img"]
             off_buf, size_buf = res["src_offset"], res["src_size"]
             with self._stage("census"):
@@ -1021,7 +1171,7 @@ class PlaneSweep:
 
             vol_a, vol_b = b["cost"], b.get("sums")
             guide_i, guide_mean = b.get("guide_i"), b.get("guide_mean")
-            if o.cost_filter == "guided":
+            if o.slice_filter == "guided":
                 with self._stage("filter"):
                     self._guide_stats(filt_prg, tile, ref_buf, w_img, guide_i, guide_mean, vol_b)
 
@@ -1043,7 +1193,7 @@ class PlaneSweep:
             # pixel-major volume instead (no plane-major q, no copy).
             ix0, iy0 = interior_origin
             fused = (volume is not None and not isinstance(volume, np.ndarray) and not wta
-                     and o.cost_filter == "guided")
+                     and o.slice_filter == "guided" and pixel_windows is None)
             wgx, wgy = o.work_group
             n_batches = 0
             for p0 in range(0, n_planes, nb_max):
@@ -1056,10 +1206,12 @@ class PlaneSweep:
                             _launch(warp_k, queue, (_ceil_div(pw, SWEEP_VEC), ph, nc * n_src),
                                     src_buf, off_buf, size_buf,
                                     hom_buf, i32(tw), i32(th), i32(tile.tx0), i32(tile.ty0),
-                                    i32(w_img), i32(h_img), i32(p0 + c0), warped, seen)
+                                    i32(w_img), i32(h_img), i32(p0 + c0), b["warp_window"],
+                                    warped, seen)
                             _launch(cost_k, queue, (_ceil_div(tw, SWEEP_VEC), th, nc), warped,
                                     seen, code_buf, ref_buf, i32(tw), i32(th), i32(tile.tx0),
-                                    i32(tile.ty0), i32(w_img), i32(h_img), i32(c0), vol_a)
+                                    i32(tile.ty0), i32(w_img), i32(h_img), i32(c0), i32(p0 + c0),
+                                    b["cost_window"], vol_a)
                     elif o.cost_mode == "warped_census":
                         sweep_k(queue, (_round_up(tw, wgx), _round_up(th, wgy), nb), (wgx, wgy, 1),
                                 src_buf, off_buf, size_buf, hom_buf, code_buf, ref_buf, i32(tw),
@@ -1076,6 +1228,11 @@ class PlaneSweep:
                     cl.enqueue_copy(queue, batch, vol_a)
                     volume[p0:p0 + nb, iy0:iy0 + tile.ih, ix0:ix0 + tile.iw] = \
                         batch[:, tile.my:tile.my + tile.ih, tile.mx:tile.mx + tile.iw]
+                elif pixel_windows is not None:  # MRF path: each pixel's window, ragged
+                    with self._stage("copy"):
+                        _launch(volume_k, queue, (iw, ih), vol_a, i32(tw), i32(th), i32(tile.mx),
+                                i32(tile.my), i32(iw), i32(ih), i32(nb), i32(p0),
+                                b["label_first"], b["label_count"], b["label_offset"], volume)
                 elif volume is not None and not fused:  # MRF path: the interior, pixel-major
                     with self._stage("copy"):
                         out_w, ox, oy, n_labels, start = place
@@ -1128,7 +1285,7 @@ class PlaneSweep:
         nb - 1 (gf_rows_q_pixel_major; vol_a is left holding the [a | b] coefficients).
         """
         o = self.options
-        if o.cost_filter == "none":
+        if o.slice_filter == "none":
             return
         queue = self.device.queue
         kern = self.device.kernel
@@ -1137,7 +1294,7 @@ class PlaneSweep:
         chunk = box_chunk(o.filter_radius)
         ncx, ncy = _ceil_div(tw, chunk), _ceil_div(th, chunk)
         ncv = _ceil_div(tw, GF_COLS_VEC)  # column kernels: GF_COLS_VEC columns per work-item
-        if o.cost_filter == "box":
+        if o.slice_filter == "box":
             _launch(kern(prg, "box_cols_sum"), queue, (ncv, ncy, nb), vol_a, vol_b, i32(tw),
                     i32(th))
             _launch(kern(prg, "box_rows_mean"), queue, (ncx, th, nb), vol_b, vol_a, i32(tw),

@@ -145,6 +145,7 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
         wta_index = np.zeros((h_img, w_img), np.float32)
         wta_valid = np.zeros((h_img, w_img), bool)
     n_tiles, peak, window_planes = 0, 0, 0
+    swept = total = 0  # pixel-planes swept, and of the whole search, over the tiles
     tiles = list(tile_grid(w_img, h_img, side, side, mrf.tile_overlap_px))
     for x0, y0, x1, y1, tx0, ty0, tx1, ty1 in tiles:
         shift = np.array([[1.0, 0.0, tx0], [0.0, 1.0, ty0], [0.0, 0.0, 1.0]])
@@ -162,7 +163,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
             planes = plane_windows(coarse[ty0:ty1, tx0:tx1], hts.size,
                                    block=sweep.window_block_px, halo=sweep.window_halo_px,
                                    margin=sweep.window_margin_planes,
-                                   max_fraction=sweep.window_max_fraction)
+                                   max_fraction=sweep.window_max_fraction,
+                                   pixel_fallback=sweep.window_pixel_fallback)
         tile_ref, r = ref[ty0:ty1, tx0:tx1], None
         if with_wta:
             r, volume = engine.height_map_with_cost_volume(tile_ref, tile_srcs, tile_hom, hts,
@@ -173,6 +175,10 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
         else:
             volume = engine.cost_volume(tile_ref, tile_srcs, tile_hom, hts, windows=planes)
         window_planes = max(window_planes, hts.size if planes is None else planes.n_planes)
+        tile_px = (ty1 - ty0) * (tx1 - tx0)
+        total += tile_px * hts.size
+        swept += tile_px * hts.size if planes is None \
+            else int(planes.counts((ty1 - ty0, tx1 - tx0)).sum())
         initial = None if not with_wta else \
             np.clip(np.rint(r.plane_index), 0, hts.size - 1).astype(np.int32)
         with volume:  # a device volume is freed here
@@ -199,7 +205,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
         valid &= engine.lr_mask(wta_index, wta_valid, ref, srcs, hom, hts)
     height[~valid] = np.nan
     split = WorkSplit(n_tiles=n_tiles, peak_device_bytes=peak,
-                      window_planes=window_planes if coarse is not None else None)
+                      window_planes=window_planes if coarse is not None else None,
+                      window_share=swept / total if coarse is not None else None)
     return HeightMap(height=height, plane_index=plane_index, confidence=confidence, valid=valid,
                      cost_min=cost_min, split=split), seconds
 

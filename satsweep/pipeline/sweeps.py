@@ -121,6 +121,7 @@ class ReferenceHeights:
     valid_fraction: float  # over the window
     tiles: int  # tiles of the sweep (of the MRF, with one)
     window_planes: int | None  # with coarse-to-fine windows: the most planes of a tile
+    window_share: float | None  # ... the share of the tiles' pixels' planes swept
     mrf: dict | None  # the MRF's method, seconds, tiles and valid fraction; None without one
     at_range_ends: tuple[float, float]  # fractions of the window's pixels whose best plane is
     # within RANGE_END_PLANES of the lowest / the highest plane
@@ -130,7 +131,8 @@ class ReferenceHeights:
         return {"reference": self.reference, "sources": list(self.sources),
                 "planes": self.planes, "plane_step_m": self.plane_step_m,
                 "window": [int(v) for v in self.window], "valid_fraction": self.valid_fraction,
-                "tiles": self.tiles, "window_planes": self.window_planes, "mrf": self.mrf,
+                "tiles": self.tiles, "window_planes": self.window_planes,
+                "window_share": self.window_share, "mrf": self.mrf,
                 "at_range_ends": list(self.at_range_ends),
                 "median_radius_px": self.median_radius_px}
 
@@ -283,6 +285,7 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             plane_step_m=float(abs(heights[1] - heights[0])) if len(heights) > 1 else None,
             window=tuple(int(v) for v in window), valid_fraction=float(np.mean(result.valid)),
             tiles=int(result.split.n_tiles), window_planes=result.split.window_planes,
+            window_share=result.split.window_share,
             mrf=mrf_info, median_radius_px=median_px,
             at_range_ends=ends))
     return out

@@ -70,6 +70,26 @@ def test_plane_windows_cover_the_coarse_planes_of_each_block():
     np.testing.assert_array_equal(wide.count[:, 1], 37)
 
 
+def test_pixel_windows_span_the_coarse_planes_around_each_pixel():
+    """block = 1: each pixel's window spans the coarse planes within ``halo`` px of it (scipy's
+    min / max filters as the reference) plus the margin: 7 planes on each plateau, 37 within 4 px
+    of the step at column 70; fractional indices widen it to the planes around them."""
+    from scipy import ndimage
+
+    idx = _step_map()
+    idx[10:20, 10:20] = 25.5
+    n = 64
+    win = coarse.plane_windows(idx, n, block=1, halo=4, margin=3, max_fraction=0.9)
+    assert win is not None and win.block == 1 and win.first.shape == idx.shape
+    lo = np.floor(ndimage.minimum_filter(idx, size=9, mode="nearest")) - 3
+    hi = np.ceil(ndimage.maximum_filter(idx, size=9, mode="nearest")) + 3
+    np.testing.assert_array_equal(win.first, lo)
+    np.testing.assert_array_equal(win.count, hi - lo + 1)
+    assert win.count[50, 0] == 7 and win.count[50, 66] == 37 and win.count[50, 74] == 7
+    assert win.count[15, 15] == 26 - 25 + 7 and win.n_planes == 37
+    win.check(idx.shape, n)
+
+
 def test_plane_windows_fill_unknown_pixels_and_give_up_when_nothing_is_gained():
     idx = _step_map()
     holes = idx.copy()
@@ -80,6 +100,17 @@ def test_plane_windows_fill_unknown_pixels_and_give_up_when_nothing_is_gained():
                                 max_fraction=0.9) is None
     # the blocks would sweep more than a tenth of the planes on average: sweep all of them
     assert coarse.plane_windows(idx, 64, block=32, halo=4, margin=3, max_fraction=0.1) is None
+    # ... more than a fifth (14.5 of 64 planes), windows of one pixel less (8.9): those, if asked
+    kw = dict(block=32, halo=4, margin=3, max_fraction=0.2)
+    assert coarse.plane_windows(idx, 64, **kw) is None
+    pixels = coarse.plane_windows(idx, 64, pixel_fallback=True, **kw)
+    assert pixels.block == 1
+    np.testing.assert_array_equal(pixels.count, coarse.plane_windows(
+        idx, 64, block=1, halo=4, margin=3, max_fraction=1.0).count)
+    assert coarse.plane_windows(idx, 64, pixel_fallback=True, **{**kw, "max_fraction": 0.1}) \
+        is None
+    assert coarse.plane_windows(idx, 64, pixel_fallback=True, **{**kw, "max_fraction": 0.3}) \
+        .block == 32  # the blocks first, where they do
 
 
 # OpenCV's labelled distance transform (5x5 mask) finds a known pixel within 0.14 px of the

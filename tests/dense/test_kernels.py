@@ -13,7 +13,8 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from satsweep.dense.sweep import PlaneSweep, SweepOptions, box_chunk, census_ring_defines
+from satsweep.dense.sweep import (PlaneSweep, SweepOptions, box_chunk, census_ring_defines,
+                                  group_windows)
 from satsweep.opencl.constants import SWEEP_VEC, WTA_BIG, WTA_NSTATE, WTA_SLOT, WTA_VEC
 from tests import reference_sweep as ref
 
@@ -104,15 +105,20 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
         warped = _empty(dev, 4 * chunk * n_src * pw * ph)
         seen = _empty(dev, chunk * n_src * pw * ph)
         bufs = [_buf(dev, a) for a in (data, offsets, sizes, hom32, codes, ref_img.astype(np.float32))]
+        # every plane at every position (group_windows of windows of every plane)
+        every = (np.zeros((th, tw), np.int64), np.full((th, tw), n_planes, np.int64))
+        warp_window, cost_window = (_buf(dev, a) for a in group_windows(
+            SweepOptions(census_window=(2 * ry + 1, 2 * rx + 1)), *every))
         for p0 in range(0, n_planes, chunk):
             nb = min(chunk, n_planes - p0)
             cl.Kernel(prg, "sweep_warp")(dev.queue, (-(-pw // SWEEP_VEC), ph, nb * n_src), None, *bufs[:4],
                                          i32(tw), i32(th), i32(tx0), i32(ty0), i32(w), i32(h),
-                                         i32(p0), warped, seen)
+                                         i32(p0), warp_window, warped, seen)
             cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (-(-tw // SWEEP_VEC), th, nb), None,
                                                 warped, seen,
                                                 bufs[4], bufs[5], i32(tw), i32(th), i32(tx0),
-                                                i32(ty0), i32(w), i32(h), i32(p0), out)
+                                                i32(ty0), i32(w), i32(h), i32(p0), i32(p0),
+                                                cost_window, out)
     elif mode == "warped_census":
         data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
         gx = -(-tw // wg[0]) * wg[0]

@@ -17,6 +17,7 @@ from satsweep.dense.sweep import (
     PlaneWindows,
     SweepOptions,
     census_ring_defines,
+    group_windows,
     lr_consistent,
     plan_tiles,
     prefilter,
@@ -93,7 +94,8 @@ def _errors(res, truth):
                                          ("census_ring_weight", float("nan")),
                                          ("consensus_census_ring_weight", 65.0),
                                          ("dense_consensus_census_ring_weight", -1.0),
-                                         ("dense_consensus_census_ring_weight", float("inf"))])
+                                         ("dense_consensus_census_ring_weight", float("inf")),
+                                         ("window_block_px", 2), ("window_block_px", 0)])
 def test_bad_options_name_the_field(field, value):
     with pytest.raises(OptionsError, match=field):
         SweepOptions(**{field: value})
@@ -114,14 +116,21 @@ def test_consensus_options_change_only_the_gradient_and_ring_weights():
     assert narrow.for_consensus() == narrow.replace(census_ring_weight=2.0)
 
 
-def test_dense_pixel_options_change_only_the_ring_weight():
-    """for_dense_pixels() sets census_ring_weight to dense_consensus_census_ring_weight after
-    the area's for_consensus(); None keeps the area's."""
+def test_dense_pixel_options_change_only_the_ring_weight_and_the_window_fallback():
+    """for_dense_pixels() sets census_ring_weight to dense_consensus_census_ring_weight and
+    window_pixel_fallback to dense_consensus_window_pixel_fallback after the area's
+    for_consensus(); None keeps the area's."""
     o = SweepOptions(consensus_census_ring_weight=2.0, dense_consensus_census_ring_weight=8.0)
     area = o.for_consensus()
-    assert area.for_dense_pixels() == area.replace(census_ring_weight=8.0)
-    unset = area.replace(dense_consensus_census_ring_weight=None)
+    assert not area.window_pixel_fallback and o.dense_consensus_window_pixel_fallback
+    assert area.for_dense_pixels() == area.replace(census_ring_weight=8.0,
+                                                   window_pixel_fallback=True)
+    unset = area.replace(dense_consensus_census_ring_weight=None,
+                         dense_consensus_window_pixel_fallback=None)
     assert unset.for_dense_pixels() == unset
+    off = area.replace(dense_consensus_window_pixel_fallback=False, window_pixel_fallback=True)
+    assert off.for_dense_pixels() == off.replace(census_ring_weight=8.0,
+                                                 window_pixel_fallback=False)
 
 
 @pytest.mark.parametrize("window", [(5, 5), (3, 3), (7, 9), (1, 9), (9, 7)])
@@ -574,6 +583,116 @@ def test_plane_windows_sweep_the_same_costs_of_fewer_planes(cl_device):
     with pytest.raises(InputError, match="left-right check"):
         PlaneSweep(cl_device, box.replace(lr_check=True)).height_map_with_cost_volume(
             ref, [src], hom, heights, windows=windows)
+
+
+def test_filters_of_radius_zero_are_not_run(cl_device):
+    """A guided filter of radius 0 (SGM's sweep where pixels are finer than the DSM's cells)
+    would give each cost back but for float32 rounding: the sweep runs no filter then
+    (``slice_filter``), and its costs are the unfiltered ones, bit for bit."""
+    ref_img, src, heights, hom = _rolled_pair(3, (30, 41), 2, 0.4, 10.0, 12)
+    plain = PlaneSweep(cl_device, SweepOptions(cost_filter="none")).cost_volume(
+        ref_img, [src], hom, heights).data
+    zero = SweepOptions(gf_radius=0)
+    assert zero.slice_filter == "none" and SweepOptions(gf_radius=1).slice_filter == "guided"
+    np.testing.assert_array_equal(
+        PlaneSweep(cl_device, zero).cost_volume(ref_img, [src], hom, heights).data, plain)
+
+
+def _window_reference(first: np.ndarray, end: np.ndarray, rx: int, ry: int, reach: int,
+                      vec: int):
+    """group_windows by brute force: a pixel's raw costs are needed for the planes that the
+    pixels within ``reach`` need; each group of sweep_warped_cost (``vec`` pixels of a row)
+    computes the union of what its pixels need; each group of sweep_warp's positions warps the
+    union of what the groups of the pixels whose census window holds one of them compute."""
+    th, tw = first.shape
+    big, none = np.iinfo(np.int32).max, 0
+
+    def union(windows):
+        windows = list(windows)
+        return (min((w[0] for w in windows), default=big),
+                max((w[1] for w in windows), default=none))
+
+    pixels = [(y, x) for y in range(th) for x in range(tw)]
+    need = {(y, x): union((first[v, u], end[v, u]) for v, u in pixels
+                          if abs(v - y) <= reach and abs(u - x) <= reach) for y, x in pixels}
+    group = {}
+    cost = []
+    for y in range(th):
+        for g in range(0, tw, vec):
+            win = union(need[y, x] for x in range(g, min(g + vec, tw)))
+            cost.append(win)
+            group.update({(y, x): win for x in range(g, min(g + vec, tw))})
+    pw, ph = tw + 2 * rx, th + 2 * ry
+    warp = []
+    for py in range(ph):
+        for g in range(0, pw, vec):
+            warp.append(union(group[y, x] for y, x in pixels
+                              if any(abs(y + ry - py) <= ry and abs(x + rx - px) <= rx
+                                     for px in range(g, min(g + vec, pw)))))
+    return np.array(warp, np.int32).ravel(), np.array(cost, np.int32).ravel()
+
+
+@pytest.mark.parametrize("window,shape,filt", [((5, 5), (7, 19), {"gf_radius": 0}),
+                                               ((3, 7), (5, 16), {"gf_radius": 1}),
+                                               ((1, 3), (4, 9), {"cost_filter": "box"})])
+def test_group_windows_match_brute_force(window, shape, filt):
+    rng = np.random.default_rng(sum(shape))
+    first = rng.integers(0, 30, shape)
+    end = first + rng.integers(0, 6, shape)  # some windows empty
+    opts = SweepOptions(census_window=window, **filt)
+    rx, ry = opts.census_radii
+    warp, cost = group_windows(opts, first, end)
+    want_warp, want_cost = _window_reference(first, end, rx, ry, opts.tile_margin, 8)
+    np.testing.assert_array_equal(cost, want_cost)
+    np.testing.assert_array_equal(warp, want_warp)
+
+
+# The guided filter's float32 box sums run over the whole tile: with windows, the costs of planes
+# outside a pixel's reach enter them as the worst cost instead of their own, which changes the
+# rounding of its neighbours' sums (not their terms): 8e-6 bits of cost measured (costs up to
+# 32 bits), far below a census bit.
+WINDOWED_GUIDED_ATOL = 1e-4
+
+
+@pytest.mark.parametrize("budget,filt", [
+    (None, {"gf_radius": 0}), (700_000, {"gf_radius": 0}),
+    (700_000, {"cost_filter": "box", "ad_weight": 0.0, "grad_weight": 0.0}),
+    (None, {"gf_radius": 2})])
+def test_pixel_windows_hold_the_full_sweeps_costs_of_each_pixels_planes(cl_device, budget, filt):
+    """Windows of one pixel each (``window_block_px`` = 1, SGM's sweep): each pixel's labels in
+    the ragged device volume are the full sweep's costs over its own planes, with windows that
+    change from pixel to pixel, in one tile or several (a small memory budget). Without a cost
+    filter, and with a box filter of integer costs (exact sums), bit for bit: the same kernels,
+    the split kernels skipping what no window within the filter's reach holds; with the guided
+    filter within WINDOWED_GUIDED_ATOL."""
+    ref_img, src, heights, hom = _rolled_pair(4, (70, 90), 3, 0.4, 15.0, 40)
+    opts = SweepOptions(memory_budget_bytes=budget, **filt)
+    engine = PlaneSweep(cl_device, opts)
+    with PlaneSweep(cl_device, opts.replace(memory_budget_bytes=None)).cost_volume_on_device(
+            ref_img, [src], hom, heights) as full:
+        whole = full.data.get()  # (H, W, planes)
+    rng = np.random.default_rng(5)
+    count = rng.integers(1, 10, ref_img.shape)
+    first = rng.integers(0, heights.size - count + 1)
+    first[:, 20:50] = 28  # a stretch of windows alike
+    windows = PlaneWindows(block=1, first=first, n_planes=int(count.max()), count=count)
+    with engine.cost_volume_on_device(ref_img, [src], hom, heights, windows=windows) as part:
+        flat = part.data.get()
+    assert (engine.last_split.n_tiles > 1) == (budget is not None)
+    assert part.layout == "ragged" and flat.shape == (int(count.sum()),)
+    np.testing.assert_array_equal(part.label_base, first)
+    np.testing.assert_array_equal(part.label_count, count)
+    np.testing.assert_array_equal(part.label_offset.ravel(),
+                                  np.concatenate([[0], np.cumsum(count.ravel())[:-1]]))
+    atol = WINDOWED_GUIDED_ATOL if opts.slice_filter == "guided" else 0.0
+    for (y, x), c in np.ndenumerate(count):
+        at = int(part.label_offset[y, x])
+        np.testing.assert_allclose(flat[at:at + c], whole[y, x, first[y, x]:first[y, x] + c],
+                                   rtol=0, atol=atol)
+    # the winner-take-all reads planes that windows of one pixel leave out
+    with pytest.raises(InputError, match="plane_windows"):
+        engine.height_map_with_cost_volume(ref_img, [src], hom, heights, windows=windows,
+                                           on_device=True)
 
 
 def test_volume_without_winner_take_all(cl_device):

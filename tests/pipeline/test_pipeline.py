@@ -558,21 +558,24 @@ def test_tiles_take_the_images_that_see_them(scene, reconstruction, tmp_path):
                     alt_range=_alt(scene), config=config, verbose=False)
 
 
-@pytest.mark.parametrize("search", ["coarse_to_fine", "full"])
-def test_either_search_is_as_accurate_and_reports_its_windows(scene, tmp_path, search):
+@pytest.mark.parametrize("search,block", [("coarse_to_fine", 32), ("coarse_to_fine", 1),
+                                          ("full", 32)])
+def test_either_search_is_as_accurate_and_reports_its_windows(scene, tmp_path, search, block):
     """[sweep] search = "coarse_to_fine" (the default: a half-resolution pass, then plane windows
-    per block; blocks small enough here for the tiny scene to have several) and "full" (every
-    plane everywhere): the same accuracy bounds, and each reference's window size in the report,
-    below its planes (None for the full search)."""
+    per block, here blocks small enough for the tiny scene to have several, or per pixel) and
+    "full" (every plane everywhere): the same accuracy bounds, and each reference's window size
+    and share of the planes swept in the report, below its planes and 1 (None for the full
+    search)."""
     res = _reconstruct(scene, tmp_path / "out", {**FAST_CAMERA, "sweep": {
-        "search": search, "window_block_px": 32, "window_max_fraction": 1.0}})
+        "search": search, "window_block_px": block, "window_max_fraction": 1.0}})
     _check_accuracy(res)
     rep = json.loads((res.out_dir / "report.json").read_text())
     if search == "full":
-        assert all(v["window_planes"] is None for v in rep["sweep"]), rep["sweep"]
+        assert all(v["window_planes"] is None and v["window_share"] is None
+                   for v in rep["sweep"]), rep["sweep"]
     else:
         assert all(v["window_planes"] is not None and v["window_planes"] <= v["planes"]
-                   for v in rep["sweep"]), rep["sweep"]
+                   and 0 < v["window_share"] < 1 for v in rep["sweep"]), rep["sweep"]
 
 
 def test_without_an_altitude_range_the_tie_points_set_it(scene, tmp_path):
@@ -1137,8 +1140,9 @@ def test_many_references_of_a_consensus_are_swept_with_the_narrower_filter(n_ref
 def test_references_finer_than_the_cells_sweep_without_the_filter_and_weigh_the_ring(
         n_references, resolution, gsd_m, finer):
     """A reference of pixels finer than the DSM's cells: no cost filter where the area narrows
-    it, the census's ring weighted more wherever the area makes a consensus; any other
-    reference takes the area's options (reference_options)."""
+    it, the census's ring weighted more and windows of one pixel after blocks wherever the
+    area makes a consensus; any other reference takes the area's options
+    (reference_options)."""
     config = PipelineConfig().override("dsm", resolution=resolution)
     area_mrf = area_mrf_options(config, n_references)
     area_sweep = area_sweep_options(config, n_references)
@@ -1149,8 +1153,12 @@ def test_references_finer_than_the_cells_sweep_without_the_filter_and_weigh_the_
     dense_sweep = finer and n_references >= CONSENSUS_MIN_REFERENCES
     ring = (config.sweep.dense_consensus_census_ring_weight if dense_sweep
             else area_sweep.census_ring_weight)
-    assert sweep == area_sweep.replace(census_ring_weight=ring)
+    fallback = (config.sweep.dense_consensus_window_pixel_fallback if dense_sweep
+                else area_sweep.window_pixel_fallback)
+    assert sweep == area_sweep.replace(census_ring_weight=ring, window_pixel_fallback=fallback)
     # the rules change something
+    assert (config.sweep.dense_consensus_window_pixel_fallback
+            != config.sweep.window_pixel_fallback)
     assert config.mrf.sgm_dense_consensus_gf_radius != config.mrf.sgm_consensus_gf_radius
     assert (config.sweep.dense_consensus_census_ring_weight
             != config.sweep.consensus_census_ring_weight)
