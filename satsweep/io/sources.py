@@ -118,6 +118,13 @@ def refuse_folders(paths: Sequence[object]) -> None:
                                          f"example {os.path.join(path, '*.tif')})")
 
 
+def refuse_too_few(paths: Sequence[object]) -> None:
+    """InputError unless ``paths`` hold at least ``MIN_IMAGES`` images (every entry point's
+    rule, after ``refuse_folders``)."""
+    if len(paths) < MIN_IMAGES:
+        raise InputError(None, f"stereo needs at least {MIN_IMAGES} images, got {len(paths)}")
+
+
 def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
                  rpc_dir: str | os.PathLike | None = None) -> list[ImageSource]:
     """``open_source`` of every path, in order (sources given as such are kept); with
@@ -126,8 +133,7 @@ def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
     ``MIN_IMAGES`` images, for an image given twice or for one whose RPC the folder lacks."""
     items = [p if isinstance(p, ImageSource) else os.fspath(p) for p in paths]
     refuse_folders(items)
-    if len(items) < MIN_IMAGES:
-        raise InputError(None, f"stereo needs at least {MIN_IMAGES} images, got {len(items)}")
+    refuse_too_few(items)
     seen: dict[str, str] = {}
     for item in items:
         path = item.path if isinstance(item, ImageSource) else item

@@ -40,7 +40,7 @@ from satsweep.config import PipelineConfig
 from satsweep.errors import InputError, OptionsError, SatsweepError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.geometry.aoi import AOI
-from satsweep.io.sources import refuse_folders
+from satsweep.io.sources import refuse_folders, refuse_too_few
 from satsweep.pipeline.outputs import (
     RPC_DIR,
     OutputFolder,
@@ -270,7 +270,8 @@ def _check_filled(fraction: float, mosaic: Mosaic, rep: RunReport,
 
 def _checked_arguments(images, aoi, alt_range, config) -> tuple[list[str], AOI,
                                                                  AltitudeRange | None]:
-    """The API's arguments checked and normalised (OptionsError naming the argument)."""
+    """The API's arguments checked and normalised (OptionsError naming the argument; a folder
+    given as an image and too few images as ``open_sources`` refuses them)."""
     from satsweep.geometry.aoi import parse_aoi
 
     if isinstance(images, (str, bytes, os.PathLike)):
@@ -280,8 +281,7 @@ def _checked_arguments(images, aoi, alt_range, config) -> tuple[list[str], AOI,
     except TypeError:
         raise OptionsError(f"images: expected a list of image paths, got {images!r}") from None
     refuse_folders(paths)
-    if len(paths) < 2:
-        raise OptionsError(f"need at least two images, got {len(paths)}")
+    refuse_too_few(paths)
     if isinstance(aoi, (str, os.PathLike)):
         aoi = parse_aoi(aoi)
     elif not isinstance(aoi, AOI):

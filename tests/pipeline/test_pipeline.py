@@ -1049,7 +1049,7 @@ def test_cli_bad_inputs(scene, tmp_path, capsys):
     fine_steps = tmp_path / "fine.toml"
     fine_steps.write_text("[camera]\ngrid_size = [20, 20, 6]\n[sweep]\nstep_px = 0.01\n")
     cases = [
-        (["reconstruct", imgs[0], "--aoi", aoi, "--out", str(out)], "at least two images"),
+        (["reconstruct", imgs[0], "--aoi", aoi, "--out", str(out)], "stereo needs at least 2 images"),
         (["reconstruct", str(Path(imgs[0]).parent), "--aoi", aoi, "--out", str(out)],
          f"{Path(imgs[0]).parent}: is a folder, not an image: give the images in it"),
         (["reconstruct", *imgs, "--aoi", "3,1,2,2", "--out", str(out)], "lon_min = 3.0 >= lon_max"),
