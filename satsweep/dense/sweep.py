@@ -354,7 +354,10 @@ class PlaneWindows:
     None), which become its labels 0 .. count - 1. A cost volume of these windows holds
     ``n_planes`` labels per pixel (the most of any block; its ``label_base`` and
     ``label_count`` come from here): a block on gentle terrain sweeps fewer planes than one
-    across a cliff, and SGM refines each pixel over its own count.
+    across a cliff, and SGM refines each pixel over its own count. With ``block`` = 1 each pixel
+    has its own window: the sweep then keeps its usual tiles, each sweeping the planes of its
+    pixels' windows, and the split kernels skip per group of pixels the planes that no window
+    within reach holds (``group_windows``); such windows need a ragged device volume (SGM's).
     """
 
     block: int  # block side (pixels); the blocks start at the reference's pixel (0, 0)
