@@ -13,6 +13,16 @@ planes and scaled linearly to all planes (the per-plane work is the same; the ou
     python tools/bench_sweep.py --census-ring-weight 0 2       # plain and ring-weighted census
     python tools/bench_sweep.py --size 10000 --planes 8 --sources 1 --memory-budget-gb 4 \
         --repeat 1 --numpy-planes 0      # the issue's 10000^2 reference within a 4 GB budget
+    python tools/bench_sweep.py --windows 1 --filter none --planes 210 --sources 4 \
+        --numpy-planes 0                 # windows of one pixel against every plane, same run
+
+With ``--windows BLOCK`` the engine sweeps into a device cost volume (SGM's input, as a
+coarse-to-fine reference does) twice per round: every plane, then the plane windows that
+``satsweep.dense.coarse.plane_windows`` gives blocks of BLOCK pixels (1: each pixel its own)
+over a synthetic city's plane indices (flat roofs of 3-40 planes' height on sloping ground:
+what a coarse pass sees in a city block), with ``--window-halo`` and ``--window-margin``; it
+prints the share of the pixels' planes swept and the time of the windows over the time of every
+plane, rounds interleaved. The images' content does not change the work.
 
 With several ``--census-kernel`` or ``--census-ring-weight`` values each combination is timed in
 turn (same images, same device) and the ratio of each to the first is printed; the numpy
@@ -33,8 +43,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # the numpy references live with the tests (package tests)
 
+from satsweep.dense.coarse import plane_windows  # noqa: E402
 from satsweep.dense.planes import translation_homographies  # noqa: E402
-from satsweep.dense.sweep import PlaneSweep, SweepOptions
+from satsweep.dense.sweep import PlaneSweep, PlaneWindows, SweepOptions  # noqa: E402
 from satsweep.opencl.device import open_device  # noqa: E402
 from tests import reference_sweep as ref  # noqa: E402
 
@@ -48,6 +59,75 @@ def _scene(size: int, n_src: int, n_planes: int, seed: int = 0):
     shifts = 0.5 * np.stack([np.cos(angles), np.sin(angles)], axis=1)  # 0.5 px per plane
     heights = np.arange(n_planes, dtype=np.float64)
     return ref_img, srcs, translation_homographies(shifts, heights), heights
+
+
+# Standard deviation (planes) of the noise on the synthetic coarse plane indices: the half-
+# resolution pass, upsampled, is off by a plane or two on most pixels (view 12 of the 1700 px
+# stack: a share of 0.43 of its 210 planes swept with the default halo and margin).
+CITY_INDEX_NOISE = 1.5
+
+
+def _city_plane_index(size: int, n_planes: int, seed: int = 1) -> np.ndarray:
+    """(size, size) fractional plane indices of a synthetic city block as a coarse pass sees
+    it: ground rising by a tenth of the planes across the image, flat rectangular roofs of
+    20-90 px sides, 5-50% of the planes above it, over about 40% of the area, and the coarse
+    pass's noise (``CITY_INDEX_NOISE`` planes)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size]
+    ground = 0.2 * n_planes + 0.1 * n_planes * (xx + yy) / (2.0 * size)
+    index = ground.copy()
+    covered = np.zeros((size, size), bool)
+    while covered.mean() < 0.4:
+        w, h = rng.integers(20, 91, size=2)
+        x0, y0 = rng.integers(0, max(size - w, 1)), rng.integers(0, max(size - h, 1))
+        roof = np.max(ground[y0:y0 + h, x0:x0 + w]) + rng.uniform(0.05, 0.5) * n_planes
+        index[y0:y0 + h, x0:x0 + w] = roof
+        covered[y0:y0 + h, x0:x0 + w] = True
+    index += rng.normal(0.0, CITY_INDEX_NOISE, index.shape)
+    return np.clip(index, 0.0, n_planes - 1.0)
+
+
+def _windows(size: int, n_planes: int, block: int, halo: int, margin: int) -> PlaneWindows:
+    """The plane windows of blocks of ``block`` px over ``_city_plane_index`` (never None: a
+    fraction of 1 lets any window through)."""
+    return plane_windows(_city_plane_index(size, n_planes), n_planes, block=block, halo=halo,
+                         margin=margin, max_fraction=1.0)
+
+
+def _time_volumes(device, options: SweepOptions, ref_img, srcs, hom, heights,
+                  windows: PlaneWindows, repeat: int) -> dict:
+    """Best-of-``repeat`` seconds of a device cost volume of every plane and of ``windows``,
+    interleaved in each round, and each one's stage seconds from a profiled run."""
+    def volume(engine, planes):
+        engine.cost_volume_on_device(ref_img, srcs, hom, heights, windows=planes).release()
+
+    # Warm-up on a crop with the crop's windows: builds (or loads) every program of both.
+    nb = -(-64 // windows.block)
+    count = windows.counts((64, 64))[::windows.block, ::windows.block]
+    sub = PlaneWindows(block=windows.block, first=windows.first[:nb, :nb],
+                       n_planes=int(count.max()), count=np.asarray(windows.count)[:nb, :nb])
+    for planes in (None, sub):
+        PlaneSweep(device, options).cost_volume_on_device(
+            ref_img[:64, :64], [s[:64, :64] for s in srcs], hom, heights,
+            windows=planes).release()
+    best = {"every_plane": np.inf, "windows": np.inf}
+    for _ in range(repeat):
+        for name, planes in (("every_plane", None), ("windows", windows)):
+            t0 = time.perf_counter()
+            volume(PlaneSweep(device, options), planes)
+            best[name] = min(best[name], time.perf_counter() - t0)
+    stages = {}
+    for name, planes in (("every_plane", None), ("windows", windows)):
+        prof = PlaneSweep(device, options, profile=True)
+        volume(prof, planes)
+        stages[name] = dict(sorted(prof.stage_seconds.items()))
+    size = ref_img.shape
+    share = float(windows.counts(size).sum()) / (size[0] * size[1] * heights.size)
+    return {"window_block_px": windows.block, "window_share": share,
+            "window_planes": windows.n_planes, "every_plane_seconds": best["every_plane"],
+            "windows_seconds": best["windows"],
+            "windows_over_every_plane": best["windows"] / best["every_plane"],
+            "stage_seconds": stages}
 
 
 def _numpy_reference(ref_img, srcs, hom, heights, options: SweepOptions, n_sub: int) -> float:
@@ -105,8 +185,17 @@ def main(argv=None) -> int:
                    help="census_ring_weight values to time (the consensus areas' default: 2)")
     p.add_argument("--memory-budget-gb", type=float, default=None,
                    help="SweepOptions.memory_budget_bytes in GiB (default: the device fraction)")
+    p.add_argument("--windows", type=int, default=None, metavar="BLOCK",
+                   help="also time plane windows of blocks of BLOCK px (1: one pixel each) "
+                        "against every plane, both into a device cost volume (module docstring)")
+    p.add_argument("--window-halo", type=int, default=8,
+                   help="with --windows: SweepOptions.window_halo_px (its default: 8)")
+    p.add_argument("--window-margin", type=int, default=4,
+                   help="with --windows: SweepOptions.window_margin_planes (its default: 4)")
     p.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = p.parse_args(argv)
+    if args.windows is not None and args.windows < 1:
+        p.error(f"--windows {args.windows}: a block side must be at least 1 px")
 
     device = open_device(args.device)
     ref_img, srcs, hom, heights = _scene(args.size, args.sources, args.planes)
@@ -142,6 +231,19 @@ def main(argv=None) -> int:
               f"{runs[0]['census_ring_weight']:g}): "
               f"engine {r['engine_seconds'] / runs[0]['engine_seconds']:.2f}, sweep stage "
               f"{r['stage_seconds'].get('sweep', 0) / runs[0]['stage_seconds'].get('sweep', 1):.2f}")
+    if args.windows is not None:
+        win = _windows(args.size, args.planes, args.windows, args.window_halo, args.window_margin)
+        out["windows"] = w = _time_volumes(device, first_options, ref_img, srcs, hom, heights,
+                                           win, args.repeat)
+        print(f"device cost volume, every plane: {w['every_plane_seconds']:.3f} s; windows of "
+              f"{args.windows} px (halo {args.window_halo} px, margin {args.window_margin} "
+              f"planes; share {w['window_share']:.2f} of the pixels' planes, widest "
+              f"{w['window_planes']}): {w['windows_seconds']:.3f} s (best of {args.repeat}, "
+              f"rounds interleaved)")
+        for name in ("every_plane", "windows"):
+            print(f"  {name:11s} " + ", ".join(f"{k} {v:.3f} s"
+                                               for k, v in w["stage_seconds"][name].items()))
+        print(f"time of the windows / time of every plane: {w['windows_over_every_plane']:.2f}")
     best = runs[0]["engine_seconds"]
     if args.numpy_planes > 0:
         n_sub = min(args.numpy_planes, args.planes)
