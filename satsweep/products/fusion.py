@@ -520,14 +520,35 @@ def rasterise_quantile_cells(cells: np.ndarray, values, grid: DSMGrid,
     if not 0.0 <= quantile <= 1.0:
         raise ValueError(f"rasterise_quantile_cells: quantile = {quantile!r}, must be in [0, 1]")
     c, z = _points_in_grid(cells, values, "rasterise_quantile_cells")
-    out = np.full(grid.width * grid.height, np.nan)
+    out = np.full(grid.width * grid.height, np.nan, np.float32)
     if c.size:
-        order = np.lexsort((z, c))
-        c, z = c[order], z[order]
+        # One sort of 64-bit keys, each point's cell above its value's float32 order (the
+        # raster is float32, and rounding keeps the order: the same cell values as sorting the
+        # float64 values; a third of the time of a lexsort of the pairs).
+        key = (c.astype(np.uint64) << np.uint64(32)) | _float32_order(z)
+        key.sort()
+        c = (key >> np.uint64(32)).astype(np.int64)
         starts = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
         counts = np.diff(np.r_[starts, c.size])
-        out[c[starts]] = z[starts + np.floor(quantile * (counts - 1) + 0.5).astype(np.int64)]
-    return out.reshape(grid.shape).astype(np.float32)
+        pick = key[starts + np.floor(quantile * (counts - 1) + 0.5).astype(np.int64)]
+        out[c[starts]] = _float32_of_order(pick & np.uint64(0xFFFFFFFF))
+    return out.reshape(grid.shape)
+
+
+def _float32_order(values: np.ndarray) -> np.ndarray:
+    """uint64 keys in [0, 2^32) whose order is that of ``values`` rounded to float32 (finite):
+    the float32 bits with the sign bit set for positive numbers and every bit flipped for
+    negative ones."""
+    bits = np.asarray(values, np.float32).view(np.uint32)
+    negative = bits >= np.uint32(0x80000000)
+    return np.where(negative, ~bits, bits | np.uint32(0x80000000)).astype(np.uint64)
+
+
+def _float32_of_order(keys: np.ndarray) -> np.ndarray:
+    """The float32 values of ``_float32_order``'s keys."""
+    k = keys.astype(np.uint32)
+    positive = k >= np.uint32(0x80000000)
+    return np.where(positive, k & np.uint32(0x7FFFFFFF), ~k).view(np.float32)
 
 
 def small_raised_pixels(height: np.ndarray, gsd_m: float, max_area_m2: float, *,

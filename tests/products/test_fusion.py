@@ -298,6 +298,30 @@ def test_rasterise_quantile_cells_matches_a_python_loop(quantile):
         dsm.rasterise_quantile_cells(cells, z, grid, 1.5)
 
 
+@pytest.mark.parametrize("quantile", [0.0, 0.75, 1.0])
+def test_rasterise_quantile_cells_values_closer_than_float32(quantile):
+    """Heights closer together than float32 resolves (ellipsoidal heights of a few thousand
+    metres differing by micrometres, both signs, zeros of both signs): each cell the float32 of
+    the float64 value a python loop picks."""
+    grid = dsm_grid.DSMGrid(epsg=32740, x_min=100.0, y_max=50.0, resolution=0.5, width=8, height=6)
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(100.0, 104.0, 3000), rng.uniform(47.0, 50.0, 3000)
+    base = rng.choice([2340.0, -31.5, 0.0, 1e-30, -1e-30], size=3000)
+    z = base + rng.integers(-3, 4, 3000) * 1e-6 * (base != 0.0)
+    z[::50] = -0.0
+    cells = dsm.flat_cells(x, y, grid)
+    per_cell: dict[int, list[float]] = {}
+    for c, v in zip(cells, z):
+        if c >= 0:
+            per_cell.setdefault(int(c), []).append(float(v))
+    ref = np.full(grid.width * grid.height, np.nan)
+    for c, vals in per_cell.items():
+        ref[c] = sorted(vals)[math.floor(quantile * (len(vals) - 1) + 0.5)]
+    got = dsm.rasterise_quantile_cells(cells, z, grid, quantile)
+    np.testing.assert_array_equal(got, ref.reshape(grid.shape).astype(np.float32))
+    assert len(per_cell) == grid.width * grid.height
+
+
 def test_view_raster_rule_follows_the_pixels_per_cell():
     """auto: the upper quartile where a view puts DENSE_CENTRES_PER_CELL pixel centres or more
     in the cells it fills (a 0.3 m view on 0.5 m cells), the highest point where fewer (0.5 m)."""
