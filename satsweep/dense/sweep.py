@@ -410,6 +410,13 @@ class PlaneWindows:
 # The sweep's device buffers, each named after the kernel argument it is passed as. One table
 # (BufferSpec: name, element type, length as a function of the sizes) serves both plan_tiles,
 # which sums it, and the sweep, which allocates it (satsweep.opencl.buffers).
+# Floats after the last source image in the sweep's source buffer (src_img): sweep_warp loads
+# each bilinear sample's left and right taps as one pair, also where the right tap is clamped
+# onto the left at a source's last column (its weight 0), which reads one float past the
+# source: past the last one, this pad.
+SWEEP_SRC_PAD = 1
+
+
 @dataclasses.dataclass(frozen=True)
 class RunSizes:
     """The sizes of the buffers a sweep keeps for the whole run (``run_buffers``)."""
@@ -446,7 +453,7 @@ def run_buffers(options: SweepOptions, *, volume: bool = False) -> tuple[BufferS
     (``sampled_codes``), and with ``volume`` the cost volume it keeps on the device."""
     srcs = BufferSpec("src_code", np.uint64, lambda r: r.src_px) \
         if options.cost_mode == "sampled_codes" else \
-        BufferSpec("src_img", np.float32, lambda r: r.src_px)
+        BufferSpec("src_img", np.float32, lambda r: r.src_px + SWEEP_SRC_PAD)
     specs = (BufferSpec("ref_img", np.float32, lambda r: r.ref_px),
              BufferSpec("src_size", np.int32, lambda r: 2 * r.n_src),
              BufferSpec("src_offset", np.int64, lambda r: r.n_src),
@@ -1029,7 +1036,8 @@ class PlaneSweep:
         offsets = np.concatenate([[0], np.cumsum([s.size for s in srcs])[:-1]]).astype(np.int64)
         host = {"ref_img": ref, "src_size": sizes, "src_offset": offsets}
         if o.cost_mode != "sampled_codes":
-            host["src_img"] = np.concatenate([s.ravel() for s in srcs])
+            host["src_img"] = np.concatenate([s.ravel() for s in srcs]
+                                             + [np.zeros(SWEEP_SRC_PAD, np.float32)])
         census_k = self.device.kernel(census_prg, "census_transform")
         # The winner-take-all's per-pixel maps (index, confidence, cost, validity), if asked for.
         outs = (np.zeros((h_img, w_img), np.float32), np.zeros((h_img, w_img), np.float32),
