@@ -26,6 +26,13 @@ from satsweep.opencl.constants import SATSWEEP_INVALID
 # Largest window radius (px) of the kernel (MEDIAN_MAX_RADIUS in median.cl): a window of
 # (2 r + 1)^2 heights and weights sits in each work-item's private memory (169 at 6).
 MEDIAN_MAX_RADIUS_PX = 6
+# Pixels of a row per work-item of weighted_median8 (its float8 lanes).
+MEDIAN_VEC = 8
+# Its work-group size: each work-item holds its 8 windows' keys and weights in private memory
+# (64 bytes a tap: 10.8 KiB at radius 6), which PoCL keeps on one thread's stack for the whole
+# work-group; the work-group PoCL chose itself for a 256 px map (none given) overflowed that
+# stack. Work-groups of 1 to 16 run at the same speed there.
+MEDIAN_LOCAL = (8, 1)
 
 
 def wanted_radius_px(radius_m: float, gsd_m: float) -> int:
@@ -88,12 +95,13 @@ def weighted_median(device, height: np.ndarray, valid: np.ndarray, guide: np.nda
     memory = DeviceMemory(device.context) if memory is None else memory
     queue = device.queue
     prg = device.build(*median_program(radius))
-    local = (16, 16)
-    glob = tuple(-(-n // l) * l for n, l in zip((w, h), local))
+    # weighted_median8: 8 pixels of a row per work-item, in work-groups of MEDIAN_LOCAL.
+    groups = -(-w // MEDIAN_VEC)
+    glob = (-(-groups // MEDIAN_LOCAL[0]) * MEDIAN_LOCAL[0], h)
     result = np.empty((h, w), np.float32)
     with memory.allocate(MEDIAN_BUFFERS, (h, w), host=host) as bufs:
-        device.kernel(prg, "weighted_median")(
-            queue, glob, None, bufs["height"], bufs["guide"], bufs["out"], np.int32(w),
+        device.kernel(prg, "weighted_median8")(
+            queue, glob, MEDIAN_LOCAL, bufs["height"], bufs["guide"], bufs["out"], np.int32(w),
             np.int32(h), np.float32(1.0 / (2.0 * sigma * sigma)),
             np.float32(1.0 / (2.0 * radius * radius)))
         cl.enqueue_copy(queue, result, bufs["out"])

@@ -40,11 +40,39 @@ def test_kernel_matches_numpy_reference(cl_device, radius):
 
 
 def test_ties_and_equal_heights_give_the_reference_median(cl_device):
-    """Many equal heights (a quantised map: plane heights) put the selection's pivots on ties."""
+    """Many equal heights (a quantised map: plane heights): the bisection meets ties."""
     height, valid, guide, _ = _inputs(11)
     height = np.round(height * 2.0) / 2.0
     got = weighted_median(cl_device, height, valid, guide, radius=3, sigma=0.05)
     want, margin = weighted_median_reference(height, valid, guide, radius=3, sigma=0.05)
+    clear = valid & (margin > SUM_MARGIN)
+    assert clear.sum() > 0.9 * valid.sum()
+    np.testing.assert_allclose(got[clear], want[clear], rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("offset", [-6.5, -40.0])
+def test_heights_of_both_signs_give_the_reference_median(cl_device, offset):
+    """Heights below zero and across it (ellipsoidal heights of coastal cities): the kernel's
+    integer keys of negative floats order them as the floats, in the pixels' path and in the
+    lanes of 8 (a map wider than two windows)."""
+    height, valid, guide, _ = _inputs(3, shape=(29, 61))
+    height = height + offset
+    got = weighted_median(cl_device, height, valid, guide, radius=2, sigma=0.05)
+    want, margin = weighted_median_reference(height, valid, guide, radius=2, sigma=0.05)
+    clear = valid & (margin > SUM_MARGIN)
+    assert clear.sum() > 0.9 * valid.sum()
+    assert (height[valid] < 0).mean() > 0.3
+    np.testing.assert_allclose(got[clear], want[clear], rtol=0, atol=1e-5)
+
+
+def test_a_wide_map_at_the_largest_radius(cl_device):
+    """A map 256 px wide at the largest window: the kernel's work-groups hold 8 windows of 169
+    taps per work-item (PoCL crashed with the work-groups it chose itself for such a map)."""
+    height, valid, guide, _ = _inputs(4, shape=(64, 256))
+    got = weighted_median(cl_device, height, valid, guide, radius=MEDIAN_MAX_RADIUS_PX,
+                          sigma=0.05)
+    want, margin = weighted_median_reference(height, valid, guide, radius=MEDIAN_MAX_RADIUS_PX,
+                                             sigma=0.05)
     clear = valid & (margin > SUM_MARGIN)
     assert clear.sum() > 0.9 * valid.sum()
     np.testing.assert_allclose(got[clear], want[clear], rtol=0, atol=1e-5)
