@@ -408,7 +408,7 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
     the other view's heights within ``slack_px`` pixels instead of the nearest one. The views run
     in up to FUSION_THREADS_MAX threads (each view's maps depend on the others' heights only: the
     sequential loop's results). See :func:`cross_check_heights` for the other arguments."""
-    maps = [np.asarray(h, dtype=np.float64) for h in heights]
+    maps = [np.ascontiguousarray(h, dtype=np.float64) for h in heights]
     if len(maps) != len(projections):
         raise ValueError(f"{caller}: {len(maps)} height maps, {len(projections)} projections")
     if not (math.isfinite(tolerance_m) and tolerance_m > 0.0):
@@ -452,15 +452,16 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
                 ir = np.floor(row + 0.5)
                 inside = (ic >= 0) & (ic < hj.shape[1]) & (ir >= 0) & (ir < hj.shape[0])
             idx = np.nonzero(inside)[0]
-            at = (ir[idx].astype(np.int64), ic[idx].astype(np.int64))
-            other = hj[at]
+            at = ir[idx].astype(np.int64) * hj.shape[1] + ic[idx].astype(np.int64)
+            other = hj.ravel()[at]
             below = other
             if slack_k is not None:
-                below = np.where(slack_k[idx], highest[j][at], other)
+                below = np.where(slack_k[idx], highest[j].ravel()[at], other)
+            ui = u[idx]
             with np.errstate(invalid="ignore"):
-                agree[idx] += np.abs(other - u[idx]) <= tolerance_m
-                past[idx] += below < u[idx] - tolerance_m
-                far[idx] += other < u[idx] - max(tolerance_m, far_m)
+                agree[idx] += np.abs(other - ui) <= tolerance_m
+                past[idx] += below < ui - tolerance_m
+                far[idx] += other < ui - max(tolerance_m, far_m)
         agree_map[rows, cols] = agree
         past_map[rows, cols] = past
         far_map[rows, cols] = far
