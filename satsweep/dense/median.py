@@ -23,8 +23,8 @@ from satsweep.errors import OptionsError
 from satsweep.opencl.buffers import BufferSpec, DeviceMemory
 from satsweep.opencl.constants import SATSWEEP_INVALID
 
-# Largest window radius (px) of the kernel (MEDIAN_MAX_RADIUS in median.cl): a window of
-# (2 r + 1)^2 heights and weights sits in each work-item's private memory (169 at 6).
+# Largest window radius (px) of the kernel (MEDIAN_MAX_RADIUS in median.cl): 8 windows of
+# (2 r + 1)^2 height keys and weights sit in each work-item's private memory (169 taps at 6).
 MEDIAN_MAX_RADIUS_PX = 6
 # Pixels of a row per work-item of weighted_median8 (its float8 lanes).
 MEDIAN_VEC = 8

@@ -407,9 +407,6 @@ class PlaneWindows:
 
 
 # -- device buffers and memory planning ---------------------------------------------------------
-# The sweep's device buffers, each named after the kernel argument it is passed as. One table
-# (BufferSpec: name, element type, length as a function of the sizes) serves both plan_tiles,
-# which sums it, and the sweep, which allocates it (satsweep.opencl.buffers).
 # Floats after the last source image in the sweep's source buffer (src_img): sweep_warp loads
 # each bilinear sample's left and right taps as one pair, also where the right tap is clamped
 # onto the left at a source's last column (its weight 0), which reads one float past the
@@ -417,6 +414,9 @@ class PlaneWindows:
 SWEEP_SRC_PAD = 1
 
 
+# The sweep's device buffers, each named after the kernel argument it is passed as. One table
+# (BufferSpec: name, element type, length as a function of the sizes) serves both plan_tiles,
+# which sums it, and the sweep, which allocates it (satsweep.opencl.buffers).
 @dataclasses.dataclass(frozen=True)
 class RunSizes:
     """The sizes of the buffers a sweep keeps for the whole run (``run_buffers``)."""

