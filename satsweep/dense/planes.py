@@ -119,16 +119,18 @@ def _seen_per_plane(homographies, plane_index, n_src: int, hit) -> np.ndarray:
         if pix.size == 0:
             continue
         x, y = xs.ravel()[pix].astype(np.float64), ys.ravel()[pix].astype(np.float64)
-        seen = np.zeros(pix.size, bool)
-        for s in range(n_src):
+        for s in range(n_src):  # each source maps only the pixels no earlier one saw
             H = hom[p, s] / hom[p, s, 2, 2]
             wz = H[2, 0] * x + H[2, 1] * y + H[2, 2]
             ok = wz > 0
             safe = np.where(ok, wz, 1.0)
             u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / safe
             v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / safe
-            seen |= ok & hit(s, u, v)
-        out.ravel()[pix] = seen
+            seen = ok & hit(s, u, v)
+            out.ravel()[pix[seen]] = True
+            pix, x, y = pix[~seen], x[~seen], y[~seen]
+            if pix.size == 0:
+                break
     return out
 
 
