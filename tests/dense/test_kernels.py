@@ -13,8 +13,8 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from satsweep.dense.sweep import (PlaneSweep, SweepOptions, box_chunk, census_ring_defines,
-                                  group_windows)
+from satsweep.dense.sweep import (SWEEP_SRC_PAD, PlaneSweep, SweepOptions, box_chunk,
+                                  census_ring_defines, group_windows)
 from satsweep.opencl.constants import SWEEP_VEC, WTA_BIG, WTA_NSTATE, WTA_SLOT, WTA_VEC
 from tests import reference_sweep as ref
 
@@ -71,14 +71,15 @@ def _census_dev(dev, img, rx, ry, x0=0, y0=0, out_w=None, out_h=None):
 
 
 def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16, 16),
-               tile=None, ad=None, grad=None, ring=0.0):
+               tile=None, ad=None, grad=None, ring=0.0, pad=0.0):
     """Run one sweep kernel over all planes of hom (n_planes, n_src, 3, 3) on a tile.
 
     tile = (tx0, ty0, tw, th) of ref_img (default: the whole image); hom maps tile-local pixels.
     mode: "warped_census" (the staged kernel sweep_census_cost), "split" (sweep_warp then
     sweep_warped_cost, two planes a launch) or "sampled_codes" (sweep_code_cost). ad, grad =
     (weight, truncation) of the AD and gradient terms (default: none); ring: the census ring's
-    weight (the host's census_ring_defines).
+    weight (the host's census_ring_defines); pad: the value of the floats after the last source
+    ("split": SWEEP_SRC_PAD of them, as the sweep uploads).
     """
     h, w = ref_img.shape
     tx0, ty0, tw, th = tile if tile is not None else (0, 0, w, h)
@@ -100,7 +101,9 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
     out = _empty(dev, 4 * n_planes * tw * th)
     i32 = np.int32
     if mode == "split":
-        data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
+        # the sources and the pad sweep_warp's paired taps may read past the last one
+        data = np.concatenate([s.ravel() for s in srcs]
+                              + [np.full(SWEEP_SRC_PAD, pad)]).astype(np.float32)
         pw, ph, chunk = tw + 2 * rx, th + 2 * ry, 2
         warped = _empty(dev, 4 * chunk * n_src * pw * ph)
         seen = _empty(dev, chunk * n_src * pw * ph)
@@ -416,6 +419,22 @@ def test_best_k_aggregation_over_sources(cl_device, mode, k):
     # Zero shift of source 0 gives cost 0 with k = 1 wherever source 0 is valid.
     if k == 1:
         assert (got[0] == 0).all()
+
+
+def test_split_sweep_reads_the_pad_with_zero_weight(cl_device):
+    """sweep_warp's paired taps read one float past a source's last column where the sample is
+    clamped there (weight 0): past the last source, the pad, whose value then changes nothing
+    (with a weight above 0 a huge pad would show in the costs)."""
+    rng = np.random.default_rng(21)
+    h, w = 24, 40
+    ref_img = _quantised(rng, (h, w))
+    srcs = [_quantised(rng, (h, w)), _quantised(rng, (h, w))]
+    # Shifts that put part of the reference past both sources' last column and last row.
+    hom = _translations(np.array([[[6.5, 3.0], [11.0, 5.5]], [[15.25, 9.0], [2.0, 13.75]]]))
+    zero = _sweep_dev(cl_device, ref_img, srcs, hom, 2, 2, 1, mode="split", ad=(8.0, 0.15))
+    huge = _sweep_dev(cl_device, ref_img, srcs, hom, 2, 2, 1, mode="split", ad=(8.0, 0.15),
+                      pad=1e30)
+    np.testing.assert_array_equal(zero, huge)
 
 
 # -- box and guided filters ----------------------------------------------------------------------
