@@ -160,6 +160,7 @@ def run(scene: Scene, views: list[int], out: Path, args, config: PipelineConfig)
                               rep.get("altitude_range", {}).get("max")],
            "truth_range": list(scene.alt_range),
            "references": len(rep.get("sweep", [])), "fusion": rep["dsm"].get("fusion"),
+           "kernel_builds": (rep.get("device") or {}).get("kernel_builds"),
            **score(result.dsm_path, scene.truth_dsm)}
     shifts = rep.get("ba", {}).get("principal_point_shift_px", {}) or {}
     row["pointing_px"] = pointing_error(scene, views, shifts)
@@ -259,10 +260,16 @@ def _px(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f}"
 
 
+def _built(builds: dict | None) -> str:
+    """The seconds of the run's kernel builds (part of "total s": a process's first stack builds
+    its kernels, seconds on PoCL without its disk cache; "-": none built)."""
+    return "-" if not builds or not builds["programs"] else f"{builds['seconds']:.1f}"
+
+
 def print_table(rows: list[dict]) -> None:
     print(f"{'seed':>4} {'kind':<15} {'k':>3} {'refs':>4} {'med m':>6} {'<1m %':>6} "
           f"{'MAE m':>6} {'valid':>6} {'shift m':>10} {'cmp %':>6} {'range (truth)':>26} "
-          f"{'point px':>8} {'sparse s':>8} {'total s':>7}")
+          f"{'point px':>8} {'sparse s':>8} {'total s':>7} {'built s':>7}")
     for r in rows:
         if "error" in r:
             print(f"{r['seed']:>4} {r['kind']:<15} {r['k']:>3} error: {r['error']}")
@@ -276,7 +283,8 @@ def print_table(rows: list[dict]) -> None:
               f"{r['dfc_valid']:>6.3f} {f'{dx:+.1f},{dy:+.1f}':>10} "
               f"{100 * r['mvs_compared']:>6.1f} "
               f"{f'{lo:.0f}..{hi:.0f} ({t_lo:.0f}..{t_hi:.0f})':>26} "
-              f"{_px(r.get('pointing_px')):>8} {sparse:>8.1f} {r['seconds']:>7.1f}")
+              f"{_px(r.get('pointing_px')):>8} {sparse:>8.1f} {r['seconds']:>7.1f} "
+              f"{_built(r.get('kernel_builds')):>7}")
     for seed in sorted({r["seed"] for r in rows}):
         pairs = [r for r in rows if r["seed"] == seed and r["kind"] == "same-date pair"
                  and "error" not in r]

@@ -23,6 +23,7 @@ import dataclasses
 import importlib.resources
 import os
 import threading
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Iterable, Mapping
@@ -247,6 +248,12 @@ class Device:
         # Programs being built in the background (prebuild), and the lock over both dicts.
         self._pending: dict[tuple, Future] = {}
         self._lock = threading.Lock()
+        # Programs this Device has compiled and the seconds their builds took (background builds
+        # included): a run's report says what its own builds cost (``build_totals``), since a
+        # short run's time depends on them (PoCL builds a new source or -D set in seconds, or
+        # loads it from its disk cache in milliseconds).
+        self._built_programs = 0
+        self._build_seconds = 0.0
 
     @property
     def max_alloc_bytes(self) -> int:
@@ -310,7 +317,21 @@ class Device:
                 del self._pending[key]
             future.set_result(prg)
 
+    def build_totals(self) -> tuple[int, float]:
+        """(programs compiled, seconds their builds took) by this Device so far; programs
+        served from its own cache are not counted."""
+        with self._lock:
+            return self._built_programs, self._build_seconds
+
     def _compile(self, source: str, defines: Mapping[str, object] | None):
+        t0 = time.perf_counter()
+        prg = self._compile_program(source, defines)
+        with self._lock:
+            self._built_programs += 1
+            self._build_seconds += time.perf_counter() - t0
+        return prg
+
+    def _compile_program(self, source: str, defines: Mapping[str, object] | None):
         cl = _cl()
         path = kernel_dir() / f"{source}.cl"
         try:

@@ -141,6 +141,7 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
             device = worker_device(settings.device)
             rep["device"] = device.info.as_dict()
             rep.log(f"device: {device.info.label}")
+            builds_before = device.build_totals()
         elif runner.kind == "scheduler":  # workers elsewhere, in other folders: whole paths
             sources = [dataclasses.replace(s, path=os.path.abspath(s.path)) for s in sources]
             if settings.dem is not None:
@@ -149,9 +150,24 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
             mosaic = reconstruct_areas(sources, aoi, grid, tiles, settings, runner, out.cache,
                                        rep)
             _report_execution(rep, runner, mosaic)
+            if runner.kind == "in-process":
+                _report_kernel_builds(rep, device, builds_before)
             return _finish(mosaic, settings, rep, out, truth)
     finally:
         runner.close()
+
+
+def _report_kernel_builds(rep: RunReport, device, before: tuple[int, float]) -> None:
+    """The kernels this run compiled (``device.kernel_builds``): programs and the seconds their
+    builds took, part of them in the background during the sparse stage. A process's first run
+    builds its programs (seconds each on PoCL without its disk cache, milliseconds with it);
+    a later run in the same process reuses them."""
+    programs, seconds = device.build_totals()
+    builds = {"programs": programs - before[0], "seconds": seconds - before[1]}
+    rep["device"] = {**rep["device"], "kernel_builds": builds}
+    if builds["programs"]:
+        rep.log(f"kernels: {builds['programs']} programs built in {builds['seconds']:.1f} s "
+                "(partly in the background)")
 
 
 def _report_execution(rep: RunReport, runner, mosaic: Mosaic) -> None:

@@ -138,6 +138,22 @@ def test_prebuilt_programs_are_built_once_and_returned_by_build(cl_device, monke
                         ("selftest", {"SCALE": 3.5})]
 
 
+def test_build_totals_count_each_compiled_program_once(cl_device):
+    """build_totals counts what this Device compiled, foreground and background, and not what
+    its cache served (a run's report gives the difference over the run)."""
+    device = sdev.Device(cl_device.info)
+    assert device.build_totals() == (0, 0.0)
+    device.build("selftest", {"SCALE": 1.5})
+    one, seconds = device.build_totals()
+    assert one == 1 and seconds > 0.0
+    device.build("selftest", {"SCALE": 1.5})  # from the cache
+    assert device.build_totals() == (1, seconds)
+    device.prebuild([("selftest", {"SCALE": 2.5})])
+    device.build("selftest", {"SCALE": 2.5})  # waits for the background build
+    two, more = device.build_totals()
+    assert two == 2 and more > seconds
+
+
 def test_a_prebuild_failure_is_raised_by_build_naming_the_file(cl_device):
     device = sdev.Device(cl_device.info)
     device.prebuild([("selftest", {"SCALE": "no_such_identifier"}), ("no_such_stage", None)])

@@ -258,6 +258,9 @@ def test_report_records_settings_device_timings_and_views(reconstruction):
     for stage in ("views", "cameras", "select", "sweep", "dsm", "outputs", "evaluate", "total"):
         assert rep["timings_s"][stage] >= 0
     assert rep["device"]["can_build"] is True
+    builds = rep["device"]["kernel_builds"]  # what this run compiled (other tests may have first)
+    assert isinstance(builds["programs"], int) and builds["programs"] >= 0
+    assert builds["seconds"] >= 0.0 and (builds["programs"] > 0 or builds["seconds"] == 0.0)
     assert rep["settings"]["camera"]["grid_size"] == [20, 20, 6]
     refs = rep["view_selection"]["references"]
     assert sorted(r["reference"] for r in refs) == ["view_00.tif", "view_01.tif"]  # 2 views: each once
