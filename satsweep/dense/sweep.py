@@ -414,6 +414,21 @@ class PlaneWindows:
 SWEEP_SRC_PAD = 1
 
 
+def source_layout(srcs: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """sweep.cl's ``src_size`` (width, height of each source, int32) and ``src_offset`` (the
+    first element of each in the concatenated sources, int64)."""
+    sizes = np.array([[s.shape[1], s.shape[0]] for s in srcs], dtype=np.int32).ravel()
+    offsets = np.concatenate([[0], np.cumsum([s.size for s in srcs])[:-1]]).astype(np.int64)
+    return sizes, offsets
+
+
+def source_image(srcs: Sequence[np.ndarray], pad_value: float = 0.0) -> np.ndarray:
+    """sweep.cl's ``src_img``: every source's rows concatenated (float32), then SWEEP_SRC_PAD
+    floats of ``pad_value`` (0 in the sweep; read with weight 0 only)."""
+    return np.concatenate([np.ravel(s) for s in srcs]
+                          + [np.full(SWEEP_SRC_PAD, pad_value)]).astype(np.float32)
+
+
 # The sweep's device buffers, each named after the kernel argument it is passed as. One table
 # (BufferSpec: name, element type, length as a function of the sizes) serves both plan_tiles,
 # which sums it, and the sweep, which allocates it (satsweep.opencl.buffers).
@@ -1032,12 +1047,10 @@ class PlaneSweep:
 
         # Resident data: the reference image and every source (or its codes), uploaded once,
         # and the device volume; all released at the end, but for the volume handed out.
-        sizes = np.array([[s.shape[1], s.shape[0]] for s in srcs], dtype=np.int32).ravel()
-        offsets = np.concatenate([[0], np.cumsum([s.size for s in srcs])[:-1]]).astype(np.int64)
+        sizes, offsets = source_layout(srcs)
         host = {"ref_img": ref, "src_size": sizes, "src_offset": offsets}
         if o.cost_mode != "sampled_codes":
-            host["src_img"] = np.concatenate([s.ravel() for s in srcs]
-                                             + [np.zeros(SWEEP_SRC_PAD, np.float32)])
+            host["src_img"] = source_image(srcs)
         census_k = self.device.kernel(census_prg, "census_transform")
         # The winner-take-all's per-pixel maps (index, confidence, cost, validity), if asked for.
         outs = (np.zeros((h_img, w_img), np.float32), np.zeros((h_img, w_img), np.float32),

@@ -13,8 +13,8 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from satsweep.dense.sweep import (SWEEP_SRC_PAD, PlaneSweep, SweepOptions, box_chunk,
-                                  census_ring_defines, group_windows)
+from satsweep.dense.sweep import (PlaneSweep, SweepOptions, box_chunk, census_ring_defines,
+                                  group_windows, source_image, source_layout)
 from satsweep.opencl.constants import SWEEP_VEC, WTA_BIG, WTA_NSTATE, WTA_SLOT, WTA_VEC
 from tests import reference_sweep as ref
 
@@ -95,15 +95,12 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
                                                  census_ring_weight=ring)))
     prg = dev.build("sweep", defs)
     codes = _census_dev(dev, ref_img, rx, ry, tx0, ty0, tw, th)
-    sizes = np.array([[s.shape[1], s.shape[0]] for s in srcs], np.int32).ravel()
-    offsets = np.concatenate([[0], np.cumsum([s.size for s in srcs])[:-1]]).astype(np.int64)
+    sizes, offsets = source_layout(srcs)
     hom32 = np.ascontiguousarray(hom.reshape(n_planes, n_src, 9), np.float32)
     out = _empty(dev, 4 * n_planes * tw * th)
     i32 = np.int32
     if mode == "split":
-        # the sources and the pad sweep_warp's paired taps may read past the last one
-        data = np.concatenate([s.ravel() for s in srcs]
-                              + [np.full(SWEEP_SRC_PAD, pad)]).astype(np.float32)
+        data = source_image(srcs, pad)  # with the pad sweep_warp's paired taps may read
         pw, ph, chunk = tw + 2 * rx, th + 2 * ry, 2
         warped = _empty(dev, 4 * chunk * n_src * pw * ph)
         seen = _empty(dev, chunk * n_src * pw * ph)
@@ -123,7 +120,7 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
                                                 i32(ty0), i32(w), i32(h), i32(p0), i32(p0),
                                                 cost_window, out)
     elif mode == "warped_census":
-        data = np.concatenate([s.ravel() for s in srcs]).astype(np.float32)
+        data = source_image(srcs)
         gx = -(-tw // wg[0]) * wg[0]
         gy = -(-th // wg[1]) * wg[1]
         cl.Kernel(prg, "sweep_census_cost")(
