@@ -93,6 +93,15 @@ inline float sample_bilinear_clamped(__global const float *img, const int w, con
 #define GRAD_WEIGHT 0.0f
 #endif
 #define COST_MAX ((float)CENSUS_NBITS + AD_WEIGHT + GRAD_WEIGHT)
+/* Edge-aware census (CENSUS_MASK_THRESHOLD, intensity units): the reference's codes carry in
+ * their high 32-bit word a mask of the comparisons whose neighbour lies within the threshold of
+ * the centre's intensity (same bit order as the code, census.cl); the cost kernels count only
+ * those bits (census_term_masked, sweep.cl). The code must then fit in the low word. */
+#ifdef CENSUS_MASK_THRESHOLD
+#if CENSUS_NBITS > 32
+#error "CENSUS_MASK_THRESHOLD needs a census code of at most 32 bits"
+#endif
+#endif
 #endif
 
 #endif /* SATSWEEP_COMMON_H */

@@ -34,6 +34,9 @@
  *   GRAD_WEIGHT (float, census bits, default 0; needs CENSUS_RX, CENSUS_RY >= 1) and GRAD_TRUNC;
  *   optionally CENSUS_RING_WEIGHT (float) with CENSUS_RING, CENSUS_RING_LO, CENSUS_RING_HI and
  *   CENSUS_SCALE (census_term below: the 3 x 3 ring's bits weighted, every cost kernel);
+ *   optionally CENSUS_MASK_THRESHOLD (float) with CENSUS_MASK_MIN_BITS (float): ref_code as
+ *   census.cl writes it with the same threshold, its mask in the high word (census_term_masked
+ *   below; the warped-census kernels only, not sweep_code_cost);
  *   shared with the host (common.h): SWEEP_VEC (positions per work-item of sweep_warp and
  *   sweep_warped_cost: 8).
  */
@@ -94,6 +97,35 @@ inline float8 census_term8(const uint8 lo, const uint8 hi)
 {
     return convert_float8(popcount(lo) + popcount(hi));
 }
+#endif
+
+/* The census term of a source's code against a reference code rc (x = code ^ rc): census_term of
+ * the differing bits, or with CENSUS_MASK_THRESHOLD (common.h) of those the reference's mask (rc's
+ * high word) keeps, scaled by n / (the mask's own census_term) so that it still spans
+ * 0..CENSUS_NBITS; a mask weighing under CENSUS_MASK_MIN_BITS (a pixel unlike most of its
+ * window) keeps every bit. The comparisons across an edge of the reference image (a roof's
+ * against the ground beside it) then do not pull a pixel to the other side's height.
+ * census_term_masked8: the same for 8 pixels' low words x_lo and masks m (sweep_warped_cost). */
+#ifdef CENSUS_MASK_THRESHOLD
+#ifndef CENSUS_MASK_MIN_BITS
+#error "CENSUS_MASK_THRESHOLD needs CENSUS_MASK_MIN_BITS"
+#endif
+inline float census_term_masked(const ulong x, const ulong rc)
+{
+    const ulong mask = rc >> 32;
+    const float wm = census_term(mask);
+    return wm >= CENSUS_MASK_MIN_BITS ? census_term(x & mask) * (float)CENSUS_NBITS / wm
+                                      : census_term(x & 0xFFFFFFFFUL);
+}
+inline float8 census_term_masked8(const uint8 x_lo, const uint8 m)
+{
+    const float8 wm = census_term8(m, (uint8)0u);
+    return select(census_term8(x_lo, (uint8)0u),
+                  census_term8(x_lo & m, (uint8)0u) * (float)CENSUS_NBITS / wm,
+                  wm >= (float8)CENSUS_MASK_MIN_BITS);
+}
+#else
+inline float census_term_masked(const ulong x, const ulong rc) { return census_term(x); }
 #endif
 
 /* The AD term of a source intensity against the reference intensity (0 when AD_WEIGHT = 0). */
@@ -205,7 +237,8 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
                     code = (code << 1) | (ulong)(patch[base + dy * PATCH_W + dx] < c);
                 }
             }
-            c_s = census_term(code ^ ref_code[IDX2(x, y, tw)])
+            const ulong rc = ref_code[IDX2(x, y, tw)];
+            c_s = census_term_masked(code ^ rc, rc)
                   + ad_cost(c, ref_img[(size_t)(ty0 + y) * ref_w + tx0 + x]);
 #if GRAD_READY
             c_s += grad_cost(patch[base + 1] - patch[base - 1],
@@ -371,7 +404,7 @@ inline float warped_cost_px(__global const float *warped, __global const uchar *
                 code = (code << 1) | (ulong)(w[dy * pw + dx] < c);
             }
         }
-        cst[s] = census_term(code ^ rc) + ad_cost(c, ref_i);
+        cst[s] = census_term_masked(code ^ rc, rc) + ad_cost(c, ref_i);
 #if GRAD_READY
         cst[s] += grad_cost(w[1] - w[-1], w[pw] - w[-pw], ref_img, ref_w, ref_h, tx0 + x, ty0 + y);
 #endif
@@ -453,7 +486,11 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const uch
                 ++bit;
             }
         }
+#ifdef CENSUS_MASK_THRESHOLD
+        cst[s] = census_term_masked8(lo ^ rc_lo, rc_hi)  /* hi: no bits (32 at most) */
+#else
         cst[s] = census_term8(lo ^ rc_lo, hi ^ rc_hi)
+#endif
                  + AD_WEIGHT * fmin(fabs(c - ref_i), (float8)AD_TRUNC) / AD_TRUNC;
 #if GRAD_READY
         if (GRAD_WEIGHT != 0.0f)

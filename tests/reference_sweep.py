@@ -33,6 +33,23 @@ def census(img: np.ndarray, rx: int, ry: int) -> np.ndarray:
     return code
 
 
+def census_mask(img: np.ndarray, rx: int, ry: int, threshold: float) -> np.ndarray:
+    """The edge-aware census's mask (uint64, the code's bit order): bit set where the neighbour
+    lies within ``threshold`` of the centre, |v - c| < threshold in float32 as the kernel."""
+    img = np.asarray(img, dtype=np.float32)
+    h, w = img.shape
+    pad = np.pad(img, ((ry, ry), (rx, rx)), mode="edge")
+    t = np.float32(threshold)
+    mask = np.zeros((h, w), np.uint64)
+    for dy in range(-ry, ry + 1):
+        for dx in range(-rx, rx + 1):
+            if dx == 0 and dy == 0:
+                continue
+            nb = pad[ry + dy:ry + dy + h, rx + dx:rx + dx + w]
+            mask = (mask << np.uint64(1)) | (np.abs(nb - img) < t).astype(np.uint64)
+    return mask
+
+
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Number of differing bits of two uint64 code arrays."""
     return np.bitwise_count(np.asarray(a, np.uint64) ^ np.asarray(b, np.uint64)).astype(np.int64)
@@ -45,10 +62,9 @@ def ring_positions(rx: int, ry: int) -> np.ndarray:
                      for dx in range(-rx, rx + 1) if (dy, dx) != (0, 0)])
 
 
-def census_term(a: np.ndarray, b: np.ndarray, rx: int, ry: int, ring_weight: float = 0.0):
-    """The census term of two code arrays: the differing bits, or with ring_weight = w
-    (bits + w ring bits) n / (n + w n_ring), float64; the ring's bits found bit by bit."""
-    d = np.asarray(a, np.uint64) ^ np.asarray(b, np.uint64)
+def _weighted_bits(d: np.ndarray, rx: int, ry: int, ring_weight: float) -> np.ndarray:
+    """The set bits of codes d (float64): their count, or with ring_weight = w
+    (bits + w ring bits) n / (n + w n_ring); the ring's bits found bit by bit."""
     ring = ring_positions(rx, ry)
     n = ring.size
     bits = np.stack([(d >> np.uint64(n - 1 - k)) & np.uint64(1) for k in range(n)])
@@ -57,6 +73,24 @@ def census_term(a: np.ndarray, b: np.ndarray, rx: int, ry: int, ring_weight: flo
     if ring_weight == 0.0:
         return total
     return (total + ring_weight * ring_bits) * n / (n + ring_weight * ring.sum())
+
+
+def census_term(a: np.ndarray, b: np.ndarray, rx: int, ry: int, ring_weight: float = 0.0,
+                mask: np.ndarray | None = None, min_bits: float = 0.0):
+    """The census term of two code arrays: the differing bits, or with ring_weight = w
+    (bits + w ring bits) n / (n + w n_ring), float64. With ``mask`` (the reference's
+    ``census_mask``) only the masked bits count, scaled by n / (the mask's own term); where the
+    mask's term is under ``min_bits``, every bit counts."""
+    d = np.asarray(a, np.uint64) ^ np.asarray(b, np.uint64)
+    full = _weighted_bits(d, rx, ry, ring_weight)
+    if mask is None:
+        return full
+    n = (2 * rx + 1) * (2 * ry + 1) - 1
+    m = np.asarray(mask, np.uint64)
+    wm = _weighted_bits(m, rx, ry, ring_weight)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        masked = _weighted_bits(d & m, rx, ry, ring_weight) * n / wm
+    return np.where(wm >= min_bits, masked, full)
 
 
 def map_points(hom: np.ndarray, shape: tuple[int, int]):
@@ -110,15 +144,18 @@ def central_differences(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def warped_census_cost(ref_codes: np.ndarray, src: np.ndarray, hom: np.ndarray, rx: int, ry: int,
                        *, ref_img: np.ndarray | None = None, ad_weight: float = 0.0,
                        ad_truncation: float = 1.0, grad_weight: float = 0.0,
-                       grad_truncation: float = 1.0, ring_weight: float = 0.0):
+                       grad_truncation: float = 1.0, ring_weight: float = 0.0,
+                       mask: np.ndarray | None = None, mask_min_bits: float = 0.0):
     """Census term (``census_term``, ring_weight) of the census of the warped source
     (float32-rounded warp) and validity; with
     ad_weight > 0 plus ad_weight * min(|warped - ref_img|, ad_truncation) / ad_truncation; with
     grad_weight > 0 plus grad_weight * (min(|dx_w - dx_ref|, t) + min(|dy_w - dy_ref|, t)) / (2 t)
-    (central differences of the warped image and of ref_img, t = grad_truncation)."""
+    (central differences of the warped image and of ref_img, t = grad_truncation). ``mask``,
+    ``mask_min_bits``: the edge-aware census (``census_term``)."""
     warped, valid = warp_image(src, hom, ref_codes.shape)
     warped = warped.astype(np.float32)
-    cost = census_term(ref_codes, census(warped, rx, ry), rx, ry, ring_weight)
+    cost = census_term(ref_codes, census(warped, rx, ry), rx, ry, ring_weight, mask,
+                       mask_min_bits)
     if ad_weight > 0:
         diff = np.abs(warped.astype(np.float64) - np.asarray(ref_img, np.float64))
         cost = cost + ad_weight * np.minimum(diff, ad_truncation) / ad_truncation

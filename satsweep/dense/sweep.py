@@ -103,6 +103,20 @@ class SweepOptions(Options):
     # 0.979 1.160 0.437 0.830, seeds 7 and 12 0.788 0.749 -> 0.780 0.736 (lower on 7 of 9);
     # 4: 1.084 / 1.156 on seeds 11 / 16. At 0.5 m pixels 8 lost (v10 seeds 0-5: 93.75 ->
     # 93.72% within 1 m, DFC MAE 0.583 -> 0.589 m): such references keep the area's weight.
+    census_mask_threshold: float = 0.0  # edge-aware census: only the comparisons whose
+    # neighbour lies within this of the centre's intensity in the reference (image in [0, 1])
+    # count, scaled to span 0..n bits (a pixel like fewer than CENSUS_MASK_MIN_BITS of its
+    # window keeps every bit): the comparisons across a roof's edge no longer pull the ground
+    # beside it to the roof's height; needs cost_mode "warped_census" and a census window of at
+    # most 32 bits (5 x 5); 0: every bit
+    consensus_census_mask_threshold: float | None = 0.12  # ... in an area whose DSM is the
+    # consensus of the reference views' height maps (where the census allows it); None:
+    # census_mask_threshold. Issue-form 0.3 m stacks (19 views), DFC MAE m, seeds 11-16: 1.082
+    # 0.687 1.098 0.839 1.063 0.809 -> 1.039 0.630 1.022 0.817 0.879 0.763; v10 0.5 m stacks
+    # (seeds 0-5) 0.485 0.841 0.454 0.476 0.818 0.367 -> 0.468 0.721 0.448 0.467 0.783 0.370
+    # (docs/measurements.md); 0.04 / 0.08 / 0.10 / 0.15 / 0.20 on seeds 11 and 15: 1.112 /
+    # 1.060 / 1.053 / 1.039 / 1.053 and 0.873 / 0.896 / 0.858 / 0.893 / 0.953. Pairs of one
+    # date (tools/bench_e2e.py, median fusion) lost a little with it: there it stays 0
     prefilter_sigma_px: float = 0.0  # Gaussian blur (px) of the images before the census; 0: none
     n_best_sources: int | None = None  # cost = mean of the k lowest source costs; None: half the
     # sources, rounded up
@@ -142,6 +156,7 @@ class SweepOptions(Options):
     ADVANCED = ("census_window", "cost_mode", "ad_truncation", "grad_weight",
                 "consensus_grad_weight", "grad_truncation", "census_ring_weight",
                 "consensus_census_ring_weight", "dense_consensus_census_ring_weight",
+                "census_mask_threshold", "consensus_census_mask_threshold",
                 "prefilter_sigma_px", "n_best_sources", "cost_filter", "gf_radius", "gf_eps",
                 "box_radius", "subplane", "reject_range_edges", "lr_check", "lr_tolerance_planes",
                 "max_planes_per_batch", "census_kernel", "work_group", "coarse_plane_stride",
@@ -175,6 +190,15 @@ class SweepOptions(Options):
             w = getattr(self, name)
             self._require(w is None or (math.isfinite(w) and 0 <= w <= 64), name,
                           "must be in [0, 64] (or None)")
+        t = self.census_mask_threshold
+        self._require(math.isfinite(t) and 0 <= t <= 1, "census_mask_threshold",
+                      "must be in [0, 1] (intensity, image in [0, 1])")
+        self._require(t == 0 or (self.cost_mode == "warped_census" and self.census_bits <= 32),
+                      "census_mask_threshold", "needs cost_mode = 'warped_census' and a census "
+                      "window of at most 32 bits (e.g. 5 x 5): set census_mask_threshold = 0")
+        t = self.consensus_census_mask_threshold
+        self._require(t is None or (math.isfinite(t) and 0 <= t <= 1),
+                      "consensus_census_mask_threshold", "must be in [0, 1] (or None)")
         self._require(math.isfinite(self.prefilter_sigma_px) and 0 <= self.prefilter_sigma_px <= 5,
                       "prefilter_sigma_px", "must be in [0, 5] pixels")
         self._require(math.isfinite(self.step_px) and self.step_px > 0, "step_px", "must be > 0")
@@ -263,13 +287,17 @@ class SweepOptions(Options):
     def for_consensus(self) -> "SweepOptions":
         """The options of an area whose DSM is a consensus of many height maps: the gradient
         term weighs ``consensus_grad_weight`` where the costs can hold it (see its comment), the
-        census's 3 x 3 ring ``consensus_census_ring_weight``."""
+        census's 3 x 3 ring ``consensus_census_ring_weight``, the census's mask
+        ``consensus_census_mask_threshold`` where the census allows one (see its comment)."""
         changes: dict = {}
         w = self.consensus_grad_weight
         if w is not None and self.cost_mode == "warped_census" and min(self.census_window) >= 3:
             changes["grad_weight"] = float(w)
         if self.consensus_census_ring_weight is not None:
             changes["census_ring_weight"] = float(self.consensus_census_ring_weight)
+        t = self.consensus_census_mask_threshold
+        if t is not None and self.cost_mode == "warped_census" and self.census_bits <= 32:
+            changes["census_mask_threshold"] = float(t)
         return self.replace(**changes) if changes else self
 
     def for_dense_pixels(self) -> "SweepOptions":
@@ -739,6 +767,22 @@ def _largest_square(ok: Callable[[int], bool], upper: int) -> int:
     return lo
 
 
+# Edge-aware census (SweepOptions.census_mask_threshold): a pixel whose mask keeps bits weighing
+# less than this (of the census term's 0..n, e.g. 24 for 5 x 5) is unlike most of its window (a
+# point, a thin line) and keeps every bit. Issue-form seeds 11 / 15 at a threshold of 0.12, DFC
+# MAE m: 6 bits 1.041 / 0.895, 12 bits 1.039 / 0.879, 16 bits 1.070 / 0.994.
+CENSUS_MASK_MIN_BITS = 12.0
+
+
+def census_mask_defines(options: SweepOptions) -> dict:
+    """The census and sweep kernels' -D constants of the edge-aware census (none without one):
+    CENSUS_MASK_THRESHOLD and CENSUS_MASK_MIN_BITS."""
+    if options.census_mask_threshold == 0.0:
+        return {}
+    return {"CENSUS_MASK_THRESHOLD": float(options.census_mask_threshold),
+            "CENSUS_MASK_MIN_BITS": CENSUS_MASK_MIN_BITS}
+
+
 def census_ring_defines(options: SweepOptions) -> dict:
     """The sweep kernels' -D constants of the census ring's weight (none without one, or where
     the ring is the whole window, whose term it would not change): CENSUS_RING_WEIGHT, the
@@ -833,11 +877,13 @@ class PlaneSweep:
                       "AD_WEIGHT": float(o.ad_weight), "AD_TRUNC": float(o.ad_truncation),
                       "GRAD_WEIGHT": float(o.grad_weight), "GRAD_TRUNC": float(o.grad_truncation)}
         sweep_defs.update(census_ring_defines(o))
+        sweep_defs.update(census_mask_defines(o))
         if o.cost_mode == "warped_census" and o.census_kernel == "staged":
             sweep_defs.update({"WG_X": o.work_group[0], "WG_Y": o.work_group[1]})
         wta_defs = {"NSRC": n_src, "CENSUS_RX": rx, "CENSUS_RY": ry, "AD_WEIGHT": float(o.ad_weight),
                     "GRAD_WEIGHT": float(o.grad_weight)}
-        return [("census", {"CENSUS_RX": rx, "CENSUS_RY": ry}), ("sweep", sweep_defs),
+        census_defs = {"CENSUS_RX": rx, "CENSUS_RY": ry, **census_mask_defines(o)}
+        return [("census", census_defs), ("sweep", sweep_defs),
                 self._filter_request(), ("wta", wta_defs) if wta else None]
 
     def _programs(self, n_src: int, *, wta: bool = True):

@@ -245,6 +245,7 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
                         "sweep_gf_radius": int(swept.gf_radius),
                         "sweep_grad_weight": float(swept.grad_weight),
                         "sweep_census_ring_weight": float(swept.census_ring_weight),
+                        "sweep_census_mask_threshold": float(swept.census_mask_threshold),
                         "tiles": int(result.split.n_tiles),
                         "valid_fraction": float(np.mean(result.valid))}
         progress.update(k + 1, names[r])

@@ -13,7 +13,8 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from satsweep.dense.sweep import (PlaneSweep, SweepOptions, box_chunk, census_ring_defines,
+from satsweep.dense.sweep import (CENSUS_MASK_MIN_BITS, PlaneSweep, SweepOptions, box_chunk,
+                                  census_mask_defines, census_ring_defines,
                                   group_windows, source_image, source_layout)
 from satsweep.opencl.constants import SWEEP_VEC, WTA_BIG, WTA_NSTATE, WTA_SLOT, WTA_VEC
 from tests import reference_sweep as ref
@@ -58,11 +59,16 @@ def _read(dev, buf, shape, dtype):
     return out
 
 
-def _census_dev(dev, img, rx, ry, x0=0, y0=0, out_w=None, out_h=None):
+def _census_dev(dev, img, rx, ry, x0=0, y0=0, out_w=None, out_h=None, mask=0.0):
+    """Codes of census.cl; with ``mask`` (a threshold) the edge-aware census's mask in their
+    high words (the host's census_mask_defines)."""
     h, w = img.shape
     out_w = w if out_w is None else out_w
     out_h = h if out_h is None else out_h
-    prg = dev.build("census", {"CENSUS_RX": rx, "CENSUS_RY": ry})
+    defs = {"CENSUS_RX": rx, "CENSUS_RY": ry}
+    defs.update(census_mask_defines(SweepOptions(census_window=(2 * ry + 1, 2 * rx + 1),
+                                                 census_mask_threshold=mask)))
+    prg = dev.build("census", defs)
     out = _empty(dev, 8 * out_w * out_h)
     i32 = np.int32
     cl.Kernel(prg, "census_transform")(dev.queue, (out_w, out_h), None, _buf(dev, img), i32(w),
@@ -71,7 +77,7 @@ def _census_dev(dev, img, rx, ry, x0=0, y0=0, out_w=None, out_h=None):
 
 
 def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16, 16),
-               tile=None, ad=None, grad=None, ring=0.0, pad=0.0):
+               tile=None, ad=None, grad=None, ring=0.0, pad=0.0, mask=0.0):
     """Run one sweep kernel over all planes of hom (n_planes, n_src, 3, 3) on a tile.
 
     tile = (tx0, ty0, tw, th) of ref_img (default: the whole image); hom maps tile-local pixels.
@@ -79,7 +85,8 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
     sweep_warped_cost, two planes a launch) or "sampled_codes" (sweep_code_cost). ad, grad =
     (weight, truncation) of the AD and gradient terms (default: none); ring: the census ring's
     weight (the host's census_ring_defines); pad: the value of the floats after the last source
-    ("split": SWEEP_SRC_PAD of them, as the sweep uploads).
+    ("split": SWEEP_SRC_PAD of them, as the sweep uploads); mask: the edge-aware census's
+    threshold (census_mask_defines), the reference's codes carrying its mask.
     """
     h, w = ref_img.shape
     tx0, ty0, tw, th = tile if tile is not None else (0, 0, w, h)
@@ -93,8 +100,10 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
         defs.update({"WG_X": wg[0], "WG_Y": wg[1]})
     defs.update(census_ring_defines(SweepOptions(census_window=(2 * ry + 1, 2 * rx + 1),
                                                  census_ring_weight=ring)))
+    defs.update(census_mask_defines(SweepOptions(census_window=(2 * ry + 1, 2 * rx + 1),
+                                                 census_mask_threshold=mask)))
     prg = dev.build("sweep", defs)
-    codes = _census_dev(dev, ref_img, rx, ry, tx0, ty0, tw, th)
+    codes = _census_dev(dev, ref_img, rx, ry, tx0, ty0, tw, th, mask=mask)
     sizes, offsets = source_layout(srcs)
     hom32 = np.ascontiguousarray(hom.reshape(n_planes, n_src, 9), np.float32)
     out = _empty(dev, 4 * n_planes * tw * th)
@@ -367,6 +376,51 @@ def test_census_ring_weight_matches_reference(cl_device, form, window):
         want = np.where(valid, cost, n)[ty0:ty0 + th, tx0:tx0 + tw]
         np.testing.assert_allclose(got[p], want, atol=RING_ATOL, rtol=0)
     assert (np.abs(got - plain) > 0.1).mean() > 0.3  # the weight changes the costs
+    assert got.max() <= n + RING_ATOL and (got == n).any()  # shifted 20 px: no source
+
+
+@pytest.mark.parametrize("ring", [0.0, 8.0])
+@pytest.mark.parametrize("form", ["warped_census", "split"])
+def test_census_mask_matches_reference(cl_device, form, ring):
+    """With census_mask_threshold t the reference's codes carry the mask of the comparisons
+    whose neighbour lies within t of the centre, and each source's census term counts only
+    those bits, scaled by n / (the mask's own term), or every bit where that term is under
+    CENSUS_MASK_MIN_BITS: in both warped-census kernels, with and without the ring's weight,
+    on a tile inside the image. An image of two flat halves with texture (a roof beside the
+    ground) gives masks of every kind: whole windows, windows cut by the step, and pixels
+    unlike their whole window."""
+    rng = np.random.default_rng(33)
+    rx = ry = 2
+    n, t = 24, 0.12
+    ref_img = _quantised(rng, (36, 44), levels=64) * np.float32(0.125)  # most windows whole
+    ref_img[:, 22:] += np.float32(0.5)  # a step of 0.5 at column 22
+    ref_img[10, 5] = np.float32(1.0)  # an isolated bright pixel: unlike its window
+    src = np.roll(ref_img, 1, axis=1).copy()
+    noisy = rng.random(src.shape) < 0.3
+    src[noisy] = _quantised(rng, src.shape)[noisy]
+    src = src.astype(np.float32)
+    hom = _translations([[[1.0, 0.0]], [[0.5, -0.25]], [[2.25, 0.75]], [[20.0, 0.0]]])
+    tx0, ty0, tw, th = 4, 2, 36, 30
+    shift = np.eye(3)
+    shift[0, 2], shift[1, 2] = tx0, ty0
+    local = hom @ shift
+    got = _sweep_dev(cl_device, ref_img, [src], local, rx, ry, 1, mode=form, wg=(8, 8),
+                     tile=(tx0, ty0, tw, th), ring=ring, mask=t)
+    plain = _sweep_dev(cl_device, ref_img, [src], local, rx, ry, 1, mode=form, wg=(8, 8),
+                       tile=(tx0, ty0, tw, th), ring=ring)
+    codes = ref.census(ref_img, rx, ry)
+    mask = ref.census_mask(ref_img, rx, ry, t)
+    for p in range(hom.shape[0]):
+        cost, valid = ref.warped_census_cost(codes, src, hom[p, 0], rx, ry, ring_weight=ring,
+                                             mask=mask, mask_min_bits=CENSUS_MASK_MIN_BITS)
+        want = np.where(valid, cost, n)[ty0:ty0 + th, tx0:tx0 + tw]
+        np.testing.assert_allclose(got[p], want, atol=RING_ATOL, rtol=0)
+    # the masks are of every kind there, and the mask changes the costs beside the step only
+    weights = ref.census_term(mask, np.zeros_like(mask), rx, ry, ring)[ty0:ty0 + th, tx0:tx0 + tw]
+    assert (weights == n).mean() > 0.5 and (weights < CENSUS_MASK_MIN_BITS).any()
+    assert ((weights >= CENSUS_MASK_MIN_BITS) & (weights < n)).any()
+    changed = np.abs(got - plain) > RING_ATOL
+    assert changed.any() and not changed[:, weights == n].any()
     assert got.max() <= n + RING_ATOL and (got == n).any()  # shifted 20 px: no source
 
 

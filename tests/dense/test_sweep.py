@@ -95,25 +95,42 @@ def _errors(res, truth):
                                          ("consensus_census_ring_weight", 65.0),
                                          ("dense_consensus_census_ring_weight", -1.0),
                                          ("dense_consensus_census_ring_weight", float("inf")),
+                                         ("census_mask_threshold", -0.1),
+                                         ("census_mask_threshold", float("nan")),
+                                         ("census_mask_threshold", 1.5),
+                                         ("consensus_census_mask_threshold", -0.1),
+                                         ("consensus_census_mask_threshold", float("inf")),
                                          ("window_block_px", 2), ("window_block_px", 0)])
 def test_bad_options_name_the_field(field, value):
     with pytest.raises(OptionsError, match=field):
         SweepOptions(**{field: value})
 
 
-def test_consensus_options_change_only_the_gradient_and_ring_weights():
+def test_consensus_options_change_only_the_gradient_ring_and_mask():
     """for_consensus() sets grad_weight to consensus_grad_weight, where the costs hold
-    intensities for the gradient term (warped census, a window of 3 x 3 or more), and
-    census_ring_weight to consensus_census_ring_weight."""
+    intensities for the gradient term (warped census, a window of 3 x 3 or more),
+    census_ring_weight to consensus_census_ring_weight, and census_mask_threshold to
+    consensus_census_mask_threshold where the census can carry a mask (warped census, 32 bits
+    at most)."""
     o = SweepOptions(grad_weight=0.0, consensus_grad_weight=8.0, census_ring_weight=0.0,
-                     consensus_census_ring_weight=2.0)
-    assert o.for_consensus() == o.replace(grad_weight=8.0, census_ring_weight=2.0)
-    neither = o.replace(consensus_grad_weight=None, consensus_census_ring_weight=None)
+                     consensus_census_ring_weight=2.0, census_mask_threshold=0.0,
+                     consensus_census_mask_threshold=0.1)
+    assert o.for_consensus() == o.replace(grad_weight=8.0, census_ring_weight=2.0,
+                                          census_mask_threshold=0.1)
+    neither = o.replace(consensus_grad_weight=None, consensus_census_ring_weight=None,
+                        consensus_census_mask_threshold=None)
     assert neither.for_consensus() == neither
     codes = o.replace(cost_mode="sampled_codes", ad_weight=0.0)
     assert codes.for_consensus() == codes.replace(census_ring_weight=2.0)
     narrow = o.replace(census_window=(1, 9))
-    assert narrow.for_consensus() == narrow.replace(census_ring_weight=2.0)
+    assert narrow.for_consensus() == narrow.replace(census_ring_weight=2.0,
+                                                    census_mask_threshold=0.1)
+    wide = o.replace(census_window=(7, 7))  # 48 bits: no room for the mask
+    assert wide.for_consensus() == wide.replace(grad_weight=8.0, census_ring_weight=2.0)
+    for window, mode in (((7, 7), "warped_census"), ((5, 5), "sampled_codes")):
+        with pytest.raises(OptionsError, match="census_mask_threshold"):
+            SweepOptions(census_window=window, cost_mode=mode, ad_weight=0.0,
+                         census_mask_threshold=0.1)
 
 
 def test_dense_pixel_options_change_only_the_ring_weight_and_the_window_fallback():

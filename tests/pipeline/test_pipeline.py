@@ -1127,9 +1127,13 @@ def test_many_references_of_a_consensus_are_swept_with_the_narrower_filter(n_ref
     weight = config.sweep.consensus_grad_weight if gradient else config.sweep.grad_weight
     ring = (config.sweep.consensus_census_ring_weight if gradient
             else config.sweep.census_ring_weight)
-    assert sweep == config.sweep.replace(grad_weight=weight, census_ring_weight=ring)
+    mask = (config.sweep.consensus_census_mask_threshold if gradient
+            else config.sweep.census_mask_threshold)
+    assert sweep == config.sweep.replace(grad_weight=weight, census_ring_weight=ring,
+                                         census_mask_threshold=mask)
     assert config.sweep.consensus_grad_weight != config.sweep.grad_weight
     assert config.sweep.consensus_census_ring_weight != config.sweep.census_ring_weight
+    assert config.sweep.consensus_census_mask_threshold != config.sweep.census_mask_threshold
 
 
 @pytest.mark.parametrize("n_references,resolution,gsd_m,finer", [
@@ -1181,6 +1185,8 @@ def test_consensus_fusion_writes_the_count_of_agreeing_views(scene, tmp_path):
                and v["mrf"]["sweep_grad_weight"] == SweepOptions().consensus_grad_weight
                and v["mrf"]["sweep_census_ring_weight"]
                == SweepOptions().consensus_census_ring_weight
+               and v["mrf"]["sweep_census_mask_threshold"]
+               == SweepOptions().consensus_census_mask_threshold
                for v in result.report["sweep"])
     out = result.out_dir
     with rasterio.open(out / "count.tif") as c, rasterio.open(out / "interpolated.tif") as m:
