@@ -17,37 +17,33 @@ from __future__ import annotations
 import numpy as np
 
 
-def census(img: np.ndarray, rx: int, ry: int) -> np.ndarray:
-    """Census codes (uint64) of a 2-D image, window (2 ry + 1) x (2 rx + 1), edge replication."""
+def _window_bits(img: np.ndarray, rx: int, ry: int, test) -> np.ndarray:
+    """uint64 per pixel: one bit per neighbour of the (2 ry + 1) x (2 rx + 1) window (raster
+    order, centre skipped, edge replication), the first in the highest used bit, set where
+    ``test(neighbour, centre)`` (float32 arrays) holds."""
     img = np.asarray(img, dtype=np.float32)
     h, w = img.shape
     pad = np.pad(img, ((ry, ry), (rx, rx)), mode="edge")
-    centre = img
-    code = np.zeros((h, w), np.uint64)
+    bits = np.zeros((h, w), np.uint64)
     for dy in range(-ry, ry + 1):
         for dx in range(-rx, rx + 1):
             if dx == 0 and dy == 0:
                 continue
             nb = pad[ry + dy:ry + dy + h, rx + dx:rx + dx + w]
-            code = (code << np.uint64(1)) | (nb < centre).astype(np.uint64)
-    return code
+            bits = (bits << np.uint64(1)) | test(nb, img).astype(np.uint64)
+    return bits
+
+
+def census(img: np.ndarray, rx: int, ry: int) -> np.ndarray:
+    """Census codes (uint64) of a 2-D image, window (2 ry + 1) x (2 rx + 1), edge replication."""
+    return _window_bits(img, rx, ry, lambda nb, centre: nb < centre)
 
 
 def census_mask(img: np.ndarray, rx: int, ry: int, threshold: float) -> np.ndarray:
     """The edge-aware census's mask (uint64, the code's bit order): bit set where the neighbour
     lies within ``threshold`` of the centre, |v - c| < threshold in float32 as the kernel."""
-    img = np.asarray(img, dtype=np.float32)
-    h, w = img.shape
-    pad = np.pad(img, ((ry, ry), (rx, rx)), mode="edge")
     t = np.float32(threshold)
-    mask = np.zeros((h, w), np.uint64)
-    for dy in range(-ry, ry + 1):
-        for dx in range(-rx, rx + 1):
-            if dx == 0 and dy == 0:
-                continue
-            nb = pad[ry + dy:ry + dy + h, rx + dx:rx + dx + w]
-            mask = (mask << np.uint64(1)) | (np.abs(nb - img) < t).astype(np.uint64)
-    return mask
+    return _window_bits(img, rx, ry, lambda nb, centre: np.abs(nb - centre) < t)
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:

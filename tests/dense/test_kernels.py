@@ -341,6 +341,22 @@ def test_ad_census_cost_matches_reference(cl_device, form, terms):
     assert (got == 24 + weight + gweight).any()  # shifted 20 px: part of the tile sees no source
 
 
+def _noisy_source_on_tile(rng, ref_img):
+    """(src, hom, tile, local) for the census-term tests on a 36 x 44 reference: the reference
+    moved by a pixel with a third of its pixels redrawn (codes that differ), four dyadic or
+    quarter translations (exact warps; no rounding tie when sampled), the last 20 px (part of
+    the tile sees no source), a tile (tx0, ty0, tw, th) inside the image and the translations
+    from its local pixels."""
+    src = np.roll(ref_img, 1, axis=1).copy()
+    noisy = rng.random(src.shape) < 0.3
+    src[noisy] = _quantised(rng, src.shape)[noisy]
+    hom = _translations([[[1.0, 0.0]], [[0.5, -0.25]], [[2.25, 0.75]], [[20.0, 0.0]]])
+    tile = (4, 2, 36, 30)
+    shift = np.eye(3)
+    shift[0, 2], shift[1, 2] = tile[0], tile[1]
+    return src.astype(np.float32), hom, tile, hom @ shift
+
+
 @pytest.mark.parametrize("window", [(5, 5), (7, 9)])
 @pytest.mark.parametrize("form", ["warped_census", "split", "sampled_codes"])
 def test_census_ring_weight_matches_reference(cl_device, form, window):
@@ -352,16 +368,7 @@ def test_census_ring_weight_matches_reference(cl_device, form, window):
     rx, ry = window[1] // 2, window[0] // 2
     n, w = window[0] * window[1] - 1, 2.0
     ref_img = _quantised(rng, (36, 44))
-    src = np.roll(ref_img, 1, axis=1).copy()
-    noisy = rng.random(src.shape) < 0.3  # a third of the pixels changed: codes that differ
-    src[noisy] = _quantised(rng, src.shape)[noisy]
-    src = src.astype(np.float32)
-    # Dyadic (warped) or quarter (sampled: no rounding tie) translations: exact warps.
-    hom = _translations([[[1.0, 0.0]], [[0.5, -0.25]], [[2.25, 0.75]], [[20.0, 0.0]]])
-    tx0, ty0, tw, th = 4, 2, 36, 30
-    shift = np.eye(3)
-    shift[0, 2], shift[1, 2] = tx0, ty0
-    local = hom @ shift
+    src, hom, (tx0, ty0, tw, th), local = _noisy_source_on_tile(rng, ref_img)
     got = _sweep_dev(cl_device, ref_img, [src], local, rx, ry, 1, mode=form, wg=(8, 8),
                      tile=(tx0, ty0, tw, th), ring=w)
     plain = _sweep_dev(cl_device, ref_img, [src], local, rx, ry, 1, mode=form, wg=(8, 8),
@@ -395,15 +402,7 @@ def test_census_mask_matches_reference(cl_device, form, ring):
     ref_img = _quantised(rng, (36, 44), levels=64) * np.float32(0.125)  # most windows whole
     ref_img[:, 22:] += np.float32(0.5)  # a step of 0.5 at column 22
     ref_img[10, 5] = np.float32(1.0)  # an isolated bright pixel: unlike its window
-    src = np.roll(ref_img, 1, axis=1).copy()
-    noisy = rng.random(src.shape) < 0.3
-    src[noisy] = _quantised(rng, src.shape)[noisy]
-    src = src.astype(np.float32)
-    hom = _translations([[[1.0, 0.0]], [[0.5, -0.25]], [[2.25, 0.75]], [[20.0, 0.0]]])
-    tx0, ty0, tw, th = 4, 2, 36, 30
-    shift = np.eye(3)
-    shift[0, 2], shift[1, 2] = tx0, ty0
-    local = hom @ shift
+    src, hom, (tx0, ty0, tw, th), local = _noisy_source_on_tile(rng, ref_img)
     got = _sweep_dev(cl_device, ref_img, [src], local, rx, ry, 1, mode=form, wg=(8, 8),
                      tile=(tx0, ty0, tw, th), ring=ring, mask=t)
     plain = _sweep_dev(cl_device, ref_img, [src], local, rx, ry, 1, mode=form, wg=(8, 8),
