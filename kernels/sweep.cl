@@ -101,31 +101,35 @@ inline float8 census_term8(const uint8 lo, const uint8 hi)
 
 /* The census term of a source's code against a reference code rc (x = code ^ rc): census_term of
  * the differing bits, or with CENSUS_MASK_THRESHOLD (common.h) of those the reference's mask (rc's
- * high word) keeps, scaled by n / (the mask's own census_term) so that it still spans
+ * high word) keeps, scaled by n / wm, wm = census_mask_weight(rc) (the mask's own census_term,
+ * the same for every source: the callers take it once per pixel), so that it still spans
  * 0..CENSUS_NBITS; a mask weighing under CENSUS_MASK_MIN_BITS (a pixel unlike most of its
  * window) keeps every bit. The comparisons across an edge of the reference image (a roof's
  * against the ground beside it) then do not pull a pixel to the other side's height.
- * census_term_masked8: the same for 8 pixels' low words x_lo and masks m (sweep_warped_cost). */
+ * census_term_masked8: the same for 8 pixels' low words x_lo, masks m and their weights wm
+ * (sweep_warped_cost). Without a mask census_term_masked is census_term (wm unused). */
 #ifdef CENSUS_MASK_THRESHOLD
 #ifndef CENSUS_MASK_MIN_BITS
 #error "CENSUS_MASK_THRESHOLD needs CENSUS_MASK_MIN_BITS"
 #endif
-inline float census_term_masked(const ulong x, const ulong rc)
+inline float census_mask_weight(const ulong rc) { return census_term(rc >> 32); }
+inline float census_term_masked(const ulong x, const ulong rc, const float wm)
 {
-    const ulong mask = rc >> 32;
-    const float wm = census_term(mask);
-    return wm >= CENSUS_MASK_MIN_BITS ? census_term(x & mask) * (float)CENSUS_NBITS / wm
+    return wm >= CENSUS_MASK_MIN_BITS ? census_term(x & (rc >> 32)) * (float)CENSUS_NBITS / wm
                                       : census_term(x & 0xFFFFFFFFUL);
 }
-inline float8 census_term_masked8(const uint8 x_lo, const uint8 m)
+inline float8 census_term_masked8(const uint8 x_lo, const uint8 m, const float8 wm)
 {
-    const float8 wm = census_term8(m, (uint8)0u);
     return select(census_term8(x_lo, (uint8)0u),
                   census_term8(x_lo & m, (uint8)0u) * (float)CENSUS_NBITS / wm,
                   wm >= (float8)CENSUS_MASK_MIN_BITS);
 }
 #else
-inline float census_term_masked(const ulong x, const ulong rc) { return census_term(x); }
+inline float census_mask_weight(const ulong rc) { return 0.0f; }
+inline float census_term_masked(const ulong x, const ulong rc, const float wm)
+{
+    return census_term(x);
+}
 #endif
 
 /* The AD term of a source intensity against the reference intensity (0 when AD_WEIGHT = 0). */
@@ -238,7 +242,7 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
                 }
             }
             const ulong rc = ref_code[IDX2(x, y, tw)];
-            c_s = census_term_masked(code ^ rc, rc)
+            c_s = census_term_masked(code ^ rc, rc, census_mask_weight(rc))
                   + ad_cost(c, ref_img[(size_t)(ty0 + y) * ref_w + tx0 + x]);
 #if GRAD_READY
             c_s += grad_cost(patch[base + 1] - patch[base - 1],
@@ -388,6 +392,7 @@ inline float warped_cost_px(__global const float *warped, __global const uchar *
 {
     const int pw = tw + 2 * CENSUS_RX, ph = th + 2 * CENSUS_RY;
     const ulong rc = ref_code[IDX2(x, y, tw)];
+    const float wm = census_mask_weight(rc);
     const float ref_i = ref_img[(size_t)(ty0 + y) * ref_w + tx0 + x];
     float cst[NSRC];
     uint valid = 0u;
@@ -404,7 +409,7 @@ inline float warped_cost_px(__global const float *warped, __global const uchar *
                 code = (code << 1) | (ulong)(w[dy * pw + dx] < c);
             }
         }
-        cst[s] = census_term_masked(code ^ rc, rc) + ad_cost(c, ref_i);
+        cst[s] = census_term_masked(code ^ rc, rc, wm) + ad_cost(c, ref_i);
 #if GRAD_READY
         cst[s] += grad_cost(w[1] - w[-1], w[pw] - w[-pw], ref_img, ref_w, ref_h, tx0 + x, ty0 + y);
 #endif
@@ -460,6 +465,9 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const uch
 #else
     const uint8 rc_lo = (uint8)(rc_a.odd, rc_b.odd), rc_hi = (uint8)(rc_a.even, rc_b.even);
 #endif
+#ifdef CENSUS_MASK_THRESHOLD
+    const float8 mask_w = census_term8(rc_hi, (uint8)0u);  /* census_mask_weight, 8 pixels */
+#endif
     __global const float *ref_row = ref_img + (size_t)(ty0 + y) * ref_w + tx0 + x0;
     const float8 ref_i = vload8(0, ref_row);
 #if GRAD_READY
@@ -487,7 +495,7 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const uch
             }
         }
 #ifdef CENSUS_MASK_THRESHOLD
-        cst[s] = census_term_masked8(lo ^ rc_lo, rc_hi)  /* hi: no bits (32 at most) */
+        cst[s] = census_term_masked8(lo ^ rc_lo, rc_hi, mask_w)  /* hi: no bits (32 at most) */
 #else
         cst[s] = census_term8(lo ^ rc_lo, hi ^ rc_hi)
 #endif

@@ -193,7 +193,7 @@ class SweepOptions(Options):
         t = self.census_mask_threshold
         self._require(math.isfinite(t) and 0 <= t <= 1, "census_mask_threshold",
                       "must be in [0, 1] (intensity, image in [0, 1])")
-        self._require(t == 0 or (self.cost_mode == "warped_census" and self.census_bits <= 32),
+        self._require(t == 0 or self.census_can_mask,
                       "census_mask_threshold", "needs cost_mode = 'warped_census' and a census "
                       "window of at most 32 bits (e.g. 5 x 5): set census_mask_threshold = 0")
         t = self.consensus_census_mask_threshold
@@ -238,6 +238,13 @@ class SweepOptions(Options):
     def census_bits(self) -> int:
         """Bits per census code (window area minus the centre)."""
         return self.census_window[0] * self.census_window[1] - 1
+
+    @property
+    def census_can_mask(self) -> bool:
+        """Whether the census can take ``census_mask_threshold``: the warped census (the mask is
+        the reference's, for sweep.cl's warped-census kernels) with codes of at most 32 bits
+        (census.cl keeps the mask in the high word)."""
+        return self.cost_mode == "warped_census" and self.census_bits <= 32
 
     @property
     def census_ring(self) -> int:
@@ -296,7 +303,7 @@ class SweepOptions(Options):
         if self.consensus_census_ring_weight is not None:
             changes["census_ring_weight"] = float(self.consensus_census_ring_weight)
         t = self.consensus_census_mask_threshold
-        if t is not None and self.cost_mode == "warped_census" and self.census_bits <= 32:
+        if t is not None and self.census_can_mask:
             changes["census_mask_threshold"] = float(t)
         return self.replace(**changes) if changes else self
 
