@@ -11,6 +11,7 @@ planes and scaled linearly to all planes (the per-plane work is the same; the ou
     python tools/bench_sweep.py --size 256 --planes 32 --json out.json
     python tools/bench_sweep.py --census-kernel split staged   # both census kernels, same run
     python tools/bench_sweep.py --census-ring-weight 0 2       # plain and ring-weighted census
+    python tools/bench_sweep.py --census-mask-threshold 0 0.12 # plain and edge-aware census
     python tools/bench_sweep.py --size 10000 --planes 8 --sources 1 --memory-budget-gb 4 \
         --repeat 1 --numpy-planes 0      # the issue's 10000^2 reference within a 4 GB budget
     python tools/bench_sweep.py --windows 1 --filter none --planes 210 --sources 4 \
@@ -24,7 +25,8 @@ what a coarse pass sees in a city block), with ``--window-halo`` and ``--window-
 prints the share of the pixels' planes swept and the time of the windows over the time of every
 plane, rounds interleaved. The images' content does not change the work.
 
-With several ``--census-kernel`` or ``--census-ring-weight`` values each combination is timed in
+With several ``--census-kernel``, ``--census-ring-weight`` or ``--census-mask-threshold`` values
+each combination is timed in
 turn (same images, same device) and the ratio of each to the first is printed; the numpy
 comparison uses the first.
 """
@@ -162,7 +164,8 @@ def _time_engine(device, options: SweepOptions, ref_img, srcs, hom, heights, vox
     prof.height_map(ref_img, srcs, hom, heights)
     stages = dict(sorted(prof.stage_seconds.items()))
     return {"census_kernel": options.census_kernel,
-            "census_ring_weight": options.census_ring_weight, "tiles": res.split.n_tiles,
+            "census_ring_weight": options.census_ring_weight,
+            "census_mask_threshold": options.census_mask_threshold, "tiles": res.split.n_tiles,
             "batches": res.split.n_batches, "peak_device_bytes": res.split.peak_device_bytes,
             "engine_seconds": best,
             "engine_gvoxel_per_s": voxels / best / 1e9, "stage_seconds": stages,
@@ -183,6 +186,9 @@ def main(argv=None) -> int:
                    help="SweepOptions.census_kernel values to time (the first is the main figure)")
     p.add_argument("--census-ring-weight", nargs="+", type=float, default=[0.0],
                    help="census_ring_weight values to time (the consensus areas' default: 2)")
+    p.add_argument("--census-mask-threshold", nargs="+", type=float, default=[0.0],
+                   help="census_mask_threshold values to time (the consensus areas' default: "
+                        "0.12)")
     p.add_argument("--memory-budget-gb", type=float, default=None,
                    help="SweepOptions.memory_budget_bytes in GiB (default: the device fraction)")
     p.add_argument("--windows", type=int, default=None, metavar="BLOCK",
@@ -205,18 +211,24 @@ def main(argv=None) -> int:
     runs, first_options = [], None
     for kernel in args.census_kernel:
         for ring in args.census_ring_weight:
-            options = SweepOptions(cost_filter=args.filter, census_kernel=kernel,
-                                   census_ring_weight=ring, memory_budget_bytes=budget)
-            first_options = first_options or options
-            runs.append(_time_engine(device, options, ref_img, srcs, hom, heights, voxels,
-                                     args.repeat))
+            for mask in args.census_mask_threshold:
+                options = SweepOptions(cost_filter=args.filter, census_kernel=kernel,
+                                       census_ring_weight=ring, census_mask_threshold=mask,
+                                       memory_budget_bytes=budget)
+                first_options = first_options or options
+                runs.append(_time_engine(device, options, ref_img, srcs, hom, heights, voxels,
+                                         args.repeat))
     out = dict(runs[0])
     out.update({"device": device.info.label, "size": args.size, "planes": args.planes,
                 "sources": args.sources, "filter": args.filter, "voxels": voxels})
     if len(runs) > 1:
         out["kernels"] = runs
+    def label(r: dict) -> str:
+        return (f"census kernel {r['census_kernel']} (ring weight {r['census_ring_weight']:g}, "
+                f"mask {r['census_mask_threshold']:g})")
+
     for r in runs:
-        print(f"census kernel {r['census_kernel']} (ring weight {r['census_ring_weight']:g}): "
+        print(f"{label(r)}: "
               f"reference {args.size}x{args.size}, "
               f"{args.sources} sources, {args.planes} planes, filter {args.filter}: "
               f"{voxels / 1e9:.3f} Gvoxel, {r['tiles']} tile(s), {r['batches']} batch(es), "
@@ -226,9 +238,7 @@ def main(argv=None) -> int:
         for k, v in r["stage_seconds"].items():
             print(f"  stage {k:7s}: {v:8.3f} s = {voxels / v / 1e9:9.3f} Gvoxel/s (queue drained per stage)")
     for r in runs[1:]:
-        print(f"time of census kernel {r['census_kernel']} (ring weight "
-              f"{r['census_ring_weight']:g}) / time of {runs[0]['census_kernel']} (ring weight "
-              f"{runs[0]['census_ring_weight']:g}): "
+        print(f"time of {label(r)} / time of {label(runs[0])}: "
               f"engine {r['engine_seconds'] / runs[0]['engine_seconds']:.2f}, sweep stage "
               f"{r['stage_seconds'].get('sweep', 0) / runs[0]['stage_seconds'].get('sweep', 1):.2f}")
     if args.windows is not None:
