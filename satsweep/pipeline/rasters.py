@@ -111,6 +111,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         cross_check_heights,
         crown_hole_tops,
         dropped_edge_pixels,
+        fine_pixels,
         flat_cells,
         fuse_dsms,
         green_crown_tops,
@@ -150,14 +151,25 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                                           min_agreeing=d.cross_check_views, points=centres)
             check = {"tolerance_m": d.cross_check_m, "views": d.cross_check_views}
         elif visibility:
+            # The views that see far past from visibility_leaf_on_far_m on: pixels finer than
+            # the cells, a date in leaf (unknown: not).
+            trusted = [
+                leaf_season is not None and leaf_season[pv.index] is not None
+                and leaf_season[pv.index] >= LEAF_ON_SEASON and c[2].size > 0
+                and fine_pixels(ground_sample_distance(
+                    P, (0.0, 0.0, float(np.median(c[2])))), grid.resolution)
+                for pv, P, c in zip(per_view, projections, centres)]
             checked = visibility_check_heights(
                 heights, projections, tolerance_m=d.consensus_tolerance_m,
                 far_m=d.visibility_far_m, points=centres, slack_px=d.visibility_slack_px,
                 confidences=[pv.confidence for pv in per_view],
-                slack_min_confidence=d.visibility_slack_confidence)
+                slack_min_confidence=d.visibility_slack_confidence,
+                trusted_far_m=d.visibility_leaf_on_far_m, trusted_views=trusted)
             check = {"check": "free space", "tolerance_m": d.consensus_tolerance_m,
                      "far_m": d.visibility_far_m, "slack_px": d.visibility_slack_px,
-                     "slack_min_confidence": d.visibility_slack_confidence}
+                     "slack_min_confidence": d.visibility_slack_confidence,
+                     "leaf_on_far_m": d.visibility_leaf_on_far_m,
+                     "leaf_on_fine": [bool(t) for t in trusted]}
         if check is not None:
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]

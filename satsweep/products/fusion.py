@@ -208,6 +208,12 @@ class DSMOptions(Options):
     # past (free space, by more than consensus_tolerance_m) than agree with (within it)
     visibility_far_m: float = 15.0  # ... or that views seeing more than this (m) past them are
     # half as many as agree with (facades at their roof's height); 0: no such rule
+    visibility_leaf_on_far_m: float = 3.0  # ... and the views whose pixels are finer than the
+    # cells (fine_pixels) and whose date is in leaf (similarity.leaf_season >= LEAF_ON_SEASON)
+    # count as seeing far past from this (m) on: a wall's roof points in front of it are a
+    # storey or more above the ground those views see there, leafless views see the ground
+    # through crowns, and views of cell-wide pixels read the ground beside a roof's edge a pixel
+    # off (docs/measurements.md); 0: no such rule
     visibility_slack_px: int = VISIBILITY_SLACK_PX  # a view sees past a confident point only
     # where its heights within this many pixels of the point's pixel all lie below it
     # (occlusion edges a pixel off: crowns one view erodes); 0: the nearest pixel only
@@ -246,7 +252,8 @@ class DSMOptions(Options):
     ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
                 "fill_method", "fill_border_holes", "consensus_tolerance_m", "consensus_min_views",
                 "consensus_min_share", "consensus_min_distinct_views", "coregister",
-                "visibility_check", "visibility_far_m", "visibility_slack_px",
+                "visibility_check", "visibility_far_m", "visibility_leaf_on_far_m",
+                "visibility_slack_px",
                 "visibility_slack_confidence", "small_object_area_m2", "small_object_top",
                 "leaf_on_crowns", "crown_holes", "green_crowns",
                 "view_raster", "edge_min_confidence")
@@ -265,6 +272,9 @@ class DSMOptions(Options):
                       "must be a confidence in [0, 1] (0: none dropped)")
         self._require(math.isfinite(self.visibility_far_m) and self.visibility_far_m >= 0.0,
                       "visibility_far_m", "must be >= 0 metres (0: no such rule)")
+        self._require(math.isfinite(self.visibility_leaf_on_far_m)
+                      and self.visibility_leaf_on_far_m >= 0.0, "visibility_leaf_on_far_m",
+                      "must be >= 0 metres (0: no such rule)")
         self._require(0 <= self.visibility_slack_px <= MAX_VISIBILITY_SLACK_PX,
                       "visibility_slack_px", f"must be 0..{MAX_VISIBILITY_SLACK_PX} pixels")
         self._require(math.isfinite(self.visibility_slack_confidence)
@@ -324,7 +334,9 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
                              points: Sequence[tuple[np.ndarray, ...]] | None = None,
                              slack_px: int = 0,
                              confidences: Sequence[np.ndarray | None] | None = None,
-                             slack_min_confidence: float = 0.0) -> list[np.ndarray]:
+                             slack_min_confidence: float = 0.0,
+                             trusted_far_m: float = 0.0,
+                             trusted_views: Sequence[bool] | None = None) -> list[np.ndarray]:
     """Free-space check of several reference views' height maps.
 
     Each known pixel of view k becomes its 3-D point, projected into every other view j. View j
@@ -339,7 +351,10 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
     views from the other sides see the ground there; a tall building's facade is seen by
     several views from its side, and the few views that see the ground tens of metres below
     such a point outweigh them. Seeing past by a few metres is weaker evidence (trees of another
-    season, roof edges that other views erode by a cell) and needs a majority.
+    season, roof edges that other views erode by a cell) and needs a majority. The views that
+    ``trusted_views`` marks (None: none) count as seeing far past from ``trusted_far_m`` on
+    (when > 0, and below ``far_m`` or without it): views whose pixels are finer than the cells
+    and whose date is in leaf make neither of those mistakes.
 
     With ``slack_px`` > 0, a pixel of view k whose confidence (``confidences[k]``, (H_k, W_k),
     None: no pixel of k counts as confident) is at least ``slack_min_confidence`` is seen past by
@@ -359,15 +374,27 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
     if confidences is not None and len(confidences) != len(heights):
         raise ValueError(f"visibility_check_heights: {len(heights)} height maps, "
                          f"{len(confidences)} confidence maps")
+    if not (math.isfinite(trusted_far_m) and trusted_far_m >= 0.0):
+        raise OptionsError(f"trusted_far_m = {trusted_far_m!r}: must be >= 0 metres (0: no "
+                           "such rule)")
+    if trusted_views is not None and len(trusted_views) != len(heights):
+        raise ValueError(f"visibility_check_heights: {len(heights)} height maps, "
+                         f"{len(trusted_views)} trusted_views flags")
+    # Per view, the depth past a point (m) from which it sees far past it; None: never.
+    far_from: list[float | None] = []
+    for k in range(len(heights)):
+        depths = [m for m in (far_m, trusted_far_m if trusted_views is not None
+                                     and trusted_views[k] else 0.0) if m > 0.0]
+        far_from.append(max(tolerance_m, min(depths)) if depths else None)
     slack = None
     if slack_px > 0 and confidences is not None:
         slack = [None if c is None else np.asarray(c, np.float64) >= slack_min_confidence
                  for c in confidences]
+    # A view that never sees far past adds nothing to ``far``: 2 far <= agree always holds.
     return _heights_seen_by_others(
-        heights, projections, tolerance_m, points, "visibility_check_heights", far_m=far_m,
-        slack_px=slack_px, slack=slack,
-        reduce=lambda known, agree, past, far: (known & (past <= agree)
-                                                & ((far_m == 0.0) | (2 * far <= agree))))
+        heights, projections, tolerance_m, points, "visibility_check_heights",
+        far_from=far_from, slack_px=slack_px, slack=slack,
+        reduce=lambda known, agree, past, far: known & (past <= agree) & (2 * far <= agree))
 
 
 def _max_within(values: np.ndarray, radius_px: int) -> np.ndarray:
@@ -398,12 +425,14 @@ def _highest_within(height: np.ndarray, radius_px: int) -> np.ndarray:
 
 
 def _heights_seen_by_others(heights, projections, tolerance_m: float, points, caller: str,
-                            far_m: float = 0.0, slack_px: int = 0, slack=None, *,
+                            far_from: Sequence[float | None] | None = None, slack_px: int = 0,
+                            slack=None, *,
                             reduce: Callable[..., np.ndarray]) -> list[np.ndarray]:
     """Per view k, ``reduce(known, agree, past, far)`` of its (H_k, W_k) maps: its known pixels,
     and at each how many other views' heights at the pixel's 3-D point lie within ``tolerance_m``
-    of its height (agree), more than that below it (past), or more than ``max(tolerance_m,
-    far_m)`` below it (far); zeros where unknown, and everywhere with a single view. ``slack``
+    of its height (agree), more than that below it (past), or more than ``far_from[j]`` below it
+    (far; a view j whose ``far_from`` is None, or all without it, never counts); zeros where
+    unknown, and everywhere with a single view. ``slack``
     (per view, an (H_k, W_k) bool map or None) marks the pixels whose "past" reads the highest of
     the other view's heights within ``slack_px`` pixels instead of the nearest one. The views run
     in up to FUSION_THREADS_MAX threads (each view's maps depend on the others' heights only: the
@@ -461,7 +490,8 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
             with np.errstate(invalid="ignore"):
                 agree[idx] += np.abs(other - ui) <= tolerance_m
                 past[idx] += below < ui - tolerance_m
-                far[idx] += other < ui - max(tolerance_m, far_m)
+                if far_from is not None and far_from[j] is not None:
+                    far[idx] += other < ui - far_from[j]
         agree_map[rows, cols] = agree
         past_map[rows, cols] = past
         far_map[rows, cols] = far
@@ -628,6 +658,17 @@ def step_edge_pixels(height: np.ndarray, step_m: float = EDGE_STEP_M) -> np.ndar
     lowest = _min_within(np.where(known, h, np.inf), 1)
     with np.errstate(invalid="ignore"):
         return known & (h - lowest > step_m)
+
+
+def fine_pixels(gsd_m: float, resolution_m: float) -> bool:
+    """Whether a view of ``gsd_m`` metres per pixel has pixels finer than DSM cells of
+    ``resolution_m``: DENSE_CENTRES_PER_CELL pixel footprints or more per cell (0.3 m pixels on
+    0.5 m cells: 2.8), as ``DSMOptions.view_raster_for`` counts them on a view's points."""
+    if not (math.isfinite(gsd_m) and gsd_m > 0.0 and math.isfinite(resolution_m)
+            and resolution_m > 0.0):
+        raise ValueError(f"fine_pixels: gsd_m = {gsd_m!r}, resolution_m = {resolution_m!r}: "
+                         "must be > 0 metres")
+    return (resolution_m / gsd_m) ** 2 >= DENSE_CENTRES_PER_CELL
 
 
 def centres_per_cell(cells: np.ndarray) -> float:

@@ -752,12 +752,29 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
         return out
 
     monkeypatch.setattr(fusion, "green_crown_tops", record_green)
+    visibility = fusion.visibility_check_heights
+
+    def record_visibility(heights, projections, **kwargs):
+        calls.setdefault("visibility", []).append((kwargs["trusted_far_m"],
+                                                   list(kwargs["trusted_views"])))
+        return visibility(heights, projections, **kwargs)
+
+    monkeypatch.setattr(fusion, "visibility_check_heights", record_visibility)
     config = PipelineConfig().override("dsm", leaf_on_crowns=crown_rules,
                                        crown_holes=crown_rules)
     res = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
                       config=config, verbose=False)
     rep = res.report
     assert rep["dsm"]["fusion"] == "consensus"
+    # The free-space check trusts the references of dates in leaf from visibility_leaf_on_far_m
+    # on: the scene's 0.3 m pixels are finer than the 0.5 m cells.
+    (far_m, trusted), = calls.pop("visibility")
+    seasons = {v["name"]: v["leaf_season"] for v in rep["view_selection"]["views"]}
+    refs = [r["reference"] for r in rep["view_selection"]["references"]]
+    assert far_m == config.dsm.visibility_leaf_on_far_m > 0.0
+    assert trusted == [seasons[r] is not None and seasons[r] >= LEAF_ON_SEASON for r in refs]
+    assert any(trusted) and not all(trusted)
+    assert rep["dsm"]["cross_check"]["leaf_on_fine"] == trusted
     if not crown_rules:
         assert calls == {}
         assert rep["dsm"]["leaf_on_crown_cells"] is None
@@ -765,8 +782,6 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
         assert rep["dsm"]["green_crown_cells"] is None  # no colour
         assert all(v["vegetation_share"] is None for v in rep["views"])
         return
-    seasons = {v["name"]: v["leaf_season"] for v in rep["view_selection"]["views"]}
-    refs = [r["reference"] for r in rep["view_selection"]["references"]]
     in_leaf = [r for r in refs if seasons[r] is not None and seasons[r] >= LEAF_ON_SEASON]
     assert len(in_leaf) >= 2  # the stack exercises the rule
     # The scene's own record of each view's acquisition (pass): the labels each rule gets

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -595,6 +596,8 @@ def test_dsm_options_are_checked():
         dsm.DSMOptions(cross_check_views=0)
     with pytest.raises(OptionsError, match="DSMOptions.visibility_far_m"):
         dsm.DSMOptions(visibility_far_m=float("nan"))
+    with pytest.raises(OptionsError, match="DSMOptions.visibility_leaf_on_far_m"):
+        dsm.DSMOptions(visibility_leaf_on_far_m=-1.0)
 
 
 def test_write_dsm_geotiff_is_read_by_rasterio_with_the_right_crs(tmp_path):
@@ -826,6 +829,52 @@ def test_visibility_check_drops_a_facade_two_views_agree_on_when_one_sees_far_pa
     assert dropped == [{20, 21, 22, 23, 34}, {20, 21, 22, 33}, set()], dropped
     with pytest.raises(OptionsError, match="far_m"):
         dsm.visibility_check_heights(heights, projections, tolerance_m=2.0, far_m=-1.0)
+
+
+def test_trusted_views_see_far_past_from_their_own_depth():
+    """The scene of the test above: views 0 and 1 sweep their facades at the roof's height, view
+    2 (near nadir) sees the ground 10 m below view 0's facade points. With far_m 15 m they stay;
+    when view 2 is trusted from 5 m on they go exactly as with far_m 5 m for every view; when
+    only views 0 and 1 are trusted (they never see past those points) nothing changes."""
+    width = 60
+    slopes = (0.5, 0.4, 0.05)
+    maps, walls = zip(*(_true_heights(a, width) for a in slopes))
+    heights = [m.copy() for m in maps]
+    for k in (0, 1):
+        heights[k][walls[k]] = _BLOCK[2]
+    projections = [_affine(a) for a in slopes]
+    run = functools.partial(dsm.visibility_check_heights, heights, projections, tolerance_m=2.0)
+    near = run(far_m=15.0)
+    everyone = run(far_m=5.0)
+    assert any((~m).sum() > (~n).sum() for m, n in zip(everyone, near))
+    nadir = run(far_m=15.0, trusted_far_m=5.0, trusted_views=[False, False, True])
+    for a, b in zip(nadir, everyone):
+        np.testing.assert_array_equal(a, b)
+    # Without far_m the trusted views' rule stands alone.
+    alone = run(trusted_far_m=5.0, trusted_views=[False, False, True])
+    for a, b in zip(alone, everyone):
+        np.testing.assert_array_equal(a, b)
+    for trusted in ([True, True, False], None):
+        same = run(far_m=15.0, trusted_far_m=5.0, trusted_views=trusted)
+        for a, b in zip(same, near):
+            np.testing.assert_array_equal(a, b)
+    # A trusted depth beyond far_m changes nothing (the nearer of the two counts).
+    for a, b in zip(run(far_m=5.0, trusted_far_m=15.0, trusted_views=[True] * 3), everyone):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(OptionsError, match="trusted_far_m"):
+        run(trusted_far_m=float("nan"), trusted_views=[True] * 3)
+    with pytest.raises(ValueError, match="trusted_views"):
+        run(trusted_far_m=5.0, trusted_views=[True, True])
+
+
+def test_fine_pixels_are_two_footprints_per_cell():
+    from satsweep.products.fusion import fine_pixels
+
+    assert fine_pixels(0.3, 0.5)  # WorldView-3 on 0.5 m cells: 2.8 footprints per cell
+    assert not fine_pixels(0.5, 0.5) and not fine_pixels(0.7, 0.5)
+    assert fine_pixels(0.5 / np.sqrt(2.0) - 1e-9, 0.5) and not fine_pixels(0.36, 0.5)
+    with pytest.raises(ValueError, match="gsd_m"):
+        fine_pixels(0.0, 0.5)
 
 
 def test_visibility_slack_keeps_a_rim_that_other_views_erode_by_a_pixel():
