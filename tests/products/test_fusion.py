@@ -800,6 +800,19 @@ def test_visibility_check_drops_a_facade_matched_at_its_roof_height_only():
     assert dsm.visibility_check_heights([maps[0]], [_affine(0.5)], tolerance_m=2.0)[0].all()
 
 
+_FACADE_SLOPES = (0.5, 0.4, 0.05)
+
+
+def _two_facades_at_roof_height(width: int = 60):
+    """Views 0 and 1 from one side (incidences 0.5 and 0.4) with their facades swept at the
+    roof's height, view 2 near nadir (0.05): (true maps, wall masks, heights, projections)."""
+    maps, walls = zip(*(_true_heights(a, width) for a in _FACADE_SLOPES))
+    heights = [m.copy() for m in maps]
+    for k in (0, 1):
+        heights[k][walls[k]] = _BLOCK[2]
+    return maps, walls, heights, [_affine(a) for a in _FACADE_SLOPES]
+
+
 def test_visibility_check_drops_a_facade_two_views_agree_on_when_one_sees_far_past():
     """Views 0 and 1 look from the same side (incidences 0.5 and 0.4) and both sweep the facade at
     the roof's height; view 2 looks almost straight down (0.05). View 0's facade points 16-20 m
@@ -807,12 +820,8 @@ def test_visibility_check_drops_a_facade_two_views_agree_on_when_one_sees_far_pa
     2, which sees the ground 10 m below: one against one, kept by the majority rule, dropped
     when a view seeing more than far_m past outweighs two that agree (far_m 5 m, not 15 m)."""
     width = 60
-    slopes = (0.5, 0.4, 0.05)
-    maps, walls = zip(*(_true_heights(a, width) for a in slopes))
-    heights = [m.copy() for m in maps]
-    for k in (0, 1):
-        heights[k][walls[k]] = _BLOCK[2]
-    projections = [_affine(a) for a in slopes]
+    slopes = _FACADE_SLOPES
+    maps, walls, heights, projections = _two_facades_at_roof_height(width)
     e = np.arange(width) + 0.5 - slopes[0] * heights[0][0]  # where view 0 puts its pixels
     both = walls[0][0] & (e >= 16.0) & (maps[0][0] < _BLOCK[2] - 2.0)
     assert both.sum() == 3  # facade pixels 1-3 of 5 (heights 3, 5, 7 m)
@@ -836,13 +845,7 @@ def test_trusted_views_see_far_past_from_their_own_depth():
     2 (near nadir) sees the ground 10 m below view 0's facade points. With far_m 15 m they stay;
     when view 2 is trusted from 5 m on they go exactly as with far_m 5 m for every view; when
     only views 0 and 1 are trusted (they never see past those points) nothing changes."""
-    width = 60
-    slopes = (0.5, 0.4, 0.05)
-    maps, walls = zip(*(_true_heights(a, width) for a in slopes))
-    heights = [m.copy() for m in maps]
-    for k in (0, 1):
-        heights[k][walls[k]] = _BLOCK[2]
-    projections = [_affine(a) for a in slopes]
+    _, _, heights, projections = _two_facades_at_roof_height()
     run = functools.partial(dsm.visibility_check_heights, heights, projections, tolerance_m=2.0)
     near = run(far_m=15.0)
     everyone = run(far_m=5.0)
