@@ -383,9 +383,10 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
     # Per view, the depth past a point (m) from which it sees far past it; None: never.
     far_from: list[float | None] = []
     for k in range(len(heights)):
-        depths = [m for m in (far_m, trusted_far_m if trusted_views is not None
-                                     and trusted_views[k] else 0.0) if m > 0.0]
-        far_from.append(max(tolerance_m, min(depths)) if depths else None)
+        depth = far_m if far_m > 0.0 else math.inf
+        if trusted_far_m > 0.0 and trusted_views is not None and trusted_views[k]:
+            depth = min(depth, trusted_far_m)
+        far_from.append(max(tolerance_m, depth) if math.isfinite(depth) else None)
     slack = None
     if slack_px > 0 and confidences is not None:
         slack = [None if c is None else np.asarray(c, np.float64) >= slack_min_confidence
