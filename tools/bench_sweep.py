@@ -34,6 +34,7 @@ comparison uses the first.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import sys
@@ -172,6 +173,12 @@ def _time_engine(device, options: SweepOptions, ref_img, srcs, hom, heights, vox
             "stage_gvoxel_per_s": {k: voxels / v / 1e9 for k, v in stages.items() if v > 0}}
 
 
+def _label(run: dict) -> str:
+    """A timed run's settings, as the printed lines name them."""
+    return (f"census kernel {run['census_kernel']} (ring weight {run['census_ring_weight']:g}, "
+            f"mask {run['census_mask_threshold']:g})")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--size", type=int, default=1024, help="reference width = height (pixels)")
@@ -209,26 +216,21 @@ def main(argv=None) -> int:
     print(f"device: {device.info.label}")
     budget = None if args.memory_budget_gb is None else int(args.memory_budget_gb * 2**30)
     runs, first_options = [], None
-    for kernel in args.census_kernel:
-        for ring in args.census_ring_weight:
-            for mask in args.census_mask_threshold:
-                options = SweepOptions(cost_filter=args.filter, census_kernel=kernel,
-                                       census_ring_weight=ring, census_mask_threshold=mask,
-                                       memory_budget_bytes=budget)
-                first_options = first_options or options
-                runs.append(_time_engine(device, options, ref_img, srcs, hom, heights, voxels,
-                                         args.repeat))
+    for kernel, ring, mask in itertools.product(args.census_kernel, args.census_ring_weight,
+                                                args.census_mask_threshold):
+        options = SweepOptions(cost_filter=args.filter, census_kernel=kernel,
+                               census_ring_weight=ring, census_mask_threshold=mask,
+                               memory_budget_bytes=budget)
+        first_options = first_options or options
+        runs.append(_time_engine(device, options, ref_img, srcs, hom, heights, voxels,
+                                 args.repeat))
     out = dict(runs[0])
     out.update({"device": device.info.label, "size": args.size, "planes": args.planes,
                 "sources": args.sources, "filter": args.filter, "voxels": voxels})
     if len(runs) > 1:
         out["kernels"] = runs
-    def label(r: dict) -> str:
-        return (f"census kernel {r['census_kernel']} (ring weight {r['census_ring_weight']:g}, "
-                f"mask {r['census_mask_threshold']:g})")
-
     for r in runs:
-        print(f"{label(r)}: "
+        print(f"{_label(r)}: "
               f"reference {args.size}x{args.size}, "
               f"{args.sources} sources, {args.planes} planes, filter {args.filter}: "
               f"{voxels / 1e9:.3f} Gvoxel, {r['tiles']} tile(s), {r['batches']} batch(es), "
@@ -238,7 +240,7 @@ def main(argv=None) -> int:
         for k, v in r["stage_seconds"].items():
             print(f"  stage {k:7s}: {v:8.3f} s = {voxels / v / 1e9:9.3f} Gvoxel/s (queue drained per stage)")
     for r in runs[1:]:
-        print(f"time of {label(r)} / time of {label(runs[0])}: "
+        print(f"time of {_label(r)} / time of {_label(runs[0])}: "
               f"engine {r['engine_seconds'] / runs[0]['engine_seconds']:.2f}, sweep stage "
               f"{r['stage_seconds'].get('sweep', 0) / runs[0]['stage_seconds'].get('sweep', 1):.2f}")
     if args.windows is not None:
