@@ -112,7 +112,10 @@ def _seen_per_plane(homographies, plane_index, n_src: int, hit) -> np.ndarray:
     out = np.zeros(idx.shape, bool)
     ys, xs = np.mgrid[0:h, 0:w]
     flat = idx.ravel()
-    order = np.argsort(flat, kind="stable")
+    # The same order from 16-bit keys where they hold every index (numpy's radix sort).
+    short = flat.size > 0 and 0 <= flat.min() and flat.max() < 1 << 16
+    key = flat.astype(np.uint16) if short else flat
+    order = np.argsort(key, kind="stable")
     bounds = np.searchsorted(flat[order], np.arange(hom.shape[0] + 1))
     for p in range(hom.shape[0]):
         pix = order[bounds[p]:bounds[p + 1]]

@@ -556,9 +556,11 @@ def rasterise_quantile_cells(cells: np.ndarray, values, grid: DSMGrid,
     if c.size:
         # One sort of 64-bit keys, each point's cell above its value's float32 order (the
         # raster is float32, and rounding keeps the order: the same cell values as sorting the
-        # float64 values; a fifth of the time of a lexsort of the pairs).
+        # float64 values; a fifth of the time of a lexsort of the pairs). A height map's pixels
+        # come in runs of cells (its rows cross the grid), which the stable sort (timsort)
+        # merges: the same keys in the same order, in a third of the time of the default.
         key = (c.astype(np.uint64) << np.uint64(32)) | _float32_order(z)
-        key.sort()
+        key.sort(kind="stable")
         c = (key >> np.uint64(32)).astype(np.int64)
         starts = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
         counts = np.diff(np.r_[starts, c.size])
