@@ -939,6 +939,53 @@ def test_visibility_slack_keeps_a_rim_that_other_views_erode_by_a_pixel():
                                      confidences=sure[:2])
 
 
+def test_seen_by_others_counts_match_a_plain_loop():
+    """The counts behind the cross- and free-space checks (agree, past with and without the
+    slack, far), against a loop over every point and every other view: maps of several sizes
+    with unknown pixels, views shifted so that some points fall outside the others' maps."""
+    rng = np.random.default_rng(5)
+    shapes = [(9, 12), (11, 10), (8, 14)]
+    heights = []
+    for shape in shapes:
+        h = rng.choice([0.0, 3.0, 10.0], size=shape) + rng.normal(0.0, 0.5, shape)
+        h[rng.random(shape) < 0.15] = np.nan
+        heights.append(h)
+    projections = [np.array([[1.0, 0.05 * k, 0.3 * k - 0.2, 1.5 * k - 1.0],
+                             [-0.03 * k, 1.0, 0.1 * k, 2.0 - k],
+                             [0.0, 0.0, 1e-6, 1.0]]) for k in range(3)]
+    slack = [rng.random(shape) < 0.5 for shape in shapes]
+    slack[1] = None
+    far_from = [4.0, None, 6.0]
+    tol, slack_px = 1.0, 1
+    got = dsm._heights_seen_by_others(
+        heights, projections, tol, None, "test", far_from=far_from, slack_px=slack_px,
+        slack=slack, reduce=lambda known, agree, past, far: (known, agree, past, far))
+    highest = [dsm._highest_within(h, slack_px) for h in heights]
+    for k, (h, P) in enumerate(zip(heights, projections)):
+        known, agree, past, far = got[k]
+        np.testing.assert_array_equal(known, np.isfinite(h))
+        want = np.zeros((3,) + h.shape, np.int64)
+        for r, c in zip(*np.nonzero(np.isfinite(h))):
+            u = h[r, c]
+            e, n = dsm_points.solve_ground_en(P, col=float(c), row=float(r), u=u)
+            for j, (hj, Pj) in enumerate(zip(heights, projections)):
+                if j == k:
+                    continue
+                q = Pj @ np.array([float(e), float(n), u, 1.0])
+                ic, ir = math.floor(q[0] / q[2] + 0.5), math.floor(q[1] / q[2] + 0.5)
+                if not (0 <= ic < hj.shape[1] and 0 <= ir < hj.shape[0]):
+                    continue
+                other = hj[ir, ic]
+                below = highest[j][ir, ic] if slack[k] is not None and slack[k][r, c] else other
+                want[0, r, c] += abs(other - u) <= tol
+                want[1, r, c] += below < u - tol
+                want[2, r, c] += far_from[j] is not None and other < u - far_from[j]
+        assert want.sum() > 0 and (want[0] < 2).any()
+        np.testing.assert_array_equal(agree, want[0])
+        np.testing.assert_array_equal(past, want[1])
+        np.testing.assert_array_equal(far, want[2])
+
+
 def test_visibility_slack_options_are_checked():
     with pytest.raises(OptionsError, match="DSMOptions.visibility_slack_px"):
         dsm.DSMOptions(visibility_slack_px=-1)
