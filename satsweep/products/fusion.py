@@ -425,6 +425,11 @@ def _highest_within(height: np.ndarray, radius_px: int) -> np.ndarray:
     return out
 
 
+# Points per block of _heights_seen_by_others' comparisons, whose temporaries then stay in the
+# CPU's cache: 1700 px seed 22's eight maps (captured), 2.9-3.5 s in one block, 2.2-2.4 s so.
+SEEN_BLOCK = 1 << 16
+
+
 def _heights_seen_by_others(heights, projections, tolerance_m: float, points, caller: str,
                             far_from: Sequence[float | None] | None = None, slack_px: int = 0,
                             slack=None, *,
@@ -476,24 +481,27 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
         for j, (hj, Pj) in enumerate(zip(maps, projections)):
             if j == k:
                 continue
-            col, row = project_points(Pj, e=e, n=n, u=u)
-            with np.errstate(invalid="ignore"):
-                ic = np.floor(col + 0.5)
-                ir = np.floor(row + 0.5)
-                inside = (ic >= 0) & (ic < hj.shape[1]) & (ir >= 0) & (ir < hj.shape[0])
-                # Every point reads a height: a point outside j's map reads its first pixel,
-                # then NaN, which no comparison below counts (no gather and scatter of the
-                # points inside: a quarter of the time).
-                at = np.where(inside, ir * hj.shape[1] + ic, 0.0).astype(np.int64)
-            other = np.where(inside, hj.ravel()[at], np.nan)
-            below = other
-            if slack_k is not None:
-                below = np.where(slack_k & inside, highest[j].ravel()[at], other)
-            with np.errstate(invalid="ignore"):
-                agree += np.abs(other - u) <= tolerance_m
-                past += below < u - tolerance_m
-                if far_from is not None and far_from[j] is not None:
-                    far += other < u - far_from[j]
+            for start in range(0, u.size, SEEN_BLOCK):
+                b = slice(start, start + SEEN_BLOCK)
+                ub = u[b]
+                col, row = project_points(Pj, e=e[b], n=n[b], u=ub)
+                with np.errstate(invalid="ignore"):
+                    ic = np.floor(col + 0.5)
+                    ir = np.floor(row + 0.5)
+                    inside = (ic >= 0) & (ic < hj.shape[1]) & (ir >= 0) & (ir < hj.shape[0])
+                    # Every point reads a height: a point outside j's map reads its first
+                    # pixel, then NaN, which no comparison below counts (no gather and scatter
+                    # of the points inside).
+                    at = np.where(inside, ir * hj.shape[1] + ic, 0.0).astype(np.int64)
+                other = np.where(inside, hj.ravel()[at], np.nan)
+                below = other
+                if slack_k is not None:
+                    below = np.where(slack_k[b] & inside, highest[j].ravel()[at], other)
+                with np.errstate(invalid="ignore"):
+                    agree[b] += np.abs(other - ub) <= tolerance_m
+                    past[b] += below < ub - tolerance_m
+                    if far_from is not None and far_from[j] is not None:
+                        far[b] += other < ub - far_from[j]
         agree_map[rows, cols] = agree
         past_map[rows, cols] = past
         far_map[rows, cols] = far
