@@ -481,6 +481,9 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
         for j, (hj, Pj) in enumerate(zip(maps, projections)):
             if j == k:
                 continue
+            flat_j = hj.ravel()
+            high_j = highest[j].ravel() if slack_k is not None else None
+            far_j = None if far_from is None else far_from[j]
             for start in range(0, u.size, SEEN_BLOCK):
                 b = slice(start, start + SEEN_BLOCK)
                 ub = u[b]
@@ -493,15 +496,15 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
                     # pixel, then NaN, which no comparison below counts (no gather and scatter
                     # of the points inside).
                     at = np.where(inside, ir * hj.shape[1] + ic, 0.0).astype(np.int64)
-                other = np.where(inside, hj.ravel()[at], np.nan)
+                other = np.where(inside, flat_j[at], np.nan)
                 below = other
                 if slack_k is not None:
-                    below = np.where(slack_k[b] & inside, highest[j].ravel()[at], other)
+                    below = np.where(slack_k[b] & inside, high_j[at], other)
                 with np.errstate(invalid="ignore"):
                     agree[b] += np.abs(other - ub) <= tolerance_m
                     past[b] += below < ub - tolerance_m
-                    if far_from is not None and far_from[j] is not None:
-                        far[b] += other < ub - far_from[j]
+                    if far_j is not None:
+                        far[b] += other < ub - far_j
         agree_map[rows, cols] = agree
         past_map[rows, cols] = past
         far_map[rows, cols] = far

@@ -939,10 +939,13 @@ def test_visibility_slack_keeps_a_rim_that_other_views_erode_by_a_pixel():
                                      confidences=sure[:2])
 
 
-def test_seen_by_others_counts_match_a_plain_loop():
+@pytest.mark.parametrize("block", [dsm.SEEN_BLOCK, 7])
+def test_seen_by_others_counts_match_a_plain_loop(block, monkeypatch):
     """The counts behind the cross- and free-space checks (agree, past with and without the
     slack, far), against a loop over every point and every other view: maps of several sizes
-    with unknown pixels, views shifted so that some points fall outside the others' maps."""
+    with unknown pixels, views shifted so that some points fall outside the others' maps; the
+    points in one block and in blocks of 7 (a last one shorter)."""
+    monkeypatch.setattr(dsm, "SEEN_BLOCK", block)
     rng = np.random.default_rng(5)
     shapes = [(9, 12), (11, 10), (8, 14)]
     heights = []
