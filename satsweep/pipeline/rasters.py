@@ -107,11 +107,14 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
     cloud (x, y, z, grey colours) per reference view. ``leaf_season`` and ``passes`` (per view,
     as ``similarity.leaf_season`` and ``similarity.acquisition_passes``; None: unknown) give the
     consensus the crowns' tops of the views of dates in leaf (``[dsm] leaf_on_crowns``) and of
-    the views of two passes where it leaves a crown's cell empty (``[dsm] crown_holes``).
+    the views of two passes where it leaves a crown's cell empty (``[dsm] crown_holes``), and
+    the free-space check the views matched with a source of their own pass
+    (``[dsm] visibility_bare_far_m``).
     ``vegetation_images`` (per view, its vegetation index in the cameras' pixels; None: images
     without colour) give it the crowns' tops of the views that see leaves there (``[dsm]
     green_crowns``)."""
     from satsweep.dense.selection import LEAF_ON_SEASON
+    from satsweep.io.images import VEGETATION_INDEX_MIN
     from satsweep.products.fusion import (
         FOOTPRINT_EDGE_PX,
         consensus_dsms,
@@ -165,17 +168,32 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 and leaf_season[pv.index] >= LEAF_ON_SEASON and c[2].size > 0
                 and fine_pixels(_view_gsd(P, c), grid.resolution)
                 for pv, P, c in zip(per_view, projections, centres)]
+            # The views of pixels finer than the cells matched with a source of their own date
+            # (pass) see far past from visibility_bare_far_m on the points that their own
+            # image does not show green (a stack without colour or dates: none).
+            bare = [c[2].size > 0 and fine_pixels(_view_gsd(P, c), grid.resolution)
+                    and passes is not None and passes[pv.index] is not None
+                    and any(passes[s] == passes[pv.index] for s in pv.source_indices)
+                    for pv, P, c in zip(per_view, projections, centres)]
+            green = None
+            if vegetation_images is not None and d.visibility_bare_far_m > 0.0:
+                green = [np.ravel(vegetation_images[pv.index])[c[3]] >= VEGETATION_INDEX_MIN
+                         for pv, c in zip(per_view, centres)]
             checked = visibility_check_heights(
                 heights, projections, tolerance_m=d.consensus_tolerance_m,
                 far_m=d.visibility_far_m, points=centres, slack_px=d.visibility_slack_px,
                 confidences=[pv.confidence for pv in per_view],
                 slack_min_confidence=d.visibility_slack_confidence,
-                trusted_far_m=d.visibility_leaf_on_far_m, trusted_views=trusted)
+                trusted_far_m=d.visibility_leaf_on_far_m, trusted_views=trusted,
+                bare_far_m=d.visibility_bare_far_m if green is not None else 0.0,
+                bare_views=bare, green=green)
             check = {"check": "free space", "tolerance_m": d.consensus_tolerance_m,
                      "far_m": d.visibility_far_m, "slack_px": d.visibility_slack_px,
                      "slack_min_confidence": d.visibility_slack_confidence,
                      "leaf_on_far_m": d.visibility_leaf_on_far_m,
-                     "leaf_on_fine": [bool(t) for t in trusted]}
+                     "leaf_on_fine": [bool(t) for t in trusted],
+                     "bare_far_m": d.visibility_bare_far_m if green is not None else 0.0,
+                     "bare_views": [bool(b) for b in bare]}
         if check is not None:
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]

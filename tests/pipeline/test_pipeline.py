@@ -755,8 +755,11 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     visibility = fusion.visibility_check_heights
 
     def record_visibility(heights, projections, **kwargs):
-        calls.setdefault("visibility", []).append((kwargs["trusted_far_m"],
-                                                   list(kwargs["trusted_views"])))
+        green = kwargs["green"]
+        calls.setdefault("visibility", []).append((
+            kwargs["trusted_far_m"], list(kwargs["trusted_views"]), kwargs["bare_far_m"],
+            list(kwargs["bare_views"]),
+            None if green is None else [float(np.mean(g)) for g in green]))
         return visibility(heights, projections, **kwargs)
 
     monkeypatch.setattr(fusion, "visibility_check_heights", record_visibility)
@@ -768,13 +771,28 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     assert rep["dsm"]["fusion"] == "consensus"
     # The free-space check trusts the references of dates in leaf from visibility_leaf_on_far_m
     # on: the scene's 0.3 m pixels are finer than the 0.5 m cells.
-    (far_m, trusted), = calls.pop("visibility")
+    (far_m, trusted, bare_far_m, fine, green), = calls.pop("visibility")
     seasons = {v["name"]: v["leaf_season"] for v in rep["view_selection"]["views"]}
     refs = [r["reference"] for r in rep["view_selection"]["references"]]
     assert far_m == config.dsm.visibility_leaf_on_far_m > 0.0
     assert trusted == [seasons[r] is not None and seasons[r] >= LEAF_ON_SEASON for r in refs]
     assert any(trusted) and not all(trusted)
     assert rep["dsm"]["cross_check"]["leaf_on_fine"] == trusted
+    # The references (all of fine pixels) matched with a source of their own pass see far past
+    # the points their image does not show green, from visibility_bare_far_m on; grey images
+    # show none, and the rule is off there.
+    # The scene's own record of each view's acquisition (pass).
+    acquisition = {v.image.name: v.acquisition for v in scene.views}
+    same_date = [any(acquisition[s] == acquisition[r["reference"]] for s in r["sources"])
+                 for r in rep["view_selection"]["references"]]
+    assert fine == same_date == rep["dsm"]["cross_check"]["bare_views"]
+    assert any(same_date) and not all(same_date), same_date  # the scene exercises both
+    if product == "rgb8":
+        assert bare_far_m == config.dsm.visibility_bare_far_m > 0.0
+        assert len(green) == len(refs) and all(0.0 < g < 0.5 for g in green), green
+    else:
+        assert bare_far_m == 0.0 and green is None
+    assert rep["dsm"]["cross_check"]["bare_far_m"] == bare_far_m
     if not crown_rules:
         assert calls == {}
         assert rep["dsm"]["leaf_on_crown_cells"] is None
@@ -784,9 +802,7 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
         return
     in_leaf = [r for r in refs if seasons[r] is not None and seasons[r] >= LEAF_ON_SEASON]
     assert len(in_leaf) >= 2  # the stack exercises the rule
-    # The scene's own record of each view's acquisition (pass): the labels each rule gets
-    # must group the references as it does.
-    acquisition = {v.image.name: v.acquisition for v in scene.views}
+    # The labels each rule gets must group the references as the scene's acquisitions do.
 
     def same_grouping(labels, names):
         return all((labels[i] == labels[j]) == (acquisition[a] == acquisition[b])

@@ -598,6 +598,8 @@ def test_dsm_options_are_checked():
         dsm.DSMOptions(visibility_far_m=float("nan"))
     with pytest.raises(OptionsError, match="DSMOptions.visibility_leaf_on_far_m"):
         dsm.DSMOptions(visibility_leaf_on_far_m=-1.0)
+    with pytest.raises(OptionsError, match="DSMOptions.visibility_bare_far_m"):
+        dsm.DSMOptions(visibility_bare_far_m=float("nan"))
 
 
 def test_write_dsm_geotiff_is_read_by_rasterio_with_the_right_crs(tmp_path):
@@ -868,6 +870,50 @@ def test_trusted_views_see_far_past_from_their_own_depth():
         run(trusted_far_m=float("nan"), trusted_views=[True] * 3)
     with pytest.raises(ValueError, match="trusted_views"):
         run(trusted_far_m=5.0, trusted_views=[True, True])
+
+
+def test_bare_views_see_far_past_the_points_that_are_not_green():
+    """The scene above. View 2 (near nadir) counted as a bare view from 5 m on drops what it
+    drops when trusted from 5 m on, where no point is green; every point green, or no green
+    flags for a view (None), keeps that view's points as with far_m 15 m; view 0's facade points
+    marked green stay, and everything else goes as before."""
+    from satsweep.products.points import height_map_to_enu
+
+    _, walls, heights, projections = _two_facades_at_roof_height()
+    points = [height_map_to_enu(h, np.isfinite(h), P) for h, P in zip(heights, projections)]
+    run = functools.partial(dsm.visibility_check_heights, heights, projections, tolerance_m=2.0,
+                            far_m=15.0, points=points)
+    near = run()
+    everyone = run(trusted_far_m=5.0, trusted_views=[False, False, True])
+    assert any((~m).sum() > (~n).sum() for m, n in zip(everyone, near))
+    bare = functools.partial(run, bare_far_m=5.0, bare_views=[False, False, True])
+    never_green = [np.zeros(p[2].shape, bool) for p in points]
+    for a, b in zip(bare(green=never_green), everyone):
+        np.testing.assert_array_equal(a, b)
+    for green in ([np.ones(p[2].shape, bool) for p in points], [None] * 3):
+        for a, b in zip(bare(green=green), near):
+            np.testing.assert_array_equal(a, b)
+    # View 0's facade points green: they go as with far_m 15 m alone (the three that rule
+    # keeps stay), the rest of every view as without green.
+    facade = walls[0].ravel()[points[0][3]]
+    green = [facade, never_green[1], never_green[2]]
+    out = bare(green=green)
+    assert (near[0][0] & ~everyone[0][0] & walls[0][0]).sum() == 3  # per row
+    np.testing.assert_array_equal(out[0], np.where(walls[0], near[0], everyone[0]))
+    for a, b in zip(out[1:], everyone[1:]):
+        np.testing.assert_array_equal(a, b)
+    # Views that are not bare, or a depth of 0, change nothing.
+    for kwargs in ({"bare_views": [True, True, False]}, {"bare_far_m": 0.0}):
+        for a, b in zip(bare(green=never_green, **kwargs), near):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(OptionsError, match="bare_far_m"):
+        bare(bare_far_m=float("nan"), green=never_green)
+    with pytest.raises(ValueError, match="bare_views"):
+        bare(bare_views=[True, True], green=never_green)
+    with pytest.raises(ValueError, match="green"):
+        bare(green=None)
+    with pytest.raises(ValueError, match="green flags"):
+        bare(green=[never_green[0][:-1], None, None])
 
 
 def test_fine_pixels_are_two_footprints_per_cell():
