@@ -771,7 +771,7 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     assert rep["dsm"]["fusion"] == "consensus"
     # The free-space check trusts the references of dates in leaf from visibility_leaf_on_far_m
     # on: the scene's 0.3 m pixels are finer than the 0.5 m cells.
-    (far_m, trusted, bare_far_m, fine, green), = calls.pop("visibility")
+    (far_m, trusted, bare_far_m, bare, green), = calls.pop("visibility")
     seasons = {v["name"]: v["leaf_season"] for v in rep["view_selection"]["views"]}
     refs = [r["reference"] for r in rep["view_selection"]["references"]]
     assert far_m == config.dsm.visibility_leaf_on_far_m > 0.0
@@ -785,7 +785,7 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     acquisition = {v.image.name: v.acquisition for v in scene.views}
     same_date = [any(acquisition[s] == acquisition[r["reference"]] for s in r["sources"])
                  for r in rep["view_selection"]["references"]]
-    assert fine == same_date == rep["dsm"]["cross_check"]["bare_views"]
+    assert bare == same_date == rep["dsm"]["cross_check"]["bare_views"]
     assert any(same_date) and not all(same_date), same_date  # the scene exercises both
     if product == "rgb8":
         assert bare_far_m == config.dsm.visibility_bare_far_m > 0.0
