@@ -161,20 +161,21 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                                           min_agreeing=d.cross_check_views, points=centres)
             check = {"tolerance_m": d.cross_check_m, "views": d.cross_check_views}
         elif visibility:
-            # The views that see far past from visibility_leaf_on_far_m on: pixels finer than
-            # the cells, a date in leaf (unknown: not).
+            # The views whose pixels are finer than the cells (each view's GSD, taken once).
+            fine = [c[2].size > 0 and fine_pixels(_view_gsd(P, c), grid.resolution)
+                    for P, c in zip(projections, centres)]
+            # Those that see far past from visibility_leaf_on_far_m on: a date in leaf
+            # (unknown: not).
             trusted = [
-                leaf_season is not None and leaf_season[pv.index] is not None
-                and leaf_season[pv.index] >= LEAF_ON_SEASON and c[2].size > 0
-                and fine_pixels(_view_gsd(P, c), grid.resolution)
-                for pv, P, c in zip(per_view, projections, centres)]
-            # The views of pixels finer than the cells matched with a source of their own date
-            # (pass) see far past from visibility_bare_far_m on the points that their own
-            # image does not show green (a stack without colour or dates: none).
-            bare = [c[2].size > 0 and fine_pixels(_view_gsd(P, c), grid.resolution)
-                    and passes is not None and passes[pv.index] is not None
+                f and leaf_season is not None and leaf_season[pv.index] is not None
+                and leaf_season[pv.index] >= LEAF_ON_SEASON
+                for f, pv in zip(fine, per_view)]
+            # Those matched with a source of their own date (pass) see far past from
+            # visibility_bare_far_m on the points that their own image does not show green (a
+            # stack without colour or dates: none).
+            bare = [f and passes is not None and passes[pv.index] is not None
                     and any(passes[s] == passes[pv.index] for s in pv.source_indices)
-                    for pv, P, c in zip(per_view, projections, centres)]
+                    for f, pv in zip(fine, per_view)]
             green = None
             if vegetation_images is not None and d.visibility_bare_far_m > 0.0:
                 green = [np.ravel(vegetation_images[pv.index])[c[3]] >= VEGETATION_INDEX_MIN
