@@ -126,6 +126,8 @@ class ReferenceHeights:
     at_range_ends: tuple[float, float]  # fractions of the window's pixels whose best plane is
     # within RANGE_END_PLANES of the lowest / the highest plane
     median_radius_px: int | None = None  # the weighted median's window radius; None: no median
+    top_region_m2: float = 0.0  # ground area (m2, at the reference's ground sample distance)
+    # of the largest connected region of pixels at the top end (top_region_m2)
 
     def to_report(self) -> dict:
         return {"reference": self.reference, "sources": list(self.sources),
@@ -134,7 +136,21 @@ class ReferenceHeights:
                 "tiles": self.tiles, "window_planes": self.window_planes,
                 "window_share": self.window_share, "mrf": self.mrf,
                 "at_range_ends": list(self.at_range_ends),
-                "median_radius_px": self.median_radius_px}
+                "median_radius_px": self.median_radius_px,
+                "top_region_m2": self.top_region_m2}
+
+
+def top_region_m2(at_top: np.ndarray, gsd_m: float) -> float:
+    """Ground area (m2) of the largest 8-connected region of ``at_top`` pixels that a 3 x 3
+    opening keeps (pixels at the range's top scattered by noise fall away; a roof stays)."""
+    import cv2  # noqa: PLC0415
+
+    mask = cv2.morphologyEx(np.asarray(at_top, dtype=np.uint8), cv2.MORPH_OPEN,
+                            np.ones((3, 3), np.uint8))
+    if not mask.any():
+        return 0.0
+    _n, _labels, stats, _c = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    return float(stats[1:, cv2.CC_STAT_AREA].max()) * gsd_m * gsd_m
 
 
 def area_mrf_options(config: PipelineConfig, n_references: int) -> MRFOptions:
@@ -288,7 +304,8 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             tiles=int(result.split.n_tiles), window_planes=result.split.window_planes,
             window_share=result.split.window_share,
             mrf=mrf_info, median_radius_px=median_px,
-            at_range_ends=ends))
+            at_range_ends=ends,
+            top_region_m2=top_region_m2(index >= len(heights) - 1 - RANGE_END_PLANES, gsd)))
     return out
 
 

@@ -453,7 +453,10 @@ def test_widened_range_needs_most_references_at_one_end():
     from satsweep.pipeline.area import (
         RANGE_WIDEN_FRACTION,
         RANGE_WIDEN_M,
+        RANGE_WIDEN_SHARE,
         RANGE_WIDEN_TOP_FRACTION,
+        RANGE_WIDEN_TOP_REGION_M2,
+        RANGE_WIDEN_TOP_REGION_MIN_REFERENCES,
         widened_range,
     )
 
@@ -463,8 +466,8 @@ def test_widened_range_needs_most_references_at_one_end():
     tower, none = RANGE_WIDEN_TOP_FRACTION * 1.2, RANGE_WIDEN_TOP_FRACTION * 0.5
     assert none < tower < low
 
-    def sweeps(*ends):
-        return [SimpleNamespace(at_range_ends=e) for e in ends]
+    def sweeps(*ends, region=0.0):
+        return [SimpleNamespace(at_range_ends=e, top_region_m2=region) for e in ends]
 
     # Three of four at the top: widened there, by the larger of the step and half the span.
     wider, end, hits, fraction = widened_range(rng, sweeps((0, high), (0, high), (0, high),
@@ -493,3 +496,33 @@ def test_widened_range_needs_most_references_at_one_end():
     assert widened_range(rng, sweeps((0, tower), (0, none))) is None
     # Not the floor: it needs its own fraction in most references whatever the top's rule.
     assert widened_range(rng, sweeps(*[(low, 0)] * 8)) is None
+    # The top on a roof: most references with a region of RANGE_WIDEN_TOP_REGION_M2 there,
+    # however few of their pixels that is, with RANGE_WIDEN_TOP_REGION_MIN_REFERENCES or more.
+    roof, speck = RANGE_WIDEN_TOP_REGION_M2, RANGE_WIDEN_TOP_REGION_M2 * 0.5
+    n = max(RANGE_WIDEN_TOP_REGION_MIN_REFERENCES, 8)
+    most = int(np.ceil(RANGE_WIDEN_SHARE * n))
+    wider, end, hits, fraction = widened_range(
+        rng, sweeps(*[(0, none)] * most, region=roof)
+        + sweeps(*[(0, none)] * (n - most), region=speck))
+    assert (end, hits, fraction) == (1, most, None)
+    assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
+    assert widened_range(rng, sweeps(*[(0, none)] * (most - 1), region=roof)
+                         + sweeps(*[(0, none)] * (n - most + 1), region=speck)) is None
+    few = RANGE_WIDEN_TOP_REGION_MIN_REFERENCES - 1  # too few to tell, all of them on a roof
+    assert widened_range(rng, sweeps(*[(0, none)] * few, region=roof)) is None
+    assert widened_range(rng, sweeps(*[(low, none)] * 8, region=speck)) is None
+
+
+def test_top_region_is_the_largest_roof_at_the_top_not_scattered_pixels():
+    from satsweep.pipeline.sweeps import top_region_m2
+
+    gsd = 0.3
+    at_top = np.zeros((60, 80), bool)
+    at_top[::4, ::5] = True  # scattered single pixels (noise at the range's end)
+    at_top[30, 10:70] = True  # a one-pixel line: the opening removes it too
+    assert top_region_m2(at_top, gsd) == 0.0
+    at_top[5:11, 20:25] = True  # a roof of 6 x 5 pixels
+    at_top[40:44, 50:53] = True  # a smaller one of 4 x 3
+    # the roof's own pixels; the scattered ones inside it belong to it already
+    assert top_region_m2(at_top, gsd) == pytest.approx(30 * gsd * gsd)
+    assert top_region_m2(np.zeros((5, 5), bool), gsd) == 0.0
