@@ -31,6 +31,9 @@ class SparseOptions(Options):
     # the 20-view multi-date stacks from 0.055 to 0.044 px, docs/measurements.md)
     contrast_threshold: float = 0.02  # SIFT contrast threshold (OpenCV units)
     ratio: float = 0.8  # Lowe's ratio test: nearest / second-nearest descriptor distance below this
+    repair_ratio: float = 0.9  # the ratio of a second matching of the pairs into a group of views
+    # that would be dropped as untied (other dates under another sun: too few matches pass
+    # `ratio`); equal to `ratio`: no second matching
     mutual: bool = True  # keep a match only when each feature is the other's nearest neighbour
     geometric_model: Literal["cameras", "affine"] = "cameras"  # verification by the cameras'
     # epipolar geometry up to an offset, or by RANSAC of an affine fundamental matrix
@@ -63,7 +66,7 @@ class SparseOptions(Options):
     ADVANCED = ("feature_scale", "feature_scale_min_px", "refine_window_px",
                 "refine_max_shift_px", "refine_keep_fraction", "fine_points_per_view",
                 "extend_points_per_view",
-                "contrast_threshold", "ratio",
+                "contrast_threshold", "ratio", "repair_ratio",
                 "mutual", "geometric_model", "ransac_threshold_px", "ransac_iterations", "seed",
                 "pair_min_overlap", "pair_bh_range", "pair_probe_features", "pair_repair",
                 "camera_grid", "altitude_max_error_px", "altitude_min_points",
@@ -88,6 +91,8 @@ class SparseOptions(Options):
         self._require(math.isfinite(self.contrast_threshold) and self.contrast_threshold > 0.0,
                       "contrast_threshold", "must be a positive number")
         self._require(0.0 < self.ratio <= 1.0, "ratio", "must be in (0, 1]")
+        self._require(self.ratio <= self.repair_ratio <= 1.0, "repair_ratio",
+                      f"must be in [ratio = {self.ratio:g}, 1]")
         self._require(math.isfinite(self.ransac_threshold_px) and self.ransac_threshold_px > 0.0,
                       "ransac_threshold_px", "must be a positive number of pixels")
         self._require(self.ransac_iterations >= 1, "ransac_iterations", "must be at least 1")

@@ -549,3 +549,36 @@ def test_corrections_follow_the_given_paths(biased_result, biased):
     np.testing.assert_array_equal(np.array(got), result.corrections_px[[2, 0]])
     with pytest.raises(InputError):
         result.corrections_for(["/nonexistent.tif"])
+
+
+# Ten views of 384 px in five acquisitions (8-bit RGB at 33.45 S, pointing errors to 50 px),
+# cropped at the RPCs' own range as reconstruct crops them: their dates' suns stand 27-73
+# degrees high and the ratio test at 0.8 leaves the pairs across three groups of dates 2-11
+# verified matches (tools/bench_multidate.py seed 31, REPAIR_RATIO_NOTE in the stage).
+SPLIT_DATES = dict(seed=31, n_views=10, size_px=384, gsd_m=0.5, bias_px=2.0, acquisitions=5,
+                   large_bias_px=50.0, product="rgb8", location=(-70.6, -33.45), cell_m=0.25)
+
+
+def test_groups_of_dates_that_would_be_dropped_are_matched_again_more_loosely(synthetic_scene):
+    scene = synthetic_scene(**SPLIT_DATES)
+    rpc = altitude_range_from_rpcs([v.rpc() for v in scene.views], warn=False)
+    views, prior = _views(scene, rpc)
+    once = sparse_stage(views, scene.aoi, prior, SparseOptions(repair_ratio=SparseOptions.ratio))
+    assert len(once.kept) <= len(scene.views) // 2, once.kept  # the stack this rule is for
+    result = sparse_stage(views, scene.aoi, prior)
+    assert result.kept == tuple(range(10)), result.warnings
+    resid, _ = _motion(result, scene)
+    assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
+    # Where the first matching ties every view, nothing is matched again: the same result.
+    tied = sparse_stage(views[:4], scene.aoi, prior)
+    loose = sparse_stage(views[:4], scene.aoi, prior,
+                         SparseOptions(repair_ratio=1.0))
+    assert tied.kept == loose.kept == (0, 1, 2, 3)
+    assert np.array_equal(tied.corrections_px, loose.corrections_px)
+
+
+def test_repair_ratio_is_checked():
+    with pytest.raises(OptionsError, match="repair_ratio"):
+        SparseOptions(ratio=0.8, repair_ratio=0.7)
+    with pytest.raises(OptionsError, match="repair_ratio"):
+        SparseOptions(repair_ratio=1.5)
