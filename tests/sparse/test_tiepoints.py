@@ -11,9 +11,11 @@ import pytest
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.sparse.options import SparseOptions
 from satsweep.sparse.tiepoints import (
+    TOP_VIEW_SETS_MIN_VIEWS,
     altitude_range_from_points,
     highest_supported_near,
     supported_extremes,
+    view_set_labels,
 )
 
 
@@ -165,3 +167,75 @@ def test_the_top_needs_its_support_on_one_roof():
     anywhere = dataclasses.replace(o, altitude_support_radius_m=0.0)
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, anywhere)
     assert record["supported_extremes_m"][1] == 162.9
+
+
+def _observed(view_lists):
+    from satsweep.sparse.tracks import Observations
+
+    point = np.concatenate([np.full(len(v), i) for i, v in enumerate(view_lists)])
+    view = np.concatenate([np.asarray(v) for v in view_lists])
+    return Observations(point=point, view=view, xy=np.zeros((point.size, 2)),
+                        n_points=len(view_lists))
+
+
+def test_view_set_labels_name_each_set_of_views_once():
+    obs = _observed([[0, 1], [1, 0], [0, 2], [2, 1, 0], [0, 1, 2], [3, 4]])
+    labels = view_set_labels(obs, 6)
+    assert labels[0] == labels[1] and labels[3] == labels[4]
+    assert len({labels[0], labels[2], labels[3], labels[5]}) == 4
+    assert view_set_labels(_observed([[0, 1]]), 0).size == 0
+
+
+def test_a_top_of_one_set_of_views_needs_the_views_confirmation():
+    """A repeated pattern matched wrongly by one pair: its points share a height and a place
+    (a ten-view stack: 379 m over roofs that end at 158 m). Where TOP_VIEW_SETS_MIN_VIEWS views
+    or more are tied, a top held by one set of views above the top of two sets stands only
+    where the other views confirm it; a roof matched by two pairs needs nothing."""
+    n_ground = 30
+    alts = [100.0 + 0.1 * k for k in range(n_ground)] + [126.0, 125.5] + [379.0, 378.2]
+    m = TOP_VIEW_SETS_MIN_VIEWS  # views tied
+    tracks = ([list(range(m)), list(range(m - 1))] * (n_ground // 2)
+              + [[0, 1], [1, 2]]  # the roof: two pairs
+              + [[2, 3], [3, 2]])  # the pattern: one pair
+    points = np.column_stack([np.full(len(alts), 0.5), np.full(len(alts), 0.5), alts])
+    err = np.full(len(alts), 0.2)
+    aoi = _adjusted([0.0], [1], [0.0])[3]
+    o = SparseOptions()
+    asked = []
+
+    def deny(i):
+        asked.append(i)
+        return False
+
+    rng, record = altitude_range_from_points(points, _observed(tracks), err, _Frame, aoi, o,
+                                             confirm=deny)
+    assert record["supported_extremes_m"][1] == 126.0
+    assert asked[0] == len(alts) - 2  # the pattern's top point, asked first
+    assert record["one_view_set_top"] == {"altitude_m": 379.0, "confirmed": False}
+    rng, record = altitude_range_from_points(points, _observed(tracks), err, _Frame, aoi, o,
+                                             confirm=lambda i: True)
+    assert record["supported_extremes_m"][1] == 379.0
+    # Without views to ask (confirm None): as before.
+    rng, record = altitude_range_from_points(points, _observed(tracks), err, _Frame, aoi, o)
+    assert record["supported_extremes_m"][1] == 379.0
+    # The roof held by one pair too, nothing confirmed: the ground's top (two sets of views).
+    roof_one_pair = [t if i != n_ground + 1 else [0, 1] for i, t in enumerate(tracks)]
+    rng, record = altitude_range_from_points(points, _observed(roof_one_pair), err, _Frame,
+                                             aoi, o, confirm=lambda i: False)
+    assert record["supported_extremes_m"][1] == alts[n_ground - 1]
+    # Fewer views tied: one pair's support is enough, as before (a small stack's roofs).
+    fewer = [[v for v in t if v < m - 2] for t in tracks]
+    fewer = [t if len(t) >= 2 else [0, 1] for t in fewer]
+    rng, record = altitude_range_from_points(points, _observed(fewer), err, _Frame, aoi, o,
+                                             confirm=lambda i: False)
+    assert record["supported_extremes_m"][1] == 379.0
+
+
+def test_highest_supported_near_with_view_sets():
+    alt = np.array([100.0, 100.5, 126.0, 125.5, 379.0, 378.2])
+    xy = np.zeros((6, 2))
+    sets = np.array([0, 0, 1, 2, 3, 3])
+    assert highest_supported_near(alt, xy, 2, 3.0, 10.0, view_sets=sets) == 379.0
+    assert highest_supported_near(alt, xy, 2, 3.0, 10.0, view_sets=sets, min_view_sets=2) == 126.0
+    assert highest_supported_near(alt[:2], xy[:2], 2, 3.0, 10.0, view_sets=sets[:2],
+                                  min_view_sets=2) is None
