@@ -577,6 +577,24 @@ def test_groups_of_dates_that_would_be_dropped_are_matched_again_more_loosely(sy
     assert np.array_equal(tied.corrections_px, loose.corrections_px)
 
 
+def test_a_large_stack_matches_again_for_a_few_views_that_would_drop(synthetic_scene):
+    """Ten views of one date each (seed 36): the ratio test at 0.8 leaves views 7 and 8 out (8 of
+    10 tied); in a stack of REPAIR_ANY_MIN_VIEWS views or more their pairs are matched again
+    too, and all ten tie right."""
+    from satsweep.sparse.stage import REPAIR_ANY_MIN_VIEWS
+
+    scene = synthetic_scene(**dict(SPLIT_DATES, seed=36, acquisitions=10))
+    assert len(scene.views) >= REPAIR_ANY_MIN_VIEWS
+    rpc = altitude_range_from_rpcs([v.rpc() for v in scene.views], warn=False)
+    views, prior = _views(scene, rpc)
+    once = sparse_stage(views, scene.aoi, prior, SparseOptions(repair_ratio=SparseOptions.ratio))
+    assert len(scene.views) // 2 < len(once.kept) < len(scene.views), once.kept
+    result = sparse_stage(views, scene.aoi, prior)
+    assert result.kept == tuple(range(10)), result.warnings
+    resid, _ = _motion(result, scene)
+    assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
+
+
 def test_repair_ratio_is_checked():
     with pytest.raises(OptionsError, match="repair_ratio"):
         SparseOptions(ratio=0.8, repair_ratio=0.7)
