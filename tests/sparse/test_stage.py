@@ -593,6 +593,18 @@ def test_a_large_stack_matches_again_for_a_few_views_that_would_drop(synthetic_s
     assert result.kept == tuple(range(10)), result.warnings
     resid, _ = _motion(result, scene)
     assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
+    # A view of another place (seed 31's town in view 3's place) is still dropped, named, with
+    # the looser matching of its pairs; the other views tie.
+    other = synthetic_scene(**SPLIT_DATES)
+    other_views, _ = _views(other, altitude_range_from_rpcs([v.rpc() for v in other.views],
+                                                            warn=False))
+    h, w = views[3].image.shape[:2]
+    image = other_views[3].image[:h, :w]
+    assert image.shape[:2] == (h, w)
+    result = sparse_stage(_with(views, 3, image), scene.aoi, prior)
+    assert result.kept == (0, 1, 2, 4, 5, 6, 7, 8, 9), result.warnings
+    (d,) = result.dropped
+    assert d.index == 3 and "does it see the same place?" in d.reason
 
 
 def test_repair_ratio_is_checked():
