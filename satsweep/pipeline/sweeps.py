@@ -293,8 +293,8 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
                     device, height[y0:y1, x0:x1], valid[y0:y1, x0:x1], ref_image,
                     radius=median_px, sigma=mrf.median_sigma)
         index = np.asarray(result.plane_index)
-        ends = (float(np.mean(index <= RANGE_END_PLANES)),
-                float(np.mean(index >= len(heights) - 1 - RANGE_END_PLANES)))
+        at_top = index >= len(heights) - 1 - RANGE_END_PLANES
+        ends = (float(np.mean(index <= RANGE_END_PLANES)), float(np.mean(at_top)))
         out.append(ReferenceHeights(
             index=r, height=height, valid=valid, confidence=confidence, reference=names[r],
             sources=tuple(names[s] for s in srcs), source_indices=tuple(int(s) for s in srcs),
@@ -305,7 +305,7 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             window_share=result.split.window_share,
             mrf=mrf_info, median_radius_px=median_px,
             at_range_ends=ends,
-            top_region_m2=top_region_m2(index >= len(heights) - 1 - RANGE_END_PLANES, gsd)))
+            top_region_m2=top_region_m2(at_top, gsd)))
     return out
 
 

@@ -196,13 +196,16 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     # TOP_VIEW_SETS_NOTE: a top held by points of one set of views only (wrong matches of one
     # pair on a repeated pattern share a height and a place), over that of two sets, needs the
     # views' confirmation where the stack has TOP_VIEW_SETS_MIN_VIEWS views or more.
-    sets = view_set_labels(obs, len(points))
     tied_views = len(np.unique(obs.view[use[obs.point]])) if len(obs.view) else 0
     min_sets = 2 if tied_views >= TOP_VIEW_SETS_MIN_VIEWS else 1
+    # (the view sets are labelled only where they are asked about)
+    sets = view_set_labels(obs, len(points))[use] if min_sets > 1 else None
+    xy_use = points[use][:, :2]
+
     def top(need_sets: int) -> float | None:
-        return highest_supported_near(a, points[use][:, :2], support(a.size),
-                                      o.altitude_support_m, o.altitude_support_radius_m,
-                                      view_sets=sets[use], min_view_sets=need_sets)
+        return highest_supported_near(a, xy_use, support(a.size), o.altitude_support_m,
+                                      o.altitude_support_radius_m, view_sets=sets,
+                                      min_view_sets=need_sets)
 
     hi = top(1)
     if min_sets > 1 and hi is not None:
