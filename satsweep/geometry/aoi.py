@@ -120,6 +120,21 @@ class AOI:
         lon = self.center[0]
         return float(pyproj.Geod(ellps="WGS84").line_length([lon, lon], [self.lat_min, self.lat_max]))
 
+    def grown_to(self, side_m: float) -> "AOI":
+        """The box about the same centre whose sides are at least ``side_m`` metres (each side
+        as it is when already longer), within the valid latitudes and longitudes."""
+        lon, lat = self.center
+        half_lon, half_lat = 0.5 * (self.lon_max - self.lon_min), 0.5 * (self.lat_max - self.lat_min)
+        grow_lon = max(1.0, float(side_m) / max(self.width_m, 1e-9))
+        grow_lat = max(1.0, float(side_m) / max(self.height_m, 1e-9))
+        if grow_lon == 1.0 and grow_lat == 1.0:
+            return self
+        lons = ((self.lon_min, self.lon_max) if grow_lon == 1.0 else
+                (max(lon - grow_lon * half_lon, -180.0), min(lon + grow_lon * half_lon, 180.0)))
+        lats = ((self.lat_min, self.lat_max) if grow_lat == 1.0 else
+                (max(lat - grow_lat * half_lat, -90.0), min(lat + grow_lat * half_lat, 90.0)))
+        return AOI(lons[0], lats[0], lons[1], lats[1])
+
     def utm_epsg(self) -> int:
         """EPSG code of the UTM zone of the box centre."""
         from satsweep.geometry.geodesy import utm_epsg

@@ -222,13 +222,15 @@ def tie_sources(sources: Sequence["ImageSource"], aoi: "AOI", prior: "AltitudeRa
     from satsweep.sparse.stage import sparse_stage
 
     with _stage(report, "sparse"):
-        # Over the RPCs' kilometres of heights the footprints overflow the images: no warning.
-        views = load_views(sources, aoi, prior, margin_px=config.reconstruct.crop_margin_px,
+        # A small AOI is tied over a larger box about it ([sparse] min_extent_m). Over the RPCs'
+        # kilometres of heights the footprints overflow the images: no warning.
+        tie_aoi = aoi.grown_to(config.sparse.min_extent_m)
+        views = load_views(sources, tie_aoi, prior, margin_px=config.reconstruct.crop_margin_px,
                            warn_partial=False)
         # (The fixed views were checked against the whole input: check_fixed_views.)
         result = sparse_stage(views, aoi, prior, config.sparse, config.bundle,
                               images=[tonemap(v.image, valid=v.valid) for v in views],
-                              fixed_absent_ok=True)
+                              fixed_absent_ok=True, tie_aoi=tie_aoi)
     for line in result.warnings:
         _warn(report, line)
     return result

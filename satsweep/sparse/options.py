@@ -40,6 +40,9 @@ class SparseOptions(Options):
     ransac_threshold_px: float = 1.5  # inlier distance (px) to the epipolar line
     ransac_iterations: int = 1000  # RANSAC samples of the affine fundamental matrix
     seed: int = 0  # seed of the RANSAC sampling
+    min_extent_m: float = 50.0  # the views are tied over the AOI grown about its centre to at
+    # least this side (m): a small AOI holds few features, and another date's views match few
+    # of them; a pointing error moves the whole image alike. 0: over the AOI alone
     pair_min_overlap: float = 0.2  # least fraction of the AOI two views must both see to pair
     pair_bh_range: tuple[float, float] = (0.02, 0.6)  # base-to-height ratios of the preferred pairs
     pair_probe_features: int = 300  # strongest features matched to score candidate pairs; 0: none
@@ -68,7 +71,7 @@ class SparseOptions(Options):
                 "extend_points_per_view",
                 "contrast_threshold", "ratio", "repair_ratio",
                 "mutual", "geometric_model", "ransac_threshold_px", "ransac_iterations", "seed",
-                "pair_min_overlap", "pair_bh_range", "pair_probe_features", "pair_repair",
+                "min_extent_m", "pair_min_overlap", "pair_bh_range", "pair_probe_features", "pair_repair",
                 "camera_grid", "altitude_max_error_px", "altitude_min_points",
                 "altitude_floor_views", "altitude_floor_fewer_fraction", "altitude_support",
                 "altitude_support_fraction", "altitude_support_m", "altitude_support_radius_m",
@@ -100,6 +103,8 @@ class SparseOptions(Options):
                       "must be at least 5 (the affine model needs 4 matches plus redundancy)")
         self._require(self.seed >= 0, "seed", "must be >= 0")
         self._require(self.pair_neighbours >= 1, "pair_neighbours", "must be at least 1")
+        self._require(math.isfinite(self.min_extent_m) and 0.0 <= self.min_extent_m <= 5000.0,
+                      "min_extent_m", "must be a number of metres in [0, 5000] (0: the AOI alone)")
         self._require(math.isfinite(self.pair_min_overlap) and 0.0 <= self.pair_min_overlap <= 1.0,
                       "pair_min_overlap", "must be a fraction in [0, 1]")
         lo, hi = self.pair_bh_range

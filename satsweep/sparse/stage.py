@@ -239,12 +239,38 @@ def _in_threads(function: Callable[[Any], Any], items: Sequence[Any]) -> list[An
     return map_in_threads(function, items, max_threads=SPARSE_THREADS_MAX, name="sparse")
 
 
-def _detect(images: Sequence[np.ndarray], options: SparseOptions) -> list[tuple[np.ndarray, np.ndarray]]:
-    """SIFT features of every image (strongest first)."""
-    return _in_threads(lambda im: detect_features(im, max_features=options.max_features,
-                                                  contrast_threshold=options.contrast_threshold,
-                                                  scale=feature_scale_for(np.shape(im), options)),
-                       images)
+def _detect(images: Sequence[np.ndarray], options: SparseOptions,
+            budgets: Sequence[int] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """SIFT features of every image (strongest first), at most ``budgets[v]`` of view v
+    (``options.max_features`` each when None)."""
+    budgets = [options.max_features] * len(images) if budgets is None else list(budgets)
+    return _in_threads(lambda k: detect_features(images[k], max_features=int(budgets[k]),
+                                                 contrast_threshold=options.contrast_threshold,
+                                                 scale=feature_scale_for(np.shape(images[k]),
+                                                                         options)),
+                       range(len(images)))
+
+
+# A view cropped over a box larger than the AOI ([sparse] min_extent_m) detects up to
+# max_features times its crop's area over the AOI's footprint in it, at most this many times
+# max_features: the AOI keeps its density of features (the altitude range's tie points) while
+# the box around it adds its own.
+FEATURE_BUDGET_MAX_FACTOR = 4.0
+
+
+def feature_budgets(views: Sequence[Any], aoi: Any, alt: Any, options: SparseOptions) -> list[int]:
+    """Per view cropped over a box about ``aoi`` at the ``alt`` range, its SIFT budget
+    (FEATURE_BUDGET_MAX_FACTOR)."""
+    from satsweep.io.views import projected_aoi_box
+
+    out = []
+    for view in views:
+        h, w = np.shape(view.image)[:2]
+        c0, r0, c1, r1 = projected_aoi_box(view.rpc.projection, aoi, alt)
+        inner = max(min(c1, w) - max(c0, 0.0), 1.0) * max(min(r1, h) - max(r0, 0.0), 1.0)
+        factor = min(max(w * h / inner, 1.0), FEATURE_BUDGET_MAX_FACTOR)
+        out.append(int(round(options.max_features * factor)))
+    return out
 
 
 def _camera_error(cam: Any) -> float:
@@ -454,7 +480,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
               options: SparseOptions = SparseOptions(),
               bundle_options: BundleOptions = BundleOptions(), *,
               samples: np.ndarray | None = None, fine_cameras: Any = None,
-              dropped: dict[int, str] | None = None, fixed: Sequence[int] = ()) -> TiedViews:
+              dropped: dict[int, str] | None = None, fixed: Sequence[int] = (),
+              max_features: Sequence[int] | None = None) -> TiedViews:
     """Steps 1-7 of the module docstring on tonemapped ``images`` and their ``cameras``.
 
     ``cameras``: per view a PerspectiveCamera of its image (those of the prior range);
@@ -464,7 +491,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     sparse stage fits them over the coarse tie points' altitudes); ``dropped``: views already
     known to be unusable (camera None), with the reason; ``fixed``: views whose corrections are
     held at zero (``BundleOptions.fixed_views``; the gauge is the smallest corrections without
-    them). Views that cannot be tied are in the result's ``dropped``; raises CameraError for
+    them); ``max_features``: per view its SIFT budget (:func:`feature_budgets`), None for
+    ``options.max_features``. Views that cannot be tied are in the result's ``dropped``; raises CameraError for
     inputs of the wrong size and for fixed views that disagree (``FIXED_AGREEMENT_PX``).
     """
     V = len(images)
@@ -482,7 +510,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             raise CameraError(f"tie_views: view {names[v]} has no camera and no reason to drop it")
 
     t0 = time.perf_counter()
-    feats = _detect([im if v not in dropped else np.zeros((1, 1)) for v, im in enumerate(images)], o)
+    feats = _detect([im if v not in dropped else np.zeros((1, 1)) for v, im in enumerate(images)], o,
+                    max_features)
     n_features = tuple(len(xy) for xy, _ in feats)
     for v, k in enumerate(n_features):
         if k < o.min_matches and v not in dropped:
@@ -979,7 +1008,7 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
                  bundle_options: BundleOptions = BundleOptions(), *,
                  names: Sequence[str] | None = None,
                  images: Sequence[np.ndarray] | None = None,
-                 fixed_absent_ok: bool = False) -> SparseResult:
+                 fixed_absent_ok: bool = False, tie_aoi: Any = None) -> SparseResult:
     """The sparse stage (module docstring) on ``views`` cropped at the ``prior`` altitude range.
 
     ``views``: :class:`satsweep.io.views.View` (``load_views(paths, aoi, prior, margin_px=...)``);
@@ -987,7 +1016,9 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
     the RPCs'); ``images``: their tonemapped images if already made; ``names``: for messages,
     default the file names; ``fixed_absent_ok``: fixed views (``bundle_options.fixed_views``)
     that are not among ``views`` are a warning (a tile they do not see) rather than an
-    OptionsError. Raises CameraError naming every view and why when fewer than two views can be
+    OptionsError; ``tie_aoi``: the box the views were cropped at when larger than the AOI
+    (``AOI.grown_to(options.min_extent_m)``: the cameras are fitted over it, while the pairs'
+    overlaps and the altitude range are the AOI's), None for the AOI. Raises CameraError naming every view and why when fewer than two views can be
     tied.
     """
     from satsweep.geometry.altitude import AltitudeRange
@@ -1003,16 +1034,18 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
         images = _in_threads(lambda v: tonemap(v.image), views)
     seconds["tonemap"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    frame, prior_cams, failed = fit_cameras(views, aoi, prior, options.camera_grid)
+    tie_aoi = aoi if tie_aoi is None else tie_aoi
+    frame, prior_cams, failed = fit_cameras(views, tie_aoi, prior, options.camera_grid)
     seconds["cameras"] = time.perf_counter() - t0
     samples = aoi_samples(frame, aoi, (prior.min, prior.mid, prior.max))
     fine_frame = [frame]
 
     def refit(kept: Sequence[int], coarse: BundleSolution) -> list[Any]:
-        """Cameras over the AOI x the coarse tie points' altitudes (the prior's if too few)."""
+        """Cameras over the tie box x the coarse tie points' altitudes (the prior's if too
+        few)."""
         lon, lat, alt = frame.to_geodetic(e=coarse.points[:, 0], n=coarse.points[:, 1],
                                           u=coarse.points[:, 2])
-        inside = aoi.contains(lon=lon, lat=lat) & np.isfinite(alt)
+        inside = tie_aoi.contains(lon=lon, lat=lat) & np.isfinite(alt)
         if inside.sum() < options.altitude_min_points:
             fine_frame[0] = frame
             return list(prior_cams)
@@ -1022,8 +1055,8 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
         if not lo < hi:
             fine_frame[0] = frame
             return list(prior_cams)
-        fine, cams, failures = fit_cameras(views, aoi, AltitudeRange(lo, hi), options.camera_grid,
-                                           only=kept)
+        fine, cams, failures = fit_cameras(views, tie_aoi, AltitudeRange(lo, hi),
+                                           options.camera_grid, only=kept)
         if failures:  # a view that sees too little of the AOI's cube: the prior's cameras
             fine_frame[0] = frame
             return list(prior_cams)
@@ -1033,7 +1066,9 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
     fixed, absent = fixed_view_indices(bundle_options.fixed_views, paths, names,
                                        absent_ok=fixed_absent_ok)
     tied = tie_views(images, prior_cams, names, options, bundle_options, samples=samples,
-                     fine_cameras=refit, dropped=failed, fixed=fixed)
+                     fine_cameras=refit, dropped=failed, fixed=fixed,
+                     max_features=None if tie_aoi is aoi else feature_budgets(views, aoi, prior,
+                                                                              options))
     seconds.update({k: seconds.get(k, 0.0) + v for k, v in tied.seconds.items()})
     if len(tied.kept) < 2:
         why = "; ".join(f"{paths[d.index]}: {d.reason}" for d in tied.dropped) or "no view could be tied"

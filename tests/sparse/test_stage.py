@@ -607,6 +607,52 @@ def test_a_large_stack_matches_again_for_a_few_views_that_would_drop(synthetic_s
     assert d.index == 3 and "does it see the same place?" in d.reason
 
 
+# Ten views of 384 px at 0.3 m in five acquisitions (8-bit RGB at 60.17 N, pointing errors to
+# 50 px) over the AOI their footprints share, 18 m across: cropped at the RPCs' own range, their
+# pairs across dates hold 3-8 verified matches and six views are dropped even with the looser
+# second matching (tools/bench_multidate.py --gsd 0.3 seed 52, docs/measurements.md).
+SMALL_AOI = dict(SPLIT_DATES, seed=52, gsd_m=0.3, location=(24.94, 60.17), cell_m=0.15)
+
+
+def test_a_small_aoi_is_tied_over_a_larger_box(synthetic_scene):
+    from satsweep.config import PipelineConfig
+    from satsweep.io.sources import open_sources
+    from satsweep.pipeline.prepare import tie_sources
+
+    scene = synthetic_scene(**SMALL_AOI)
+    assert max(scene.aoi.width_m, scene.aoi.height_m) < SparseOptions.min_extent_m / 2
+    rpc = altitude_range_from_rpcs([v.rpc() for v in scene.views], warn=False)
+    sources = open_sources([v.image for v in scene.views])
+    alone = tie_sources(sources, scene.aoi, rpc,
+                        PipelineConfig.from_mapping({"sparse": {"min_extent_m": 0.0}}))
+    assert len(alone.kept) <= len(scene.views) // 2, alone.kept  # the stack this is for
+    result = tie_sources(sources, scene.aoi, rpc, PipelineConfig())
+    assert result.kept == tuple(range(10)), result.warnings
+    resid, _ = _motion(result, scene)
+    assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
+    # The altitude range is the AOI's own: its tie points within the AOI's margin only.
+    truth = scene.alt_range
+    assert result.altitude_range.min <= truth[0] and result.altitude_range.max >= truth[1]
+    assert result.altitude["tie_points_near_aoi"] < len(result.tied.points)
+
+
+def test_grown_to_keeps_the_centre_and_reaches_the_side():
+    from satsweep.geometry.aoi import AOI
+
+    aoi = AOI(24.9398, 60.1699, 24.9402, 60.1701)  # about 22 x 22 m
+    big = aoi.grown_to(100.0)
+    assert big.center == pytest.approx(aoi.center, abs=1e-12)
+    assert big.width_m == pytest.approx(100.0, rel=1e-3)
+    assert big.height_m == pytest.approx(100.0, rel=1e-3)
+    assert big.grown_to(50.0) is big and aoi.grown_to(0.0) is aoi
+    wide = AOI(24.90, 60.1699, 24.98, 60.1701)  # kilometres east-west, 22 m north-south
+    grown = wide.grown_to(100.0)
+    assert (grown.lon_min, grown.lon_max) == (wide.lon_min, wide.lon_max)
+    assert grown.height_m == pytest.approx(100.0, rel=1e-3)
+    with pytest.raises(OptionsError, match="min_extent_m"):
+        SparseOptions(min_extent_m=-1.0)
+
+
 def test_repair_ratio_is_checked():
     with pytest.raises(OptionsError, match="repair_ratio"):
         SparseOptions(ratio=0.8, repair_ratio=0.7)
