@@ -492,8 +492,9 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     known to be unusable (camera None), with the reason; ``fixed``: views whose corrections are
     held at zero (``BundleOptions.fixed_views``; the gauge is the smallest corrections without
     them); ``max_features``: per view its SIFT budget (:func:`feature_budgets`), None for
-    ``options.max_features``. Views that cannot be tied are in the result's ``dropped``; raises CameraError for
-    inputs of the wrong size and for fixed views that disagree (``FIXED_AGREEMENT_PX``).
+    ``options.max_features``. Views that cannot be tied are in the result's ``dropped``; raises
+    CameraError for inputs of the wrong size and for fixed views that disagree
+    (``FIXED_AGREEMENT_PX``).
     """
     V = len(images)
     if len(cameras) != V or len(names) != V:
@@ -510,8 +511,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             raise CameraError(f"tie_views: view {names[v]} has no camera and no reason to drop it")
 
     t0 = time.perf_counter()
-    feats = _detect([im if v not in dropped else np.zeros((1, 1)) for v, im in enumerate(images)], o,
-                    max_features)
+    feats = _detect([im if v not in dropped else np.zeros((1, 1)) for v, im in enumerate(images)],
+                    o, max_features)
     n_features = tuple(len(xy) for xy, _ in feats)
     for v, k in enumerate(n_features):
         if k < o.min_matches and v not in dropped:
@@ -795,6 +796,8 @@ class SparseResult:
     seconds: dict[str, float]
     fixed_views: tuple[int, ...] = ()  # the views whose corrections were held at zero
     fixed_absent: tuple[str, ...] = ()  # fixed views asked for that were not among the views
+    tie_box: Any = None  # the AOI grown to [sparse] min_extent_m that the views were tied
+    # over, None when that is the AOI
 
     @property
     def kept(self) -> tuple[int, ...]:
@@ -905,6 +908,12 @@ class SparseResult:
             "coarse": figures(coarse),
             "fine": figures(fine),
             "prior_range": [self.prior_range.min, self.prior_range.max],
+            "tie_box": None if self.tie_box is None else {
+                "lon_min": self.tie_box.lon_min, "lat_min": self.tie_box.lat_min,
+                "lon_max": self.tie_box.lon_max, "lat_max": self.tie_box.lat_max,
+                "width_m": self.tie_box.width_m, "height_m": self.tie_box.height_m,
+                "note": "the AOI was smaller than [sparse] min_extent_m: the views were tied "
+                        "over this box about it; the altitude range is the AOI's"},
             "altitude_range": self.altitude,
             "seconds": dict(self.seconds),
             "convention": "correction_px: the view's content of ground point X lies at RPC(X) + "
@@ -1018,8 +1027,8 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
     that are not among ``views`` are a warning (a tile they do not see) rather than an
     OptionsError; ``tie_aoi``: the box the views were cropped at when larger than the AOI
     (``AOI.grown_to(options.min_extent_m)``: the cameras are fitted over it, while the pairs'
-    overlaps and the altitude range are the AOI's), None for the AOI. Raises CameraError naming every view and why when fewer than two views can be
-    tied.
+    overlaps and the altitude range are the AOI's), None for the AOI. Raises CameraError naming
+    every view and why when fewer than two views can be tied.
     """
     from satsweep.geometry.altitude import AltitudeRange
     from satsweep.io.images import tonemap
@@ -1092,6 +1101,6 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
         coarse_corrections_px=tied.coarse_shifts, dropped=dropped, prior_range=prior,
         altitude_range=altitude_range, altitude=altitude, tied=tied, frame=frame,
         min_matches=options.min_matches, seconds=seconds, fixed_views=tuple(fixed),
-        fixed_absent=tuple(absent))
+        fixed_absent=tuple(absent), tie_box=None if tie_aoi is aoi else tie_aoi)
     return result
 

@@ -634,6 +634,9 @@ def test_a_small_aoi_is_tied_over_a_larger_box(synthetic_scene):
     truth = scene.alt_range
     assert result.altitude_range.min <= truth[0] and result.altitude_range.max >= truth[1]
     assert result.altitude["tie_points_near_aoi"] < len(result.tied.points)
+    box = result.to_dict()["tie_box"]
+    assert box["width_m"] == pytest.approx(SparseOptions.min_extent_m, rel=1e-3)
+    assert alone.to_dict()["tie_box"] is None
 
 
 def test_grown_to_keeps_the_centre_and_reaches_the_side():
