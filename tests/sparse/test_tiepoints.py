@@ -138,15 +138,16 @@ def test_adjusted_range_needs_enough_points_near_the_aoi():
     features outside), not farther."""
     o = SparseOptions()
     far = 1.0 + o.altitude_aoi_margin_m + 0.5  # the AOI spans 0..1 (units of _Frame: metres)
-    points, obs, err, aoi = _adjusted([100.0] * 30, [2] * 30, [0.1] * 30, lon=far)
+    flat = [100.0 + 0.01 * k for k in range(30)]  # (points at one spot and height are one)
+    points, obs, err, aoi = _adjusted(flat, [2] * 30, [0.1] * 30, lon=far)
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
     assert rng is None and "only 0 adjusted tie points within 25 m of the AOI" in record["reason"]
     near = 1.0 + o.altitude_aoi_margin_m - 0.5
-    points, obs, err, aoi = _adjusted([100.0] * 30, [2] * 30, [0.1] * 30, lon=near)
+    points, obs, err, aoi = _adjusted(flat, [2] * 30, [0.1] * 30, lon=near)
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
     assert rng is not None and record["tie_points_near_aoi"] == 30
     # too few points of three views: the floor comes from all of them
-    points, obs, err, aoi = _adjusted([100.0] * 25 + [90.0, 90.5], [2] * 27, [0.1] * 27)
+    points, obs, err, aoi = _adjusted(flat[:25] + [90.0, 90.5], [2] * 27, [0.1] * 27)
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
     assert rng.min == 90.0 - o.altitude_margin_below_m and record["tie_points_for_the_lowest"] == 27
 
@@ -167,6 +168,26 @@ def test_the_top_needs_its_support_on_one_roof():
     anywhere = dataclasses.replace(o, altitude_support_radius_m=0.0)
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, anywhere)
     assert record["supported_extremes_m"][1] == 162.9
+
+
+def test_twin_tie_points_do_not_support_each_other():
+    """SIFT's twin keypoints (one position, two orientations) matched in two views make two
+    tracks at one spot: a wrong match of such twins at 69.5 m does not hold the floor of a
+    ground at 100 m by itself, while two wrong matches at two spots would."""
+    from satsweep.sparse.tiepoints import DUPLICATE_POINT_M
+
+    o = SparseOptions()
+    ground = [100.0 + 0.05 * k for k in range(40)]
+    alts = ground + [69.5, 69.5]
+    points, obs, err, aoi = _adjusted(alts, [2] * len(alts), [0.2] * len(alts))
+    points[:, 0] = np.linspace(0.1, 0.9, len(alts))  # each point at a spot of its own ...
+    points[-1] = points[-2]  # ... but the twins
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert rng.min == 100.0 - o.altitude_margin_below_m
+    assert record["duplicate_tie_points"] == 1 and record["tie_points"] == len(ground) + 1
+    points[-1, 0] += 10 * DUPLICATE_POINT_M  # two spots: two wrong matches agreeing
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert rng.min == 69.5 - o.altitude_margin_below_m and record["duplicate_tie_points"] == 0
 
 
 def _observed(view_lists):
