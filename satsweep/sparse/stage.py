@@ -1,7 +1,10 @@
 """The sparse stage: pointing corrections, the views that can be used, and the altitude range.
 
 One pass over the views cropped at a prior altitude range (the user's, a DEM's, or the RPCs'
-wide one) gives everything the dense stages need from tie points:
+wide one) gives everything the dense stages need from tie points. An AOI smaller than
+``min_extent_m`` is tied over the box of that side about it (``tie_aoi``: its cameras fitted
+over the box, each view's SIFT budget grown with its crop, :func:`feature_budgets`), while the
+pairs' overlaps and the altitude range stay the AOI's:
 
 1. *Features*, once per view (SIFT, :mod:`satsweep.sparse.features`). A view with fewer than
    ``min_matches`` keypoints (blank, cloud, water) is dropped.
