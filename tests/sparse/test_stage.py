@@ -639,6 +639,33 @@ def test_a_small_aoi_is_tied_over_a_larger_box(synthetic_scene):
     assert alone.to_dict()["tie_box"] is None
 
 
+def test_a_third_view_on_fewer_tie_points_is_kept_rather_than_two(synthetic_scene, monkeypatch):
+    """Five views of one date each at 1.29 N (tools/bench_multidate.py --dates 10 seed 64, views
+    0, 2, 4, 7, 9): views 2, 4 and 9 tie, view 9 by 19 agreeing tie points. Dropped, it would
+    leave two views, whose scene's height is the gauge's (FEWER_OBSERVATIONS_NOTE): it is kept,
+    and the three are corrected right."""
+    from satsweep.sparse import stage
+
+    scene = synthetic_scene(**dict(SPLIT_DATES, seed=64, acquisitions=10,
+                                   location=(103.85, 1.29)))
+    rpc = altitude_range_from_rpcs([v.rpc() for v in scene.views], warn=False)
+    five = [0, 2, 4, 7, 9]
+    views, prior = _views(scene, rpc)
+    views = [views[k] for k in five]
+    result = sparse_stage(views, scene.aoi, prior)
+    assert result.kept == (1, 2, 4), result.warnings
+    kept = [five[k] for k in result.kept]
+    biases = np.array([scene.views[k].bias_px for k in kept])
+    A = gauge_jacobians([result.tied.cameras[v] for v in result.kept],
+                        result.tied.points.mean(axis=0))
+    diff = result.corrections_px[list(result.kept)] - biases
+    dX = np.linalg.lstsq(A.reshape(-1, 3), -diff.ravel(), rcond=None)[0]
+    resid = diff + (A @ dX)
+    assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
+    monkeypatch.setattr(stage, "MIN_VIEWS_FOR_HEIGHT", 0)  # the rule off: two views left
+    assert len(sparse_stage(views, scene.aoi, prior).kept) == 2
+
+
 def test_grown_to_keeps_the_centre_and_reaches_the_side():
     from satsweep.geometry.aoi import AOI
 
