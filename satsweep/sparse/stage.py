@@ -1066,7 +1066,8 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
         images = _in_threads(lambda v: tonemap(v.image), views)
     seconds["tonemap"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    tie_aoi = aoi if tie_aoi is None else tie_aoi
+    tie_box = None if tie_aoi is None or tie_aoi is aoi else tie_aoi  # None: the AOI itself
+    tie_aoi = aoi if tie_box is None else tie_box
     frame, prior_cams, failed = fit_cameras(views, tie_aoi, prior, options.camera_grid)
     seconds["cameras"] = time.perf_counter() - t0
     samples = aoi_samples(frame, aoi, (prior.min, prior.mid, prior.max))
@@ -1099,8 +1100,8 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
                                        absent_ok=fixed_absent_ok)
     tied = tie_views(images, prior_cams, names, options, bundle_options, samples=samples,
                      fine_cameras=refit, dropped=failed, fixed=fixed,
-                     max_features=None if tie_aoi is aoi else feature_budgets(views, aoi, prior,
-                                                                              options))
+                     max_features=None if tie_box is None else feature_budgets(views, aoi, prior,
+                                                                               options))
     seconds.update({k: seconds.get(k, 0.0) + v for k, v in tied.seconds.items()})
     if len(tied.kept) < 2:
         why = "; ".join(f"{paths[d.index]}: {d.reason}" for d in tied.dropped) or "no view could be tied"
@@ -1124,6 +1125,6 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
         coarse_corrections_px=tied.coarse_shifts, dropped=dropped, prior_range=prior,
         altitude_range=altitude_range, altitude=altitude, tied=tied, frame=frame,
         min_matches=options.min_matches, seconds=seconds, fixed_views=tuple(fixed),
-        fixed_absent=tuple(absent), tie_box=None if tie_aoi is aoi else tie_aoi)
+        fixed_absent=tuple(absent), tie_box=tie_box)
     return result
 
