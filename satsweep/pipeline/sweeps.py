@@ -128,6 +128,8 @@ class ReferenceHeights:
     median_radius_px: int | None = None  # the weighted median's window radius; None: no median
     top_region_m2: float = 0.0  # ground area (m2, at the reference's ground sample distance)
     # of the largest connected region of pixels at the top end (top_region_m2)
+    top_regions: tuple[tuple[float, float, float], ...] = ()  # its TOP_REGIONS_KEPT largest
+    # such regions, largest first: (area m2, east m, north m of the centroid at the top plane)
 
     def to_report(self) -> dict:
         return {"reference": self.reference, "sources": list(self.sources),
@@ -137,20 +139,53 @@ class ReferenceHeights:
                 "window_share": self.window_share, "mrf": self.mrf,
                 "at_range_ends": list(self.at_range_ends),
                 "median_radius_px": self.median_radius_px,
-                "top_region_m2": self.top_region_m2}
+                "top_region_m2": self.top_region_m2,
+                "top_regions": [[round(v, 2) for v in r] for r in self.top_regions]}
 
 
-def top_region_m2(at_top: np.ndarray, gsd_m: float) -> float:
-    """Ground area (m2) of the largest 8-connected region of ``at_top`` pixels that a 3 x 3
-    opening keeps (pixels at the range's top scattered by noise fall away; a roof stays)."""
+# The largest regions at the range's top that a reference keeps, with where they lie
+# (ReferenceHeights.top_regions): the range is widened where several references put one at the
+# same place (satsweep.pipeline.area.RANGE_WIDEN_TOP_SPOT_REFERENCES).
+TOP_REGIONS_KEPT = 8
+
+
+def _opened_regions(at_top: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel counts (n,) and centroids (n, 2) (col, row) of the 8-connected regions of
+    ``at_top`` that a 3 x 3 opening keeps (pixels at the range's top scattered by noise fall
+    away; a roof stays)."""
     import cv2  # noqa: PLC0415
 
     mask = cv2.morphologyEx(np.asarray(at_top, dtype=np.uint8), cv2.MORPH_OPEN,
                             np.ones((3, 3), np.uint8))
     if not mask.any():
-        return 0.0
-    _n, _labels, stats, _c = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    return float(stats[1:, cv2.CC_STAT_AREA].max()) * gsd_m * gsd_m
+        return np.zeros(0), np.zeros((0, 2))
+    _n, _labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    return stats[1:, cv2.CC_STAT_AREA].astype(np.float64), centroids[1:]
+
+
+def top_region_m2(at_top: np.ndarray, gsd_m: float) -> float:
+    """Ground area (m2) of the largest 8-connected region of ``at_top`` pixels that a 3 x 3
+    opening keeps (pixels at the range's top scattered by noise fall away; a roof stays)."""
+    pixels, _ = _opened_regions(at_top)
+    return float(pixels.max()) * gsd_m * gsd_m if len(pixels) else 0.0
+
+
+def top_regions(at_top: np.ndarray, gsd_m: float, P: np.ndarray, top_u: float,
+                offset: tuple[int, int] = (0, 0)) -> tuple[tuple[float, float, float], ...]:
+    """The ``TOP_REGIONS_KEPT`` largest regions of :func:`top_region_m2`, largest first, as
+    (area m2, east m, north m): each centroid's ENU point on the top plane ``u = top_u`` seen by
+    the reference camera ``P`` (3 x 4, ENU -> pixels of the image whose pixel ``offset`` (col,
+    row) is ``at_top``'s first)."""
+    from satsweep.products.points import solve_ground_en  # noqa: PLC0415
+
+    pixels, centroids = _opened_regions(at_top)
+    order = np.argsort(-pixels, kind="stable")[:TOP_REGIONS_KEPT]
+    if not len(order):
+        return ()
+    e, n = solve_ground_en(P, col=centroids[order, 0] + offset[0],
+                           row=centroids[order, 1] + offset[1], u=np.full(len(order), top_u))
+    return tuple((float(pixels[k]) * gsd_m * gsd_m, float(ek), float(nk))
+                 for k, ek, nk in zip(order, e, n) if np.isfinite(ek) and np.isfinite(nk))
 
 
 def area_mrf_options(config: PipelineConfig, n_references: int) -> MRFOptions:
@@ -305,7 +340,9 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             window_share=result.split.window_share,
             mrf=mrf_info, median_radius_px=median_px,
             at_range_ends=ends,
-            top_region_m2=top_region_m2(at_top, gsd)))
+            top_region_m2=top_region_m2(at_top, gsd),
+            top_regions=top_regions(at_top, gsd, cameras.views[r].camera.P, float(heights[-1]),
+                                    (x0, y0))))
     return out
 
 

@@ -447,6 +447,56 @@ def test_a_tie_point_range_that_cuts_the_ground_off_is_widened(small_town, tmp_p
     assert after >= MIN_COMPLETENESS_1M, (before, after)
 
 
+# tools/bench_multidate.py's v10 seed 0: ten views of five acquisitions at 0.5 m, whose tower
+# (roof at 157 m) the tie points hold by one point of views 3 and 4 alone.
+TOWER_STACK = dict(seed=0, n_views=10, size_px=384, gsd_m=0.5, bias_px=2.0, acquisitions=5,
+                   large_bias_px=50.0, write_metadata=True, cell_m=0.25)
+# A cloud over that point in view 3: (col, row) of its centre and its radius (px).
+CLOUD_OVER_TOWER = (100, 190, 60)
+# DFC MAE (m) the stack must keep under the cloud: 0.468 m without the cloud, 1.280 m when the
+# cloud cuts the tower's top off the range (forty-second session, docs/measurements.md).
+CLOUDED_TOWER_MAX_DFC_MAE_M = 0.6
+
+
+@pytest.mark.slow
+def test_a_tower_that_a_cloud_hides_from_the_tie_points_is_swept_again(synthetic_scene, tmp_path,
+                                                                        monkeypatch):
+    """A small cloud over the one tie point of a tower's roof leaves the tie points' range 17 m
+    under the roof; four of the eight references put a region at the range's top at one place
+    (the roof), so the top is widened and the area swept again (RANGE_WIDEN_TOP_SPOT_REFERENCES).
+    About 45 s on 2 cores."""
+    import tifffile
+
+    import satsweep.pipeline.area as area
+
+    scene = synthetic_scene(**TOWER_STACK)
+    folder = tmp_path / "views"
+    shutil.copytree(scene.views[0].image.parent, folder)
+    image = tifffile.memmap(folder / scene.views[3].image.name, mode="r+")
+    col, row, radius = CLOUD_OVER_TOWER
+    yy, xx = np.mgrid[:image.shape[0], :image.shape[1]]
+    cover = np.clip((1.2 - np.hypot(xx - col, yy - row) / radius) / 0.4, 0.0, 1.0)
+    image[:] = np.round(image * (1.0 - cover) + 3600.0 * cover).astype(image.dtype)
+    image.flush()
+    del image
+    images = [folder / v.image.name for v in scene.views]
+    top = scene.alt_range[1]
+
+    result = reconstruct(images, scene.aoi, tmp_path / "out", truth=scene.truth_dsm,
+                         verbose=False)
+    rng = result.report["altitude_range"]
+    assert rng["source"] == "tie points"
+    assert [w["rule"] for w in rng["widened"]] == ["region at one place"]
+    assert rng["widened"][0]["from_m"] < top <= rng["max"], (rng, top)
+    assert result.evaluation["dfc"]["mean_abs_error_m"] <= CLOUDED_TOWER_MAX_DFC_MAE_M
+
+    # Without the rule the range stays under the roof.
+    monkeypatch.setattr(area, "RANGE_WIDEN_TOP_SPOT_REFERENCES", len(scene.views) + 1)
+    cut = reconstruct(images, scene.aoi, tmp_path / "cut", truth=scene.truth_dsm, verbose=False)
+    assert cut.report["altitude_range"]["max"] < top
+    assert "widened" not in cut.report["altitude_range"]
+
+
 def test_widened_range_needs_most_references_at_one_end():
     from types import SimpleNamespace
 
@@ -457,6 +507,8 @@ def test_widened_range_needs_most_references_at_one_end():
         RANGE_WIDEN_TOP_FRACTION,
         RANGE_WIDEN_TOP_REGION_M2,
         RANGE_WIDEN_TOP_REGION_MIN_REFERENCES,
+        RANGE_WIDEN_TOP_SPOT_M,
+        RANGE_WIDEN_TOP_SPOT_REFERENCES,
         widened_range,
     )
 
@@ -466,31 +518,34 @@ def test_widened_range_needs_most_references_at_one_end():
     tower, none = RANGE_WIDEN_TOP_FRACTION * 1.2, RANGE_WIDEN_TOP_FRACTION * 0.5
     assert none < tower < low
 
-    def sweeps(*ends, region=0.0):
-        return [SimpleNamespace(at_range_ends=e, top_region_m2=region) for e in ends]
+    def sweeps(*ends, region=0.0, at=None):
+        # at: (east, north) of the region's centroid on the top plane (None: none kept)
+        spots = () if at is None else ((region, *at),)
+        return [SimpleNamespace(at_range_ends=e, top_region_m2=region, top_regions=spots)
+                for e in ends]
 
     # Three of four at the top: widened there, by the larger of the step and half the span.
-    wider, end, hits, fraction = widened_range(rng, sweeps((0, high), (0, high), (0, high),
-                                                           (0, 0)))
-    assert (end, hits, fraction) == (1, 3, RANGE_WIDEN_FRACTION)
+    wider, end, hits, fraction, spot = widened_range(rng, sweeps((0, high), (0, high), (0, high),
+                                                                 (0, 0)))
+    assert (end, hits, fraction, spot) == (1, 3, RANGE_WIDEN_FRACTION, None)
     assert (wider.min, wider.max) == (100.0, 140.0 + max(RANGE_WIDEN_M, 20.0))
     wide = AltitudeRange(0.0, 100.0)
-    wider, end, _, _ = widened_range(wide, sweeps((high, 0), (high, 0)))
+    wider, end, _, _, _ = widened_range(wide, sweeps((high, 0), (high, 0)))
     assert end == 0 and (wider.min, wider.max) == (-max(RANGE_WIDEN_M, 50.0), 100.0)
     # Half of eight or one of four (views of other dates matching their shadows at the floor),
     # or one of two: not enough at the floor; a lone reference decides alone.
     assert widened_range(rng, sweeps(*[(high, 0)] * 4 + [(low, 0)] * 4)) is None
     assert widened_range(rng, sweeps((high, 0), (low, 0), (0, 0), (0, 0))) is None
     assert widened_range(rng, sweeps((high, 0), (low, 0))) is None
-    assert widened_range(rng, sweeps((0, high)))[1:] == (1, 1, RANGE_WIDEN_FRACTION)
+    assert widened_range(rng, sweeps((0, high)))[1:4] == (1, 1, RANGE_WIDEN_FRACTION)
     assert widened_range(rng, sweeps((low, none), (low, none))) is None
     assert widened_range(rng, []) is None
     # The top on less: most references over its own, lower fraction (a tower's roof).
-    wider, end, hits, fraction = widened_range(
+    wider, end, hits, fraction, _ = widened_range(
         rng, sweeps(*[(0, tower)] * 6 + [(0, none)] * 2))
     assert (end, hits, fraction) == (1, 6, RANGE_WIDEN_TOP_FRACTION)
     assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
-    assert widened_range(rng, sweeps(*[(low, tower)] * 3))[1:] == (1, 3, RANGE_WIDEN_TOP_FRACTION)
+    assert widened_range(rng, sweeps(*[(low, tower)] * 3))[1:4] == (1, 3, RANGE_WIDEN_TOP_FRACTION)
     assert widened_range(rng, sweeps((low, tower), (low, tower))) is None  # too few to tell
     assert widened_range(rng, sweeps(*[(0, tower)] * 5 + [(0, none)] * 3)) is None
     assert widened_range(rng, sweeps((0, tower), (0, none))) is None
@@ -501,16 +556,37 @@ def test_widened_range_needs_most_references_at_one_end():
     roof, speck = RANGE_WIDEN_TOP_REGION_M2, RANGE_WIDEN_TOP_REGION_M2 * 0.5
     n = max(RANGE_WIDEN_TOP_REGION_MIN_REFERENCES, 8)
     most = int(np.ceil(RANGE_WIDEN_SHARE * n))
-    wider, end, hits, fraction = widened_range(
+    wider, end, hits, fraction, spot = widened_range(
         rng, sweeps(*[(0, none)] * most, region=roof)
         + sweeps(*[(0, none)] * (n - most), region=speck))
-    assert (end, hits, fraction) == (1, most, None)
+    assert (end, hits, fraction, spot) == (1, most, None, None)
     assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
     assert widened_range(rng, sweeps(*[(0, none)] * (most - 1), region=roof)
                          + sweeps(*[(0, none)] * (n - most + 1), region=speck)) is None
     few = RANGE_WIDEN_TOP_REGION_MIN_REFERENCES - 1  # too few to tell, all of them on a roof
     assert widened_range(rng, sweeps(*[(0, none)] * few, region=roof)) is None
     assert widened_range(rng, sweeps(*[(low, none)] * 8, region=speck)) is None
+    # The top on a roof at one place: RANGE_WIDEN_TOP_SPOT_REFERENCES references whose regions'
+    # centroids lie within RANGE_WIDEN_TOP_SPOT_M of one of them (a tower no tie point holds),
+    # however few the references with a region are; not regions at as many places (each
+    # reference's own blunders), nor specks at one place, nor with too few references to tell.
+    k = RANGE_WIDEN_TOP_SPOT_REFERENCES
+    near = [(-17.0 + 0.3 * RANGE_WIDEN_TOP_SPOT_M * np.cos(a),
+             -17.0 + 0.3 * RANGE_WIDEN_TOP_SPOT_M * np.sin(a)) for a in range(k)]
+    apart = [(-17.0 + 3.0 * RANGE_WIDEN_TOP_SPOT_M * j, -17.0) for j in range(k)]
+    rest = sweeps(*[(0, none)] * (n - k))
+    assert k < most  # the region rule alone would not widen
+
+    def stack(places, area=roof, refs=rest):
+        return [s for p in places for s in sweeps((0, none), region=area, at=p)] + refs
+
+    wider, end, hits, fraction, spot = widened_range(rng, stack(near))
+    assert (end, hits, fraction, spot) == (1, k, None, RANGE_WIDEN_TOP_SPOT_M)
+    assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
+    assert widened_range(rng, stack(apart)) is None
+    assert widened_range(rng, stack(near[:-1] + apart[1:2])) is None
+    assert widened_range(rng, stack(near, area=speck)) is None
+    assert widened_range(rng, stack(near, refs=rest[:max(0, few - k)])) is None
 
 
 def test_top_region_is_the_largest_roof_at_the_top_not_scattered_pixels():
@@ -526,3 +602,30 @@ def test_top_region_is_the_largest_roof_at_the_top_not_scattered_pixels():
     # the roof's own pixels; the scattered ones inside it belong to it already
     assert top_region_m2(at_top, gsd) == pytest.approx(30 * gsd * gsd)
     assert top_region_m2(np.zeros((5, 5), bool), gsd) == 0.0
+
+
+def test_top_regions_lie_where_the_reference_camera_sees_them_on_the_top_plane():
+    from satsweep.pipeline.sweeps import TOP_REGIONS_KEPT, top_regions
+
+    # An affine camera of 0.5 m pixels whose columns lean 0.5 px per metre of height:
+    # col = 100 + 2 e + 0.5 u, row = 100 - 2 n.
+    P = np.array([[2.0, 0.0, 0.5, 100.0], [0.0, -2.0, 0.0, 100.0], [0.0, 0.0, 0.0, 1.0]])
+    gsd, top_u, offset = 0.5, 30.0, (10, 20)
+    at_top = np.zeros((60, 80), bool)
+    at_top[::4, ::5] = True  # scattered pixels: no region
+    at_top[5:11, 20:25] = True  # 6 x 5 pixels, centroid (col 22, row 7.5) of the window
+    at_top[40:44, 50:53] = True  # 4 x 3, centroid (51, 41.5)
+    regions = top_regions(at_top, gsd, P, top_u, offset)
+    assert len(regions) == 2
+    for (area, e, n), (pixels, col, row) in zip(regions, [(30, 22.0, 7.5), (12, 51.0, 41.5)]):
+        assert area == pytest.approx(pixels * gsd * gsd)
+        # the image's pixel (col + 10, row + 20) back on u = 30 by the camera's own equations
+        assert e == pytest.approx((col + offset[0] - 100.0 - 0.5 * top_u) / 2.0, abs=1e-9)
+        assert n == pytest.approx((100.0 - (row + offset[1])) / 2.0, abs=1e-9)
+    assert top_regions(np.zeros((5, 5), bool), gsd, P, top_u) == ()
+    many = np.zeros((50, 200), bool)
+    for j in range(TOP_REGIONS_KEPT + 3):  # more regions than kept: the largest, largest first
+        many[5:10 + j % 4, 10 * j:10 * j + 4] = True
+    kept = top_regions(many, gsd, P, top_u)
+    assert len(kept) == TOP_REGIONS_KEPT
+    assert [a for a, _, _ in kept] == sorted((a for a, _, _ in kept), reverse=True)
