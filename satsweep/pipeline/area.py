@@ -339,6 +339,10 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
 # tools/bench_e2e.py's four 512 px towns, 1.1% on the tests' 192 px town, 0.03% on the Pleiades
 # pair (2260..2390 m); with ranges that cut its ground off (2290..2420, 2200..2330 m): 5.2-7.3%.
 RANGE_END_WARN_FRACTION = 0.03
+# With this many references or more, one alone over RANGE_END_WARN_FRACTION at an end is named as
+# such: a cloud in one view of ten puts 9.2% of its pixels at the top, which no other reference
+# sees (forty-second session, docs/measurements.md).
+RANGE_END_LONE_MIN_REFERENCES = 3
 # A range measured from tie points is widened at an end, and the area swept again, when at least
 # RANGE_WIDEN_SHARE of the reference views (and two of them, or the one there is) each match
 # more than RANGE_WIDEN_FRACTION of their pixels there: a surface that the tie points missed (a
@@ -450,16 +454,12 @@ def top_spot_references(sweeps: Sequence[ReferenceHeights]) -> int:
 
 def _check_range_ends(sweeps: Sequence[ReferenceHeights], altitude: AltitudeChoice, job: AreaJob,
                       ctx: RunContext) -> None:
-    """A doubtful warning when many pixels' best plane sits at an end of the altitude range,
-    with the range that tie points measure between the views when the range was given."""
-    worst = max(((s.at_range_ends[k], k, s.reference) for s in sweeps for k in (0, 1)),
-                default=(0.0, 0, ""))
-    fraction, end, reference = worst
-    if fraction <= RANGE_END_WARN_FRACTION:
+    """A doubtful warning when many pixels' best plane sits at an end of the altitude range
+    (:func:`range_end_message`), with the range that tie points measure between the views when
+    the range was given."""
+    message = range_end_message(sweeps, altitude.range, altitude.source)
+    if message is None:
         return
-    rng = altitude.range
-    side, bound = (("lower", rng.min), ("upper", rng.max))[end]
-    where = ("below", "above")[end]
     measured = ""
     if altitude.source != "tie points":
         try:
@@ -469,10 +469,30 @@ def _check_range_ends(sweeps: Sequence[ReferenceHeights], altitude: AltitudeChoi
                         f"{ties.range.min:.0f}..{ties.range.max:.0f} m")
         except SatsweepError as exc:
             measured = f"; tie points could not measure it ({exc})"
-    ctx.report.warn(f"{100 * fraction:.1f}% of {reference}'s pixels matched best at the {side} "
-                    f"end ({bound:.0f} m) of the altitude range {rng.min:.0f}..{rng.max:.0f} m "
-                    f"({altitude.source}): the surface probably extends {where} it{measured}",
-                    doubtful=True)
+    ctx.report.warn(message + measured, doubtful=True)
+
+
+def range_end_message(sweeps: Sequence[ReferenceHeights], rng: AltitudeRange, source: str
+                      ) -> str | None:
+    """The warning of :func:`_check_range_ends` (None: no reference puts more than
+    RANGE_END_WARN_FRACTION of its pixels at an end): the reference that puts most there, and,
+    where it is the only one of RANGE_END_LONE_MIN_REFERENCES or more, that a cloud or shadows
+    in that view would do so too."""
+    worst = max(((s.at_range_ends[k], k, s.reference) for s in sweeps for k in (0, 1)),
+                default=(0.0, 0, ""))
+    fraction, end, reference = worst
+    if fraction <= RANGE_END_WARN_FRACTION:
+        return None
+    side, bound = (("lower", rng.min), ("upper", rng.max))[end]
+    where = ("below", "above")[end]
+    message = (f"{100 * fraction:.1f}% of {reference}'s pixels matched best at the {side} end "
+               f"({bound:.0f} m) of the altitude range {rng.min:.0f}..{rng.max:.0f} m ({source}): ")
+    others = sum(s.at_range_ends[end] > RANGE_END_WARN_FRACTION for s in sweeps)
+    if others == 1 and len(sweeps) >= RANGE_END_LONE_MIN_REFERENCES:
+        what = ("a cloud over it or" if end == 1 else "shadows of its date or") + " a blunder"
+        return message + (f"the surface may extend {where} it, but only this one of the "
+                          f"{len(sweeps)} reference views says so ({what} of that view would)")
+    return message + f"the surface probably extends {where} it"
 
 
 def sources_seeing(sources: Sequence["ImageSource"], aoi: "AOI",

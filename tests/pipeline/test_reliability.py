@@ -589,6 +589,38 @@ def test_widened_range_needs_most_references_at_one_end():
     assert widened_range(rng, stack(near, refs=rest[:max(0, few - k)])) is None
 
 
+def test_a_lone_reference_at_an_end_is_named_as_such():
+    from types import SimpleNamespace
+
+    from satsweep.pipeline.area import (
+        RANGE_END_LONE_MIN_REFERENCES,
+        RANGE_END_WARN_FRACTION,
+        range_end_message,
+    )
+
+    rng = AltitudeRange(95.0, 162.0)
+    over, under = RANGE_END_WARN_FRACTION * 3, RANGE_END_WARN_FRACTION * 0.5
+
+    def refs(*ends):
+        return [SimpleNamespace(at_range_ends=e, reference=f"view_{k:02d}.tif")
+                for k, e in enumerate(ends)]
+
+    n = max(RANGE_END_LONE_MIN_REFERENCES, 8)
+    assert range_end_message(refs(*[(under, under)] * n), rng, "tie points") is None
+    # One reference of eight with a plateau at the top (a cloud): said to be alone.
+    lone = range_end_message(refs(*[(0, under)] * (n - 1), (0, over)), rng, "tie points")
+    assert lone.startswith(f"{100 * over:.1f}% of view_{n - 1:02d}.tif's pixels matched best "
+                           "at the upper end (162 m) of the altitude range 95..162 m")
+    assert f"only this one of the {n} reference views" in lone and "cloud" in lone
+    floor = range_end_message(refs((over, 0), *[(under, 0)] * (n - 1)), rng, "given")
+    assert "lower end (95 m)" in floor and "shadows of its date" in floor
+    # Two of them, or one of too few references to tell: the surface, as before.
+    for ends in ([(0, over)] * 2 + [(0, 0)] * (n - 2),
+                 [(0, over)] + [(0, 0)] * (RANGE_END_LONE_MIN_REFERENCES - 2)):
+        message = range_end_message(refs(*ends), rng, "tie points")
+        assert message.endswith("the surface probably extends above it"), message
+
+
 def test_top_region_is_the_largest_roof_at_the_top_not_scattered_pixels():
     from satsweep.pipeline.sweeps import top_region_m2
 
