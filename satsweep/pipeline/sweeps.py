@@ -123,8 +123,8 @@ class ReferenceHeights:
     window_planes: int | None  # with coarse-to-fine windows: the most planes of a tile
     window_share: float | None  # ... the share of the tiles' pixels' planes swept
     mrf: dict | None  # the MRF's method, seconds, tiles and valid fraction; None without one
-    at_range_ends: tuple[float, float]  # fractions of the window's pixels whose best plane is
-    # within RANGE_END_PLANES of the lowest / the highest plane
+    at_range_ends: tuple[float, float]  # fractions of the window's pixels matched on data whose
+    # best plane is within RANGE_END_PLANES of the lowest / the highest plane
     median_radius_px: int | None = None  # the weighted median's window radius; None: no median
     top_region_m2: float = 0.0  # ground area (m2, at the reference's ground sample distance)
     # of the largest connected region of pixels at the top end (top_region_m2)
@@ -301,9 +301,10 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
                         "valid_fraction": float(np.mean(result.valid))}
         progress.update(k + 1, names[r])
         masks = valid_masks if valid_masks is not None else [None] * len(images)
+        data = np.ones(np.shape(result.plane_index), dtype=bool)  # pixels matched on data
         if masks[r] is not None or any(masks[s] is not None for s in srcs):
-            _no_data_check(result, hom, [masks[s] for s in srcs], masks[r], window,
-                           [images[s].shape for s in srcs], swept.census_radii)
+            data = _no_data_check(result, hom, [masks[s] for s in srcs], masks[r], window,
+                                  [images[s].shape for s in srcs], swept.census_radii)
         height, valid, confidence = _placed(result, window, shape)
         median_px = None
         if mrf.median_radius_m > 0.0:
@@ -327,9 +328,13 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
                 height[y0:y1, x0:x1] = weighted_median(
                     device, height[y0:y1, x0:x1], valid[y0:y1, x0:x1], ref_image,
                     radius=median_px, sigma=mrf.median_sigma)
+        # The ends' shares and regions count the pixels matched on data only: a no-data part
+        # of a view (an image's edge) leaves its pixels' planes anywhere, ends included.
         index = np.asarray(result.plane_index)
-        at_top = index >= len(heights) - 1 - RANGE_END_PLANES
-        ends = (float(np.mean(index <= RANGE_END_PLANES)), float(np.mean(at_top)))
+        at_top = (index >= len(heights) - 1 - RANGE_END_PLANES) & data
+        on_data = max(int(data.sum()), 1)
+        ends = (float(np.sum((index <= RANGE_END_PLANES) & data)) / on_data,
+                float(np.sum(at_top)) / on_data)
         out.append(ReferenceHeights(
             index=r, height=height, valid=valid, confidence=confidence, reference=names[r],
             sources=tuple(names[s] for s in srcs), source_indices=tuple(int(s) for s in srcs),
@@ -374,10 +379,11 @@ def _window_data(mask: np.ndarray | None, shape: tuple[int, int],
 
 def _no_data_check(result, hom: np.ndarray, src_masks: Sequence[np.ndarray | None],
                    ref_mask: np.ndarray | None, window: tuple[int, int, int, int],
-                   src_shapes: Sequence[tuple[int, int]], radii: tuple[int, int]) -> None:
+                   src_shapes: Sequence[tuple[int, int]], radii: tuple[int, int]) -> np.ndarray:
     """No-data pixels never make a height: a reference pixel whose census window reads one is
     invalid, and so is one that, at its chosen plane, no source sees at a pixel whose window
-    holds data (the kernels saw the fill values there as an image)."""
+    holds data (the kernels saw the fill values there as an image). Returns the pixels that
+    pass (bool, the window's shape), valid or not for other reasons."""
     from satsweep.dense.planes import seen_with_data
 
     x0, y0, x1, y1 = window
@@ -389,3 +395,4 @@ def _no_data_check(result, hom: np.ndarray, src_masks: Sequence[np.ndarray | Non
     keep = keep & seen_with_data(hom, labels, masks)
     result.valid &= keep
     result.height[~result.valid] = np.nan
+    return np.broadcast_to(keep, labels.shape).copy()
