@@ -476,7 +476,7 @@ def test_a_tower_that_a_cloud_hides_from_the_tie_points_is_swept_again(synthetic
     """A small cloud over the one tie point of a tower's roof leaves the tie points' range 17 m
     under the roof; four of the eight references put a region at the range's top at one place
     (the roof), so the top is widened and the area swept again (RANGE_WIDEN_TOP_SPOT_REFERENCES).
-    About 45 s on 2 cores."""
+    About 25-45 s on 2 cores."""
     import tifffile
 
     import satsweep.pipeline.area as area
