@@ -487,8 +487,8 @@ def range_end_message(sweeps: Sequence[ReferenceHeights], rng: AltitudeRange, so
     where = ("below", "above")[end]
     message = (f"{100 * fraction:.1f}% of {reference}'s pixels matched best at the {side} end "
                f"({bound:.0f} m) of the altitude range {rng.min:.0f}..{rng.max:.0f} m ({source}): ")
-    others = sum(s.at_range_ends[end] > RANGE_END_WARN_FRACTION for s in sweeps)
-    if others == 1 and len(sweeps) >= RANGE_END_LONE_MIN_REFERENCES:
+    over = sum(s.at_range_ends[end] > RANGE_END_WARN_FRACTION for s in sweeps)
+    if over == 1 and len(sweeps) >= RANGE_END_LONE_MIN_REFERENCES:
         what = ("a cloud over it or" if end == 1 else "shadows of its date or") + " a blunder"
         return message + (f"the surface may extend {where} it, but only this one of the "
                           f"{len(sweeps)} reference views says so ({what} of that view would)")

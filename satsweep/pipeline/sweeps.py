@@ -140,7 +140,8 @@ class ReferenceHeights:
                 "at_range_ends": list(self.at_range_ends),
                 "median_radius_px": self.median_radius_px,
                 "top_region_m2": self.top_region_m2,
-                "top_regions": [[round(v, 2) for v in r] for r in self.top_regions]}
+                "top_regions": [[round(v, 2) if math.isfinite(v) else None for v in r]
+                                for r in self.top_regions]}
 
 
 # The largest regions at the range's top that a reference keeps, with where they lie
@@ -172,8 +173,8 @@ def top_region_m2(at_top: np.ndarray, gsd_m: float) -> float:
 
 def top_regions(at_top: np.ndarray, gsd_m: float, P: np.ndarray, top_u: float,
                 offset: tuple[int, int] = (0, 0)) -> tuple[tuple[float, float, float], ...]:
-    """The ``TOP_REGIONS_KEPT`` largest regions of :func:`top_region_m2`, largest first, as
-    (area m2, east m, north m): each centroid's ENU point on the top plane ``u = top_u`` seen by
+    """The ``TOP_REGIONS_KEPT`` largest regions of :func:`top_region_m2` (the first one's area is
+    its value), largest first, as (area m2, east m, north m): each centroid's ENU point on the top plane ``u = top_u`` seen by
     the reference camera ``P`` (3 x 4, ENU -> pixels of the image whose pixel ``offset`` (col,
     row) is ``at_top``'s first)."""
     from satsweep.products.points import solve_ground_en  # noqa: PLC0415
@@ -184,8 +185,9 @@ def top_regions(at_top: np.ndarray, gsd_m: float, P: np.ndarray, top_u: float,
         return ()
     e, n = solve_ground_en(P, col=centroids[order, 0] + offset[0],
                            row=centroids[order, 1] + offset[1], u=np.full(len(order), top_u))
+    # (a ray parallel to the plane gives NaN: that region is at no place, but keeps its area)
     return tuple((float(pixels[k]) * gsd_m * gsd_m, float(ek), float(nk))
-                 for k, ek, nk in zip(order, e, n) if np.isfinite(ek) and np.isfinite(nk))
+                 for k, ek, nk in zip(order, e, n))
 
 
 def area_mrf_options(config: PipelineConfig, n_references: int) -> MRFOptions:
@@ -335,6 +337,9 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
         on_data = max(int(data.sum()), 1)
         ends = (float(np.sum((index <= RANGE_END_PLANES) & data)) / on_data,
                 float(np.sum(at_top)) / on_data)
+        # (the largest region's area is top_region_m2: one opening of the mask serves both)
+        regions = top_regions(at_top, gsd, cameras.views[r].camera.P, float(heights[-1]),
+                              (x0, y0))
         out.append(ReferenceHeights(
             index=r, height=height, valid=valid, confidence=confidence, reference=names[r],
             sources=tuple(names[s] for s in srcs), source_indices=tuple(int(s) for s in srcs),
@@ -345,9 +350,7 @@ def sweep_references(device, cameras, images, selection, u_range, config: Pipeli
             window_share=result.split.window_share,
             mrf=mrf_info, median_radius_px=median_px,
             at_range_ends=ends,
-            top_region_m2=top_region_m2(at_top, gsd),
-            top_regions=top_regions(at_top, gsd, cameras.views[r].camera.P, float(heights[-1]),
-                                    (x0, y0))))
+            top_region_m2=regions[0][0] if regions else 0.0, top_regions=regions))
     return out
 
 
