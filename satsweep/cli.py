@@ -146,6 +146,11 @@ def _add_image_inputs(p) -> None:
                    help="take each image's RPC from DIR/<image stem>_RPC.TXT instead of its own "
                    "(the rpc/ folder of an earlier run or of cameras --adjust, or another "
                    "tool's adjusted RPCs); an image without one there is an error")
+    p.add_argument("--mask-dir", default=None, metavar="DIR",
+                   help="masks of the pixels to leave out (clouds), one per image that has "
+                   "one: DIR/<image file name>.msk, a raster of the image's size, 0 = leave out "
+                   "(GDAL's mask convention; without this option, each image's own GDAL mask "
+                   "is used: IMAGE.msk beside it or a mask inside it)")
 
 
 def _cli_altitude_range(args: argparse.Namespace):
@@ -217,7 +222,8 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
         config = config.override("camera", grid_size=tuple(args.grid))
     aoi = parse_aoi(args.aoi)
     # The views, their pointing corrections and the altitude range as reconstruct takes them.
-    sources = open_run_sources(args.images, config, rpc_dir=args.rpc_dir)
+    sources = open_run_sources(args.images, config, rpc_dir=args.rpc_dir,
+                               mask_dir=args.mask_dir)
     alt_range = _cli_altitude_range(args)
     sources, _ = sources_seeing_the_aoi(sources, aoi, config, alt_range=alt_range,
                                         dem=args.dem)  # (views of other places: warned)
@@ -472,7 +478,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     alt = _cli_altitude_range(args)
     result = reconstruct(args.images, aoi, args.out, alt_range=alt, dem=args.dem, config=config,
                          overwrite=args.overwrite, truth=args.truth, verbose=not args.quiet,
-                         resume=args.resume, rpc_dir=args.rpc_dir)
+                         resume=args.resume, rpc_dir=args.rpc_dir, mask_dir=args.mask_dir)
     _print_summary(result)
     return _exit_code(result, args)
 

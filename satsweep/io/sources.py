@@ -19,6 +19,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from satsweep.geometry.altitude import AltitudeRange
     from satsweep.geometry.aoi import AOI
     from satsweep.geometry.rpc import RPCModel
+    from satsweep.io.masks import MaskFile
     from satsweep.io.metadata import AcquisitionMetadata
 
 # Fewest images stereo needs.
@@ -35,6 +36,7 @@ class ImageSource:
     acquisition: "AcquisitionMetadata | None" = None  # date, sun and view angles, when the
     # delivery gives them (satsweep.io.metadata)
     nodata: float | None = None  # the value the file declares for no data (GDAL_NODATA)
+    mask: "MaskFile | None" = None  # its mask of pixels to leave out (satsweep.io.masks)
 
     @property
     def name(self) -> str:
@@ -46,6 +48,11 @@ class ImageSource:
         from satsweep.io.images import read_image
 
         return read_image(self.path, window=window)
+
+    def read_mask(self, window: Sequence[int] | None = None) -> np.ndarray | None:
+        """Whether each pixel of ``window`` holds data by the image's mask (bool), or None
+        when it has no mask."""
+        return None if self.mask is None else self.mask.read(window)
 
     def read_with_vegetation(self, window: Sequence[int] | None = None
                              ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -75,20 +82,23 @@ class ImageSource:
         return True
 
 
-def open_source(path: str | os.PathLike, *, rpc_file: str | os.PathLike | None = None
-                ) -> ImageSource:
+def open_source(path: str | os.PathLike, *, rpc_file: str | os.PathLike | None = None,
+                mask_file: str | os.PathLike | None = None) -> ImageSource:
     """Read an image's header, RPC (tag or sidecar; ``rpc_file`` instead when given, in any
-    format ``RPCModel.from_file`` reads) and acquisition metadata (when there is some);
+    format ``RPCModel.from_file`` reads), acquisition metadata (when there is some) and find its
+    mask (``mask_file`` when given, else GDAL's external or internal one: ``find_mask``);
     ImageFormatError / RPCError naming the file."""
     from satsweep.geometry.rpc import RPCModel
     from satsweep.io.images import image_nodata, image_shape
+    from satsweep.io.masks import find_mask
     from satsweep.io.metadata import read_acquisition_metadata
 
     path = os.fspath(path)
     shape = image_shape(path)
     rpc = RPCModel.from_image(path) if rpc_file is None else RPCModel.from_file(rpc_file)
     return ImageSource(path=path, rpc=rpc, shape=(int(shape[0]), int(shape[1])),
-                       acquisition=read_acquisition_metadata(path), nodata=image_nodata(path))
+                       acquisition=read_acquisition_metadata(path), nodata=image_nodata(path),
+                       mask=find_mask(path, shape, mask_file=mask_file))
 
 
 def rpc_files_in(rpc_dir: str | os.PathLike, images: Sequence[str | os.PathLike]) -> list[str]:
@@ -126,11 +136,14 @@ def refuse_too_few(paths: Sequence[object]) -> None:
 
 
 def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
-                 rpc_dir: str | os.PathLike | None = None) -> list[ImageSource]:
+                 rpc_dir: str | os.PathLike | None = None,
+                 mask_dir: str | os.PathLike | None = None) -> list[ImageSource]:
     """``open_source`` of every path, in order (sources given as such are kept); with
     ``rpc_dir``, each image's RPC is its file in that folder (``rpc_files_in``: an
-    adjustment's RPCs, as satsweep writes to rpc/), not its own. InputError for fewer than
-    ``MIN_IMAGES`` images, for an image given twice or for one whose RPC the folder lacks."""
+    adjustment's RPCs, as satsweep writes to rpc/), not its own; with ``mask_dir``, each
+    image's mask is its file in that folder where it has one (``mask_files_in``), and no mask
+    where it has none. InputError for fewer than ``MIN_IMAGES`` images, for an image given
+    twice, for one whose RPC the folder lacks or for a mask folder that masks none of them."""
     items = [p if isinstance(p, ImageSource) else os.fspath(p) for p in paths]
     refuse_folders(items)
     refuse_too_few(items)
@@ -142,9 +155,16 @@ def open_sources(paths: Sequence[str | os.PathLike | ImageSource], *,
             raise InputError(path, f"image given twice (also as {seen[key]})")
         seen[key] = path
     files = [None] * len(items)
+    masks = [None] * len(items)
+    to_open = [k for k, item in enumerate(items) if not isinstance(item, ImageSource)]
     if rpc_dir is not None:
-        to_open = [k for k, item in enumerate(items) if not isinstance(item, ImageSource)]
         for k, rpc_file in zip(to_open, rpc_files_in(rpc_dir, [items[k] for k in to_open])):
             files[k] = rpc_file
-    return [item if isinstance(item, ImageSource) else open_source(item, rpc_file=rpc_file)
-            for item, rpc_file in zip(items, files)]
+    if mask_dir is not None:
+        from satsweep.io.masks import mask_files_in
+
+        for k, mask_file in zip(to_open, mask_files_in(mask_dir, [items[k] for k in to_open])):
+            masks[k] = mask_file
+    return [item if isinstance(item, ImageSource)
+            else open_source(item, rpc_file=rpc_file, mask_file=mask_file)
+            for item, rpc_file, mask_file in zip(items, files, masks)]

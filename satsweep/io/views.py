@@ -48,7 +48,7 @@ class View:
     x0: int  # column of the crop's first pixel in the original image
     y0: int  # row of the crop's first pixel in the original image
     valid: np.ndarray | None = None  # bool mask of the pixels that hold data (None: all do);
-    # see validity_mask
+    # see validity_mask, and the image's own mask (satsweep.io.masks)
     vegetation: np.ndarray | None = None  # float32 vegetation index of the crop's pixels
     # (satsweep.io.images.vegetation_index; None: an image without colour, or not read)
 
@@ -210,9 +210,16 @@ def load_views(
             crop, index = source.read_with_vegetation((x0, y0, x1, y1))
         else:
             crop, index = source.read((x0, y0, x1, y1)), None
+        valid = validity_mask(crop, source.nodata)
+        masked = source.read_mask((x0, y0, x1, y1))
+        if masked is not None:
+            log.info("%s: its mask %s leaves out %.1f%% of the crop", source.path,
+                     source.mask.describe(), 100.0 * (1.0 - float(np.mean(masked))))
+            valid = masked if valid is None else valid & masked
+            valid = None if valid.all() else valid
         views.append(View(path=source.path, image=_pixels(crop),
                           rpc=source.rpc.cropped(x0=x0, y0=y0), x0=x0, y0=y0,
-                          valid=validity_mask(crop, source.nodata), vegetation=index))
+                          valid=valid, vegetation=index))
         log.info("%s: crop x=%d..%d, y=%d..%d of %dx%d", source.path, x0, x1, y0, y1,
                  source.shape[1], source.shape[0])
     return views

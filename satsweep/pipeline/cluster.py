@@ -11,7 +11,8 @@ assembled from those files (``satsweep.pipeline.scheduler``); no raster goes thr
 
 Finished tiles are kept when a run fails or is interrupted: a task's folder is named by its
 fingerprint (``task_fingerprint``: the tile, the images' paths, sizes and modification times,
-their RPCs (a sidecar or --rpc-dir may change without the image), every setting but those that
+their RPCs (a sidecar or --rpc-dir may change without the image), their masks' files (a mask
+added or redrawn), every setting but those that
 only say how tasks run, the device asked for, the altitude range or DEM, the borrowed
 corrections), so a run with ``--resume`` reuses a folder whose ``outcome.json`` exists (written
 last, atomically) and a changed setting recomputes.
@@ -245,6 +246,8 @@ def task_fingerprint(common: dict, sources: Sequence["ImageSource"], tile: "Tile
     """SHA-256 (hex) of everything a task's result depends on (see the module docstring)."""
     data = {**common, "images": [_file_stamp(s.path) for s in sources],
             "rpcs": [s.rpc.to_tag_values().tolist() for s in sources],
+            "masks": [None if s.mask is None else [_file_stamp(s.mask.path), s.mask.page]
+                      for s in sources],
             "tile": {**tile.to_dict(), "grid": dataclasses.asdict(tile.grid)}, "whole": whole,
             "phase": phase, "split_above_px": split_above_px, "may_wait": may_wait,
             "borrowed": borrowed, "seeing": seeing}

@@ -143,7 +143,8 @@ def crop_views(sources: Sequence["ImageSource"], aoi: "AOI", alt_range: "Altitud
             fraction = 1.0 if v.valid is None else float(np.mean(v.valid))
             if fraction < MIN_VALID_FRACTION:
                 _warn(report, f"{v.path}: only {100 * fraction:.0f}% of the pixels that see the "
-                              "AOI hold data (no-data value, NaN or zero fill): left out")
+                              "AOI hold data (no-data value, NaN, zero fill or its mask): left "
+                              "out")
                 continue
             kept.append(v)
         if len(kept) < 2:
@@ -297,13 +298,15 @@ def check_fixed_views(sources: Sequence["ImageSource"], config: "PipelineConfig"
 
 def open_run_sources(paths: Sequence["ImageSource | str | os.PathLike"],
                      config: "PipelineConfig", *,
-                     rpc_dir: "str | os.PathLike | None" = None) -> list["ImageSource"]:
+                     rpc_dir: "str | os.PathLike | None" = None,
+                     mask_dir: "str | os.PathLike | None" = None) -> list["ImageSource"]:
     """The run's images opened (``satsweep.io.sources.open_sources``: each with its RPC, from
-    ``rpc_dir`` where given) and ``[bundle] fixed_views`` checked against all of them
-    (``check_fixed_views``): what every entry point does first."""
+    ``rpc_dir`` where given, and its mask, from ``mask_dir`` where it has one there) and
+    ``[bundle] fixed_views`` checked against all of them (``check_fixed_views``): what every
+    entry point does first."""
     from satsweep.io.sources import open_sources
 
-    sources = open_sources(paths, rpc_dir=rpc_dir)
+    sources = open_sources(paths, rpc_dir=rpc_dir, mask_dir=mask_dir)
     check_fixed_views(sources, config)
     return sources
 

@@ -58,19 +58,24 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
                 config: PipelineConfig = PipelineConfig(), overwrite: bool = False,
                 truth: str | os.PathLike | None = None, verbose: bool = True,
                 command: str = "reconstruct", resume: bool = False,
-                rpc_dir: str | os.PathLike | None = None) -> ReconstructResult:
+                rpc_dir: str | os.PathLike | None = None,
+                mask_dir: str | os.PathLike | None = None) -> ReconstructResult:
     """Run the whole pipeline; see the module docstring for the stages and outputs.
 
     ``aoi`` may be given as an ``AOI`` or as a string for ``parse_aoi``, ``alt_range`` as an
     ``AltitudeRange`` or a (min, max) pair. ``resume``: reuse the tiles that an interrupted or
     failed run into ``out_dir`` finished (``satsweep.pipeline.cluster``). ``rpc_dir``: a folder
     holding each image's RPC as ``<stem>_RPC.TXT`` (another run's rpc/, another tool's adjusted
-    RPCs), taken instead of the images' own. Every bad argument is a ``SatsweepError``."""
+    RPCs), taken instead of the images' own. ``mask_dir``: a folder holding masks of pixels to
+    leave out (clouds), ``<image file name>.msk`` (``satsweep.io.masks``), for the images that
+    have one there. Every bad argument is a ``SatsweepError``."""
     # Everything that can be checked cheaply is checked before anything is written.
     paths, aoi, alt_range = _checked_arguments(images, aoi, alt_range, config)
     check_run_size(aoi, config)
     if rpc_dir is not None and not os.path.isdir(rpc_dir):
         raise InputError(rpc_dir, "the RPC folder does not exist")
+    if mask_dir is not None and not os.path.isdir(mask_dir):
+        raise InputError(mask_dir, "the mask folder does not exist")
     if truth is not None:
         check_truth_dsm(truth, aoi)
     out = None
@@ -78,7 +83,8 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
         # Inside the try: an interruption just after the folder is made still aborts it.
         out = OutputFolder(out_dir, overwrite=overwrite, resume=resume)
         result = _reconstruct(paths, aoi, out, alt_range=alt_range, dem=dem, config=config,
-                              truth=truth, verbose=verbose, command=command, rpc_dir=rpc_dir)
+                              truth=truth, verbose=verbose, command=command, rpc_dir=rpc_dir,
+                              mask_dir=mask_dir)
     except BaseException as exc:
         if out is None:  # refused before anything was written (OutputFolder cleans up itself)
             raise
@@ -95,7 +101,8 @@ def reconstruct(images: Sequence[str | os.PathLike], aoi: AOI, out_dir: str | os
 
 
 def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: PipelineConfig,
-                 truth, verbose: bool, command: str, rpc_dir=None) -> ReconstructResult:
+                 truth, verbose: bool, command: str, rpc_dir=None,
+                 mask_dir=None) -> ReconstructResult:
     from satsweep.geometry.geodesy import utm_epsg
     from satsweep.pipeline.cluster import (
         RunSettings,
@@ -111,14 +118,20 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
     rep = RunReport(command, verbose=verbose)
     rep["settings"] = config.to_dict()
     rep["inputs"] = {"images": paths, "aoi": dataclasses.asdict(aoi), "dem": dem and os.fspath(dem),
-                     "truth": truth and os.fspath(truth), "rpc_dir": rpc_dir and os.fspath(rpc_dir)}
+                     "truth": truth and os.fspath(truth), "rpc_dir": rpc_dir and os.fspath(rpc_dir),
+                     "mask_dir": mask_dir and os.fspath(mask_dir)}
 
     settings = RunSettings(config=config, device=resolve_device_spec(config.reconstruct.device),
                            alt_range=alt_range, dem=None if dem is None else os.fspath(dem),
                            verbose=verbose)
-    sources = open_run_sources(paths, config, rpc_dir=rpc_dir)
+    sources = open_run_sources(paths, config, rpc_dir=rpc_dir, mask_dir=mask_dir)
     rep["inputs"]["rpcs"] = [None if s.rpc.source is None else os.fspath(s.rpc.source)
                              for s in sources]  # where each image's RPC was read
+    rep["inputs"]["masks"] = [None if s.mask is None else s.mask.describe()
+                              for s in sources]  # each image's mask of pixels to leave out
+    for s in sources:
+        if s.mask is not None:
+            rep.log(f"{s.name}: masked by {s.mask.describe()}")
     sources, elsewhere = sources_seeing_the_aoi(sources, aoi, config, alt_range=alt_range,
                                                 dem=dem, report=rep)
     if elsewhere:  # views of other places
@@ -143,7 +156,10 @@ def _reconstruct(paths, aoi, out: OutputFolder, *, alt_range, dem, config: Pipel
             rep.log(f"device: {device.info.label}")
             builds_before = device.build_totals()
         elif runner.kind == "scheduler":  # workers elsewhere, in other folders: whole paths
-            sources = [dataclasses.replace(s, path=os.path.abspath(s.path)) for s in sources]
+            sources = [dataclasses.replace(
+                s, path=os.path.abspath(s.path),
+                mask=s.mask and dataclasses.replace(s.mask, path=os.path.abspath(s.mask.path)))
+                for s in sources]
             if settings.dem is not None:
                 settings = dataclasses.replace(settings, dem=os.path.abspath(settings.dem))
         with rep.capturing_warnings():

@@ -271,6 +271,27 @@ def test_fingerprints_follow_what_a_tile_computes_not_how_it_runs(small_town):
     assert _fingerprint(small_town, TILED, alt_range=AltitudeRange(0.0, 300.0)) != base
 
 
+def test_a_mask_added_beside_an_image_changes_the_fingerprint(small_town, tmp_path):
+    """A mask changes what a tile computes (satsweep.io.masks) though the images do not."""
+    import shutil
+    from types import SimpleNamespace
+
+    import tifffile
+
+    from satsweep.io.masks import MASK_SUFFIX
+
+    folder = tmp_path / "views"
+    shutil.copytree(small_town.views[0].image.parent, folder)
+    copy = SimpleNamespace(aoi=small_town.aoi, alt_range=small_town.alt_range,
+                           views=[SimpleNamespace(image=folder / v.image.name)
+                                  for v in small_town.views])
+    base = _fingerprint(copy, TILED)
+    shape = tifffile.TiffFile(copy.views[1].image).pages[0].shape[:2]
+    mask = str(copy.views[1].image) + MASK_SUFFIX
+    tifffile.imwrite(mask, np.full(shape, 255, np.uint8))
+    assert _fingerprint(copy, TILED) != base
+
+
 def test_a_tile_its_data_defeats_is_reported_and_left_empty(small_town, serial, tmp_path,
                                                             monkeypatch):
     """A tile whose views cannot be matched (a CameraError planted in the first tile) is tried

@@ -351,6 +351,63 @@ def test_zero_fill_over_half_a_view_is_no_data(small_town, tmp_path):
     assert not any("matched best at the" in w["message"] for w in run.report["warnings"])
 
 
+def _clouded(pixels: np.ndarray, centre: tuple[float, float], radius: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """``pixels`` under a bright cloud (a disc with a soft edge) and GDAL's mask of it (0 wherever
+    the cloud changed a pixel, 255 elsewhere)."""
+    yy, xx = np.mgrid[:pixels.shape[0], :pixels.shape[1]]
+    cover = np.clip((1.2 - np.hypot(xx - centre[0], yy - centre[1]) / radius) / 0.4, 0.0, 1.0)
+    bright = float(np.percentile(pixels, 99.9)) * 1.2
+    clouded = np.round(pixels * (1.0 - cover) + bright * cover).astype(pixels.dtype)
+    return clouded, np.where(cover > 0, 0, 255).astype(np.uint8)
+
+
+def test_a_masked_cloud_leaves_holes_not_wrong_heights(small_town, tmp_path):
+    """A cloud over a tenth of one view of two (a quarter of the AOI): with GDAL's mask beside
+    the image, the cells the run fills are as good as the clean run's; without it the cloud's
+    cells are matched against a blank and many land metres off."""
+    import tifffile
+
+    from satsweep.io.images import read_image
+    from satsweep.io.masks import MASK_SUFFIX
+
+    v0, v1 = (Path(v.image) for v in small_town.views)
+    pixels = read_image(v1)
+    clouded, mask = _clouded(pixels, (0.55 * pixels.shape[1], 0.45 * pixels.shape[0]),
+                             0.15 * pixels.shape[0])
+    masked_dir, bare_dir = tmp_path / "masked", tmp_path / "bare"
+    masked_dir.mkdir()
+    bare_dir.mkdir()
+    masked = _with_rpc(v1, masked_dir / "view_01.tif", clouded)
+    tifffile.imwrite(str(masked) + MASK_SUFFIX, mask, compression="deflate")
+    bare = _with_rpc(v1, bare_dir / "view_01.tif", clouded)
+    config = PipelineConfig.from_mapping(FAST)
+    clean, run = _compare_no_data_run([v0, masked], [v0, v1], small_town.aoi, _alt(small_town),
+                                      small_town.truth_dsm, tmp_path, config)
+    assert run.report["inputs"]["masks"] == [None, str(masked) + MASK_SUFFIX]
+    unmasked = reconstruct([v0, bare], small_town.aoi, tmp_path / "bare_run",
+                           alt_range=_alt(small_town), config=config, verbose=False)
+    # The same check as the masked run's fails without the mask: 9.5% of the cells more than
+    # 5 m off against the clean run's 2.3% (the masked run's: 2.9%, on 68% of the cells).
+    e_clean = _errors_on_filled(clean.dsm_path, small_town.truth_dsm)
+    e_bare = _errors_on_filled(unmasked.dsm_path, small_town.truth_dsm)
+    gross = np.mean(e_bare > GROSS_ERROR_M) - np.mean(e_clean > GROSS_ERROR_M)
+    assert gross > NODATA_GROSS_TOL, gross
+
+
+def test_a_mask_folder_is_checked_before_the_run(small_town, tmp_path, capsys):
+    """--mask-dir: a folder that does not exist, or that masks none of the images, is one error
+    line naming it, and nothing is written."""
+    images = [str(v.image) for v in small_town.views]
+    common = [*images, "--aoi", _aoi_arg(small_town), "--out", str(tmp_path / "o"), "--quiet"]
+    line = _one_error_line(capsys, ["reconstruct", *common, "--mask-dir", str(tmp_path / "no")])
+    assert line.endswith("no: the mask folder does not exist"), line
+    (tmp_path / "masks").mkdir()
+    line = _one_error_line(capsys, ["reconstruct", *common, "--mask-dir", str(tmp_path / "masks")])
+    assert "masks: the mask folder holds a mask for none of the 2 images" in line, line
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_view_without_data_is_left_out_with_a_warning(synthetic_scene, tmp_path, capsys):
     from satsweep.io.images import read_image
 
