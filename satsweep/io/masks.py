@@ -124,7 +124,7 @@ def find_mask(image: str | os.PathLike, shape: tuple[int, int], *,
     image = os.fspath(image)
     if mask_file is not None:
         return _external_mask(os.fspath(mask_file), image, shape)
-    beside = _sidecar(os.path.dirname(image) or ".", image)
+    beside = _sidecar(os.path.dirname(image), image)
     if beside is not None:
         return _external_mask(beside, image, shape)
     return _internal_mask(image, shape)

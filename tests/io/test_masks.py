@@ -129,3 +129,30 @@ def test_masked_pixels_are_no_data_in_the_views(tmp_path):
     assert np.array_equal(views[0].valid, expected)
     # The image without a mask: only its no-data value (pixel index 0 holds 1) is left out.
     assert views[1].valid is None or np.array_equal(views[1].valid, views[1].image != 1)
+
+
+@pytest.mark.parametrize("internal", ["YES", "NO"])
+def test_masks_that_gdal_writes_read_as_gdal_reads_them(tmp_path, internal):
+    """rasterio (GDAL) as the oracle: a mask written by ``write_mask``, inside the TIFF
+    (GDAL_TIFF_INTERNAL_MASK=YES) or beside it (IMAGE.msk), reads as ``read_masks`` reads it."""
+    rasterio = pytest.importorskip("rasterio")
+    import warnings
+
+    from rasterio.env import Env
+
+    values = _mask_values()
+    path = tmp_path / "img.tif"
+    profile = dict(driver="GTiff", width=SHAPE[1], height=SHAPE[0], count=1, dtype="uint16",
+                   tiled=True, blockxsize=64, blockysize=64, compress="deflate")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with Env(GDAL_TIFF_INTERNAL_MASK=internal):
+            with rasterio.open(path, "w", **profile) as out:
+                out.write(np.ones(SHAPE, np.uint16), 1)
+                out.write_mask(values)
+        with rasterio.open(path) as src:
+            gdal_reads = src.read_masks(1) != 0
+    mask = find_mask(path, SHAPE)
+    assert mask.internal == (internal == "YES")
+    assert 0 < gdal_reads.mean() < 1
+    assert np.array_equal(mask.read(), gdal_reads)
