@@ -22,6 +22,10 @@ class SparseOptions(Options):
     refine_window_px: int = 9  # side (px) of the Lucas-Kanade window registering tie points; 0: none
     refine_max_shift_px: float = 2.0  # a tie point the registration moves farther (px) is dropped
     refine_keep_fraction: float = 0.5  # share of each pair's registered tie points kept (best first)
+    refine_beside_px: float = 6.0  # each tie point is also registered by 8 windows centred this
+    # far (px) beside it (4 sides, 4 corners), and its track keeps the window that matches best
+    # over all its views: one over one surface where a point on an edge straddles two (v10
+    # multi-date stacks: worst view 0.064 -> 0.040 px, docs/measurements.md); 0: centred only
     fine_points_per_view: int = 600  # the registration and the fine adjustment use the tie points
     # that give each view at least this many observations, longest tracks first; 0: all
     extend_points_per_view: int = 1000  # those tie points are also registered in the views that
@@ -67,7 +71,8 @@ class SparseOptions(Options):
     # heights: a roof across the AOI's edge may have its only features outside it
 
     ADVANCED = ("feature_scale", "feature_scale_min_px", "refine_window_px",
-                "refine_max_shift_px", "refine_keep_fraction", "fine_points_per_view",
+                "refine_max_shift_px", "refine_keep_fraction", "refine_beside_px",
+                "fine_points_per_view",
                 "extend_points_per_view",
                 "contrast_threshold", "ratio", "repair_ratio",
                 "mutual", "geometric_model", "ransac_threshold_px", "ransac_iterations", "seed",
@@ -85,6 +90,10 @@ class SparseOptions(Options):
         self._require(self.feature_scale_min_px >= 0, "feature_scale_min_px", "must be >= 0")
         self._require(self.refine_window_px == 0 or 5 <= self.refine_window_px <= 63,
                       "refine_window_px", "must be 0 (no refinement) or in [5, 63] pixels")
+        self._require(math.isfinite(self.refine_beside_px)
+                      and 0.0 <= self.refine_beside_px <= max(self.refine_window_px, 1),
+                      "refine_beside_px", "must be in [0, refine_window_px] pixels (0: the "
+                      "centred window only)")
         self._require(self.fine_points_per_view >= 0, "fine_points_per_view", "must be >= 0")
         self._require(self.extend_points_per_view >= 0, "extend_points_per_view",
                       "must be >= 0 (0: tracks not extended)")

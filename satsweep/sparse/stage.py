@@ -237,7 +237,8 @@ class TiedViews:
     track_length_histogram: dict[int, int]
     n_refine_dropped: int
     n_refine_contrast: int  # observations registered on local contrast (other dates)
-    refine_contrast: dict  # register_observations' choice of the contrast's scale
+    refine_contrast: dict  # register_observations' choice of the contrast's scale, and its
+    # tie points registered by a window beside them
     n_extended: int  # observations added where a view had not matched a tie point (extend_tracks)
     coarse: BundleSolution | None
     fine: BundleSolution | None
@@ -680,7 +681,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
                 chosen, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
                 max_shift_px=o.refine_max_shift_px, keep_fraction=o.refine_keep_fraction,
                 at_least=_MIN_BEST_REGISTERED, threads=SPARSE_THREADS_MAX,
-                choice=refine_contrast)
+                beside_px=o.refine_beside_px, choice=refine_contrast)
             n_refine_contrast = int(np.sum(residual >= CONTRAST_RANK))
             seconds["refinement"] = seconds.get("refinement", 0.0) + time.perf_counter() - t0
         fine_obs = best_registered(registered, residual, o.refine_keep_fraction,
@@ -927,6 +928,9 @@ class SparseResult:
             "refine_on_local_contrast": t.n_refine_contrast,
             "refine_contrast_sigma_px": t.refine_contrast.get("contrast_sigma_px"),
             "refine_contrast_fine_spread_ratio": t.refine_contrast.get("fine_spread_ratio"),
+            # tie points registered by a window beside them ([sparse] refine_beside_px), of all
+            "refine_beside_points": t.refine_contrast.get("beside_points"),
+            "refine_points": t.refine_contrast.get("points"),
             "extended_observations": t.n_extended,
             "coarse": figures(coarse),
             "fine": figures(fine),

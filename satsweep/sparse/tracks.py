@@ -337,7 +337,7 @@ def across_spread(camera_w: Any, camera_v: Any, xy_w: np.ndarray, xy_v: np.ndarr
 
 def register_observations(obs: Observations, images: Sequence[np.ndarray], cameras: Sequence[Any], *,
                           window_px: int, max_shift_px: float, keep_fraction: float = 1.0,
-                          at_least: int = 0, threads: int = 1,
+                          at_least: int = 0, threads: int = 1, beside_px: float = 0.0,
                           choice: dict | None = None) -> tuple[Observations, np.ndarray, int]:
     """Register each track's observations to its first one, to a fraction of a pixel.
 
@@ -363,9 +363,20 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     _CONTRAST_PAIR_FAILED of the pair failed. The contrast's scale (_CONTRAST_SIGMA_PX or
     _FINE_CONTRAST_SIGMA_PX) is the one under which the pairs wholly on contrast agree better
     with one relative pointing each (:func:`across_spread`, median over those pairs). The pairs
-    run in up to ``threads`` threads (the same result as one). ``choice``, a dict, receives
-    ``contrast_sigma_px`` (the scale taken; None when no pair needed contrast) and
-    ``fine_spread_ratio`` (the median ratio, None when no pair compared). Returns the observations, the
+    run in up to ``threads`` threads (the same result as one).
+
+    With ``beside_px`` > 0, every track is then registered again by the windows centred
+    ``beside_px`` beside its point (BESIDE_DIRECTIONS: the 4 sides and the 4 corners, each
+    observation on the images its centred window used), and takes the window (centred or
+    beside) whose residuals summed over the track's observations are least. A tie point on an
+    edge between two surfaces whose parallax differs (where SIFT puts most keypoints) has a
+    centred window over both, and no translation registers both (a compromise, off by tenths
+    of a pixel along the pair's epipolar lines); a window beside it lies over one, whose plane
+    through the point's pixel is a 3-D point that every view sees consistently (planes map by
+    homographies). ``choice``, a dict, receives ``contrast_sigma_px`` (the scale taken; None
+    when no pair needed contrast), ``fine_spread_ratio`` (the median ratio, None when no pair
+    compared), ``beside_px``, ``beside_points`` (tracks that took a window beside, None when
+    none was tried) and ``points``. Returns the observations, the
     residual of each (mean absolute difference of the two windows' 8-bit grey levels after
     the registration, or of their local contrast plus CONTRAST_RANK; 0 for first observations)
     and the number of observations dropped.
@@ -386,25 +397,32 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, _LK_ITERATIONS, _LK_EPS_PX)
 
     def register(head_u8: np.ndarray, other_u8: np.ndarray, H: np.ndarray, sel: np.ndarray,
-                 rank: float, out_xy: np.ndarray, out_residual: np.ndarray) -> None:
+                 rank: float, out_xy: np.ndarray, out_residual: np.ndarray,
+                 offsets: np.ndarray = np.zeros((1, 2)), from_xy: np.ndarray | None = None
+                 ) -> None:
         """Observations ``sel`` (of one view, their tracks' first in the view of ``head_u8``)
-        registered on these images: ``out_xy`` and ``out_residual`` (+ ``rank``) where it
-        succeeds."""
+        registered on these images, by the windows centred ``offsets[k]`` pixels (of the
+        warped images) from their points: ``out_xy[k]`` and ``out_residual[k]`` (+ ``rank``)
+        where it succeeds. LK starts from ``from_xy`` (view v's pixels; default: the
+        keypoints)."""
         h, wd = head_u8.shape
         warped = cv2.warpPerspective(other_u8, H, (wd, h),
                                      flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-        start = cv2.perspectiveTransform(obs.xy[sel].reshape(-1, 1, 2), np.linalg.inv(H))
-        found, status, lk_err = cv2.calcOpticalFlowPyrLK(
-            head_u8, warped, obs.xy[head[sel]].astype(np.float32).reshape(-1, 1, 2),
-            start.astype(np.float32), winSize=(window_px, window_px), maxLevel=_LK_LEVELS,
-            criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        back = cv2.perspectiveTransform(found.astype(np.float64), H).reshape(-1, 2)
-        shift = np.hypot(*(back - obs.xy[sel]).T)
-        with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
-            err = lk_err.ravel().astype(np.float64)
-        ok = (status.ravel() == 1) & np.isfinite(shift) & (shift <= max_shift_px) & np.isfinite(err)
-        out_xy[sel[ok]] = back[ok]
-        out_residual[sel[ok]] = rank + err[ok]
+        begin = obs.xy[sel] if from_xy is None else from_xy[sel]
+        start = cv2.perspectiveTransform(begin.reshape(-1, 1, 2), np.linalg.inv(H))
+        for k, d in enumerate(np.asarray(offsets, np.float64)):
+            found, status, lk_err = cv2.calcOpticalFlowPyrLK(
+                head_u8, warped, (obs.xy[head[sel]] + d).astype(np.float32).reshape(-1, 1, 2),
+                (start + d).astype(np.float32), winSize=(window_px, window_px),
+                maxLevel=_LK_LEVELS, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+            back = cv2.perspectiveTransform(found.astype(np.float64) - d, H).reshape(-1, 2)
+            shift = np.hypot(*(back - obs.xy[sel]).T)
+            with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
+                err = lk_err.ravel().astype(np.float64)
+            ok = ((status.ravel() == 1) & np.isfinite(shift) & (shift <= max_shift_px)
+                  & np.isfinite(err))
+            out_xy[k, sel[ok]] = back[ok]
+            out_residual[k, sel[ok]] = rank + err[ok]
 
     grey = map_in_threads(_to_u8, images, max_threads=threads, name="register")
     pairs = []  # (view of the first observations, other view, their observations)
@@ -415,9 +433,10 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     # view w pixels -> view v pixels
     homography = {(w, v): planes[v] @ np.linalg.inv(planes[w]) for w, v, _ in pairs}
 
-    def on(images_u8, rank, out_xy=xy, out_residual=residual):  # a pair's registration on these
+    def on(images_u8, rank, out_xy=xy, out_residual=residual, **shifted):  # a pair's
+        # registration on these images
         return lambda job: register(images_u8[job[0]], images_u8[job[1]], homography[job[:2]],
-                                    job[2], rank, out_xy, out_residual)
+                                    job[2], rank, out_xy[None], out_residual[None], **shifted)
 
     # The pairs' observations are disjoint and each registration reads only the keypoints: the
     # pairs run in any order, in threads, and give what one loop over them gives.
@@ -472,10 +491,72 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     if choice is not None:
         choice.update(contrast_sigma_px=float(scale[0]) if whole or again else None,
                       fine_spread_ratio=float(np.median(ratios)) if ratios else None)
+    window = None
+    if beside_px > 0.0:
+        xy, residual, window = _beside_windows(
+            obs, first, pairs, xy, residual, register, grey,
+            lambda jobs: contrast_of(jobs, *scale), homography,
+            np.asarray(BESIDE_DIRECTIONS, np.float64) * beside_px, threads,
+            {(w, v) for w, v, _ in whole})
+    if choice is not None:
+        choice.update(beside_px=float(beside_px),
+                      beside_points=None if window is None else int(np.sum(window > 0)),
+                      points=int(obs.n_points))
     keep = np.isfinite(residual)
     registered = Observations(point=obs.point, view=obs.view, xy=xy, n_points=obs.n_points)
     index = registered.subset_index(keep)
     return registered.subset(keep), residual[index], int((~keep).sum())
+
+
+# The windows beside a tie point (register_observations' ``beside_px``): the 4 sides and the 4
+# corners, in units of ``beside_px``.
+BESIDE_DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1), (-1, -1))
+# An observation that a window loses weighs this in its track's sum of residuals (more than
+# any residual: a window that loses an observation the others keep is not taken for it).
+_BESIDE_LOST = 1000.0
+
+
+def _beside_windows(obs: Observations, first: np.ndarray, pairs, xy: np.ndarray,
+                    residual: np.ndarray, register, grey, contrast_of, homography,
+                    offsets: np.ndarray, threads: int, on_contrast: set
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every track registered again by the windows centred ``offsets`` (k, 2) beside its
+    point, each observation on the images its centred window used (grey levels, or local
+    contrast for those ranked after CONTRAST_RANK; one the centred window lost, its pair's), and
+    each track given the window (centred or beside) of the least sum of residuals over its
+    observations. Returns (xy, residual, the window's index per point: 0 centred)."""
+    n = len(obs.xy)
+    point_index = np.cumsum(first) - 1
+    n_points = int(point_index[-1]) + 1
+    out_xy = np.repeat(xy[None], len(offsets), axis=0)
+    out_residual = np.full((len(offsets), n), np.inf)
+    out_residual[:, first] = 0.0
+    grey_jobs, contrast_jobs = [], []
+    for w, v, pair in pairs:
+        on_grey = np.where(np.isfinite(residual[pair]), residual[pair] < CONTRAST_RANK,
+                           (w, v) not in on_contrast)
+        if on_grey.any():
+            grey_jobs.append((w, v, pair[on_grey]))
+        if (~on_grey).any():
+            contrast_jobs.append((w, v, pair[~on_grey]))
+
+    def run(images_u8, rank):  # LK starts from where the centred window ended
+        return lambda job: register(images_u8[job[0]], images_u8[job[1]], homography[job[:2]],
+                                    job[2], rank, out_xy, out_residual, offsets=offsets,
+                                    from_xy=xy)
+
+    map_in_threads(run(grey, 0.0), grey_jobs, max_threads=threads, name="register")
+    if contrast_jobs:
+        map_in_threads(run(contrast_of(contrast_jobs), CONTRAST_RANK), contrast_jobs,
+                       max_threads=threads, name="register")
+    every_xy = np.concatenate([xy[None], out_xy])
+    every_residual = np.concatenate([residual[None], out_residual])
+    cost = np.zeros((len(every_residual), n_points))
+    for k, res in enumerate(every_residual):
+        np.add.at(cost[k], point_index, np.where(np.isfinite(res), res, _BESIDE_LOST))
+    best = np.argmin(cost, axis=0)  # (ties: the first, the centred window first of all)
+    rows = np.arange(n)
+    return every_xy[best[point_index], rows], every_residual[best[point_index], rows], best
 
 
 def best_registered(obs: Observations, residual: np.ndarray, keep_fraction: float,

@@ -140,6 +140,70 @@ def test_refinement_registers_tie_points_across_rotated_views():
     assert err.max() < REGISTRATION_TOL_PX, err.max()
 
 
+def _step(seed=3):
+    """Two surfaces whose parallax differs, meeting at column 100 of view 0: view 1 sees the
+    left one moved by LEFT_MOVE and the right one (raised: its edge moves with it) by
+    RIGHT_MOVE, which the cameras (the identity) do not know."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+
+    def texture():
+        t = cv2.GaussianBlur(rng.random((200, 200)).astype(np.float32), (0, 0), 1.5)
+        return (t - t.min()) / np.ptp(t)
+
+    left, right = texture(), texture()
+    cols = np.arange(200)[None, :]
+
+    def moved(image, move):
+        return cv2.warpAffine(image, np.hstack([np.eye(2), np.asarray(move)[:, None]]),
+                              (200, 200), flags=cv2.INTER_CUBIC)
+
+    image0 = np.where(cols < 100, left, right)
+    image1 = np.where(cols < 100 + STEP_RIGHT_MOVE[0], moved(left, STEP_LEFT_MOVE),
+                      moved(right, STEP_RIGHT_MOVE))
+    return [image0, image1], [_PlaneCamera(np.eye(3)), _PlaneCamera(np.eye(3))]
+
+
+# The step's two surfaces' moves from view 0 to view 1 (px): 1.3 px apart along the rows, as
+# two surfaces a few metres apart in a pair of base-to-height 0.2-0.3 at 0.5 m pixels.
+STEP_LEFT_MOVE = np.array([0.3, 0.2])
+STEP_RIGHT_MOVE = np.array([1.6, -0.1])
+
+
+@pytest.mark.parametrize("beside_px", [0.0, 6.0])
+def test_a_tie_point_on_an_edge_is_registered_by_a_window_beside_it(beside_px):
+    """Tie points on the edge between two surfaces: the centred window straddles both and
+    registers neither surface's move; windows 6 px beside lie over one, and each track takes
+    one of the two surfaces' moves exactly. Points away from the edge keep the centred
+    window's result."""
+    images, cams = _step()
+    rows = np.linspace(40.0, 160.0, 13)
+    edge = np.column_stack([np.full(13, 99.6), rows])
+    inside = np.column_stack([np.full(13, 50.0), rows])
+    xy0 = np.vstack([edge, inside])
+    n = len(xy0)
+    obs = sparse_tracks.Observations(point=np.repeat(np.arange(n), 2), view=np.tile([0, 1], n),
+                                     xy=np.stack([xy0, xy0 + 0.5], axis=1).reshape(-1, 2),
+                                     n_points=n)
+    choice = {}
+    got, _, dropped = sparse_tracks.register_observations(
+        obs, images, cams, window_px=9, max_shift_px=3.0, beside_px=beside_px, choice=choice)
+    assert dropped == 0
+    move = got.xy[1::2] - got.xy[0::2]
+    off_left = np.hypot(*(move - STEP_LEFT_MOVE).T)
+    off_right = np.hypot(*(move - STEP_RIGHT_MOVE).T)
+    nearest = np.minimum(off_left, off_right)
+    # inside the left surface: its move, either way
+    assert off_left[13:].max() < REGISTRATION_TOL_PX, off_left[13:]
+    if beside_px:
+        assert nearest[:13].max() < REGISTRATION_TOL_PX, nearest[:13]
+        assert choice["beside_points"] >= 13 and choice["points"] == n
+    else:  # the centred window: a compromise, far from both on most of the edge's points
+        assert np.median(nearest[:13]) > 3 * REGISTRATION_TOL_PX, nearest[:13]
+        assert choice["beside_points"] is None
+
+
 def _two_dates(brighter, xy0, seed=7):
     """View 0 (a blurred noise texture) and view 1: view 0 moved by a known sub-pixel translation
     (the cameras know its integer part), its grey levels 0.5 + 0.4 x view 0's (another date:
