@@ -514,6 +514,11 @@ BESIDE_DIRECTIONS = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (1, -1), (-1, 1),
 # An observation that a window loses weighs this in its track's sum of residuals (more than
 # any residual: a window that loses an observation the others keep is not taken for it).
 _BESIDE_LOST = 1000.0
+# Tracks of fewer views keep the centred window: two views' one residual picks among the nine
+# windows by chance as much as by surface (tools/bench_e2e.py's two views, 0.196 m / 89.6%
+# within 1 m: 0.200 m / 88.8% with their tracks too; the multi-date stacks' tracks reach most
+# views, and the v10 pointing is the same either way).
+BESIDE_MIN_VIEWS = 3
 
 
 def _beside_windows(obs: Observations, first: np.ndarray, pairs, xy: np.ndarray,
@@ -523,8 +528,8 @@ def _beside_windows(obs: Observations, first: np.ndarray, pairs, xy: np.ndarray,
     """Every track registered again by the windows centred ``offsets`` (k, 2) beside its
     point, each observation on the images its centred window used (grey levels, or local
     contrast for those ranked after CONTRAST_RANK; one the centred window lost, its pair's), and
-    each track given the window (centred or beside) of the least sum of residuals over its
-    observations. Returns (xy, residual, the window's index per point: 0 centred)."""
+    each track of BESIDE_MIN_VIEWS views or more given the window (centred or beside) of the
+    least sum of residuals over its observations. Returns (xy, residual, the window's index per point: 0 centred)."""
     n = len(obs.xy)
     point_index = np.cumsum(first) - 1
     n_points = int(point_index[-1]) + 1
@@ -554,6 +559,8 @@ def _beside_windows(obs: Observations, first: np.ndarray, pairs, xy: np.ndarray,
     cost = np.zeros((len(every_residual), n_points))
     for k, res in enumerate(every_residual):
         np.add.at(cost[k], point_index, np.where(np.isfinite(res), res, _BESIDE_LOST))
+    views_per_point = np.bincount(point_index, minlength=n_points)
+    cost[1:, views_per_point < BESIDE_MIN_VIEWS] = np.inf
     best = np.argmin(cost, axis=0)  # (ties: the first, the centred window first of all)
     rows = np.arange(n)
     return every_xy[best[point_index], rows], every_residual[best[point_index], rows], best

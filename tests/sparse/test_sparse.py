@@ -141,9 +141,9 @@ def test_refinement_registers_tie_points_across_rotated_views():
 
 
 def _step(seed=3):
-    """Two surfaces whose parallax differs, meeting at column 100 of view 0: view 1 sees the
-    left one moved by LEFT_MOVE and the right one (raised: its edge moves with it) by
-    RIGHT_MOVE, which the cameras (the identity) do not know."""
+    """Two surfaces whose parallax differs, meeting at column 100 of view 0: view k sees the
+    left one moved by STEP_LEFT_MOVES[k] and the right one (raised: its edge moves with it) by
+    STEP_RIGHT_MOVES[k], which the cameras (the identity) do not know."""
     import cv2
 
     rng = np.random.default_rng(seed)
@@ -159,49 +159,76 @@ def _step(seed=3):
         return cv2.warpAffine(image, np.hstack([np.eye(2), np.asarray(move)[:, None]]),
                               (200, 200), flags=cv2.INTER_CUBIC)
 
-    image0 = np.where(cols < 100, left, right)
-    image1 = np.where(cols < 100 + STEP_RIGHT_MOVE[0], moved(left, STEP_LEFT_MOVE),
-                      moved(right, STEP_RIGHT_MOVE))
-    return [image0, image1], [_PlaneCamera(np.eye(3)), _PlaneCamera(np.eye(3))]
+    images = [np.where(cols < 100 + r[0], moved(left, m), moved(right, r))
+              for m, r in zip(STEP_LEFT_MOVES, STEP_RIGHT_MOVES)]
+    return images, [_PlaneCamera(np.eye(3)) for _ in images]
 
 
-# The step's two surfaces' moves from view 0 to view 1 (px): 1.3 px apart along the rows, as
-# two surfaces a few metres apart in a pair of base-to-height 0.2-0.3 at 0.5 m pixels.
-STEP_LEFT_MOVE = np.array([0.3, 0.2])
-STEP_RIGHT_MOVE = np.array([1.6, -0.1])
+# The step's two surfaces' moves from view 0 to views 0, 1, 2 (px): 1.3 px apart along the
+# rows in view 1, 1.2 px in view 2, as two surfaces a few metres apart in pairs of
+# base-to-height 0.2-0.3 at 0.5 m pixels.
+STEP_LEFT_MOVES = np.array([[0.0, 0.0], [0.3, 0.2], [-0.4, 0.1]])
+STEP_RIGHT_MOVES = np.array([[0.0, 0.0], [1.6, -0.1], [-1.6, 0.3]])
+
+
+def _step_tracks(n_views: int):
+    """Tracks of ``n_views`` views over the step: 13 on the edge (column 99.6), 13 inside the
+    left surface, each view's observation 0.5 px off its point's."""
+    rows = np.linspace(40.0, 160.0, 13)
+    xy0 = np.vstack([np.column_stack([np.full(13, 99.6), rows]),
+                     np.column_stack([np.full(13, 50.0), rows])])
+    n = len(xy0)
+    xy = np.stack([xy0 + (0.0 if k == 0 else 0.5) for k in range(n_views)], axis=1)
+    return sparse_tracks.Observations(point=np.repeat(np.arange(n), n_views),
+                                      view=np.tile(np.arange(n_views), n),
+                                      xy=xy.reshape(-1, 2), n_points=n)
 
 
 @pytest.mark.parametrize("beside_px", [0.0, 6.0])
 def test_a_tie_point_on_an_edge_is_registered_by_a_window_beside_it(beside_px):
-    """Tie points on the edge between two surfaces: the centred window straddles both and
-    registers neither surface's move; windows 6 px beside lie over one, and each track takes
-    one of the two surfaces' moves exactly. Points away from the edge keep the centred
-    window's result."""
+    """Tracks of three views on the edge between two surfaces: the centred window straddles
+    both and registers neither surface's move; windows 6 px beside lie over one, and each track
+    takes one of the two surfaces' moves in both other views. Points inside the left surface
+    get its move either way."""
     images, cams = _step()
-    rows = np.linspace(40.0, 160.0, 13)
-    edge = np.column_stack([np.full(13, 99.6), rows])
-    inside = np.column_stack([np.full(13, 50.0), rows])
-    xy0 = np.vstack([edge, inside])
-    n = len(xy0)
-    obs = sparse_tracks.Observations(point=np.repeat(np.arange(n), 2), view=np.tile([0, 1], n),
-                                     xy=np.stack([xy0, xy0 + 0.5], axis=1).reshape(-1, 2),
-                                     n_points=n)
+    obs = _step_tracks(3)
     choice = {}
     got, _, dropped = sparse_tracks.register_observations(
         obs, images, cams, window_px=9, max_shift_px=3.0, beside_px=beside_px, choice=choice)
     assert dropped == 0
-    move = got.xy[1::2] - got.xy[0::2]
-    off_left = np.hypot(*(move - STEP_LEFT_MOVE).T)
-    off_right = np.hypot(*(move - STEP_RIGHT_MOVE).T)
-    nearest = np.minimum(off_left, off_right)
-    # inside the left surface: its move, either way
-    assert off_left[13:].max() < REGISTRATION_TOL_PX, off_left[13:]
+    xy = got.xy.reshape(-1, 3, 2)
+    for k in (1, 2):
+        move = xy[:, k] - xy[:, 0]
+        off_left = np.hypot(*(move - STEP_LEFT_MOVES[k]).T)
+        off_right = np.hypot(*(move - STEP_RIGHT_MOVES[k]).T)
+        assert off_left[13:].max() < REGISTRATION_TOL_PX, (k, off_left[13:])
+        nearest = np.minimum(off_left, off_right)[:13]
+        if beside_px:
+            assert nearest.max() < REGISTRATION_TOL_PX, (k, nearest)
+        else:  # the centred window: a compromise, far from both on most of the edge's points
+            assert np.median(nearest) > 3 * REGISTRATION_TOL_PX, (k, nearest)
     if beside_px:
-        assert nearest[:13].max() < REGISTRATION_TOL_PX, nearest[:13]
-        assert choice["beside_points"] >= 13 and choice["points"] == n
-    else:  # the centred window: a compromise, far from both on most of the edge's points
-        assert np.median(nearest[:13]) > 3 * REGISTRATION_TOL_PX, nearest[:13]
+        left = np.hypot(*(xy[:13, 1] - xy[:13, 0] - STEP_LEFT_MOVES[1]).T) < REGISTRATION_TOL_PX
+        left2 = np.hypot(*(xy[:13, 2] - xy[:13, 0] - STEP_LEFT_MOVES[2]).T) < REGISTRATION_TOL_PX
+        np.testing.assert_array_equal(left, left2)  # each track: one surface in every view
+        assert choice["beside_points"] >= 13 and choice["points"] == obs.n_points
+    else:
         assert choice["beside_points"] is None
+
+
+def test_tracks_of_two_views_keep_the_centred_window():
+    """BESIDE_MIN_VIEWS: a track of two views keeps its centred window's registration."""
+    assert sparse_tracks.BESIDE_MIN_VIEWS == 3
+    images, cams = _step()
+    obs = _step_tracks(2)
+    centred, _, _ = sparse_tracks.register_observations(obs, images[:2], cams[:2], window_px=9,
+                                                        max_shift_px=3.0)
+    choice = {}
+    beside, _, _ = sparse_tracks.register_observations(obs, images[:2], cams[:2], window_px=9,
+                                                       max_shift_px=3.0, beside_px=6.0,
+                                                       choice=choice)
+    np.testing.assert_array_equal(beside.xy, centred.xy)
+    assert choice["beside_points"] == 0
 
 
 def _two_dates(brighter, xy0, seed=7):
