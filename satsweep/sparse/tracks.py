@@ -410,19 +410,25 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
                                      flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
         begin = obs.xy[sel] if from_xy is None else from_xy[sel]
         start = cv2.perspectiveTransform(begin.reshape(-1, 1, 2), np.linalg.inv(H))
-        for k, d in enumerate(np.asarray(offsets, np.float64)):
-            found, status, lk_err = cv2.calcOpticalFlowPyrLK(
-                head_u8, warped, (obs.xy[head[sel]] + d).astype(np.float32).reshape(-1, 1, 2),
-                (start + d).astype(np.float32), winSize=(window_px, window_px),
-                maxLevel=_LK_LEVELS, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-            back = cv2.perspectiveTransform(found.astype(np.float64) - d, H).reshape(-1, 2)
-            shift = np.hypot(*(back - obs.xy[sel]).T)
-            with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
-                err = lk_err.ravel().astype(np.float64)
-            ok = ((status.ravel() == 1) & np.isfinite(shift) & (shift <= max_shift_px)
-                  & np.isfinite(err))
-            out_xy[k, sel[ok]] = back[ok]
-            out_residual[k, sel[ok]] = rank + err[ok]
+        # Every offset's windows in one call: OpenCV builds the images' pyramids and gradients
+        # once per call, over the whole images.
+        d = np.asarray(offsets, np.float64)[:, None, None, :]  # (k, 1, 1, 2)
+        found, status, lk_err = cv2.calcOpticalFlowPyrLK(
+            head_u8, warped,
+            (obs.xy[head[sel]].reshape(1, -1, 1, 2) + d).astype(np.float32).reshape(-1, 1, 2),
+            (start[None] + d).astype(np.float32).reshape(-1, 1, 2),
+            winSize=(window_px, window_px), maxLevel=_LK_LEVELS, criteria=criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        found = found.astype(np.float64).reshape(len(d), -1, 1, 2) - d
+        back = cv2.perspectiveTransform(found.reshape(-1, 1, 2), H).reshape(len(d), -1, 2)
+        shift = np.hypot(back[..., 0] - obs.xy[sel, 0], back[..., 1] - obs.xy[sel, 1])
+        with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
+            err = lk_err.reshape(len(d), -1).astype(np.float64)
+        ok = ((status.reshape(len(d), -1) == 1) & np.isfinite(shift) & (shift <= max_shift_px)
+              & np.isfinite(err))
+        for k in range(len(d)):
+            out_xy[k, sel[ok[k]]] = back[k, ok[k]]
+            out_residual[k, sel[ok[k]]] = rank + err[k, ok[k]]
 
     grey = map_in_threads(_to_u8, images, max_threads=threads, name="register")
     pairs = []  # (view of the first observations, other view, their observations)
