@@ -335,6 +335,9 @@ def across_spread(camera_w: Any, camera_v: Any, xy_w: np.ndarray, xy_v: np.ndarr
     return float(np.median(np.abs(across - np.median(across))))
 
 
+_CENTRED = np.zeros((1, 2))  # the centred window's offset (register_observations)
+
+
 def register_observations(obs: Observations, images: Sequence[np.ndarray], cameras: Sequence[Any], *,
                           window_px: int, max_shift_px: float, keep_fraction: float = 1.0,
                           at_least: int = 0, threads: int = 1, beside_px: float = 0.0,
@@ -398,8 +401,7 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
 
     def register(head_u8: np.ndarray, other_u8: np.ndarray, H: np.ndarray, sel: np.ndarray,
                  rank: float, out_xy: np.ndarray, out_residual: np.ndarray,
-                 offsets: np.ndarray = np.zeros((1, 2)), from_xy: np.ndarray | None = None
-                 ) -> None:
+                 offsets: np.ndarray = _CENTRED, from_xy: np.ndarray | None = None) -> None:
         """Observations ``sel`` (of one view, their tracks' first in the view of ``head_u8``)
         registered on these images, by the windows centred ``offsets[k]`` pixels (of the
         warped images) from their points: ``out_xy[k]`` and ``out_residual[k]`` (+ ``rank``)
@@ -439,10 +441,9 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     # view w pixels -> view v pixels
     homography = {(w, v): planes[v] @ np.linalg.inv(planes[w]) for w, v, _ in pairs}
 
-    def on(images_u8, rank, out_xy=xy, out_residual=residual, **shifted):  # a pair's
-        # registration on these images
+    def on(images_u8, rank, out_xy=xy, out_residual=residual):  # a pair's registration on these
         return lambda job: register(images_u8[job[0]], images_u8[job[1]], homography[job[:2]],
-                                    job[2], rank, out_xy[None], out_residual[None], **shifted)
+                                    job[2], rank, out_xy[None], out_residual[None])
 
     # The pairs' observations are disjoint and each registration reads only the keypoints: the
     # pairs run in any order, in threads, and give what one loop over them gives.
@@ -535,15 +536,19 @@ def _beside_windows(obs: Observations, first: np.ndarray, pairs, xy: np.ndarray,
     point, each observation on the images its centred window used (grey levels, or local
     contrast for those ranked after CONTRAST_RANK; one the centred window lost, its pair's), and
     each track of BESIDE_MIN_VIEWS views or more given the window (centred or beside) of the
-    least sum of residuals over its observations. Returns (xy, residual, the window's index per point: 0 centred)."""
+    least sum of residuals over its observations. Returns (xy, residual, the window's index
+    per point: 0 centred)."""
     n = len(obs.xy)
     point_index = np.cumsum(first) - 1
     n_points = int(point_index[-1]) + 1
+    views_per_point = np.bincount(point_index, minlength=n_points)
+    long_enough = views_per_point[point_index] >= BESIDE_MIN_VIEWS
     out_xy = np.repeat(xy[None], len(offsets), axis=0)
     out_residual = np.full((len(offsets), n), np.inf)
     out_residual[:, first] = 0.0
     grey_jobs, contrast_jobs = [], []
     for w, v, pair in pairs:
+        pair = pair[long_enough[pair]]
         on_grey = np.where(np.isfinite(residual[pair]), residual[pair] < CONTRAST_RANK,
                            (w, v) not in on_contrast)
         if on_grey.any():
@@ -565,7 +570,6 @@ def _beside_windows(obs: Observations, first: np.ndarray, pairs, xy: np.ndarray,
     cost = np.zeros((len(every_residual), n_points))
     for k, res in enumerate(every_residual):
         np.add.at(cost[k], point_index, np.where(np.isfinite(res), res, _BESIDE_LOST))
-    views_per_point = np.bincount(point_index, minlength=n_points)
     cost[1:, views_per_point < BESIDE_MIN_VIEWS] = np.inf
     best = np.argmin(cost, axis=0)  # (ties: the first, the centred window first of all)
     rows = np.arange(n)
