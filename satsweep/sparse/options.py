@@ -22,10 +22,11 @@ class SparseOptions(Options):
     refine_window_px: int = 9  # side (px) of the Lucas-Kanade window registering tie points; 0: none
     refine_max_shift_px: float = 2.0  # a tie point the registration moves farther (px) is dropped
     refine_keep_fraction: float = 0.5  # share of each pair's registered tie points kept (best first)
-    refine_beside_px: float = 6.0  # each tie point is also registered by 8 windows centred this
-    # far (px) beside it (4 sides, 4 corners), and its track keeps the window that matches best
-    # over all its views: one over one surface where a point on an edge straddles two (v10
-    # multi-date stacks: worst view 0.064 -> 0.040 px, docs/measurements.md); 0: centred only
+    refine_beside_px: float = 6.0  # each tie point is also registered by 16 windows centred
+    # this far (px) and 4/3 of it beside it (4 sides, 4 corners), and its track keeps the window
+    # that matches best over all its views: one over one surface where a point on an edge
+    # straddles two (v10 multi-date stacks: worst view 0.064 -> 0.033 px on average,
+    # docs/measurements.md); 0: centred only
     fine_points_per_view: int = 600  # the registration and the fine adjustment use the tie points
     # that give each view at least this many observations, longest tracks first; 0: all
     extend_points_per_view: int = 1000  # those tie points are also registered in the views that
