@@ -174,9 +174,9 @@ def top_region_m2(at_top: np.ndarray, gsd_m: float) -> float:
 def top_regions(at_top: np.ndarray, gsd_m: float, P: np.ndarray, top_u: float,
                 offset: tuple[int, int] = (0, 0)) -> tuple[tuple[float, float, float], ...]:
     """The ``TOP_REGIONS_KEPT`` largest regions of :func:`top_region_m2` (the first one's area is
-    its value), largest first, as (area m2, east m, north m): each centroid's ENU point on the top plane ``u = top_u`` seen by
-    the reference camera ``P`` (3 x 4, ENU -> pixels of the image whose pixel ``offset`` (col,
-    row) is ``at_top``'s first)."""
+    its value), largest first, as (area m2, east m, north m): each centroid's ENU point on the
+    top plane ``u = top_u`` seen by the reference camera ``P`` (3 x 4, ENU -> pixels of the
+    image whose pixel ``offset`` (col, row) is ``at_top``'s first)."""
     from satsweep.products.points import solve_ground_en  # noqa: PLC0415
 
     pixels, centroids = _opened_regions(at_top)

@@ -237,7 +237,7 @@ class TiedViews:
     track_length_histogram: dict[int, int]
     n_refine_dropped: int
     n_refine_contrast: int  # observations registered on local contrast (other dates)
-    refine_contrast: dict  # register_observations' choice of the contrast's scale, and its
+    refine_choice: dict  # register_observations' choice of the contrast's scale, and its
     # tie points registered by a window beside them
     n_extended: int  # observations added where a view had not matched a tie point (extend_tracks)
     coarse: BundleSolution | None
@@ -602,7 +602,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     tied = False
     tracks: list = []
     n_refine_dropped = n_refine_contrast = n_extended = 0
-    refine_contrast: dict = {}
+    refine_choice: dict = {}
     fine_cams = list(cameras)
     shifts = np.full((V, 2), np.nan)
     coarse_shifts = np.full((V, 2), np.nan)
@@ -681,7 +681,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
                 chosen, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
                 max_shift_px=o.refine_max_shift_px, keep_fraction=o.refine_keep_fraction,
                 at_least=_MIN_BEST_REGISTERED, threads=SPARSE_THREADS_MAX,
-                beside_px=o.refine_beside_px, choice=refine_contrast)
+                beside_px=o.refine_beside_px, choice=refine_choice)
             n_refine_contrast = int(np.sum(residual >= CONTRAST_RANK))
             seconds["refinement"] = seconds.get("refinement", 0.0) + time.perf_counter() - t0
         fine_obs = best_registered(registered, residual, o.refine_keep_fraction,
@@ -790,7 +790,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         n_features=n_features, n_tracks=len(tracks),
         track_length_histogram={int(k): int(c) for k, c in enumerate(lengths) if c > 0},
         n_refine_dropped=n_refine_dropped, n_refine_contrast=n_refine_contrast,
-        refine_contrast=dict(refine_contrast), n_extended=n_extended, coarse=coarse,
+        refine_choice=dict(refine_choice), n_extended=n_extended, coarse=coarse,
         fine=fine, seconds=seconds, weak_links=tuple(p for p in links if p[0] in kept and p[1] in kept))
 
 
@@ -926,11 +926,11 @@ class SparseResult:
             "track_length_histogram": {str(k): v for k, v in sorted(t.track_length_histogram.items())},
             "refine_dropped": t.n_refine_dropped,
             "refine_on_local_contrast": t.n_refine_contrast,
-            "refine_contrast_sigma_px": t.refine_contrast.get("contrast_sigma_px"),
-            "refine_contrast_fine_spread_ratio": t.refine_contrast.get("fine_spread_ratio"),
+            "refine_contrast_sigma_px": t.refine_choice.get("contrast_sigma_px"),
+            "refine_contrast_fine_spread_ratio": t.refine_choice.get("fine_spread_ratio"),
             # tie points registered by a window beside them ([sparse] refine_beside_px), of all
-            "refine_beside_points": t.refine_contrast.get("beside_points"),
-            "refine_points": t.refine_contrast.get("points"),
+            "refine_beside_points": t.refine_choice.get("beside_points"),
+            "refine_points": t.refine_choice.get("points"),
             "extended_observations": t.n_extended,
             "coarse": figures(coarse),
             "fine": figures(fine),

@@ -495,9 +495,6 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     if again:
         map_in_threads(on(contrast_of(again, *scale), CONTRAST_RANK), again, max_threads=threads,
                        name="register")
-    if choice is not None:
-        choice.update(contrast_sigma_px=float(scale[0]) if whole or again else None,
-                      fine_spread_ratio=float(np.median(ratios)) if ratios else None)
     window = None
     if beside_px > 0.0:
         xy, residual, window = _beside_windows(
@@ -507,7 +504,9 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
                             for ring in BESIDE_RINGS]), threads,
             {(w, v) for w, v, _ in whole})
     if choice is not None:
-        choice.update(beside_px=float(beside_px),
+        choice.update(contrast_sigma_px=float(scale[0]) if whole or again else None,
+                      fine_spread_ratio=float(np.median(ratios)) if ratios else None,
+                      beside_px=float(beside_px),
                       beside_points=None if window is None else int(np.sum(window > 0)),
                       points=int(obs.n_points))
     keep = np.isfinite(residual)
