@@ -463,10 +463,14 @@ class RPCModel:
 
         Sidecars, in this order, matched case-insensitively: ``IMG_RPC.TXT``, ``IMG.RPB``,
         ``IMG.XML``, ``IMG_RPC.XML``, ``IMG.tif.aux.xml`` (GDAL PAM), where ``IMG.tif`` is the
-        image. XML sidecars that hold no RPC are passed over. Raises ImageFormatError for a
-        missing, non-TIFF or truncated image, RPCError when no RPC is found or a sidecar is bad.
+        image; then, as GDAL does for Airbus DIMAP deliveries, ``RPC_X.XML`` for an image
+        ``IMG_X.tif`` or a tile of it ``IMG_X_RiCj.tif`` (placed in the scene by ``DIM_X.XML``:
+        ``rpc_formats.dimap_rpc_by_rule``). XML sidecars that hold no RPC are passed over.
+        Raises ImageFormatError for a missing, non-TIFF or truncated image, RPCError when no RPC
+        is found or a sidecar is bad.
         """
-        from satsweep.geometry.rpc_formats import _NotAnRPC, _read_tiff_rpc_tag  # noqa: PLC0415
+        from satsweep.geometry.rpc_formats import (  # noqa: PLC0415
+            _NotAnRPC, _read_tiff_rpc_tag, dimap_names, dimap_rpc_by_rule)
 
         path = Path(path)
         values = _read_tiff_rpc_tag(path)
@@ -490,7 +494,11 @@ class RPCModel:
                 if not want.endswith(".xml"):
                     raise
                 passed_over.append(f"{side.name}: {exc.problem}")
-        looked = ", ".join(w.replace(stem, path.stem, 1) for w in wanted)
+        model = dimap_rpc_by_rule(path, names)
+        if model is not None:
+            return model
+        looked = ", ".join([w.replace(stem, path.stem, 1) for w in wanted]
+                           + [n.upper() for n in dimap_names(path, "rpc")])
         extra = f"; passed over {'; '.join(passed_over)}" if passed_over else ""
         raise RPCError(path, f"no RPC found: no TIFF tag {TIFF_TAG_RPC} and no sidecar "
                              f"(looked for {looked}, case-insensitive){extra}")

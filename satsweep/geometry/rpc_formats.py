@@ -17,6 +17,9 @@ format is detected from the content, not the file name.
   what rpcm does. The direct (image-to-ground) DIMAP model is not used: localization is iterative.
 * GDAL PAM ``.aux.xml`` with a ``<Metadata domain="RPC">`` block.
 
+``dimap_rpc_by_rule`` finds a DIMAP delivery's RPC by GDAL's naming rule (``IMG_X_RiCj.TIF`` ->
+``RPC_X.XML``, the tile placed in the scene by ``DIM_X.XML``).
+
 Formats that do not give ERR_BIAS / ERR_RAND get -1 (GDAL's "unknown").
 """
 
@@ -285,6 +288,85 @@ def _read_dimap(path: Path, root: ElementTree.Element) -> RPCModel:
             if key in fields:
                 fields[key] -= 1.0
     return _model_from_fields(path, fields)
+
+
+# Airbus DIMAP deliveries name their files after the product: a scene's image IMG_X.*, or its
+# tiles IMG_X_RiCj.* (R rows, C columns of tiles, counted from 1), beside DIM_X.XML and RPC_X.XML.
+_DIMAP_TILE = re.compile(r"(.+)_r(\d+)c(\d+)")
+
+
+def dimap_names(image: Path, prefix: str) -> list[str]:
+    """GDAL's naming rule for Airbus DIMAP deliveries (Pleiades, SPOT 6/7, Pleiades Neo): the
+    lower-case names of the ``prefix`` file ("dim" or "rpc") of the image IMG_X.* or of a tile
+    of it IMG_X_RiCj.*, in the order GDAL looks for them (``prefix_X_RiCj.xml``, then
+    ``prefix_X.xml``); none for an image not named IMG_*."""
+    stem = image.stem.lower()
+    if not stem.startswith("img_") or len(stem) <= 4:
+        return []
+    rest = stem[4:]
+    names = [f"{prefix}_{rest}.xml"]
+    tiled = _DIMAP_TILE.fullmatch(rest)
+    if tiled:
+        names.append(f"{prefix}_{tiled.group(1)}.xml")
+    return names
+
+
+def dimap_rpc_by_rule(image: Path, names: Mapping[str, Path]) -> RPCModel | None:
+    """The RPC of a DIMAP delivery's image or tile (``dimap_names``), from the folder listing
+    ``names`` ({lower-case name: path}); None when there is no such RPC file.
+
+    The product's RPC models the whole scene. A tile IMG_X_RiCj after the first starts at
+    ((j - 1) tile columns, (i - 1) tile rows) of it, which DIM_X.XML's regular tiling gives
+    (``Raster_Dimensions/Tile_Set/Regular_Tiling/NTILES_SIZE`` and the ``Data_File`` that lists
+    the tile, as GDAL reads them): the model returned is cropped there. RPCError naming the image
+    when that place is not known (no DIM file, the tile not listed, overlapping tiles)."""
+    rpc_path = next((names[n] for n in dimap_names(image, "rpc") if n in names), None)
+    if rpc_path is None:
+        return None
+    model = RPCModel.from_file(rpc_path)
+    tiled = _DIMAP_TILE.fullmatch(image.stem.lower()[4:])
+    if tiled is None or (int(tiled.group(2)), int(tiled.group(3))) == (1, 1):
+        return model
+    x0, y0 = _dimap_tile_origin(image, rpc_path, names)
+    return model.cropped(x0=x0, y0=y0)
+
+
+def _dimap_tile_origin(image: Path, rpc_path: Path, names: Mapping[str, Path]) -> tuple[int, int]:
+    """(column, row) of a DIMAP tile's first pixel in its product's scene (see above)."""
+    where = f"{rpc_path.name} models the whole scene, and the place of tile {image.name} in it"
+    dim = next((names[n] for n in dimap_names(image, "dim") if n in names), None)
+    if dim is None:
+        raise RPCError(image, f"{where} is in the product's DIM_*.XML, which is not beside it")
+    try:
+        root = ElementTree.fromstring(dim.read_bytes())
+    except (OSError, ElementTree.ParseError) as exc:
+        raise RPCError(image, f"{where} is in {dim.name}, which cannot be read ({exc})") from None
+    for el in root.iter():
+        if isinstance(el.tag, str):
+            el.tag = _local(el.tag)
+    tile = None
+    for data_file in root.iter("Data_File"):
+        href = data_file.find("DATA_FILE_PATH")
+        href = "" if href is None else (href.get("href") or href.text or "")
+        if href.replace("\\", "/").rsplit("/", 1)[-1].lower() == image.name.lower():
+            tile = data_file
+            break
+    tiling = root.find("Raster_Data/Raster_Dimensions/Tile_Set/Regular_Tiling")
+    size = tiling.find("NTILES_SIZE") if tiling is not None else None
+    if tile is None or size is None:
+        raise RPCError(image, f"{where} is not in {dim.name} (" + (
+            "it does not list the tile)" if tile is None else "it has no Regular_Tiling/NTILES_SIZE)"))
+    try:
+        r, c = int(tile.get("tile_R", "")), int(tile.get("tile_C", ""))
+        nrows, ncols = int(size.get("nrows", "")), int(size.get("ncols", ""))
+        overlap = [int((tiling.findtext(k) or "0").strip()) for k in ("OVERLAP_ROW", "OVERLAP_COL")]
+    except ValueError:
+        raise RPCError(image, f"{where}: {dim.name} gives the tile's tile_R / tile_C or the tiles' "
+                              "NTILES_SIZE nrows / ncols not as whole numbers") from None
+    if any(overlap):
+        raise RPCError(image, f"{where}: {dim.name} gives tiles that overlap (OVERLAP_ROW / "
+                              f"OVERLAP_COL {overlap[0]} / {overlap[1]}), which satsweep does not place")
+    return (c - 1) * ncols, (r - 1) * nrows
 
 
 def _read_pam(path: Path, metadata: ElementTree.Element) -> RPCModel:

@@ -493,15 +493,9 @@ def _dimap_file_stems(root: ElementTree.Element) -> set[str]:
 
 def _dimap_named_by_rule(image: Path) -> list[str]:
     """GDAL's rule: IMG_X.* or IMG_X_RiCj.* is described by DIM_X.XML (lower-case names)."""
-    stem = image.stem.lower()
-    if not stem.startswith("img_") or len(stem) <= 4:
-        return []
-    rest = stem[4:]
-    names = [f"dim_{rest}.xml"]
-    tiled = re.fullmatch(r"(.+)_r\d+c\d+", rest)
-    if tiled:
-        names.append(f"dim_{tiled.group(1)}.xml")
-    return names
+    from satsweep.geometry.rpc_formats import dimap_names  # noqa: PLC0415
+
+    return dimap_names(image, "dim")
 
 
 # -- files -------------------------------------------------------------------------------------

@@ -317,6 +317,74 @@ def test_unrelated_xml_beside_image_is_passed_over(wv2, tmp_path):
     assert RPCModel.from_image(img) == wv2
 
 
+# An Airbus DIMAP delivery in tiles (names as Airbus writes them): 2 x 2 tiles of 16384 rows
+# and 20480 columns (sizes that differ, so that a row / column mix-up shows), no overlap.
+DIMAP_PRODUCT = "PHR1B_P_201306290657283_SEN_001"
+DIMAP_TILE_ROWS, DIMAP_TILE_COLS = 16384, 20480
+
+
+def _dimap_delivery(folder: Path, shared_data: Path, tiles, *, listed=None, overlap: int = 0) -> None:
+    """IMG_<product>_RiCj.TIF for each (i, j) in ``tiles`` (no RPC of their own), the real
+    Pleiades RPC file as RPC_<product>.XML and a DIM_<product>.XML that lists ``listed``
+    (default: the tiles) with its regular tiling."""
+    for r, c in tiles:
+        tifffile.imwrite(folder / f"IMG_{DIMAP_PRODUCT}_R{r}C{c}.TIF", np.zeros((16, 16), np.uint16))
+    shutil.copy(shared_data / "rpc_files" / "rpc_PLEIADES.xml", folder / f"RPC_{DIMAP_PRODUCT}.XML")
+    files = "".join(f'<Data_File tile_R="{r}" tile_C="{c}"><DATA_FILE_PATH '
+                    f'href="IMG_{DIMAP_PRODUCT}_R{r}C{c}.TIF"/></Data_File>'
+                    for r, c in (tiles if listed is None else listed))
+    (folder / f"DIM_{DIMAP_PRODUCT}.XML").write_text(
+        "<?xml version='1.0'?><Dimap_Document><Metadata_Identification><METADATA_PROFILE>"
+        "PHR_SENSOR</METADATA_PROFILE></Metadata_Identification><Raster_Data><Data_Access>"
+        f"<Data_Files>{files}</Data_Files></Data_Access><Raster_Dimensions><NROWS>30000</NROWS>"
+        "<NCOLS>40000</NCOLS><Tile_Set><Regular_Tiling>"
+        f'<NTILES_SIZE nrows="{DIMAP_TILE_ROWS}" ncols="{DIMAP_TILE_COLS}"/>'
+        f"<OVERLAP_ROW>{overlap}</OVERLAP_ROW><OVERLAP_COL>0</OVERLAP_COL></Regular_Tiling>"
+        "</Tile_Set></Raster_Dimensions></Raster_Data></Dimap_Document>")
+
+
+def test_dimap_tiles_find_the_product_rpc_placed_like_gdal(shared_data, tmp_path):
+    tiles = [(1, 1), (1, 2), (2, 1), (2, 2)]
+    _dimap_delivery(tmp_path, shared_data, tiles)
+    scene = RPCModel.from_file(tmp_path / f"RPC_{DIMAP_PRODUCT}.XML")
+    for r, c in tiles:
+        img = tmp_path / f"IMG_{DIMAP_PRODUCT}_R{r}C{c}.TIF"
+        ours = RPCModel.from_image(img)
+        _assert_same_projection_as(ours, _gdal_rpc(img), PROJ_VS_RPCM_PX)  # GDAL's Pleiades reader
+        assert ours.col_offset == scene.col_offset - (c - 1) * DIMAP_TILE_COLS
+        assert ours.row_offset == scene.row_offset - (r - 1) * DIMAP_TILE_ROWS
+    # A scene in one file (IMG_<product>.TIF) takes the product's RPC as it is.
+    tifffile.imwrite(tmp_path / f"IMG_{DIMAP_PRODUCT}.TIF", np.zeros((16, 16), np.uint16))
+    assert RPCModel.from_image(tmp_path / f"IMG_{DIMAP_PRODUCT}.TIF") == scene
+
+
+@pytest.mark.parametrize("case,message", [
+    ("no DIM", r"DIM_\*\.XML, which is not beside it"),
+    ("not listed", r"it does not list the tile"),
+    ("overlap", r"tiles that overlap"),
+])
+def test_a_dimap_tile_of_unknown_place_is_an_error(shared_data, tmp_path, case, message):
+    _dimap_delivery(tmp_path, shared_data, [(1, 1), (1, 2)],
+                    listed=[(1, 1)] if case == "not listed" else None,
+                    overlap=8 if case == "overlap" else 0)
+    if case == "no DIM":
+        (tmp_path / f"DIM_{DIMAP_PRODUCT}.XML").unlink()
+    img = tmp_path / f"IMG_{DIMAP_PRODUCT}_R1C2.TIF"
+    with pytest.raises(RPCError, match=message) as exc:
+        RPCModel.from_image(img)
+    assert str(img) in str(exc.value) and f"RPC_{DIMAP_PRODUCT}.XML" in str(exc.value)
+    # The first tile starts where the scene does: its RPC needs no place.
+    assert RPCModel.from_image(tmp_path / f"IMG_{DIMAP_PRODUCT}_R1C1.TIF") == RPCModel.from_file(
+        tmp_path / f"RPC_{DIMAP_PRODUCT}.XML")
+
+
+def test_the_dimap_rpc_name_is_among_those_looked_for(tmp_path):
+    img = tmp_path / f"IMG_{DIMAP_PRODUCT}_R1C1.TIF"
+    tifffile.imwrite(img, np.zeros((16, 16), np.uint16))
+    with pytest.raises(RPCError, match=f"RPC_{DIMAP_PRODUCT.upper()}.XML"):
+        RPCModel.from_image(img)
+
+
 # -- crops --------------------------------------------------------------------------------------
 def test_cropped_shifts_projection_exactly(pleiades_models):
     ours, _, width, height = pleiades_models[1]
