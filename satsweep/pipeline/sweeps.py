@@ -164,17 +164,12 @@ def _opened_regions(at_top: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return stats[1:, cv2.CC_STAT_AREA].astype(np.float64), centroids[1:]
 
 
-def top_region_m2(at_top: np.ndarray, gsd_m: float) -> float:
-    """Ground area (m2) of the largest 8-connected region of ``at_top`` pixels that a 3 x 3
-    opening keeps (pixels at the range's top scattered by noise fall away; a roof stays)."""
-    pixels, _ = _opened_regions(at_top)
-    return float(pixels.max()) * gsd_m * gsd_m if len(pixels) else 0.0
-
-
 def top_regions(at_top: np.ndarray, gsd_m: float, P: np.ndarray, top_u: float,
                 offset: tuple[int, int] = (0, 0)) -> tuple[tuple[float, float, float], ...]:
-    """The ``TOP_REGIONS_KEPT`` largest regions of :func:`top_region_m2` (the first one's area is
-    its value), largest first, as (area m2, east m, north m): each centroid's ENU point on the
+    """The ``TOP_REGIONS_KEPT`` largest 8-connected regions of ``at_top`` pixels that a 3 x 3
+    opening keeps (pixels at the range's top scattered by noise fall away; a roof stays; the
+    first one's area is ``ReferenceHeights.top_region_m2``), largest first, as (area m2, east
+    m, north m): each centroid's ENU point on the
     top plane ``u = top_u`` seen by the reference camera ``P`` (3 x 4, ENU -> pixels of the
     image whose pixel ``offset`` (col, row) is ``at_top``'s first)."""
     from satsweep.products.points import solve_ground_en  # noqa: PLC0415

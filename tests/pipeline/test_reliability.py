@@ -691,7 +691,12 @@ def test_a_lone_reference_at_an_end_is_named_as_such():
 
 
 def test_top_region_is_the_largest_roof_at_the_top_not_scattered_pixels():
-    from satsweep.pipeline.sweeps import top_region_m2
+    from satsweep.pipeline.sweeps import top_regions
+
+    def top_region_m2(at_top, gsd):  # the largest region's area, as the sweep reports it
+        affine = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+        regions = top_regions(at_top, gsd, affine, 0.0)
+        return regions[0][0] if regions else 0.0
 
     gsd = 0.3
     at_top = np.zeros((60, 80), bool)
