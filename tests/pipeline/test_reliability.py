@@ -575,7 +575,10 @@ def test_widened_range_needs_most_references_at_one_end():
         RANGE_WIDEN_SHARE,
         RANGE_WIDEN_TOP_FRACTION,
         RANGE_WIDEN_TOP_REGION_M2,
+        RANGE_WIDEN_TOP_MIN_REFERENCES,
         RANGE_WIDEN_TOP_REGION_MIN_REFERENCES,
+        RANGE_WIDEN_TOP_ROOF_M2,
+        RANGE_WIDEN_TOP_ROOF_REFERENCES,
         RANGE_WIDEN_TOP_SPOT_M,
         RANGE_WIDEN_TOP_SPOT_REFERENCES,
         widened_range,
@@ -594,12 +597,12 @@ def test_widened_range_needs_most_references_at_one_end():
                 for e in ends]
 
     # Three of four at the top: widened there, by the larger of the step and half the span.
-    wider, end, hits, fraction, spot = widened_range(rng, sweeps((0, high), (0, high), (0, high),
-                                                                 (0, 0)))
-    assert (end, hits, fraction, spot) == (1, 3, RANGE_WIDEN_FRACTION, None)
+    wider, end, hits, fraction, region, spot = widened_range(
+        rng, sweeps((0, high), (0, high), (0, high), (0, 0)))
+    assert (end, hits, fraction, region, spot) == (1, 3, RANGE_WIDEN_FRACTION, None, None)
     assert (wider.min, wider.max) == (100.0, 140.0 + max(RANGE_WIDEN_M, 20.0))
     wide = AltitudeRange(0.0, 100.0)
-    wider, end, _, _, _ = widened_range(wide, sweeps((high, 0), (high, 0)))
+    wider, end, *_ = widened_range(wide, sweeps((high, 0), (high, 0)))
     assert end == 0 and (wider.min, wider.max) == (-max(RANGE_WIDEN_M, 50.0), 100.0)
     # Half of eight or one of four (views of other dates matching their shadows at the floor),
     # or one of two: not enough at the floor; a lone reference decides alone.
@@ -610,7 +613,7 @@ def test_widened_range_needs_most_references_at_one_end():
     assert widened_range(rng, sweeps((low, none), (low, none))) is None
     assert widened_range(rng, []) is None
     # The top on less: most references over its own, lower fraction (a tower's roof).
-    wider, end, hits, fraction, _ = widened_range(
+    wider, end, hits, fraction, *_ = widened_range(
         rng, sweeps(*[(0, tower)] * 6 + [(0, none)] * 2))
     assert (end, hits, fraction) == (1, 6, RANGE_WIDEN_TOP_FRACTION)
     assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
@@ -625,10 +628,10 @@ def test_widened_range_needs_most_references_at_one_end():
     roof, speck = RANGE_WIDEN_TOP_REGION_M2, RANGE_WIDEN_TOP_REGION_M2 * 0.5
     n = max(RANGE_WIDEN_TOP_REGION_MIN_REFERENCES, 8)
     most = int(np.ceil(RANGE_WIDEN_SHARE * n))
-    wider, end, hits, fraction, spot = widened_range(
+    wider, end, hits, fraction, region, spot = widened_range(
         rng, sweeps(*[(0, none)] * most, region=roof)
         + sweeps(*[(0, none)] * (n - most), region=speck))
-    assert (end, hits, fraction, spot) == (1, most, None, None)
+    assert (end, hits, fraction, region, spot) == (1, most, None, roof, None)
     assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
     assert widened_range(rng, sweeps(*[(0, none)] * (most - 1), region=roof)
                          + sweeps(*[(0, none)] * (n - most + 1), region=speck)) is None
@@ -649,13 +652,29 @@ def test_widened_range_needs_most_references_at_one_end():
     def stack(places, area=roof, refs=rest):
         return [s for p in places for s in sweeps((0, none), region=area, at=p)] + refs
 
-    wider, end, hits, fraction, spot = widened_range(rng, stack(near))
-    assert (end, hits, fraction, spot) == (1, k, None, RANGE_WIDEN_TOP_SPOT_M)
+    wider, end, hits, fraction, region, spot = widened_range(rng, stack(near))
+    assert (end, hits, fraction, region, spot) == (1, k, None, roof, RANGE_WIDEN_TOP_SPOT_M)
     assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
     assert widened_range(rng, stack(apart)) is None
     assert widened_range(rng, stack(near[:-1] + apart[1:2])) is None
     assert widened_range(rng, stack(near, area=speck)) is None
     assert widened_range(rng, stack(near, refs=rest[:max(0, few - k)])) is None
+    # A small stack's tower: RANGE_WIDEN_TOP_ROOF_REFERENCES references with a region of
+    # RANGE_WIDEN_TOP_ROOF_M2 at one place, among RANGE_WIDEN_TOP_MIN_REFERENCES or more; not
+    # smaller regions there, nor regions apart, nor with fewer references to tell.
+    m = RANGE_WIDEN_TOP_ROOF_REFERENCES
+    small = sweeps(*[(0, none)] * (RANGE_WIDEN_TOP_MIN_REFERENCES - m))
+    assert RANGE_WIDEN_TOP_MIN_REFERENCES + 1 < RANGE_WIDEN_TOP_REGION_MIN_REFERENCES  # below it
+    tower_roof = RANGE_WIDEN_TOP_ROOF_M2
+    wider, end, hits, fraction, region, spot = widened_range(
+        rng, stack(near[:m], area=tower_roof, refs=small))
+    assert (end, hits, fraction, region, spot) == (1, m, None, tower_roof, RANGE_WIDEN_TOP_SPOT_M)
+    assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
+    assert widened_range(rng, stack(near[:m], area=tower_roof, refs=small + small))[2] == m
+    assert widened_range(rng, stack(apart[:m], area=tower_roof, refs=small)) is None
+    assert widened_range(rng, stack(near[:m], area=0.9 * tower_roof, refs=small)) is None
+    assert widened_range(rng, stack(near[:m - 1], area=tower_roof, refs=small)) is None
+    assert widened_range(rng, stack(near[:m], area=tower_roof, refs=[])) is None  # too few
 
 
 def test_a_lone_reference_at_an_end_is_named_as_such():
