@@ -220,15 +220,20 @@ def _local(tag: str) -> str:
     return tag.rsplit("}", 1)[-1]
 
 
+def _without_namespaces(root: ElementTree.Element) -> ElementTree.Element:
+    """``root`` with every tag's namespace dropped (in place), so that paths below are plain."""
+    for el in root.iter():
+        if isinstance(el.tag, str):
+            el.tag = _local(el.tag)
+    return root
+
+
 def _read_xml(path: Path, data: bytes) -> RPCModel:
     """Dispatch XML: DIMAP, DigitalGlobe ``isd`` or GDAL PAM."""
     try:
-        root = ElementTree.fromstring(data)
+        root = _without_namespaces(ElementTree.fromstring(data))
     except ElementTree.ParseError as exc:
         raise RPCError(path, f"malformed XML ({exc})") from None
-    for el in root.iter():  # drop namespaces once, so that paths below are plain
-        if isinstance(el.tag, str):
-            el.tag = _local(el.tag)
     if root.tag == "Dimap_Document":
         return _read_dimap(path, root)
     image = root.find("RPB/IMAGE") if root.tag == "isd" else None
@@ -338,12 +343,9 @@ def _dimap_tile_origin(image: Path, rpc_path: Path, names: Mapping[str, Path]) -
     if dim is None:
         raise RPCError(image, f"{where} is in the product's DIM_*.XML, which is not beside it")
     try:
-        root = ElementTree.fromstring(dim.read_bytes())
+        root = _without_namespaces(ElementTree.fromstring(dim.read_bytes()))
     except (OSError, ElementTree.ParseError) as exc:
         raise RPCError(image, f"{where} is in {dim.name}, which cannot be read ({exc})") from None
-    for el in root.iter():
-        if isinstance(el.tag, str):
-            el.tag = _local(el.tag)
     tile = None
     for data_file in root.iter("Data_File"):
         href = data_file.find("DATA_FILE_PATH")
@@ -354,18 +356,21 @@ def _dimap_tile_origin(image: Path, rpc_path: Path, names: Mapping[str, Path]) -
     tiling = root.find("Raster_Data/Raster_Dimensions/Tile_Set/Regular_Tiling")
     size = tiling.find("NTILES_SIZE") if tiling is not None else None
     if tile is None or size is None:
-        raise RPCError(image, f"{where} is not in {dim.name} (" + (
-            "it does not list the tile)" if tile is None else "it has no Regular_Tiling/NTILES_SIZE)"))
+        why = ("it does not list the tile" if tile is None
+               else "it has no Regular_Tiling/NTILES_SIZE")
+        raise RPCError(image, f"{where} is not in {dim.name} ({why})")
     try:
         r, c = int(tile.get("tile_R", "")), int(tile.get("tile_C", ""))
         nrows, ncols = int(size.get("nrows", "")), int(size.get("ncols", ""))
-        overlap = [int((tiling.findtext(k) or "0").strip()) for k in ("OVERLAP_ROW", "OVERLAP_COL")]
+        overlap = [int((tiling.findtext(k) or "0").strip())
+                   for k in ("OVERLAP_ROW", "OVERLAP_COL")]
     except ValueError:
         raise RPCError(image, f"{where}: {dim.name} gives the tile's tile_R / tile_C or the tiles' "
                               "NTILES_SIZE nrows / ncols not as whole numbers") from None
     if any(overlap):
         raise RPCError(image, f"{where}: {dim.name} gives tiles that overlap (OVERLAP_ROW / "
-                              f"OVERLAP_COL {overlap[0]} / {overlap[1]}), which satsweep does not place")
+                              f"OVERLAP_COL {overlap[0]} / {overlap[1]}), which satsweep does "
+                              "not place")
     return (c - 1) * ncols, (r - 1) * nrows
 
 

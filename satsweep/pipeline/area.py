@@ -426,6 +426,7 @@ class Widening(NamedTuple):
     spot_m: float | None
 
     def rule(self) -> str:
+        """The rule's name in the report (``altitude_range.widened``)."""
         return ("fraction" if self.fraction is not None else
                 "region" if self.spot_m is None else "region at one place")
 

@@ -370,8 +370,9 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
 
     With ``beside_px`` > 0, every track is then registered again by the windows centred
     ``beside_px`` and 4/3 of it beside its point (BESIDE_DIRECTIONS x BESIDE_RINGS: the 4 sides
-    and the 4 corners, each observation on the images its centred window used), and takes the window (centred or
-    beside) whose residuals summed over the track's observations are least. A tie point on an
+    and the 4 corners, each observation on the images its centred window used), and takes the
+    window (centred or beside) whose residuals summed over the track's observations are least.
+    A tie point on an
     edge between two surfaces whose parallax differs (where SIFT puts most keypoints) has a
     centred window over both, and no translation registers both (a compromise, off by tenths
     of a pixel along the pair's epipolar lines); a window beside it lies over one, whose plane

@@ -323,12 +323,14 @@ DIMAP_PRODUCT = "PHR1B_P_201306290657283_SEN_001"
 DIMAP_TILE_ROWS, DIMAP_TILE_COLS = 16384, 20480
 
 
-def _dimap_delivery(folder: Path, shared_data: Path, tiles, *, listed=None, overlap: int = 0) -> None:
+def _dimap_delivery(folder: Path, shared_data: Path, tiles, *, listed=None,
+                    overlap: int = 0) -> None:
     """IMG_<product>_RiCj.TIF for each (i, j) in ``tiles`` (no RPC of their own), the real
     Pleiades RPC file as RPC_<product>.XML and a DIM_<product>.XML that lists ``listed``
     (default: the tiles) with its regular tiling."""
     for r, c in tiles:
-        tifffile.imwrite(folder / f"IMG_{DIMAP_PRODUCT}_R{r}C{c}.TIF", np.zeros((16, 16), np.uint16))
+        tifffile.imwrite(folder / f"IMG_{DIMAP_PRODUCT}_R{r}C{c}.TIF",
+                         np.zeros((16, 16), np.uint16))
     shutil.copy(shared_data / "rpc_files" / "rpc_PLEIADES.xml", folder / f"RPC_{DIMAP_PRODUCT}.XML")
     files = "".join(f'<Data_File tile_R="{r}" tile_C="{c}"><DATA_FILE_PATH '
                     f'href="IMG_{DIMAP_PRODUCT}_R{r}C{c}.TIF"/></Data_File>'
