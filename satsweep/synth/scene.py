@@ -81,14 +81,15 @@ from satsweep.synth.rpcfit import RPCFitResidual, cube_grid, fit_rpc, rpc_residu
 from satsweep.synth.town import (
     GROUND_RELIEF_M,
     MAX_BUILDING_M,
+    RayCaster,
     ShadowMap,
     SurfaceGrid,
     build_surface,
-    cast_rays,
     greenness,
     shade,
     sun_vector,
 )
+from satsweep.threads import map_in_threads
 
 SCENE_FILE = "scene.json"
 TRUTH_DSM_FILE = "truth_dsm.tif"
@@ -121,6 +122,8 @@ RPC_CHECK_POINTS = 2000
 DSM_SUBSAMPLES = 5
 # Rays cast at once while rendering (bounds memory to a few hundred MB).
 RENDER_CHUNK_RAYS = 1 << 17
+# Threads rendering chunks at once (numpy releases the GIL in the ray walk: 1.7x on 2 cores).
+RENDER_THREADS = 4
 
 RADIOMETRY_MODEL = (
     "DN = clip(round(gain * DN_MAX * (x / DN_MAX) ** gamma + offset_dn + noise), 0, DN_MAX) with "
@@ -449,18 +452,24 @@ def render_radiance_greenness(grid: SurfaceGrid, shadows: ShadowMap, camera: Pus
     rows_per_chunk = max(1, RENDER_CHUNK_RAYS // (width * s * s))
     out = np.empty((r1 - r0, width))
     green = np.empty((r1 - r0, width))
-    for a in range(r0, r1, rows_per_chunk):
+    caster = RayCaster(grid)
+
+    def render_rows(a: int) -> None:
         b = min(a + rows_per_chunk, r1)
         rr = (np.arange(a, b)[:, None] + off[None, :]).reshape(-1)  # sub-rows
         cc = (np.arange(width)[:, None] + off[None, :]).reshape(-1)  # sub-cols
         R, C = np.meshgrid(rr, cc, indexing="ij")
         origin, direction = camera.ray(col=C.ravel(), row=R.ravel())
-        hits = cast_rays(grid, origin, direction)
+        hits = caster.cast(origin, direction)
         rad = shade(grid, hits, shadows)
         g = (rad * greenness(grid, hits)).reshape(b - a, s, width, s).mean(axis=(1, 3))
         rad = rad.reshape(b - a, s, width, s).mean(axis=(1, 3))
         out[a - r0:b - r0] = rad
         green[a - r0:b - r0] = np.where(rad > 0.0, g / np.where(rad > 0.0, rad, 1.0), 0.0)
+
+    # Each chunk writes its own rows: the same image whatever the threads' order.
+    map_in_threads(render_rows, range(r0, r1, rows_per_chunk), max_threads=RENDER_THREADS,
+                   name="render")
     return out, green
 
 

@@ -693,41 +693,86 @@ def _grid_exits(e0, n0, size, bi, bj, ox, oy, dx, dy) -> tuple[np.ndarray, np.nd
     return t_e, t_n
 
 
+# The walks below leave finished rays in their arrays (frozen in the cell where they finished)
+# and compact the arrays only once fewer than this fraction of their rays still walk: gathering
+# every per-ray array at each step cost about a third of the walk. Any value gives the same hits.
+WALK_COMPACT_FRACTION = 0.75
+
+
+class _Walk:
+    """The per-ray arrays of a vectorised walk, compacted together (``live``: still walking)."""
+
+    def __init__(self, **arrays: np.ndarray):
+        self.arrays = arrays
+        self.ray = np.arange(next(iter(arrays.values())).shape[0])  # index in the caller's rays
+        self.live = np.ones(self.ray.size, bool)
+        self.n_live = self.ray.size
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        try:
+            return self.__dict__["arrays"][name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def update(self, **arrays: np.ndarray) -> None:
+        self.arrays.update(arrays)
+
+    def finish(self, finished: np.ndarray) -> None:
+        """Mark the rays of boolean ``finished`` (live ones only) as done; compact if few walk."""
+        self.live &= ~finished
+        self.n_live = int(np.count_nonzero(self.live))
+        if self.n_live < WALK_COMPACT_FRACTION * self.ray.size:
+            keep = np.flatnonzero(self.live)
+            self.arrays = {k: v[keep] for k, v in self.arrays.items()}
+            self.ray = self.ray[keep]
+            self.live = np.ones(keep.size, bool)
+
+    def check_inside(self, i: np.ndarray, j: np.ndarray, nx: int, ny: int, what: str) -> None:
+        inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
+        if not inside.all():
+            out = int(np.count_nonzero(~inside & self.live))
+            if out:
+                raise RuntimeError(f"{out} ray(s) left the {what} without a hit: "
+                                   "the grid does not cover the views' footprints")
+
+
 def _skip_empty_blocks(grid: SurfaceGrid, origin: np.ndarray, direction: np.ndarray, t0: np.ndarray,
-                       block: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                       block: int, bmax: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Walk rays over blocks of cells from parameter ``t0`` to the first block whose highest
-    point the ray reaches before leaving it; return (t, i, j, face) where the fine walk starts:
-    the ray parameter where it entered that block, the cell there, and the face it entered by
-    (FACE_TOP for the first block). Every block passed over lies wholly below the ray."""
+    point (``bmax``, ``_block_max(grid, block)``) the ray reaches before leaving it; return (t, i,
+    j, face) where the fine walk starts: the ray parameter where it entered that block, the cell
+    there, and the face it entered by (FACE_TOP for the first block). Every block passed over
+    lies wholly below the ray."""
     size = grid.cell_m * block
-    bmax = _block_max(grid, block)
     nby, nbx = bmax.shape
+    bmax_flat = bmax.ravel()
     ox, oy, oz = origin[:, 0], origin[:, 1], origin[:, 2]
     dx, dy, dz = direction[:, 0], direction[:, 1], direction[:, 2]
     n = ox.size
-    bi = np.floor((ox + t0 * dx - grid.e_min) / size).astype(np.int64)
-    bj = np.floor((oy + t0 * dy - grid.n_min) / size).astype(np.int64)
     out_t, out_face = np.empty(n), np.empty(n, np.int8)
     out_bi, out_bj = np.empty(n, np.int64), np.empty(n, np.int64)
-    active = np.arange(n)
-    a_t, a_face = t0.copy(), np.zeros(n, np.int8)
-    while active.size:
-        inside = (bi >= 0) & (bi < nbx) & (bj >= 0) & (bj < nby)
-        if not np.all(inside):
-            raise RuntimeError(f"{int(np.sum(~inside))} ray(s) left the surface grid without a hit: "
-                               "the grid does not cover the views' footprints")
-        t_e, t_n = _grid_exits(grid.e_min, grid.n_min, size, bi, bj, ox[active], oy[active], dx[active], dy[active])
+    w = _Walk(ox=ox, oy=oy, oz=oz, dx=dx, dy=dy, dz=dz,
+              step_i=np.where(dx > 0, 1, -1), step_j=np.where(dy > 0, 1, -1),
+              bi=np.floor((ox + t0 * dx - grid.e_min) / size).astype(np.int64),
+              bj=np.floor((oy + t0 * dy - grid.n_min) / size).astype(np.int64),
+              t=t0.copy(), face=np.zeros(n, np.int8))
+    while w.n_live:
+        bi, bj = w.bi, w.bj
+        w.check_inside(bi, bj, nbx, nby, "surface grid")
+        t_e, t_n = _grid_exits(grid.e_min, grid.n_min, size, bi, bj, w.ox, w.oy, w.dx, w.dy)
         t_out = np.minimum(t_e, t_n)
-        stop = oz[active] + t_out * dz[active] <= bmax[bj, bi]
-        idx = active[stop]
-        out_t[idx], out_face[idx], out_bi[idx], out_bj[idx] = a_t[stop], a_face[stop], bi[stop], bj[stop]
-        go = ~stop
-        cross_e = (t_e <= t_n)[go]
-        active = active[go]
-        a_t = t_out[go]
-        bi = bi[go] + np.where(cross_e, np.where(dx[active] > 0, 1, -1), 0)
-        bj = bj[go] + np.where(cross_e, 0, np.where(dy[active] > 0, 1, -1))
-        a_face = np.where(cross_e, FACE_E, FACE_N).astype(np.int8)
+        stop = (w.oz + t_out * w.dz <= bmax_flat[bj * nbx + bi]) & w.live
+        if stop.any():
+            k = w.ray[stop]
+            out_t[k], out_face[k] = w.t[stop], w.face[stop]
+            out_bi[k], out_bj[k] = bi[stop], bj[stop]
+        go = w.live & ~stop
+        cross_e = t_e <= t_n
+        w.update(t=np.where(go, t_out, w.t), bi=bi + np.where(cross_e & go, w.step_i, 0),
+                 bj=bj + np.where(~cross_e & go, w.step_j, 0),
+                 face=np.where(cross_e, FACE_E, FACE_N).astype(np.int8))
+        w.finish(stop)
     # The starting cell: where the ray is at out_t, kept inside its block against rounding.
     ny, nx = grid.top.shape
     fi = np.floor((ox + out_t * dx - grid.e_min) / grid.cell_m).astype(np.int64)
@@ -738,100 +783,116 @@ def _skip_empty_blocks(grid: SurfaceGrid, origin: np.ndarray, direction: np.ndar
 
 
 def cast_rays(grid: SurfaceGrid, origin: np.ndarray, direction: np.ndarray) -> RayHits:
-    """Exact first hit of downward rays ``origin + t * direction`` (t > 0) with the surface.
+    """``RayCaster(grid).cast(origin, direction)``: for rays cast at one surface in several
+    calls, make one ``RayCaster``."""
+    return RayCaster(grid).cast(origin, direction)
 
-    A 2D digital differential analyser (Amanatides & Woo) walks the cells the ray crosses, from
-    where it enters the slab below the highest surface point; in each cell the ray is tested
-    against the wall on the edge it entered through (the ray is below the cell's plane there) and
-    against the cell's plane (closed-form intersection inside the cell). A first, coarser walk
-    over blocks of COARSE_BLOCK^2 cells skips the blocks that lie wholly below the ray.
-    Vectorised over rays; each iteration advances every unfinished ray by one cell (block).
-    Raises RuntimeError if a ray leaves the grid before hitting (the grid must cover the rays'
-    footprint).
-    """
-    origin = np.asarray(origin, np.float64).reshape(-1, 3)
-    direction = np.asarray(direction, np.float64).reshape(-1, 3)
-    nray = origin.shape[0]
-    if np.any(direction[:, 2] >= 0.0):
-        raise ValueError("cast_rays needs downward rays (direction u < 0)")
-    c = grid.cell_m
-    ny, nx = grid.top.shape
-    z_top = grid.max_height() + 1e-6
-    ox, oy, oz = origin[:, 0], origin[:, 1], origin[:, 2]
-    dx, dy, dz = direction[:, 0], direction[:, 1], direction[:, 2]
-    t_top = (z_top - oz) / dz
-    t_in, i, j, face_in = _skip_empty_blocks(grid, origin, direction, t_top, COARSE_BLOCK)
-    step_i = np.where(dx > 0, 1, -1)
-    step_j = np.where(dy > 0, 1, -1)
-    # Rays parallel to a grid axis never cross the edges across it (t = inf there).
-    moves_e, moves_n = dx != 0.0, dy != 0.0
-    inv_dx = 1.0 / np.where(moves_e, dx, 1.0)
-    inv_dy = 1.0 / np.where(moves_n, dy, 1.0)
-    edge_i = (dx > 0).astype(np.int64)  # +1: the exit edge is the east one
-    edge_j = (dy > 0).astype(np.int64)
 
-    hit_t = np.empty(nray)
-    hit_j = np.empty(nray, np.int64)
-    hit_i = np.empty(nray, np.int64)
-    hit_face = np.empty(nray, np.int8)
-    hit_depth = np.zeros(nray)
+class RayCaster:
+    """Ray casting at one surface: what every cast needs of ``grid`` (its highest point, its
+    blocks' highest points) computed once. ``grid`` must not change while this is used."""
 
-    active = np.arange(nray)
-    # State of the active rays (compacted as rays finish).
-    a_i, a_j, a_t, a_face = i, j, t_in, face_in
-    while active.size:
-        inside = (a_i >= 0) & (a_i < nx) & (a_j >= 0) & (a_j < ny)
-        if not np.all(inside):
-            raise RuntimeError(
-                f"{int(np.sum(~inside))} ray(s) left the {nx}x{ny} surface grid without a hit: "
-                "the grid does not cover the views' footprints"
-            )
-        ax, ay, az = ox[active], oy[active], oz[active]
-        adx, ady, adz = dx[active], dy[active], dz[active]
-        top = grid.top[a_j, a_i]
-        ge = grid.slope_e[a_j, a_i]
-        gn = grid.slope_n[a_j, a_i]
-        ec = grid.e_min + (a_i + 0.5) * c
-        nc = grid.n_min + (a_j + 0.5) * c
-        # F(t) = ray height - plane height, linear in t: F0 + F1 * t.
-        f0 = az - top - ge * (ax - ec) - gn * (ay - nc)
-        f1 = adz - ge * adx - gn * ady
-        t_e = np.where(moves_e[active], (grid.e_min + (a_i + edge_i[active]) * c - ax) * inv_dx[active], np.inf)
-        t_n = np.where(moves_n[active], (grid.n_min + (a_j + edge_j[active]) * c - ay) * inv_dy[active], np.inf)
-        t_out = np.minimum(t_e, t_n)
-        f_in = f0 + f1 * a_t
-        wall = (f_in <= 0.0) & (a_face != FACE_TOP)
-        f_out = f0 + f1 * t_out
-        plane = ~wall & (f_out <= 0.0)
-        done = wall | plane
-        if np.any(done):
-            idx = active[done]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t_plane = np.where(plane, -f0 / np.where(f1 != 0.0, f1, -1.0), a_t)
-            t_plane = np.clip(t_plane, a_t, t_out)  # rounding guard: stay inside the cell
-            hit_t[idx] = np.where(wall, a_t, t_plane)[done]
-            hit_j[idx] = a_j[done]
-            hit_i[idx] = a_i[done]
-            hit_face[idx] = np.where(wall, a_face, FACE_TOP)[done]
-            hit_depth[idx] = np.where(wall, -f_in, 0.0)[done]
-        keep = ~done
-        cross_e = (t_e <= t_n)[keep]
-        active = active[keep]
-        a_t = t_out[keep]
-        a_i = a_i[keep] + np.where(cross_e, step_i[active], 0)
-        a_j = a_j[keep] + np.where(cross_e, 0, step_j[active])
-        a_face = np.where(cross_e, FACE_E, FACE_N).astype(np.int8)
+    def __init__(self, grid: SurfaceGrid):
+        self.grid = grid
+        self.z_top = grid.max_height() + 1e-6
+        self.block_max = _block_max(grid, COARSE_BLOCK)
 
-    point = origin + hit_t[:, None] * direction
-    ge = grid.slope_e[hit_j, hit_i]
-    gn = grid.slope_n[hit_j, hit_i]
-    normal = np.stack([-ge, -gn, np.ones(nray)], axis=1)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    on_e = hit_face == FACE_E
-    on_n = hit_face == FACE_N
-    normal[on_e] = np.stack([-step_i[on_e], np.zeros(on_e.sum()), np.zeros(on_e.sum())], axis=1)
-    normal[on_n] = np.stack([np.zeros(on_n.sum()), -step_j[on_n], np.zeros(on_n.sum())], axis=1)
-    return RayHits(point=point, t=hit_t, j=hit_j, i=hit_i, face=hit_face, normal=normal, wall_depth=hit_depth)
+    def cast(self, origin: np.ndarray, direction: np.ndarray) -> RayHits:
+        """Exact first hit of downward rays ``origin + t * direction`` (t > 0) with the surface.
+
+        A 2D digital differential analyser (Amanatides & Woo) walks the cells the ray crosses,
+        from where it enters the slab below the highest surface point; in each cell the ray is
+        tested against the wall on the edge it entered through (the ray is below the cell's
+        plane there) and against the cell's plane (closed-form intersection inside the cell). A
+        first, coarser walk over blocks of COARSE_BLOCK^2 cells skips the blocks that lie wholly
+        below the ray. Vectorised over rays; each iteration advances every unfinished ray by one
+        cell (block). Raises RuntimeError if a ray leaves the grid before hitting (the grid must
+        cover the rays' footprint).
+        """
+        origin = np.asarray(origin, np.float64).reshape(-1, 3)
+        direction = np.asarray(direction, np.float64).reshape(-1, 3)
+        nray = origin.shape[0]
+        if np.any(direction[:, 2] >= 0.0):
+            raise ValueError("cast_rays needs downward rays (direction u < 0)")
+        grid = self.grid
+        c = grid.cell_m
+        ny, nx = grid.top.shape
+        z_top = self.z_top
+        ox, oy, oz = origin[:, 0], origin[:, 1], origin[:, 2]
+        dx, dy, dz = direction[:, 0], direction[:, 1], direction[:, 2]
+        t_top = (z_top - oz) / dz
+        t_in, i, j, face_in = _skip_empty_blocks(grid, origin, direction, t_top, COARSE_BLOCK,
+                                                 self.block_max)
+        step_i = np.where(dx > 0, 1, -1)
+        step_j = np.where(dy > 0, 1, -1)
+        # Rays parallel to a grid axis never cross the edges across it (t = inf there).
+        moves_e, moves_n = dx != 0.0, dy != 0.0
+        all_e, all_n = bool(moves_e.all()), bool(moves_n.all())
+        top_flat, ge_flat, gn_flat = grid.top.ravel(), grid.slope_e.ravel(), grid.slope_n.ravel()
+
+        hit_t = np.empty(nray)
+        hit_j = np.empty(nray, np.int64)
+        hit_i = np.empty(nray, np.int64)
+        hit_face = np.empty(nray, np.int8)
+        hit_depth = np.zeros(nray)
+
+        w = _Walk(ox=ox, oy=oy, oz=oz, dx=dx, dy=dy, dz=dz, step_i=step_i, step_j=step_j,
+                  moves_e=moves_e, moves_n=moves_n,
+                  inv_dx=1.0 / np.where(moves_e, dx, 1.0), inv_dy=1.0 / np.where(moves_n, dy, 1.0),
+                  edge_i=(dx > 0).astype(np.int64),  # +1: the exit edge is the east one
+                  edge_j=(dy > 0).astype(np.int64), i=i, j=j, t=t_in, face=face_in)
+        while w.n_live:
+            a_i, a_j, a_t, a_face = w.i, w.j, w.t, w.face
+            w.check_inside(a_i, a_j, nx, ny, f"{nx}x{ny} surface grid")
+            cell = a_j * nx + a_i
+            top, ge, gn = top_flat[cell], ge_flat[cell], gn_flat[cell]
+            ec = grid.e_min + (a_i + 0.5) * c
+            nc = grid.n_min + (a_j + 0.5) * c
+            # F(t) = ray height - plane height, linear in t: F0 + F1 * t.
+            f0 = w.oz - top - ge * (w.ox - ec) - gn * (w.oy - nc)
+            f1 = w.dz - ge * w.dx - gn * w.dy
+            t_e = (grid.e_min + (a_i + w.edge_i) * c - w.ox) * w.inv_dx
+            t_n = (grid.n_min + (a_j + w.edge_j) * c - w.oy) * w.inv_dy
+            if not all_e:
+                t_e = np.where(w.moves_e, t_e, np.inf)
+            if not all_n:
+                t_n = np.where(w.moves_n, t_n, np.inf)
+            t_out = np.minimum(t_e, t_n)
+            f_in = f0 + f1 * a_t
+            wall = (f_in <= 0.0) & (a_face != FACE_TOP)
+            f_out = f0 + f1 * t_out
+            plane = ~wall & (f_out <= 0.0)
+            done = (wall | plane) & w.live
+            if done.any():
+                sel = np.flatnonzero(done)
+                on_wall, f0_s, f1_s, t_s = wall[sel], f0[sel], f1[sel], a_t[sel]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t_plane = np.where(plane[sel], -f0_s / np.where(f1_s != 0.0, f1_s, -1.0), t_s)
+                t_plane = np.clip(t_plane, t_s, t_out[sel])  # rounding guard: stay inside the cell
+                ray = w.ray[sel]
+                hit_t[ray] = np.where(on_wall, t_s, t_plane)
+                hit_j[ray] = a_j[sel]
+                hit_i[ray] = a_i[sel]
+                hit_face[ray] = np.where(on_wall, a_face[sel], FACE_TOP)
+                hit_depth[ray] = np.where(on_wall, -f_in[sel], 0.0)
+            go = w.live & ~done
+            cross_e = t_e <= t_n
+            w.update(t=np.where(go, t_out, a_t), i=a_i + np.where(cross_e & go, w.step_i, 0),
+                     j=a_j + np.where(~cross_e & go, w.step_j, 0),
+                     face=np.where(cross_e, FACE_E, FACE_N).astype(np.int8))
+            w.finish(done)
+
+        point = origin + hit_t[:, None] * direction
+        ge = grid.slope_e[hit_j, hit_i]
+        gn = grid.slope_n[hit_j, hit_i]
+        normal = np.stack([-ge, -gn, np.ones(nray)], axis=1)
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        on_e = hit_face == FACE_E
+        on_n = hit_face == FACE_N
+        normal[on_e] = np.stack([-step_i[on_e], np.zeros(on_e.sum()), np.zeros(on_e.sum())], axis=1)
+        normal[on_n] = np.stack([np.zeros(on_n.sum()), -step_j[on_n], np.zeros(on_n.sum())], axis=1)
+        return RayHits(point=point, t=hit_t, j=hit_j, i=hit_i, face=hit_face, normal=normal,
+                       wall_depth=hit_depth)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -3,6 +3,7 @@ visibility, shadows, the truth DSM read through GDAL (rasterio), files, determin
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -185,6 +186,37 @@ def test_renderer_rays_stop_at_the_first_surface_point(scene, surface):
         clearance = _min_clearance(surface, p, -d, top)
         assert clearance.min() > 0.0
     assert walls > 0, "no facade seen in any view"
+
+
+
+@pytest.mark.parametrize("fraction", [0.0, 1.0])
+def test_the_walks_compaction_schedule_changes_no_hit(scene, surface, monkeypatch, fraction):
+    """Finished rays stay in the walk's arrays until few walk: the hits are those of a walk
+    that never compacts (0) and of one that compacts at every step (1), bit for bit."""
+    from satsweep.synth import town
+
+    cam = scene.views[0].camera
+    r, c = np.meshgrid(np.arange(0, cam.height, 3.0), np.arange(0, cam.width, 3.0), indexing="ij")
+    origin, d = cam.ray(col=c.ravel(), row=r.ravel())
+    hits = cast_rays(surface, origin, d)
+    monkeypatch.setattr(town, "WALK_COMPACT_FRACTION", fraction)
+    other = cast_rays(surface, origin, d)
+    for field in dataclasses.fields(hits):
+        assert np.array_equal(getattr(hits, field.name), getattr(other, field.name)), field.name
+    assert np.any(hits.face != FACE_TOP)  # walls too
+
+
+def test_rendering_in_threads_gives_the_image_of_one_thread(scene, surface, monkeypatch):
+    from satsweep.synth import scene as scene_module
+
+    sun = sun_vector(elevation_deg=scene.options.sun_elevation_deg, azimuth_deg=scene.options.sun_azimuth_deg)
+    shadows = ShadowMap(surface, sun)
+    cam = scene.views[1].camera
+    monkeypatch.setattr(scene_module, "RENDER_CHUNK_RAYS", 4 * cam.width)  # many chunks
+    threaded = scene_module.render_radiance_greenness(surface, shadows, cam, supersampling=2)
+    monkeypatch.setattr(scene_module, "RENDER_THREADS", 1)
+    alone = scene_module.render_radiance_greenness(surface, shadows, cam, supersampling=2)
+    assert np.array_equal(threaded[0], alone[0]) and np.array_equal(threaded[1], alone[1])
 
 
 def test_cast_shadows_match_brute_force_marching_towards_the_sun(scene, surface):
