@@ -247,17 +247,31 @@ def _decode_problem(page, exc: Exception) -> str:
 
 def image_nodata(path: str | os.PathLike) -> float | None:
     """The no-data value a TIFF declares (GDAL's tag 42113), or None."""
+    from satsweep.io.dimap import dimap_product
     from satsweep.io.geotiff import TAG_GDAL_NODATA, _parse_nodata
 
     path = os.fspath(path)
+    product = dimap_product(path)
+    if product is not None:  # a DIMAP product: its tiles' value, which they must share
+        values = {repr(image_nodata(t.path)): image_nodata(t.path) for t in product.tiles}
+        if len(values) > 1:
+            raise ImageFormatError(path, f"DIMAP product: its tiles declare different no-data "
+                                         f"values ({', '.join(sorted(values))})")
+        return next(iter(values.values()))
     with _open_tiff(path) as (_, page):
         tag = page.tags.get(TAG_GDAL_NODATA)
         return _parse_nodata(path, tag.value if tag is not None else None)
 
 
 def image_shape(path: str | os.PathLike) -> tuple[int, int]:
-    """(height, width) of the first band of a TIFF, read from its header only."""
+    """(height, width) of the first band of a TIFF, read from its header only (of a DIMAP
+    product's DIM file, its scene: ``satsweep.io.dimap``)."""
+    from satsweep.io.dimap import dimap_product
+
     path = os.fspath(path)
+    product = dimap_product(path)
+    if product is not None:
+        return product.shape
     with _open_tiff(path) as (_, page):
         _check_layout(path, page)
         return int(page.imagelength), int(page.imagewidth)
@@ -280,8 +294,14 @@ def _read_checked(path: str | os.PathLike, window: Sequence[int] | None, *,
                   colour: bool, rgb_only: bool = False) -> tuple[np.ndarray | None, bool]:
     """(the window's pixels in native byte order, whether the image is RGB): ``read_image``'s
     pixels, or with ``colour`` an RGB image's (H, W, 3) bands instead of their luminance; with
-    ``rgb_only``, (None, False) for an image of one band, nothing decoded."""
+    ``rgb_only``, (None, False) for an image of one band, nothing decoded. A DIMAP product's
+    DIM file reads the tiles under the window (``satsweep.io.dimap``)."""
+    from satsweep.io.dimap import dimap_product
+
     path = os.fspath(path)
+    product = dimap_product(path)
+    if product is not None:
+        return product.read(window, colour=colour, rgb_only=rgb_only)
     with _open_tiff(path) as (tif, page):
         _check_layout(path, page)
         size = int(page.imagewidth), int(page.imagelength)

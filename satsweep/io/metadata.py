@@ -532,6 +532,11 @@ def _listing(image: Path) -> tuple[dict[str, Path], str | None]:
 
 
 def _sources(image: Path) -> Iterable[_Source]:
+    from satsweep.io.dimap import dimap_product  # noqa: PLC0415
+
+    if dimap_product(image) is not None:  # a DIMAP product's DIM file: itself
+        yield _read_xml_sidecar(image)[0]
+        return
     tag = _read_tiff_tag(image)
     if tag is not None:
         yield tag
