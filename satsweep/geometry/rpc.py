@@ -466,20 +466,20 @@ class RPCModel:
         image; then, as GDAL does for Airbus DIMAP deliveries, ``RPC_X.XML`` for an image
         ``IMG_X.tif`` or a tile of it ``IMG_X_RiCj.tif`` (placed in the scene by ``DIM_X.XML``:
         ``rpc_formats.dimap_rpc_by_rule``). XML sidecars that hold no RPC are passed over. Of a
-        DIMAP product's DIM file (``satsweep.io.dimap``), the product's RPC.
+        tiled product's DIM or TIL file (``satsweep.io.products``), the product's RPC.
         Raises ImageFormatError for a missing, non-TIFF or truncated image, RPCError when no RPC
         is found or a sidecar is bad.
         """
         from satsweep.geometry.rpc_formats import (  # noqa: PLC0415
             _NotAnRPC, _read_tiff_rpc_tag, dimap_names, dimap_rpc_by_rule)
-        from satsweep.io.dimap import dimap_product  # noqa: PLC0415
+        from satsweep.io.products import tiled_product  # noqa: PLC0415
 
         path = Path(path)
-        product = dimap_product(path)
-        if product is not None:  # a DIMAP product's DIM file: the product's RPC, of its scene
+        product = tiled_product(path)
+        if product is not None:  # a tiled product's file: the product's RPC, of its scene
             if product.rpc_path is None:
-                raise RPCError(path, f"no RPC: the DIMAP product's RPC file ({product.rpc_names}, "
-                                     "or the one it names) is not beside it")
+                raise RPCError(path, f"no RPC: the {product.kind}'s RPC file "
+                                     f"({product.rpc_names}) is not beside it")
             return cls.from_file(product.rpc_path)
         values = _read_tiff_rpc_tag(path)
         if values is not None:

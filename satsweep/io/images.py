@@ -247,15 +247,15 @@ def _decode_problem(page, exc: Exception) -> str:
 
 def image_nodata(path: str | os.PathLike) -> float | None:
     """The no-data value a TIFF declares (GDAL's tag 42113), or None."""
-    from satsweep.io.dimap import dimap_product
+    from satsweep.io.products import tiled_product
     from satsweep.io.geotiff import TAG_GDAL_NODATA, _parse_nodata
 
     path = os.fspath(path)
-    product = dimap_product(path)
-    if product is not None:  # a DIMAP product: its tiles' value, which they must share
+    product = tiled_product(path)
+    if product is not None:  # a tiled product: its tiles' value, which they must share
         values = {repr(image_nodata(t.path)): image_nodata(t.path) for t in product.tiles}
         if len(values) > 1:
-            raise ImageFormatError(path, f"DIMAP product: its tiles declare different no-data "
+            raise ImageFormatError(path, f"{product.kind}: its tiles declare different no-data "
                                          f"values ({', '.join(sorted(values))})")
         return next(iter(values.values()))
     with _open_tiff(path) as (_, page):
@@ -264,12 +264,12 @@ def image_nodata(path: str | os.PathLike) -> float | None:
 
 
 def image_shape(path: str | os.PathLike) -> tuple[int, int]:
-    """(height, width) of the first band of a TIFF, read from its header only (of a DIMAP
-    product's DIM file, its scene: ``satsweep.io.dimap``)."""
-    from satsweep.io.dimap import dimap_product
+    """(height, width) of the first band of a TIFF, read from its header only (of a tiled
+    product's DIM or TIL file, its scene: ``satsweep.io.products``)."""
+    from satsweep.io.products import tiled_product
 
     path = os.fspath(path)
-    product = dimap_product(path)
+    product = tiled_product(path)
     if product is not None:
         return product.shape
     with _open_tiff(path) as (_, page):
@@ -294,12 +294,12 @@ def _read_checked(path: str | os.PathLike, window: Sequence[int] | None, *,
                   colour: bool, rgb_only: bool = False) -> tuple[np.ndarray | None, bool]:
     """(the window's pixels in native byte order, whether the image is RGB): ``read_image``'s
     pixels, or with ``colour`` an RGB image's (H, W, 3) bands instead of their luminance; with
-    ``rgb_only``, (None, False) for an image of one band, nothing decoded. A DIMAP product's
-    DIM file reads the tiles under the window (``satsweep.io.dimap``)."""
-    from satsweep.io.dimap import dimap_product
+    ``rgb_only``, (None, False) for an image of one band, nothing decoded. A tiled product's
+    DIM or TIL file reads the tiles under the window (``satsweep.io.products``)."""
+    from satsweep.io.products import tiled_product
 
     path = os.fspath(path)
-    product = dimap_product(path)
+    product = tiled_product(path)
     if product is not None:
         return product.read(window, colour=colour, rgb_only=rgb_only)
     with _open_tiff(path) as (tif, page):

@@ -127,10 +127,10 @@ def find_mask(image: str | os.PathLike, shape: tuple[int, int], *,
     beside = _sidecar(os.path.dirname(image), image)
     if beside is not None:
         return _external_mask(beside, image, shape)
-    from satsweep.io.dimap import dimap_product
+    from satsweep.io.products import tiled_product
 
-    if dimap_product(image) is not None:
-        return None  # a DIMAP product's scene: no internal mask (its tiles' are not read)
+    if tiled_product(image) is not None:
+        return None  # a tiled product's scene: no internal mask (its tiles' are not read)
     return _internal_mask(image, shape)
 
 

@@ -532,10 +532,17 @@ def _listing(image: Path) -> tuple[dict[str, Path], str | None]:
 
 
 def _sources(image: Path) -> Iterable[_Source]:
-    from satsweep.io.dimap import dimap_product  # noqa: PLC0415
+    from satsweep.io.products import tiled_product  # noqa: PLC0415
 
-    if dimap_product(image) is not None:  # a DIMAP product's DIM file: itself
-        yield _read_xml_sidecar(image)[0]
+    product = tiled_product(image)
+    if product is not None:  # a DIM file: itself; a TIL file: the IMD beside it
+        if image.suffix.lower() != ".til":
+            yield _read_xml_sidecar(image)[0]
+            return
+        names, _ = _listing(image)
+        imd = names.get(f"{image.stem.lower()}.imd")
+        if imd is not None:
+            yield _read_imd(imd)
         return
     tag = _read_tiff_tag(image)
     if tag is not None:

@@ -183,3 +183,100 @@ def test_other_xml_is_not_taken_for_a_product(tmp_path):
     other.write_text("<catalog><item/></catalog>")
     with pytest.raises(ImageFormatError, match="not a readable TIFF"):
         image_shape(other)
+
+
+# -- Maxar tiled products (.TIL) ------------------------------------------------------------------
+TIL_STEM = "16FEB12345678-P1BS-500123456010_01_P001"
+# (ULColOffset, ULRowOffset, LRColOffset, LRRowOffset) of each tile, inclusive: the second
+# overlaps the first over columns 30..39 (GDAL's TIL driver: the later tile wins there).
+TIL_TILES = [(0, 0, 39, 31), (30, 0, 69, 31), (0, 32, 69, 49)]
+
+
+def _til_product(folder: Path, scene: np.ndarray, tiles=TIL_TILES, *, imd: bool = True,
+                 sizes=None) -> Path:
+    """X.TIL over the tiles of ``scene`` at ``tiles``, and X.IMD with its size and a date."""
+    from satsweep.synth.multidate import imd_text
+
+    groups = []
+    for k, (x0, y0, x1, y1) in enumerate(tiles, start=1):
+        name = f"{TIL_STEM}_R{k}C1-500123456010_01_P001.TIF"
+        part = scene[y0:y1 + 1, x0:x1 + 1] if sizes is None else np.zeros(sizes[k - 1], scene.dtype)
+        tifffile.imwrite(folder / name, part)
+        groups.append(f"BEGIN_GROUP = TILE_{k}\n\tfilename = \"{name}\";\n\tULColOffset = {x0};\n"
+                      f"\tULRowOffset = {y0};\n\tURColOffset = {x1};\n\tURRowOffset = {y0};\n"
+                      f"\tLRColOffset = {x1};\n\tLRRowOffset = {y1};\n\tLLColOffset = {x0};\n"
+                      f"\tLLRowOffset = {y1};\nEND_GROUP = TILE_{k}\n")
+    til = folder / f"{TIL_STEM}.TIL"
+    til.write_text('bandId = "P";\n' + f"numTiles = {len(tiles)};\ntileSizeX = 40;\n"
+                   "tileSizeY = 32;\ntileOverlap = 0;\n" + "".join(groups) + "END;\n")
+    if imd:
+        (folder / f"{TIL_STEM}.IMD").write_text(imd_text(
+            date_time="2016-02-12T16:12:34Z", rows=scene.shape[0], cols=scene.shape[1],
+            sun_azimuth_deg=151.2, sun_elevation_deg=38.4, sat_azimuth_deg=20.0,
+            sat_elevation_deg=70.0, off_nadir_deg=18.0, in_track_deg=5.0, cross_track_deg=-17.0,
+            gsd_m=0.31, catalog_id="104001001234AB00", satellite="WV03"))
+    return til
+
+
+def _gdal_til_read(path: Path, window=None) -> np.ndarray:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(path) as src:
+            assert src.driver == "TIL"
+            if window is None:
+                return src.read(1)
+            x0, y0, x1, y1 = window
+            return src.read(1, window=((y0, y1), (x0, x1)))
+
+
+@pytest.mark.parametrize("window", [None, (25, 20, 50, 40), (35, 0, 45, 10), (0, 31, 70, 33)])
+def test_a_til_file_reads_as_gdal_mosaics_its_tiles(tmp_path, scene, window):
+    scene = scene.copy()
+    scene[0:32, 30:40] += 1  # the overlap differs between the first two tiles' copies
+    til = _til_product(tmp_path, scene)
+    tifffile.imwrite(tmp_path / f"{TIL_STEM}_R1C1-500123456010_01_P001.TIF",
+                     scene[0:32, 0:40] - np.pad(np.ones((32, 10), np.uint16), ((0, 0), (30, 0))))
+    assert image_shape(til) == (ROWS, COLS)
+    ours = read_image(til, window=window)
+    gdal = _gdal_til_read(til, window)
+    np.testing.assert_array_equal(ours, gdal)
+    x0, y0, x1, y1 = window or (0, 0, COLS, ROWS)
+    np.testing.assert_array_equal(ours, scene[y0:y1, x0:x1])  # the later tile's copy
+
+
+def test_a_til_file_takes_its_rpb_and_its_imd(pleiades_pair, tmp_path, scene):
+    til = _til_product(tmp_path, scene)
+    with pytest.raises(RPCError, match=rf"no RPC: the Maxar tiled product's RPC file "
+                                       rf"\({TIL_STEM}\.RPB\) is not beside it"):
+        RPCModel.from_image(til)
+    # An RPB as GDAL writes it, of a real RPC.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(pleiades_pair / "img_01.tif") as src:
+            rpcs = src.rpcs
+        with rasterio.open(tmp_path / "x.tif", "w", driver="GTiff", width=8, height=8, count=1,
+                           dtype="uint16", rpcs=rpcs, RPB="YES") as dst:
+            dst.write(np.zeros((1, 8, 8), np.uint16))
+    shutil.move(tmp_path / "x.RPB", tmp_path / f"{TIL_STEM}.RPB")
+    source = open_source(til)
+    _assert_same_projection_as(source.rpc, _gdal_rpc(til), PROJ_VS_RPCM_PX)
+    assert source.acquisition.acquisition_time_utc.startswith("2016-02-12T16:12:34")
+    assert source.acquisition.sun_elevation_deg == pytest.approx(38.4)
+    assert source.acquisition.satellite == "WV03"
+
+
+@pytest.mark.parametrize("case,message", [
+    ("no imd", rf"the scene's size is in its {TIL_STEM}\.IMD .*which is not beside it"),
+    ("outside", r"TILE_2 .*columns 30\.\.75, rows 0\.\.31 are not inside the 70x50 scene"),
+    ("gap", r"leave part of the 70x50 scene uncovered \(column 0, row 32\)"),
+    ("size", r"its tile .*_R3C1-.*\.TIF is 70x10 pixels; from column 0, row 32 to column 69, "
+             r"row 49 \(TILE_3\) it should be 70x18"),
+])
+def test_a_til_product_that_is_not_one_image_is_an_error_naming_it(tmp_path, scene, case, message):
+    tiles = {"outside": [(0, 0, 39, 31), (30, 0, 75, 31), (0, 32, 69, 49)],
+             "gap": TIL_TILES[:2]}.get(case, TIL_TILES)
+    sizes = [(32, 40), (32, 40), (10, 70)] if case == "size" else None
+    til = _til_product(tmp_path, scene, tiles, imd=case != "no imd", sizes=sizes)
+    with pytest.raises(ImageFormatError, match=message) as exc:
+        open_source(til)
+    assert str(exc.value).startswith(f"{til}: Maxar tiled product: ")
