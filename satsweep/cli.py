@@ -244,7 +244,7 @@ def _cmd_cameras(args: argparse.Namespace) -> int:
             e = ba["reprojection_error_px"]
             print(f"bundle adjustment: {ba['points']} points, median reprojection error "
                   f"{e['before']['median']:.3f} -> {e['after']['median']:.3f} px")
-        for name, shift in adjustment.sparse_shifts.items():
+        for name, shift in adjustment.named_sparse_shifts():
             print(f"  {name}: principal point shift ({shift[0]:+.3f}, {shift[1]:+.3f}) px")
         corrections = {v.path: s for v, s in zip(views, adjustment.own_shifts)}
     if args.skew_correct:  # the images written are the crops' own values, sheared

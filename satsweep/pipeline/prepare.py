@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import os
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
@@ -28,8 +29,6 @@ import numpy as np
 from satsweep.errors import CameraError
 
 if TYPE_CHECKING:  # pragma: no cover
-    import os
-
     from satsweep.config import PipelineConfig
     from satsweep.geometry.altitude import AltitudeRange
     from satsweep.geometry.aoi import AOI
@@ -75,23 +74,33 @@ class Adjustment:
     skipped: str | None = None
     borrowed_shift_px: tuple[tuple[float, float], ...] | None = None
     postponed: str | None = None
-    sparse_shifts: dict[str, tuple[float, float]] | None = None  # per image name, the sparse
-    # stage's correction applied (satsweep.sparse.stage)
+    sparse_shifts: tuple[tuple[str, tuple[float, float]], ...] | None = None  # per view, its
+    # image (the path as given) and the sparse stage's correction applied
+    # (satsweep.sparse.stage): by path, not file name, so that two views of one file name in
+    # different folders keep their own
 
     @property
     def own_shifts(self) -> list[list[float]] | None:
         """Per view (dcx, dcy) px of this area's own adjustment; None without one."""
         if self.sparse_shifts is not None:
-            return [list(s) for s in self.sparse_shifts.values()]
+            return [list(s) for _, s in self.sparse_shifts]
         if self.bundle is None:
             return None
         return [list(s) for s in self.bundle.principal_point_shift_px]
+
+    def named_sparse_shifts(self) -> list[tuple[str, tuple[float, float]]]:
+        """``sparse_shifts`` by the views' file names, or their paths where two views share
+        a file name (for the report and the log)."""
+        paths = [p for p, _ in self.sparse_shifts or ()]
+        names = [os.path.basename(p) for p in paths]
+        return [(n if names.count(n) == 1 else p, s)
+                for p, n, (_, s) in zip(paths, names, self.sparse_shifts or ())]
 
     def to_report(self) -> dict[str, Any]:
         if self.sparse_shifts is not None:
             return {"method": "sparse stage (report: sparse)",
                     "principal_point_shift_px": {n: list(s)
-                                                 for n, s in self.sparse_shifts.items()}}
+                                                 for n, s in self.named_sparse_shifts()}}
         if self.bundle is not None:
             return self.bundle.to_dict()
         if self.postponed is not None:
@@ -182,7 +191,7 @@ def correct_pointing(cameras: "CameraSet", views: Sequence["View"], sparse: "Spa
 
         shifts = sparse.corrections_for([v.path for v in views])
         return (shift_principal_points(cameras, shifts),
-                Adjustment(sparse_shifts={v.name: s for v, s in zip(views, shifts)}))
+                Adjustment(sparse_shifts=tuple((v.path, s) for v, s in zip(views, shifts))))
     return unadjusted(cameras, untied, config, borrowed_shifts=borrowed_shifts,
                       may_wait=may_wait, report=report)
 

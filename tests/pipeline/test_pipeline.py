@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +109,29 @@ def test_reconstruct_writes_the_corrected_rpcs(reconstruction, scene):
         assert written.row_offset == original.row_offset + dr
         assert written == original.corrected((dc, dr))
 
+
+
+def test_views_of_one_file_name_keep_their_own_corrections(reconstruction, scene, tmp_path):
+    """Two views named alike in two folders (a/view.tif, b/view.tif): each keeps its own
+    correction in the report (keyed by path) and in its rpc/ file (prefixed by its index)."""
+    from satsweep.geometry.rpc import RPCModel
+
+    copies = []
+    for folder, v in zip("ab", scene.views):
+        (tmp_path / folder).mkdir()
+        copies.append(tmp_path / folder / "view.tif")
+        shutil.copy(v.image, copies[-1])
+        shutil.copy(v.rpc_file, tmp_path / folder / "view_RPC.TXT")
+    result = reconstruct(copies, scene.aoi, tmp_path / "out", alt_range=_alt(scene),
+                         config=PipelineConfig.from_mapping(FAST_CAMERA), verbose=False)
+    shifts = result.report["ba"]["principal_point_shift_px"]
+    alone = reconstruction.report["ba"]["principal_point_shift_px"]
+    assert sorted(shifts) == sorted(str(c) for c in copies)
+    for k, (copy, v) in enumerate(zip(copies, scene.views)):
+        assert shifts[str(copy)] == alone[v.image.name]  # the same views, the same shifts
+        written = RPCModel.from_file(tmp_path / "out" / "rpc" / f"{k:02d}_view_RPC.TXT")
+        assert written == RPCModel.from_image(v.image).corrected(tuple(shifts[str(copy)]))
+    assert alone[scene.views[0].image.name] != alone[scene.views[1].image.name]
 
 def test_a_run_takes_the_rpcs_of_another_runs_rpc_folder(reconstruction, scene, tmp_path):
     """--rpc-dir: a second run from the first run's rpc/ reads those RPCs (the report says
