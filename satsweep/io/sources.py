@@ -101,6 +101,14 @@ def open_source(path: str | os.PathLike, *, rpc_file: str | os.PathLike | None =
                        mask=find_mask(path, shape, mask_file=mask_file))
 
 
+def report_names(paths: Sequence[str | os.PathLike]) -> list[str]:
+    """How reports and logs name the images ``paths``: each by its file name, or by its path
+    (as given) where two share a file name (a/view.tif, b/view.tif)."""
+    paths = [os.fspath(p) for p in paths]
+    names = [os.path.basename(p) for p in paths]
+    return [n if names.count(n) == 1 else p for p, n in zip(paths, names)]
+
+
 def rpc_files_in(rpc_dir: str | os.PathLike, images: Sequence[str | os.PathLike]) -> list[str]:
     """The RPC of each of ``images`` in the folder ``rpc_dir``: ``<image stem>_RPC.TXT`` (the
     name satsweep's rpc/ outputs and GDAL's sidecars use), matched case-insensitively.

@@ -20,6 +20,7 @@ import numpy as np
 from satsweep.errors import SatsweepError
 from satsweep.geometry.altitude import AltitudeRange, enu_height_range
 from satsweep.io.metadata import with_computed_sun
+from satsweep.io.sources import report_names
 from satsweep.pipeline.altitude import (
     AltitudeChoice,
     TiedSources,
@@ -115,12 +116,13 @@ class AreaRecord:
                       for (path, box), acquisition, share
                       in zip(self.crops, self.acquisitions,
                              self.vegetation_shares or [None] * len(self.crops))],
-            "cameras": {"approx_error_px": {os.path.basename(n): v.camera.error.to_dict()
-                                            for n, v in zip(names, self.cameras.views)},
+            "cameras": {"approx_error_px": {n: v.camera.error.to_dict()
+                                            for n, v in zip(report_names(names),
+                                                            self.cameras.views)},
                         "warnings": list(self.cameras.warnings)},
             "sparse": self.sparse,
             "ba": self.adjustment.to_report(),
-            "view_selection": self.selection.to_dict([os.path.basename(n) for n in names]),
+            "view_selection": self.selection.to_dict(report_names(names)),
             "sweep": [s.to_report() for s in self.sweeps],
             "dsm": self.rasters.to_report(),
         }

@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import os
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
@@ -29,6 +28,8 @@ import numpy as np
 from satsweep.errors import CameraError
 
 if TYPE_CHECKING:  # pragma: no cover
+    import os
+
     from satsweep.config import PipelineConfig
     from satsweep.geometry.altitude import AltitudeRange
     from satsweep.geometry.aoi import AOI
@@ -89,12 +90,11 @@ class Adjustment:
         return [list(s) for s in self.bundle.principal_point_shift_px]
 
     def named_sparse_shifts(self) -> list[tuple[str, tuple[float, float]]]:
-        """``sparse_shifts`` by the views' file names, or their paths where two views share
-        a file name (for the report and the log)."""
-        paths = [p for p, _ in self.sparse_shifts or ()]
-        names = [os.path.basename(p) for p in paths]
-        return [(n if names.count(n) == 1 else p, s)
-                for p, n, (_, s) in zip(paths, names, self.sparse_shifts or ())]
+        """``sparse_shifts`` by the views' ``report_names`` (for the report and the log)."""
+        from satsweep.io.sources import report_names
+
+        shifts = self.sparse_shifts or ()
+        return list(zip(report_names([p for p, _ in shifts]), (s for _, s in shifts)))
 
     def to_report(self) -> dict[str, Any]:
         if self.sparse_shifts is not None:

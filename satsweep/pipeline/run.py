@@ -40,7 +40,7 @@ from satsweep.config import PipelineConfig
 from satsweep.errors import InputError, OptionsError, SatsweepError
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.geometry.aoi import AOI
-from satsweep.io.sources import refuse_folders, refuse_too_few
+from satsweep.io.sources import refuse_folders, refuse_too_few, report_names
 from satsweep.pipeline.outputs import (
     RPC_DIR,
     OutputFolder,
@@ -223,8 +223,8 @@ def _finish(mosaic: Mosaic, settings, rep: RunReport, out: OutputFolder,
                      "splits": mosaic.splits, "unseen": mosaic.unseen}
     if mosaic.failed:
         rep["tiling"]["failed"] = mosaic.failed
-    rep["tiling"]["aoi_seen_share"] = {os.path.basename(path): share
-                                       for path, share in mosaic.seen_shares.items()}
+    rep["tiling"]["aoi_seen_share"] = dict(zip(report_names(list(mosaic.seen_shares)),
+                                               mosaic.seen_shares.values()))
     if mosaic.tiled:
         if settings.alt_range is not None:  # else each tile's range is in its entry
             rep["altitude_range"] = {"min": settings.alt_range.min,

@@ -113,7 +113,8 @@ def test_reconstruct_writes_the_corrected_rpcs(reconstruction, scene):
 
 def test_views_of_one_file_name_keep_their_own_corrections(reconstruction, scene, tmp_path):
     """Two views named alike in two folders (a/view.tif, b/view.tif): each keeps its own
-    correction in the report (keyed by path) and in its rpc/ file (prefixed by its index)."""
+    correction in the report (keyed by path, as its other per-view entries) and in its rpc/ file
+    (prefixed by its index)."""
     from satsweep.geometry.rpc import RPCModel
 
     copies = []
@@ -132,6 +133,9 @@ def test_views_of_one_file_name_keep_their_own_corrections(reconstruction, scene
         written = RPCModel.from_file(tmp_path / "out" / "rpc" / f"{k:02d}_view_RPC.TXT")
         assert written == RPCModel.from_image(v.image).corrected(tuple(shifts[str(copy)]))
     assert alone[scene.views[0].image.name] != alone[scene.views[1].image.name]
+    # The report's other per-view entries name the two views apart too.
+    assert sorted(result.report["cameras"]["approx_error_px"]) == sorted(shifts)
+    assert sorted(result.report["tiling"]["aoi_seen_share"]) == sorted(shifts)
 
 def test_a_run_takes_the_rpcs_of_another_runs_rpc_folder(reconstruction, scene, tmp_path):
     """--rpc-dir: a second run from the first run's rpc/ reads those RPCs (the report says
