@@ -12,7 +12,8 @@
  * sgm_to_pixel_major: cost[(y W + x) NL + d] = volume[d H W + y W + x], with entries at or below
  *   SATSWEEP_INVALID / 2 (no valid source for that plane) replaced by missing_cost: a pixel with
  *   every plane missing thus has a constant cost and is filled by the smoothness terms alone.
- *   Work size: global = (H W), local = any; work-item i handles pixel i (all labels).
+ *   Work size: global = (H W), rounded up to any multiple of the local size; local = any;
+ *   work-item i handles pixel i (all labels), those past H W nothing.
  * sgm_to_plane_major: sums[d H W + i] = agg[i NL + d]. Work size as above.
  *
  * sgm_path: aggregates the (pixel-major) costs along every scanline of ONE direction
