@@ -66,11 +66,12 @@ def scene() -> np.ndarray:
     return np.random.default_rng(5).integers(0, 4096, (ROWS, COLS)).astype(np.uint16)
 
 
-def _gdal_read(path: Path, window=None) -> np.ndarray:
+def _gdal_read(path: Path, window=None, driver: str = "DIMAP") -> np.ndarray:
+    """GDAL's reading (rasterio) of the product file ``path`` by its ``driver``."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         with rasterio.open(path) as src:
-            assert src.driver == "DIMAP"
+            assert src.driver == driver
             if window is None:
                 return src.read(1)
             x0, y0, x1, y1 = window
@@ -218,17 +219,6 @@ def _til_product(folder: Path, scene: np.ndarray, tiles=TIL_TILES, *, imd: bool 
     return til
 
 
-def _gdal_til_read(path: Path, window=None) -> np.ndarray:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-        with rasterio.open(path) as src:
-            assert src.driver == "TIL"
-            if window is None:
-                return src.read(1)
-            x0, y0, x1, y1 = window
-            return src.read(1, window=((y0, y1), (x0, x1)))
-
-
 @pytest.mark.parametrize("window", [None, (25, 20, 50, 40), (35, 0, 45, 10), (0, 31, 70, 33)])
 def test_a_til_file_reads_as_gdal_mosaics_its_tiles(tmp_path, scene, window):
     scene = scene.copy()
@@ -238,7 +228,7 @@ def test_a_til_file_reads_as_gdal_mosaics_its_tiles(tmp_path, scene, window):
                      scene[0:32, 0:40] - np.pad(np.ones((32, 10), np.uint16), ((0, 0), (30, 0))))
     assert image_shape(til) == (ROWS, COLS)
     ours = read_image(til, window=window)
-    gdal = _gdal_til_read(til, window)
+    gdal = _gdal_read(til, window, driver="TIL")
     np.testing.assert_array_equal(ours, gdal)
     x0, y0, x1, y1 = window or (0, 0, COLS, ROWS)
     np.testing.assert_array_equal(ours, scene[y0:y1, x0:x1])  # the later tile's copy
