@@ -246,9 +246,10 @@ def _decode_problem(page, exc: Exception) -> str:
 
 
 def image_nodata(path: str | os.PathLike) -> float | None:
-    """The no-data value a TIFF declares (GDAL's tag 42113), or None."""
-    from satsweep.io.products import tiled_product
+    """The no-data value a TIFF declares (GDAL's tag 42113), or None (of a tiled product's DIM
+    or TIL file, the value its tiles share: ``satsweep.io.products``)."""
     from satsweep.io.geotiff import TAG_GDAL_NODATA, _parse_nodata
+    from satsweep.io.products import tiled_product
 
     path = os.fspath(path)
     product = tiled_product(path)
