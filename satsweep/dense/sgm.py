@@ -31,19 +31,12 @@ from satsweep.dense.volume import CostVolume
 from satsweep.errors import DeviceError, InputError
 from satsweep.opencl.buffers import BufferSpec, DeviceMemory
 from satsweep.opencl.constants import SGM_MAX_LABELS, SGM_SCAN_GUARD, WTA_NSTATE, WTA_SLOT, WTA_VEC
-from satsweep.opencl.device import Device
+from satsweep.opencl.device import Device, launch
 
-# Work-group size of the 1-D per-pixel kernels (sgm.cl's sgm_to_pixel_major and
-# sgm_to_plane_major, wta.cl's wta_pixel_major and wta_close), which ignore the items past
-# their global size. PoCL compiles one work-group function per local size and, given none,
-# took the whole global size (one work-group: one core), so every image size compiled its own:
-# 237 of the 524 functions the default suite compiled into an empty cache.
-_LOCAL_1D = 64
-
-
-def _launch_1d(kernel, queue, n: int, *args):
-    """Enqueue a 1-D per-pixel ``kernel`` over ``n`` items, rounded up to ``_LOCAL_1D``."""
-    return kernel(queue, (-(-int(n) // _LOCAL_1D) * _LOCAL_1D,), (_LOCAL_1D,), *args)
+# The 1-D per-pixel kernels (sgm.cl's sgm_to_pixel_major and sgm_to_plane_major, wta.cl's
+# wta_pixel_major and wta_close) run at the fixed local size (``launch``): enqueued with none,
+# PoCL compiled a work-group function per image size (237 of the 524 that the default suite
+# compiled into an empty cache).
 
 # Scanline directions (dx, dy) of SGM, in the order their path costs are added; 4 paths use the
 # first four (horizontal and vertical), 8 paths all of them.
@@ -233,13 +226,13 @@ def _aggregated(device: Device, mem: DeviceMemory, volume: CostVolume, guide,
             # Pixel-major copy of the costs (invalid entries replaced), aggregated in that layout.
             to_pixel_major = device.kernel(prg, "sgm_to_pixel_major")
             if volume.on_device:
-                _launch_1d(to_pixel_major, queue, n_pix, volume.data.data, inp["cost"],
-                           i32(n_pix), f32(scale))
+                launch(to_pixel_major, queue, (n_pix,), volume.data.data, inp["cost"],
+                       i32(n_pix), f32(scale))
             else:
                 upload = np.ascontiguousarray(volume.data, dtype=np.float32)
                 with mem.allocate(SGM_UPLOAD_BUFFERS, sizes, host={"volume": upload}) as up:
-                    _launch_1d(to_pixel_major, queue, n_pix, up["volume"], inp["cost"],
-                               i32(n_pix), f32(scale))
+                    launch(to_pixel_major, queue, (n_pix,), up["volume"], inp["cost"],
+                           i32(n_pix), f32(scale))
             cost = inp["cost"]
         else:
             cost = volume.data.data  # the caller's, in SGM's layout already
@@ -290,8 +283,8 @@ def sgm_aggregate(device: Device, volume: CostVolume, guide, options: MRFOptions
         h, w = sizes.h, sizes.w
         prg = device.build(*sgm_program_requests(device, options, n_labels)[0])
         with mem.allocate(SGM_PLANE_MAJOR_BUFFERS, sizes) as out:
-            _launch_1d(device.kernel(prg, "sgm_to_plane_major"), queue, h * w, bufs["agg"],
-                       out["sums"], np.int32(h * w))
+            launch(device.kernel(prg, "sgm_to_plane_major"), queue, (h * w,), bufs["agg"],
+                   out["sums"], np.int32(h * w))
             queue.finish()
             sums = cla.Array(queue, (n_labels, h, w), np.float32, data=out.detach("sums"))
     return CostVolume(sums, label_base=volume.label_base, label_count=volume.label_count)
@@ -333,11 +326,11 @@ def sgm_refine(device: Device, volume: CostVolume, guide, heights, options: MRFO
         n_pix, i32 = h * w, np.int32
         counted = i32(1 if base is not None else 0)
         with mem.allocate(SGM_STATE_BUFFERS, sizes) as st:
-            _launch_1d(device.kernel(prg, "wta_pixel_major"), queue, -(-n_pix // WTA_VEC),
-                       bufs["agg"], i32(n_pix), i32(n_labels), bufs["count"], bufs["offset"],
-                       counted, st["state"])
-            _launch_1d(device.kernel(prg, "wta_close"), queue, n_pix, st["state"], i32(n_pix),
-                       i32(n_labels), bufs["count"], counted)
+            launch(device.kernel(prg, "wta_pixel_major"), queue, (-(-n_pix // WTA_VEC),),
+                   bufs["agg"], i32(n_pix), i32(n_labels), bufs["count"], bufs["offset"],
+                   counted, st["state"])
+            launch(device.kernel(prg, "wta_close"), queue, (n_pix,), st["state"], i32(n_pix),
+                   i32(n_labels), bufs["count"], counted)
             state = np.empty((WTA_NSTATE, h, w), np.float32)
             cl.enqueue_copy(queue, state, st["state"])
     s = state.astype(np.float64)

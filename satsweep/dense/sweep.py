@@ -53,6 +53,7 @@ from satsweep.errors import DeviceError, InputError
 from satsweep.opencl.buffers import BufferSpec, DeviceMemory, largest_bytes, total_bytes
 from satsweep.opencl.constants import GF_COLS_VEC, SWEEP_VEC, WTA_NSTATE, WTA_VEC
 from satsweep.opencl.device import Device
+from satsweep.opencl.device import launch as _launch  # (tests patch sweep's _launch)
 from satsweep.options import Options
 
 # Smallest tile interior side (pixels) worth processing before the plane batch is reduced instead.
@@ -808,17 +809,6 @@ def _round_up(n: int, m: int) -> int:
     return ((n + m - 1) // m) * m
 
 
-# Fixed work-group sizes of the kernels that need none in particular: PoCL compiles one
-# work-group function per local size, so a fixed size is compiled once per kernel instead of
-# once per tile shape; every kernel ignores the items past its global size.
-_LOCAL_2D = (16, 8)
-_LOCAL_3D = (16, 4, 1)
-
-
-def _launch(kernel, queue, gsize: tuple[int, ...], *args):
-    """Enqueue ``kernel`` over ``gsize`` rounded up to the fixed local size of its dimension."""
-    local = _LOCAL_2D if len(gsize) == 2 else _LOCAL_3D
-    return kernel(queue, tuple(_round_up(int(n), m) for n, m in zip(gsize, local)), local, *args)
 
 
 def _check_image(name: str, img) -> np.ndarray:

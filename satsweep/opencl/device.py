@@ -364,6 +364,20 @@ class Device:
         return f"Device({self.info.label})"
 
 
+# Fixed work-group sizes, by number of dimensions, of the kernels that need none in particular
+# (each ignores the work-items past its global size): PoCL compiles one work-group function per
+# kernel and local size, and given none takes the whole global size (one work-group: one core),
+# so a fixed size is compiled once per kernel instead of once per image or tile shape.
+FIXED_LOCAL_SIZES = {1: (64,), 2: (16, 8), 3: (16, 4, 1)}
+
+
+def launch(kernel, queue, gsize: tuple[int, ...], *args):
+    """Enqueue ``kernel`` over ``gsize`` rounded up to the fixed local size of its dimension
+    (``FIXED_LOCAL_SIZES``)."""
+    local = FIXED_LOCAL_SIZES[len(gsize)]
+    return kernel(queue, tuple(-(-int(n) // m) * m for n, m in zip(gsize, local)), local, *args)
+
+
 def open_device(spec: str | None = None) -> Device:
     """Select a device (see ``select_device``) and open a context and queue on it."""
     return Device(select_device(spec))
