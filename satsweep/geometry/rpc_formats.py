@@ -31,7 +31,7 @@ import re
 import struct
 import tempfile
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 from xml.etree import ElementTree
 
 import numpy as np
@@ -316,6 +316,37 @@ def dimap_names(image: Path, prefix: str) -> list[str]:
     return names
 
 
+class DimapTiling(NamedTuple):
+    """What a DIM file (namespaces dropped) says of its raster files' places, as written (the
+    fields GDAL reads): ``files``, (href, tile_R, tile_C) of each ``Data_File`` (the href
+    stripped, "" when there is none; tile_R / tile_C None when absent); ``tiled``, whether
+    ``Raster_Dimensions/Tile_Set/Regular_Tiling`` is given; ``size``, its ``NTILES_SIZE``'s
+    (nrows, ncols) attributes (None without one); ``overlap``, its OVERLAP_ROW / OVERLAP_COL
+    ("0" when absent)."""
+
+    files: tuple[tuple[str, str | None, str | None], ...]
+    tiled: bool
+    size: tuple[str | None, str | None] | None
+    overlap: tuple[str, str]
+
+
+def dimap_tiling(root: ElementTree.Element) -> DimapTiling:
+    """The ``DimapTiling`` of a DIM file's root (``_without_namespaces``)."""
+    files = []
+    for data_file in (root.findall("Raster_Data/Data_Access/Data_Files/Data_File")
+                      or root.iter("Data_File")):
+        path = data_file.find("DATA_FILE_PATH")
+        href = "" if path is None else (path.get("href") or path.text or "").strip()
+        files.append((href, data_file.get("tile_R"), data_file.get("tile_C")))
+    tiling = root.find("Raster_Data/Raster_Dimensions/Tile_Set/Regular_Tiling")
+    size = None if tiling is None else tiling.find("NTILES_SIZE")
+    overlap = tuple("0" if tiling is None else (tiling.findtext(k) or "0").strip()
+                    for k in ("OVERLAP_ROW", "OVERLAP_COL"))
+    return DimapTiling(files=tuple(files), tiled=tiling is not None,
+                       size=None if size is None else (size.get("nrows"), size.get("ncols")),
+                       overlap=overlap)
+
+
 def dimap_rpc_by_rule(image: Path, names: Mapping[str, Path]) -> RPCModel | None:
     """The RPC of a DIMAP delivery's image or tile (``dimap_names``), from the folder listing
     ``names`` ({lower-case name: path}); None when there is no such RPC file.
@@ -346,24 +377,18 @@ def _dimap_tile_origin(image: Path, rpc_path: Path, names: Mapping[str, Path]) -
         root = _without_namespaces(ElementTree.fromstring(dim.read_bytes()))
     except (OSError, ElementTree.ParseError) as exc:
         raise RPCError(image, f"{where} is in {dim.name}, which cannot be read ({exc})") from None
-    tile = None
-    for data_file in root.iter("Data_File"):
-        href = data_file.find("DATA_FILE_PATH")
-        href = "" if href is None else (href.get("href") or href.text or "")
-        if href.replace("\\", "/").rsplit("/", 1)[-1].lower() == image.name.lower():
-            tile = data_file
-            break
-    tiling = root.find("Raster_Data/Raster_Dimensions/Tile_Set/Regular_Tiling")
-    size = tiling.find("NTILES_SIZE") if tiling is not None else None
-    if tile is None or size is None:
+    layout = dimap_tiling(root)
+    tile = next((t for t in layout.files
+                 if t[0].replace("\\", "/").rsplit("/", 1)[-1].lower() == image.name.lower()),
+                None)
+    if tile is None or layout.size is None:
         why = ("it does not list the tile" if tile is None
                else "it has no Regular_Tiling/NTILES_SIZE")
         raise RPCError(image, f"{where} is not in {dim.name} ({why})")
     try:
-        r, c = int(tile.get("tile_R", "")), int(tile.get("tile_C", ""))
-        nrows, ncols = int(size.get("nrows", "")), int(size.get("ncols", ""))
-        overlap = [int((tiling.findtext(k) or "0").strip())
-                   for k in ("OVERLAP_ROW", "OVERLAP_COL")]
+        r, c = int(tile[1] or ""), int(tile[2] or "")
+        nrows, ncols = (int(v or "") for v in layout.size)
+        overlap = [int(v) for v in layout.overlap]
     except ValueError:
         raise RPCError(image, f"{where}: {dim.name} gives the tile's tile_R / tile_C or the tiles' "
                               "NTILES_SIZE nrows / ncols not as whole numbers") from None

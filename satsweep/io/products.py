@@ -200,7 +200,7 @@ def _not_jp2(bad, what: str, name: str) -> None:
 
 # -- Airbus DIMAP ---------------------------------------------------------------------------------
 def _read_dimap(abspath: str, given: str) -> TiledProduct:
-    from satsweep.geometry.rpc_formats import _without_namespaces
+    from satsweep.geometry.rpc_formats import _without_namespaces, dimap_tiling
 
     bad = _problem(given, "DIMAP product")
     try:
@@ -217,22 +217,19 @@ def _read_dimap(abspath: str, given: str) -> TiledProduct:
         raise bad("no whole NROWS / NCOLS in Raster_Data/Raster_Dimensions") from None
     _not_jp2(bad, (root.findtext("Raster_Data/Data_Access/DATA_FILE_FORMAT") or "").strip(),
              os.path.basename(given))
-    files = (root.findall("Raster_Data/Data_Access/Data_Files/Data_File")
-             or list(root.iter("Data_File")))
+    layout = dimap_tiling(root)
+    files = layout.files
     if not files:
         raise bad("it lists no Data_File")
-    tiling = dims.find("Tile_Set/Regular_Tiling")
-    if tiling is None:
+    if not layout.tiled:
         if len(files) != 1:
             raise bad(f"it lists {len(files)} files but no Regular_Tiling to place them")
         size_r, size_c = rows, cols
     else:
-        size = tiling.find("NTILES_SIZE")
         try:
-            size_r, size_c = int(size.get("nrows", "")), int(size.get("ncols", ""))
-            overlap = [int((tiling.findtext(k) or "0").strip())
-                       for k in ("OVERLAP_ROW", "OVERLAP_COL")]
-        except (AttributeError, ValueError):
+            size_r, size_c = (int(v or "") for v in layout.size or (None, None))
+            overlap = [int(v) for v in layout.overlap]
+        except ValueError:
             raise bad("no whole NTILES_SIZE nrows / ncols in its Regular_Tiling") from None
         if any(overlap):
             raise bad(f"its tiles overlap (OVERLAP_ROW / OVERLAP_COL {overlap[0]} / {overlap[1]}), "
@@ -240,13 +237,11 @@ def _read_dimap(abspath: str, given: str) -> TiledProduct:
         if size_r <= 0 or size_c <= 0:
             raise bad(f"NTILES_SIZE {size_c}x{size_r} is empty")
     tiles, seen, kinds = [], set(), {}
-    for data_file in files:
-        href_el = data_file.find("DATA_FILE_PATH")
-        href = "" if href_el is None else (href_el.get("href") or href_el.text or "").strip()
+    for href, tile_r, tile_c in files:
         if not href:
             raise bad("a Data_File has no DATA_FILE_PATH href")
         try:
-            r, c = int(data_file.get("tile_R", "1")), int(data_file.get("tile_C", "1"))
+            r, c = (int("1" if v is None else v) for v in (tile_r, tile_c))
         except ValueError:
             raise bad(f"{href}: tile_R / tile_C are not whole numbers") from None
         y0, x0 = (r - 1) * size_r, (c - 1) * size_c
