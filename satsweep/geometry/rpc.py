@@ -477,10 +477,11 @@ class RPCModel:
         path = Path(path)
         product = tiled_product(path)
         if product is not None:  # a tiled product's file: the product's RPC, of its scene
-            if product.rpc_path is None:
+            rpc_path = product.rpc_path  # (looked for in the folder on each access)
+            if rpc_path is None:
                 raise RPCError(path, f"no RPC: the {product.kind}'s RPC file "
                                      f"({product.rpc_names}) is not beside it")
-            return cls.from_file(product.rpc_path)
+            return cls.from_file(rpc_path)
         values = _read_tiff_rpc_tag(path)
         if values is not None:
             return cls.from_tag_values(values, source=path)

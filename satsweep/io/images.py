@@ -254,7 +254,7 @@ def image_nodata(path: str | os.PathLike) -> float | None:
     path = os.fspath(path)
     product = tiled_product(path)
     if product is not None:  # a tiled product: its tiles' value, which they must share
-        values = {repr(image_nodata(t.path)): image_nodata(t.path) for t in product.tiles}
+        values = {repr(v): v for v in (image_nodata(t.path) for t in product.tiles)}
         if len(values) > 1:
             raise ImageFormatError(path, f"{product.kind}: its tiles declare different no-data "
                                          f"values ({', '.join(sorted(values))})")
