@@ -1,20 +1,28 @@
 /* sgm.cl: semi-global matching (Hirschmueller 2008) over a plane-sweep cost volume.
  *
  * A plane-major volume, volume[d][H][W] for label (plane index) d, row y, column x, d in
- * [0, SGM_NL), is first turned pixel-major, [H][W][SGM_NL] (the labels of a pixel contiguous: SGM
- * reads all labels of one pixel per step; one cache line serves 16 labels on a CPU, and
+ * [0, n_labels), is first turned pixel-major, [H][W][n_labels] (the labels of a pixel contiguous:
+ * SGM reads all labels of one pixel per step; one cache line serves 16 labels on a CPU, and
  * consecutive work-items read consecutive labels on a GPU); the sweep can also leave its volume
  * in that layout on the device (sweep.cl's volume_pixel_major). It is aggregated in that layout,
  * and wta.cl's wta_pixel_major reads the sums so; sgm_to_plane_major turns them plane-major for a
  * caller that wants them. The label is the plane index of the sweep; neighbouring labels are
  * neighbouring heights.
  *
- * sgm_to_pixel_major: cost[(y W + x) NL + d] = volume[d H W + y W + x], with entries at or below
- *   SATSWEEP_INVALID / 2 (no valid source for that plane) replaced by missing_cost: a pixel with
- *   every plane missing thus has a constant cost and is filled by the smoothness terms alone.
+ * Label counts: n_labels (a kernel argument, 1 <= n_labels <= SGM_NL) is the labels of every
+ *   pixel of a plain volume and the stride of its pixel-major layout; SGM_NL (a -D constant) is
+ *   the most labels a program serves, which sizes its private, local and scratch arrays. The host
+ *   rounds SGM_NL up (satsweep.dense.sgm.sgm_label_capacity), so that one program serves many
+ *   label counts instead of a build per count; the sums are those of a program built for exactly
+ *   n_labels, bit for bit.
+ *
+ * sgm_to_pixel_major: cost[(y W + x) NL + d] = volume[d H W + y W + x] (NL = n_labels), with
+ *   entries at or below SATSWEEP_INVALID / 2 (no valid source for that plane) replaced by
+ *   missing_cost: a pixel with every plane missing thus has a constant cost and is filled by the
+ *   smoothness terms alone.
  *   Work size: global = (H W), rounded up to any multiple of the local size; local = any;
  *   work-item i handles pixel i (all labels), those past H W nothing.
- * sgm_to_plane_major: sums[d H W + i] = agg[i NL + d]. Work size as above.
+ * sgm_to_plane_major: sums[d H W + i] = agg[i NL + d] (NL = n_labels). Work size as above.
  *
  * sgm_path: aggregates the (pixel-major) costs along every scanline of ONE direction
  *   r = (dx, dy), dx, dy in {-1, 0, 1}, not both 0, and adds the path cost Lr into agg (pixel-major;
@@ -39,10 +47,11 @@
  *   (and d + delta +- 1 that of d +- 1), labels outside p-r's window [0, count[p-r]) counting as
  *   +inf; m is the minimum over p-r's window. The labels of pixel p then start at
  *   offset[p] (one ulong per pixel, in floats) in both cost and agg, so that a volume may hold
- *   just the count[p] labels of each pixel (a ragged volume; offset[p] = p SGM_NL is the regular
+ *   just the count[p] labels of each pixel (a ragged volume; offset[p] = p NL is the regular
  *   layout, whose labels past count[p] are neither read nor written), and a pixel costs time and
  *   memory in proportion to its count. banded == 0 is the plain recurrence (delta = 0, every
- *   pixel SGM_NL labels from p SGM_NL; base, count and offset are not read).
+ *   pixel n_labels labels from p n_labels; base, count and offset are not read, n_labels is
+ *   not used).
  *
  * Scanlines of a direction: dy == 0: one per row (H lines) starting at column 0 (dx > 0) or
  *   W-1; dx == 0: one per column (W lines) starting at row 0 (dy > 0) or H-1; diagonal: W + H - 1
@@ -59,7 +68,7 @@
  *   steps through the labels SGM_VEC at a time in vector types; a GPU wants SGM_WG = 32 or 64 so
  *   that a warp shares one scanline.
  *
- * Compile-time constants: SGM_NL number of labels (1..SGM_MAX_LABELS), SGM_WG work-items per
+ * Compile-time constants: SGM_NL most labels (1..SGM_MAX_LABELS), SGM_WG work-items per
  *   scanline (a power of two, default 1), SGM_LINES the most scanlines per work-item when
  *   SGM_WG == 1 (default 1; sizes the private arrays); shared with the host (common.h):
  *   SGM_MAX_LABELS, SGM_SCAN_GUARD (sgm_scan's +inf guards, below), SATSWEEP_INVALID.
@@ -186,7 +195,8 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
               const int w, const int h, const int dx, const int dy,
               const float p1, const float p2, const float inv_sigma, const int accumulate,
               __global const int *base, __global const int *count,
-              __global const ulong *offset, const int banded, const int lines)
+              __global const ulong *offset, const int banded, const int n_labels,
+              const int lines)
 {
     /* Each step's labels sit between +inf guards of SGM_GUARD entries, so that a band shift
      * delta (clamped to +-(SGM_NL + 1), beyond which the windows do not meet) reads only guards
@@ -230,11 +240,11 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
             const float jump = prev_min[k]
                                + fmax(p1, p2 / (1.0f + fabs(gv - prev_guide[k]) * inv_sigma));
             const int cur_base = banded ? base[idx] : 0;
-            const int n = banded ? count[idx] : SGM_NL;
+            const int n = banded ? count[idx] : n_labels;
             const int delta = clamp(cur_base - prev_base[k], -(SGM_NL + 1), SGM_NL + 1);
             /* this step reads prev up to entry n - 1 + delta + 1 */
             for (int j = prev_n[k]; j < min(n + delta + 1, SGM_NL); ++j) prev[k][j] = INFINITY;
-            const size_t at = banded ? offset[idx] : idx * SGM_NL;
+            const size_t at = banded ? offset[idx] : idx * (size_t)n_labels;
             prev_min[k] = sgm_step(cost + at, agg + at, prev[k] + delta, cur[k], n, prev_min[k],
                                    jump, p1, accumulate);
             prev_n[k] = n;
@@ -270,7 +280,7 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
  *   meet at row h / 2: in phase 0 the forward scan stores F in rows [0, h / 2) and the backward
  *   scan B in rows [h / 2, h); in phase 1 each goes on through the other's rows and adds its sum
  *   to what is there (the launches run in order on the queue, so those rows are complete).
- *   scratch: SGM_SCAN_SCRATCH(w) floats per work-item, kept from phase 0 to phase 1: the steps of
+ *   scratch: SGM_SCAN_SCRATCH(w, n_labels) floats per work-item, kept from phase 0 to phase 1: the steps of
  *   the 3 directions that come from the row before, for two rows (row yi in slot yi % 2,
  *   2 x 3 x w steps), two steps of the horizontal direction, and the minima of the rows'
  *   steps (2 x 3 x w); every step between +inf guards of SGM_SCAN_GUARD entries, which phase 0
@@ -280,8 +290,11 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
  *   per core. A scan visits the image in order, so it does not use more cores; GPUs use
  *   sgm_path with a work-group per scanline.
  */
-#define SGM_SCAN_STEP (SGM_NL + 2 * SGM_SCAN_GUARD)
-#define SGM_SCAN_SCRATCH(w) ((size_t)(6 * (w) + 2) * SGM_SCAN_STEP + (size_t)6 * (w))
+/* floats per step in the scratch (its labels and guards), and per scan, for n labels: sized by
+ * the volume's labels rather than SGM_NL, so a program of a larger capacity walks the same
+ * memory */
+#define SGM_SCAN_STEP(n) ((size_t)(n) + 2 * SGM_SCAN_GUARD)
+#define SGM_SCAN_SCRATCH(w, n) ((size_t)(6 * (w) + 2) * SGM_SCAN_STEP(n) + (size_t)6 * (w))
 
 /* cur = Lr(p, .) over n labels of one direction from pv = Lr(p - r, .) (its entries d - 1 and
  * d + 1 +inf where they lie outside its window), as sgm_step without the aggregate; returns
@@ -366,29 +379,30 @@ inline float sgm_scan_dir(__global const float *c, __global const float *pv, __g
 
 /* the window (first plane, label count) of pixel i in sgm_scan */
 #define B(i) (banded ? base[i] : 0)
-#define N(i) (banded ? count[i] : SGM_NL)
+#define N(i) (banded ? count[i] : n_labels)
 __kernel __attribute__((reqd_work_group_size(1, 1, 1)))
 void sgm_scan(__global const float *cost, __global const float *guide, __global float *agg,
               __global float *scratch, const int w, const int h, const float p1, const float p2,
               const float inv_sigma, const int paths, const int phase,
               __global const int *base, __global const int *count,
-              __global const ulong *offset, const int banded)
+              __global const ulong *offset, const int banded, const int n_labels)
 {
     const int back = get_global_id(0);
     if (back > 1) return;
     const int s = back ? -1 : 1;              /* step of x and y along the scan */
     const int diag = paths == 8;
     const int own = back ? h - h / 2 : h / 2; /* rows the scan stores in phase 0 */
-    __global float *sc = scratch + (size_t)back * SGM_SCAN_SCRATCH(w);
+    const size_t stride = SGM_SCAN_STEP(n_labels);
+    __global float *sc = scratch + (size_t)back * SGM_SCAN_SCRATCH(w, n_labels);
     __global float *rows = sc;                                      /* [slot][k][x] steps */
-    __global float *hor = sc + (size_t)6 * w * SGM_SCAN_STEP;      /* two horizontal steps */
-    __global float *mins = hor + 2 * SGM_SCAN_STEP;                 /* [slot][k][x] minima */
+    __global float *hor = sc + (size_t)6 * w * stride;             /* two horizontal steps */
+    __global float *mins = hor + 2 * stride;                        /* [slot][k][x] minima */
     if (phase == 0) {
         for (size_t i = 0; i < (size_t)(6 * w + 2); ++i) {
-            __global float *step = sc + i * SGM_SCAN_STEP;
+            __global float *step = sc + i * stride;
             for (int g = 0; g < SGM_SCAN_GUARD; ++g) {
                 step[g] = INFINITY;
-                step[SGM_SCAN_GUARD + SGM_NL + g] = INFINITY;
+                step[SGM_SCAN_GUARD + n_labels + g] = INFINITY;
             }
         }
     }
@@ -397,25 +411,25 @@ void sgm_scan(__global const float *cost, __global const float *guide, __global 
     for (int yi = yi0; yi < yi1; ++yi) {
         const int y = back ? h - 1 - yi : yi;
         const int cs = yi & 1, ps = 1 - cs;   /* slots of this row and of the row before */
-        __global float *prow = rows + (size_t)ps * 3 * w * SGM_SCAN_STEP + SGM_SCAN_GUARD;
-        __global float *crow = rows + (size_t)cs * 3 * w * SGM_SCAN_STEP + SGM_SCAN_GUARD;
+        __global float *prow = rows + (size_t)ps * 3 * w * stride + SGM_SCAN_GUARD;
+        __global float *crow = rows + (size_t)cs * 3 * w * stride + SGM_SCAN_GUARD;
         __global const float *pmins = mins + (size_t)ps * 3 * w;
         __global float *cmins = mins + (size_t)cs * 3 * w;
-        int hs = 0, hbase = 0, hn = SGM_NL;
+        int hs = 0, hbase = 0, hn = n_labels;
         float hmin = 0.0f, hguide = 0.0f;
         for (int xi = 0; xi < w; ++xi) {
             const int x = back ? w - 1 - xi : xi;
             const size_t idx = (size_t)y * (size_t)w + (size_t)x;
-            const size_t at = banded ? offset[idx] : idx * SGM_NL;
+            const size_t at = banded ? offset[idx] : idx * (size_t)n_labels;
             __global const float *c = cost + at;
             const float gv = guide[idx];
             const int up = yi > 0;
             const size_t iup = up ? (size_t)(y - s) * (size_t)w : 0;   /* row y - s */
-            /* this pixel's window (plain: 0, SGM_NL); B(i), N(i): predecessor i's */
+            /* this pixel's window (plain: 0, n_labels); B(i), N(i): predecessor i's */
             const int pb = B(idx), n = N(idx);
             /* horizontal (s, 0): predecessor (x - s, y) */
-            __global float *hp = hor + (size_t)hs * SGM_SCAN_STEP + SGM_SCAN_GUARD;
-            __global float *hc = hor + (size_t)(1 - hs) * SGM_SCAN_STEP + SGM_SCAN_GUARD;
+            __global float *hp = hor + (size_t)hs * stride + SGM_SCAN_GUARD;
+            __global float *hc = hor + (size_t)(1 - hs) * stride + SGM_SCAN_GUARD;
             hmin = sgm_scan_dir(c, hp, hc, xi > 0, hmin, gv, hguide, p1, p2, inv_sigma, n, hn,
                                 pb - hbase);
             hguide = gv;
@@ -423,26 +437,26 @@ void sgm_scan(__global const float *cost, __global const float *guide, __global 
             hbase = pb;
             hn = n;
             /* vertical (0, s): predecessor (x, y - s) */
-            __global float *v0 = crow + (size_t)x * SGM_SCAN_STEP;
-            cmins[x] = sgm_scan_dir(c, prow + (size_t)x * SGM_SCAN_STEP, v0, up,
+            __global float *v0 = crow + (size_t)x * stride;
+            cmins[x] = sgm_scan_dir(c, prow + (size_t)x * stride, v0, up,
                                     up ? pmins[x] : 0.0f, gv, up ? guide[iup + x] : 0.0f,
-                                    p1, p2, inv_sigma, n, up ? N(iup + x) : SGM_NL,
+                                    p1, p2, inv_sigma, n, up ? N(iup + x) : n_labels,
                                     up ? pb - B(iup + x) : 0);
             __global float *a = agg + at;
             if (diag) {
                 /* (s, s): predecessor (x - s, y - s); (-s, s): predecessor (x + s, y - s) */
                 const int in1 = up && xi > 0, in2 = up && xi < w - 1;
                 const int xa = in1 ? x - s : x, xb = in2 ? x + s : x;
-                __global float *v1 = crow + ((size_t)w + (size_t)x) * SGM_SCAN_STEP;
-                __global float *v2 = crow + ((size_t)2 * w + (size_t)x) * SGM_SCAN_STEP;
+                __global float *v1 = crow + ((size_t)w + (size_t)x) * stride;
+                __global float *v2 = crow + ((size_t)2 * w + (size_t)x) * stride;
                 cmins[w + x] = sgm_scan_dir(
-                    c, prow + ((size_t)w + (size_t)xa) * SGM_SCAN_STEP, v1, in1,
+                    c, prow + ((size_t)w + (size_t)xa) * stride, v1, in1,
                     in1 ? pmins[w + xa] : 0.0f, gv, in1 ? guide[iup + xa] : 0.0f, p1, p2,
-                    inv_sigma, n, in1 ? N(iup + xa) : SGM_NL, in1 ? pb - B(iup + xa) : 0);
+                    inv_sigma, n, in1 ? N(iup + xa) : n_labels, in1 ? pb - B(iup + xa) : 0);
                 cmins[2 * w + x] = sgm_scan_dir(
-                    c, prow + ((size_t)2 * w + (size_t)xb) * SGM_SCAN_STEP, v2, in2,
+                    c, prow + ((size_t)2 * w + (size_t)xb) * stride, v2, in2,
                     in2 ? pmins[2 * w + xb] : 0.0f, gv, in2 ? guide[iup + xb] : 0.0f, p1, p2,
-                    inv_sigma, n, in2 ? N(iup + xb) : SGM_NL, in2 ? pb - B(iup + xb) : 0);
+                    inv_sigma, n, in2 ? N(iup + xb) : n_labels, in2 ? pb - B(iup + xb) : 0);
                 int d = 0;
                 for (; d + SGM_VEC <= n; d += SGM_VEC) {
                     const float8 f = ((vload8(0, hc + d) + vload8(0, v0 + d)) + vload8(0, v1 + d))
@@ -476,7 +490,8 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
               const int w, const int h, const int dx, const int dy,
               const float p1, const float p2, const float inv_sigma, const int accumulate,
               __global const int *base, __global const int *count,
-              __global const ulong *offset, const int banded, const int lines)
+              __global const ulong *offset, const int banded, const int n_labels,
+              const int lines)
 {
     __local float prev[SGM_NL];   /* Lr(p - r, .) */
     __local float red[SGM_WG];    /* reduction scratch for min_k */
@@ -501,8 +516,8 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
                                 : fmax(p1, p2 / (1.0f + fabs(gv - prev_guide) * inv_sigma));
         const float jump = prev_min + p2a;
         const int cur_base = banded ? base[idx] : 0;
-        const int n = banded ? count[idx] : SGM_NL;
-        const size_t at = banded ? offset[idx] : idx * SGM_NL;
+        const int n = banded ? count[idx] : n_labels;
+        const size_t at = banded ? offset[idx] : idx * (size_t)n_labels;
         const int delta = first ? 0 : cur_base - prev_base;
         float cmin = MAXFLOAT;
         for (int k = 0; k < SGM_LPT; ++k) {
@@ -548,19 +563,21 @@ void sgm_path(__global const float *cost, __global const float *guide, __global 
 #endif
 
 __kernel void sgm_to_pixel_major(__global const float *volume, __global float *cost,
-                                 const int n_pix, const float missing_cost)
+                                 const int n_pix, const int n_labels, const float missing_cost)
 {
     const int i = get_global_id(0);
     if (i >= n_pix) return;
-    for (int d = 0; d < SGM_NL; ++d) {
+    for (int d = 0; d < n_labels; ++d) {
         const float c = volume[(size_t)d * n_pix + i];
-        cost[(size_t)i * SGM_NL + d] = c > SGM_INVALID_BELOW ? c : missing_cost;
+        cost[(size_t)i * n_labels + d] = c > SGM_INVALID_BELOW ? c : missing_cost;
     }
 }
 
-__kernel void sgm_to_plane_major(__global const float *agg, __global float *sums, const int n_pix)
+__kernel void sgm_to_plane_major(__global const float *agg, __global float *sums, const int n_pix,
+                                 const int n_labels)
 {
     const int i = get_global_id(0);
     if (i >= n_pix) return;
-    for (int d = 0; d < SGM_NL; ++d) sums[(size_t)d * n_pix + i] = agg[(size_t)i * SGM_NL + d];
+    for (int d = 0; d < n_labels; ++d)
+        sums[(size_t)d * n_pix + i] = agg[(size_t)i * n_labels + d];
 }

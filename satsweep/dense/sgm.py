@@ -52,13 +52,28 @@ _SGM_GPU_WORK_GROUP = 32
 # scanline, capped at SGM_PRIVATE_BYTES per work-item (fewer scanlines for many labels).
 SGM_CPU_LINES = 8
 SGM_PRIVATE_BYTES = 64 * 1024
+# sgm.cl is built for a label capacity (SGM_NL), a multiple of this many labels, and serves every
+# label count up to it (its kernels take the count): one program per 32 counts rather than one
+# per count, so a new AOI or altitude range seldom builds anew (the default suite asked for 53
+# counts, each a build and a compile of its kernels on PoCL). 32 is the GPU work-group
+# (_SGM_GPU_WORK_GROUP), whose work-items then step through as many labels as with an exact
+# build, and a multiple of the CPU vectors (sgm.cl's SGM_VEC); a CPU's steps run over the
+# pixel's own labels either way.
+SGM_LABEL_STEP = 32
 
 
 # ---------------------------------------------------------------------------------------------
 # semi-global matching (device)
 # ---------------------------------------------------------------------------------------------
+def sgm_label_capacity(n_labels: int) -> int:
+    """The labels sgm.cl is built for to serve ``n_labels`` (its SGM_NL): ``n_labels`` rounded up
+    to a multiple of ``SGM_LABEL_STEP``, at most SGM_MAX_LABELS."""
+    return min(-(-n_labels // SGM_LABEL_STEP) * SGM_LABEL_STEP, SGM_MAX_LABELS)
+
+
 def sgm_work_group(device: Device, options: MRFOptions, n_labels: int) -> int:
-    """Work-items per scanline: the option, or 1 on CPUs and 32 on GPUs, within device limits."""
+    """Work-items per scanline: the option, or 1 on CPUs and 32 on GPUs, within device limits;
+    ``n_labels``: the program's label capacity (``sgm_label_capacity``)."""
     wg = options.sgm_work_group
     if wg == 0:
         wg = _SGM_GPU_WORK_GROUP if device.info.kind == "gpu" else 1
@@ -75,11 +90,13 @@ def sgm_work_group(device: Device, options: MRFOptions, n_labels: int) -> int:
 
 def sgm_program_requests(device: Device, options: MRFOptions,
                          n_labels: int) -> list[tuple[str, dict]]:
-    """The (source, defines) of the programs that SGM over ``n_labels`` labels builds: sgm.cl,
-    and wta.cl for the winner-take-all of the sums (``Device.prebuild`` takes this list)."""
-    wg = sgm_work_group(device, options, n_labels)
-    lines = sgm_lines_per_item(wg, n_labels)
-    return [("sgm", {"SGM_NL": n_labels, "SGM_WG": wg, "SGM_LINES": lines}),
+    """The (source, defines) of the programs that SGM over ``n_labels`` labels builds: sgm.cl
+    for their capacity (``sgm_label_capacity``), and wta.cl for the winner-take-all of the sums
+    (``Device.prebuild`` takes this list)."""
+    capacity = sgm_label_capacity(n_labels)
+    wg = sgm_work_group(device, options, capacity)
+    lines = sgm_lines_per_item(wg, capacity)
+    return [("sgm", {"SGM_NL": capacity, "SGM_WG": wg, "SGM_LINES": lines}),
             ("wta", _WTA_PIXEL_MAJOR_DEFINES)]
 
 
@@ -108,7 +125,7 @@ class SGMSizes:
 
     h: int
     w: int
-    n_labels: int  # labels SGM is built for (sgm.cl's SGM_NL)
+    n_labels: int  # labels per pixel of a plain volume (the planes of a ragged one's windows)
     sum_floats: int  # floats of the sums: a ragged volume's, else n_labels h w
     banded: bool  # label windows: base, count and offset per pixel (else one placeholder each)
 
@@ -148,7 +165,8 @@ SGM_PLANE_MAJOR_BUFFERS = (BufferSpec("sums", np.float32, lambda z: z.n_labels *
 
 
 def sgm_scan_scratch_floats(width: int, n_labels: int) -> int:
-    """Floats of sgm_scan's scratch for both scans (sgm.cl's 2 x SGM_SCAN_SCRATCH(w))."""
+    """Floats of sgm_scan's scratch for both scans over ``n_labels`` labels (sgm.cl's 2 x
+    SGM_SCAN_SCRATCH(w, n_labels), whatever the program's capacity)."""
     return 2 * ((6 * width + 2) * (n_labels + 2 * SGM_SCAN_GUARD) + 6 * width)
 
 
@@ -227,18 +245,19 @@ def _aggregated(device: Device, mem: DeviceMemory, volume: CostVolume, guide,
             to_pixel_major = device.kernel(prg, "sgm_to_pixel_major")
             if volume.on_device:
                 launch(to_pixel_major, queue, (n_pix,), volume.data.data, inp["cost"],
-                       i32(n_pix), f32(scale))
+                       i32(n_pix), i32(n_labels), f32(scale))
             else:
                 upload = np.ascontiguousarray(volume.data, dtype=np.float32)
                 with mem.allocate(SGM_UPLOAD_BUFFERS, sizes, host={"volume": upload}) as up:
                     launch(to_pixel_major, queue, (n_pix,), up["volume"], inp["cost"],
-                           i32(n_pix), f32(scale))
+                           i32(n_pix), i32(n_labels), f32(scale))
             cost = inp["cost"]
         else:
             cost = volume.data.data  # the caller's, in SGM's layout already
         with mem.allocate(sgm_sum_buffers(scan=scan), sizes) as sums:
             inv_sigma = 0.0 if options.sgm_p2_sigma == 0.0 else 1.0 / options.sgm_p2_sigma
-            bands = (inp["base"], inp["count"], inp["offset"], i32(1 if banded else 0))
+            bands = (inp["base"], inp["count"], inp["offset"], i32(1 if banded else 0),
+                     i32(n_labels))
             if scan:
                 # sgm.cl's two raster scans (sgm_scan, its two phases)
                 kernel = device.kernel(prg, "sgm_scan")
@@ -284,7 +303,7 @@ def sgm_aggregate(device: Device, volume: CostVolume, guide, options: MRFOptions
         prg = device.build(*sgm_program_requests(device, options, n_labels)[0])
         with mem.allocate(SGM_PLANE_MAJOR_BUFFERS, sizes) as out:
             launch(device.kernel(prg, "sgm_to_plane_major"), queue, (h * w,), bufs["agg"],
-                   out["sums"], np.int32(h * w))
+                   out["sums"], np.int32(h * w), np.int32(n_labels))
             queue.finish()
             sums = cla.Array(queue, (n_labels, h, w), np.float32, data=out.detach("sums"))
     return CostVolume(sums, label_base=volume.label_base, label_count=volume.label_count)

@@ -16,7 +16,7 @@ from satsweep.dense import graphcut, mrf, sgm
 from satsweep.dense.planes import translation_homographies
 from satsweep.dense.volume import CostVolume
 from satsweep.errors import InputError, OptionsError
-from satsweep.opencl.constants import SATSWEEP_INVALID
+from satsweep.opencl.constants import SATSWEEP_INVALID, SGM_MAX_LABELS
 from tests import reference_sweep, synthetic_volumes
 from tests.reference_sgm import aggregate as reference_aggregate
 
@@ -122,6 +122,43 @@ def test_sgm_label_counts_off_the_vector_width_match_reference(cl_device, n_labe
     want = reference_aggregate(cost, guide, n_paths=8, p1=0.08 * scale, p2=0.6 * scale,
                                inv_sigma=1.0 / 0.2, missing_cost=scale)
     np.testing.assert_allclose(got, want, rtol=0, atol=SGM_REL_TOL * float(np.abs(want).max()))
+
+
+@pytest.mark.parametrize("banded", [False, True])
+@pytest.mark.parametrize("work_group, scan", [(1, True), (1, False), (8, False)])
+def test_sgm_program_of_a_larger_capacity_gives_the_same_sums(cl_device, monkeypatch, work_group,
+                                                               scan, banded):
+    """sgm.cl built for more labels than the volume has (SGM_NL rounded up: sgm_label_capacity)
+    gives the sums of a program built for exactly its labels, bit for bit: plain volumes (the
+    label count and the layout's stride are kernel arguments) and windows, the raster scans and
+    both path variants, through the layout changes of sgm_aggregate."""
+    n_labels = 21
+    cost, guide = _random_volume(12, shape=(n_labels, 23, 29), scale=24.0)
+    base = _block_bases(13, cost.shape[1:], 4, n_labels) if banded else None
+    count = _block_counts(14, cost.shape[1:], 4, n_labels) if banded else None
+    opts = mrf.MRFOptions(sgm_paths=8, sgm_work_group=work_group, sgm_p1=0.08, sgm_p2=0.6,
+                          sgm_p2_sigma=0.2, sgm_scan=scan)
+    built = []
+    real_build = cl_device.build
+    monkeypatch.setattr(cl_device, "build", lambda src, defs: (built.append((src, defs)),
+                                                               real_build(src, defs))[1])
+    sums = {}
+    for step in (1, sgm.SGM_LABEL_STEP):
+        monkeypatch.setattr(sgm, "SGM_LABEL_STEP", step)
+        sums[step] = _sums(cl_device, CostVolume(cost, label_base=base, label_count=count),
+                           guide, opts, cost_scale=24.0)
+    capacities = {d["SGM_NL"] for s, d in built if s == "sgm"}
+    assert capacities == {n_labels, sgm.sgm_label_capacity(n_labels)} and len(capacities) == 2
+    mine = np.ones(cost.shape, bool) if count is None \
+        else np.arange(n_labels)[:, None, None] < count[None]
+    np.testing.assert_array_equal(sums[sgm.SGM_LABEL_STEP][mine], sums[1][mine])
+
+
+def test_sgm_label_capacity_rounds_up_to_the_step_within_the_maximum():
+    step = sgm.SGM_LABEL_STEP
+    assert [sgm.sgm_label_capacity(n) for n in (1, step, step + 1)] == [step, step, 2 * step]
+    assert sgm.sgm_label_capacity(SGM_MAX_LABELS - 1) == SGM_MAX_LABELS
+    assert sgm.sgm_label_capacity(SGM_MAX_LABELS) == SGM_MAX_LABELS
 
 
 def _block_bases(seed: int, shape: tuple[int, int], block: int, n_labels: int) -> np.ndarray:
@@ -274,7 +311,7 @@ def test_sgm_scanlines_per_work_item_do_not_change_the_sums(cl_device, banded):
             agg = cla.zeros(q, (h, w, n_labels), np.float32)
             kernel(q, (-(-n_lines // lines),), (1,), c_d.data, g_d.data, agg.data, i32(w), i32(h),
                    i32(dx), i32(dy), f32(2.0), f32(14.0), f32(5.0), i32(0), b_d.data,
-                   n_d.data, o_d.data, i32(1 if banded else 0), i32(lines))
+                   n_d.data, o_d.data, i32(1 if banded else 0), i32(n_labels), i32(lines))
             sums.append(agg.get())
         assert np.isfinite(sums[0]).all()
         np.testing.assert_array_equal(sums[1], sums[0])
@@ -311,7 +348,8 @@ def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape, banded):
         n_lines = h if dy == 0 else (w if dx == 0 else w + h - 1)
         cl_device.kernel(prg, "sgm_path")(
             q, (n_lines,), (1,), c_d.data, g_d.data, agg.data, i32(w), i32(h), i32(dx), i32(dy),
-            f32(p1), f32(p2), f32(inv_sigma), i32(0), b_d.data, n_d.data, o_d.data, band, i32(1))
+            f32(p1), f32(p2), f32(inv_sigma), i32(0), b_d.data, n_d.data, o_d.data, band,
+            i32(n_labels), i32(1))
         return agg.get()
 
     agg = cla.zeros(q, (h, w, n_labels), np.float32)
@@ -320,7 +358,7 @@ def test_sgm_scan_sums_the_path_kernels_costs(cl_device, paths, shape, banded):
         cl_device.kernel(prg, "sgm_scan")(q, (2,), (1,), c_d.data, g_d.data, agg.data,
                                           scratch.data, i32(w), i32(h), f32(p1), f32(p2),
                                           f32(inv_sigma), i32(paths), i32(phase), b_d.data,
-                                          n_d.data, o_d.data, band)
+                                          n_d.data, o_d.data, band, i32(n_labels))
     sums = []
     for sx, sy in ((1, 1), (-1, -1)):
         dirs = [(sx, 0), (0, sy)] + ([(sx, sy), (-sx, sy)] if paths == 8 else [])

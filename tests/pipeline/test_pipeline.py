@@ -15,6 +15,7 @@ import rasterio
 from satsweep.cli import main
 from satsweep.config import PipelineConfig
 from satsweep.dense.mrf import MRFOptions
+from satsweep.dense.sgm import sgm_label_capacity
 from satsweep.dense.sweep import SweepOptions
 from satsweep.errors import AOIError, InputError, OptionsError, OutputExistsError
 from satsweep.geometry.altitude import AltitudeRange
@@ -692,8 +693,9 @@ def test_programs_forecast_before_adjustment_are_those_the_sweep_builds(scene, t
     sgm_labels = {dict(k[1])["SGM_NL"] for k in asked if k[0] == "sgm"}
     planes = {v["planes"] for v in res.report["sweep"]}
     stride = PipelineConfig().sweep.coarse_plane_stride  # the default's
-    want = set() if mrf == "none" else planes | ({-(-n // stride) for n in planes}
-                                                 if search == "coarse_to_fine" else set())
+    counts = set() if mrf == "none" else planes | ({-(-n // stride) for n in planes}
+                                                   if search == "coarse_to_fine" else set())
+    want = {sgm_label_capacity(n) for n in counts}  # sgm.cl serves counts up to its capacity
     assert sgm_labels == want, (sgm_labels, planes)
     assert foreground == [] and forecast == asked, (foreground, forecast ^ asked)
     assert {k[0] for k in forecast} == ({"census", "sweep", "guided_filter", "sgm", "wta"}
