@@ -17,6 +17,7 @@ from satsweep.dense.sweep import (CENSUS_MASK_MIN_BITS, PlaneSweep, SweepOptions
                                   census_mask_defines, census_ring_defines,
                                   group_windows, source_image, source_layout)
 from satsweep.opencl.constants import SWEEP_VEC, WTA_BIG, WTA_NSTATE, WTA_SLOT, WTA_VEC
+from satsweep.opencl.device import launch
 from tests import reference_sweep as ref
 
 F32_EPS = float(np.finfo(np.float32).eps)
@@ -71,8 +72,8 @@ def _census_dev(dev, img, rx, ry, x0=0, y0=0, out_w=None, out_h=None, mask=0.0):
     prg = dev.build("census", defs)
     out = _empty(dev, 8 * out_w * out_h)
     i32 = np.int32
-    cl.Kernel(prg, "census_transform")(dev.queue, (out_w, out_h), None, _buf(dev, img), i32(w),
-                                       i32(h), i32(x0), i32(y0), i32(out_w), i32(out_h), out)
+    launch(cl.Kernel(prg, "census_transform"), dev.queue, (out_w, out_h), _buf(dev, img), i32(w),
+           i32(h), i32(x0), i32(y0), i32(out_w), i32(out_h), out)
     return _read(dev, out, (out_h, out_w), np.uint64)
 
 
@@ -120,14 +121,14 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
             SweepOptions(census_window=(2 * ry + 1, 2 * rx + 1)), *every))
         for p0 in range(0, n_planes, chunk):
             nb = min(chunk, n_planes - p0)
-            cl.Kernel(prg, "sweep_warp")(dev.queue, (-(-pw // SWEEP_VEC), ph, nb * n_src), None, *bufs[:4],
-                                         i32(tw), i32(th), i32(tx0), i32(ty0), i32(w), i32(h),
-                                         i32(p0), warp_window, warped, seen)
-            cl.Kernel(prg, "sweep_warped_cost")(dev.queue, (-(-tw // SWEEP_VEC), th, nb), None,
-                                                warped, seen,
-                                                bufs[4], bufs[5], i32(tw), i32(th), i32(tx0),
-                                                i32(ty0), i32(w), i32(h), i32(p0), i32(p0),
-                                                cost_window, out)
+            launch(cl.Kernel(prg, "sweep_warp"), dev.queue, (-(-pw // SWEEP_VEC), ph, nb * n_src),
+                   *bufs[:4], i32(tw), i32(th), i32(tx0), i32(ty0), i32(w), i32(h),
+                   i32(p0), warp_window, warped, seen)
+            launch(cl.Kernel(prg, "sweep_warped_cost"), dev.queue, (-(-tw // SWEEP_VEC), th, nb),
+                   warped, seen,
+                   bufs[4], bufs[5], i32(tw), i32(th), i32(tx0),
+                   i32(ty0), i32(w), i32(h), i32(p0), i32(p0),
+                   cost_window, out)
     elif mode == "warped_census":
         data = source_image(srcs)
         gx = -(-tw // wg[0]) * wg[0]
@@ -139,9 +140,9 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
             i32(ty0), i32(w), i32(h), i32(0), out)
     else:
         data = np.concatenate([ref.census(s, rx, ry).ravel() for s in srcs])
-        cl.Kernel(prg, "sweep_code_cost")(
-            dev.queue, (tw, th, n_planes), None, _buf(dev, data), _buf(dev, offsets),
-            _buf(dev, sizes), _buf(dev, hom32), _buf(dev, codes), i32(tw), i32(th), i32(0), out)
+        launch(cl.Kernel(prg, "sweep_code_cost"), dev.queue, (tw, th, n_planes),
+               _buf(dev, data), _buf(dev, offsets),
+               _buf(dev, sizes), _buf(dev, hom32), _buf(dev, codes), i32(tw), i32(th), i32(0), out)
     return _read(dev, out, (n_planes, th, tw), np.float32)
 
 
@@ -241,9 +242,9 @@ def test_warp_image_matches_bilinear_reference(cl_device):
     out = _empty(cl_device, 4 * out_h * out_w)
     seen = _empty(cl_device, out_h * out_w)
     i32 = np.int32
-    cl.Kernel(prg, "warp_image")(cl_device.queue, (out_w, out_h), None, _buf(cl_device, src),
-                                 i32(60), i32(50), _buf(cl_device, hom.astype(np.float32).ravel()),
-                                 i32(out_w), i32(out_h), out, seen)
+    launch(cl.Kernel(prg, "warp_image"), cl_device.queue, (out_w, out_h), _buf(cl_device, src),
+           i32(60), i32(50), _buf(cl_device, hom.astype(np.float32).ravel()),
+           i32(out_w), i32(out_h), out, seen)
     got = _read(cl_device, out, (out_h, out_w), np.float32)
     got_seen = _read(cl_device, seen, (out_h, out_w), np.uint8).astype(bool)
     want, want_seen = ref.warp_image(src, hom.astype(np.float32), (out_h, out_w))
@@ -524,18 +525,18 @@ def _wta_dev(dev, vol, hom, src_shapes, nb, reject_edges, rx=4, ry=3):
     i32 = np.int32
     q = dev.queue
     state = _empty(dev, 4 * WTA_NSTATE * h * w)
-    cl.Kernel(prg, "wta_init")(q, (w, h), None, state, i32(w), i32(h))
+    launch(cl.Kernel(prg, "wta_init"), q, (w, h), state, i32(w), i32(h))
     upd = cl.Kernel(prg, "wta_update")
     for p0 in range(0, n_planes, nb):
         n = min(nb, n_planes - p0)
-        upd(q, (-(-w // WTA_VEC), h), None, _buf(dev, vol[p0:p0 + n]), i32(w), i32(h), i32(0), i32(0), i32(w),
-            i32(h), i32(n), i32(p0), state)
+        launch(upd, q, (-(-w // WTA_VEC), h), _buf(dev, vol[p0:p0 + n]), i32(w), i32(h), i32(0),
+               i32(0), i32(w), i32(h), i32(n), i32(p0), state)
     sizes = np.array([[s[1], s[0]] for s in src_shapes], np.int32).ravel()
     outs = [_empty(dev, 4 * h * w) for _ in range(3)] + [_empty(dev, h * w)]
-    cl.Kernel(prg, "wta_finalize")(
-        q, (w, h), None, state, i32(w), i32(h), i32(n_planes), i32(0), i32(0),
-        _buf(dev, np.ascontiguousarray(hom.reshape(n_planes, n_src, 9), np.float32)),
-        _buf(dev, sizes), i32(1 if reject_edges else 0), *outs)
+    launch(cl.Kernel(prg, "wta_finalize"), q, (w, h),
+           state, i32(w), i32(h), i32(n_planes), i32(0), i32(0),
+           _buf(dev, np.ascontiguousarray(hom.reshape(n_planes, n_src, 9), np.float32)),
+           _buf(dev, sizes), i32(1 if reject_edges else 0), *outs)
     return (*(_read(dev, o, (h, w), np.float32) for o in outs[:3]),
             _read(dev, outs[3], (h, w), np.uint8).astype(bool))
 
@@ -559,20 +560,21 @@ def test_wta_pixel_major_equals_streaming_state(cl_device, counted):
     want = np.empty((WTA_NSTATE, h, w), np.float32)
     for n in (np.unique(count) if counted else [n_planes]):
         streamed = _empty(cl_device, 4 * WTA_NSTATE * h * w)
-        cl.Kernel(prg, "wta_init")(q, (w, h), None, streamed, i32(w), i32(h))
-        cl.Kernel(prg, "wta_update")(q, (-(-w // WTA_VEC), h), None,
-                                     _buf(cl_device, np.ascontiguousarray(vol[:n])), i32(w),
-                                     i32(h), i32(0), i32(0), i32(w), i32(h), i32(n), i32(0),
-                                     streamed)
+        launch(cl.Kernel(prg, "wta_init"), q, (w, h), streamed, i32(w), i32(h))
+        launch(cl.Kernel(prg, "wta_update"), q, (-(-w // WTA_VEC), h),
+               _buf(cl_device, np.ascontiguousarray(vol[:n])), i32(w),
+               i32(h), i32(0), i32(0), i32(w), i32(h), i32(n), i32(0),
+               streamed)
         state = _read(cl_device, streamed, (WTA_NSTATE, h, w), np.float32)
         mine = (count == n) if counted else np.ones((h, w), bool)
         want[:, mine] = state[:, mine]
     one_pass = _empty(cl_device, 4 * WTA_NSTATE * h * w)
     pixel_major = np.ascontiguousarray(vol.transpose(1, 2, 0))
-    cl.Kernel(prg, "wta_pixel_major")(q, (-(-h * w // WTA_VEC),), None, _buf(cl_device, pixel_major),
-                                      i32(h * w), i32(n_planes), _buf(cl_device, count),
-                                      _buf(cl_device, np.arange(h * w, dtype=np.uint64) * n_planes),
-                                      i32(1 if counted else 0), one_pass)
+    launch(cl.Kernel(prg, "wta_pixel_major"), q, (-(-h * w // WTA_VEC),),
+           _buf(cl_device, pixel_major),
+           i32(h * w), i32(n_planes), _buf(cl_device, count),
+           _buf(cl_device, np.arange(h * w, dtype=np.uint64) * n_planes),
+           i32(1 if counted else 0), one_pass)
     got = _read(cl_device, one_pass, (WTA_NSTATE, h, w), np.float32)
     np.testing.assert_array_equal(got, want)
     if not counted:  # (a truncated pixel's minimum may be its last plane, tested at the finish)
@@ -597,13 +599,13 @@ def test_wta_close_leaves_the_reference_minima(cl_device, counted):
     i32, q = np.int32, cl_device.queue
     state = _empty(cl_device, 4 * WTA_NSTATE * h * w)
     count_buf = _buf(cl_device, count)
-    cl.Kernel(prg, "wta_pixel_major")(q, (-(-h * w // WTA_VEC),), None,
-                                      _buf(cl_device, np.ascontiguousarray(vol.transpose(1, 2, 0))),
-                                      i32(h * w), i32(n_planes), count_buf,
-                                      _buf(cl_device, np.arange(h * w, dtype=np.uint64) * n_planes),
-                                      i32(1 if counted else 0), state)
-    cl.Kernel(prg, "wta_close")(q, (h * w,), None, state, i32(h * w), i32(n_planes), count_buf,
-                                i32(1 if counted else 0))
+    launch(cl.Kernel(prg, "wta_pixel_major"), q, (-(-h * w // WTA_VEC),),
+           _buf(cl_device, np.ascontiguousarray(vol.transpose(1, 2, 0))),
+           i32(h * w), i32(n_planes), count_buf,
+           _buf(cl_device, np.arange(h * w, dtype=np.uint64) * n_planes),
+           i32(1 if counted else 0), state)
+    launch(cl.Kernel(prg, "wta_close"), q, (h * w,), state, i32(h * w), i32(n_planes), count_buf,
+           i32(1 if counted else 0))
     got = _read(cl_device, state, (WTA_NSTATE, h, w), np.float32)
     big = np.float32(WTA_BIG)
     for n in np.unique(count):
