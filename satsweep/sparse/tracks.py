@@ -22,6 +22,7 @@ import numpy as np
 
 from satsweep.errors import CameraError
 from satsweep.sparse.features import _to_u8
+from satsweep.sparse.subpixel import refine_translations
 from satsweep.threads import map_in_threads
 
 
@@ -351,13 +352,17 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     through the ENU frame's plane u = 0 (rotation, scale and shear between the views removed;
     what remains near a tie point is a translation: its parallax and the pointing errors), then
     OpenCV's pyramidal Lucas-Kanade (translation only) starts from k's keypoint mapped into the
-    warped image, and its result is mapped back into view v. First observations keep their
-    positions (the tie point is wherever f is). ``images``: the views' tonemapped images in
-    [0, 1], in the pixels of ``cameras`` (anything with a 3x4 ``P``). Observations that fail (no
-    convergence, outside the image) or move farther than ``max_shift_px`` from their keypoint
-    are dropped, then points seen by fewer than two views. A pair of views (view of the first
-    observations, other view) whose grey-level registrations leave a median residual above
-    _CONTRAST_PAIR_RESIDUAL is registered again wholly on the images' local contrast
+    warped image; its result is then registered again to a fraction of a pixel on the two
+    images themselves (:func:`satsweep.sparse.subpixel.refine_translations`: Lanczos samples
+    where the homography maps the window, no 8-bit warp, whose interpolation errors would not
+    average out over a pair's tie points), and mapped back into view v. First observations
+    keep their positions (the tie point is wherever f is). ``images``: the views' tonemapped
+    images in [0, 1], in the pixels of ``cameras`` (anything with a 3x4 ``P``). Observations
+    that fail (no convergence, outside the image) or move farther than ``max_shift_px`` from
+    their keypoint are dropped, then points seen by fewer than two views. A pair of views
+    (view of the first observations, other view) whose grey-level registrations leave a median
+    residual above _CONTRAST_PAIR_RESIDUAL is registered again wholly on the images' local
+    contrast
     (:func:`local_contrast_u8`: views of other dates differ in gain, offset and gamma, which
     biases a registration of the grey levels), and its observations that fail there are
     dropped. In the other pairs, what fails on the grey levels is registered again on local
@@ -381,8 +386,9 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     when no pair needed contrast), ``fine_spread_ratio`` (the median ratio, None when no pair
     compared), ``beside_px``, ``beside_points`` (tracks that took a window beside, None when
     none was tried) and ``points``. Returns the observations, the
-    residual of each (mean absolute difference of the two windows' 8-bit grey levels after
-    the registration, or of their local contrast plus CONTRAST_RANK; 0 for first observations)
+    residual of each (mean absolute difference of the two windows' grey levels, in 8-bit units,
+    after the registration, or of their local contrast plus CONTRAST_RANK; 0 for first
+    observations)
     and the number of observations dropped.
     """
     import cv2
@@ -416,19 +422,29 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
         # Every offset's windows in one call: OpenCV builds the images' pyramids and gradients
         # once per call, over the whole images.
         d = np.asarray(offsets, np.float64)[:, None, None, :]  # (k, 1, 1, 2)
-        found, status, lk_err = cv2.calcOpticalFlowPyrLK(
+        found, status, _ = cv2.calcOpticalFlowPyrLK(
             head_u8, warped,
             (obs.xy[head[sel]].reshape(1, -1, 1, 2) + d).astype(np.float32).reshape(-1, 1, 2),
             (start[None] + d).astype(np.float32).reshape(-1, 1, 2),
             winSize=(window_px, window_px), maxLevel=_LK_LEVELS, criteria=criteria,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        found = found.astype(np.float64).reshape(len(d), -1, 1, 2) - d
+        # Each window LK registered is registered again to a fraction of a pixel on the images
+        # themselves (satsweep.sparse.subpixel: no 8-bit warp, one Lanczos interpolation): its
+        # position and residual replace LK's, and a window that fails there fails.
+        centre = (obs.xy[head[sel]][None] + d[:, 0]).reshape(-1, 2)  # (k n, 2) in head's pixels
+        lk = status.ravel() == 1
+        found = found.astype(np.float64).reshape(-1, 2)
+        q, sub_residual, sub_ok = refine_translations(head_u8, other_u8, H, centre[lk],
+                                                      found[lk], window_px)
+        err = np.full(len(found), np.inf)
+        err[np.flatnonzero(lk)[sub_ok]] = sub_residual[sub_ok]
+        found[lk] = q
+        found = found.reshape(len(d), -1, 1, 2) - d
         back = cv2.perspectiveTransform(found.reshape(-1, 1, 2), H).reshape(len(d), -1, 2)
         shift = np.hypot(back[..., 0] - obs.xy[sel, 0], back[..., 1] - obs.xy[sel, 1])
-        with np.errstate(invalid="ignore"):  # points LK lost carry undefined errors
-            err = lk_err.reshape(len(d), -1).astype(np.float64)
-        ok = ((status.reshape(len(d), -1) == 1) & np.isfinite(shift) & (shift <= max_shift_px)
-              & np.isfinite(err))
+        err = err.reshape(len(d), -1)
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(shift) & (shift <= max_shift_px) & np.isfinite(err)
         for k in range(len(d)):
             out_xy[k, sel[ok[k]]] = back[k, ok[k]]
             out_residual[k, sel[ok[k]]] = rank + err[k, ok[k]]
