@@ -52,15 +52,15 @@ def sample_lanczos(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarra
     import cv2  # noqa: PLC0415
 
     n, k = x.shape
-    out = np.empty((n, k), np.float32)
     if n == 0:
-        return out
+        return np.empty((0, k), np.float32)
     image = np.asarray(image)
     h, w = image.shape
     x = np.asarray(x, np.float32)
     y = np.asarray(y, np.float32)
     if max(n, h, w) < _REMAP_LIMIT and image.dtype == np.float32:  # at once, as it is
         return cv2.remap(image, x, y, cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
+    out = np.empty((n, k), np.float32)
     order = np.argsort(x[:, 0], kind="stable")  # neighbouring windows share a crop
 
     def run(rows: np.ndarray) -> None:

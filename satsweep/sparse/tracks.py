@@ -422,16 +422,15 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
         # Every offset's windows in one call: OpenCV builds the images' pyramids and gradients
         # once per call, over the whole images.
         d = np.asarray(offsets, np.float64)[:, None, None, :]  # (k, 1, 1, 2)
+        centre = (obs.xy[head[sel]][None] + d[:, 0]).reshape(-1, 2)  # (k n, 2) in head's pixels
         found, status, _ = cv2.calcOpticalFlowPyrLK(
-            head_u8, warped,
-            (obs.xy[head[sel]].reshape(1, -1, 1, 2) + d).astype(np.float32).reshape(-1, 1, 2),
+            head_u8, warped, centre.astype(np.float32).reshape(-1, 1, 2),
             (start[None] + d).astype(np.float32).reshape(-1, 1, 2),
             winSize=(window_px, window_px), maxLevel=_LK_LEVELS, criteria=criteria,
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         # Each window LK registered is registered again to a fraction of a pixel on the images
         # themselves (satsweep.sparse.subpixel: no 8-bit warp, one Lanczos interpolation): its
         # position and residual replace LK's, and a window that fails there fails.
-        centre = (obs.xy[head[sel]][None] + d[:, 0]).reshape(-1, 2)  # (k n, 2) in head's pixels
         lk = status.ravel() == 1
         found = found.astype(np.float64).reshape(-1, 2)
         q, sub_residual, sub_ok = refine_translations(head_u8, other_u8, H, centre[lk],
