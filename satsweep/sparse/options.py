@@ -31,7 +31,8 @@ class SparseOptions(Options):
     # that give each view at least this many observations, longest tracks first; 0: all
     extend_points_per_view: int = 1000  # those tie points are also registered in the views that
     # did not match them (at their projection, from the track's first view), at most this many
-    # per view: ties between dates on many more points; 0: none (600 until the ties between
+    # per view, then thinned again to give each view at least this many observations (longest
+    # tracks first): ties between dates on many more points; 0: none (600 until the ties between
     # dates were registered at a pixel's contrast scale: with that, 1000 took the worst view of
     # the 20-view multi-date stacks from 0.055 to 0.044 px, docs/measurements.md)
     contrast_threshold: float = 0.02  # SIFT contrast threshold (OpenCV units)

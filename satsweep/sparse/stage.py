@@ -37,7 +37,8 @@ pairs' overlaps and the altitude range stay the AOI's:
    and thousands of observations per view, which would make this step grow faster than the
    number of views), each also in the views that did not match it (at its projection, up to
    ``extend_points_per_view`` per view: SIFT matches few points between dates, whose patches are
-   seen all the same), registered to a fraction of a pixel (Lucas-Kanade after a ground-plane
+   seen all the same; the tracks so extended thinned again to give each view at least that
+   many observations, so that the registration's work too stays linear in the views), registered to a fraction of a pixel (Lucas-Kanade after a ground-plane
    warp; on local contrast in pairs of views whose grey levels differ, as another date's do; of
    each pair of views the best registered ``refine_keep_fraction``), then the principal-point bundle
    adjustment with the anchor regulariser (0.01 px^2/m^2) and a robust loss whose quadratic
@@ -676,6 +677,9 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
                                        [(c.height, c.width) for c in local_fine],
                                        margin_px=o.refine_window_px + o.refine_max_shift_px,
                                        per_view=o.extend_points_per_view)
+                # Extended, most tracks reach most views: every point chosen above would bring
+                # an observation in nearly every view, and a stack of V views V times those.
+                chosen = thin_points(chosen, o.extend_points_per_view)
                 n_extended = len(chosen.view) - before
             registered, residual, n_refine_dropped = register_observations(
                 chosen, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
