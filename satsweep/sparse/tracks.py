@@ -376,7 +376,9 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     With ``beside_px`` > 0, every track is then registered again by the windows centred
     ``beside_px`` and 4/3 of it beside its point (BESIDE_DIRECTIONS x BESIDE_RINGS: the 4 sides
     and the 4 corners, each observation on the images its centred window used), and takes the
-    window (centred or beside) whose residuals summed over the track's observations are least.
+    window (centred or beside) whose residuals summed over the track's observations are least
+    (compared first over its first observation and BESIDE_PROBES others, :func:`beside_probes`;
+    the BESIDE_FINALISTS best there then over all of them).
     A tie point on an
     edge between two surfaces whose parallax differs (where SIFT puts most keypoints) has a
     centred window over both, and no translation registers both (a compromise, off by tenths
@@ -411,7 +413,8 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
                  offsets: np.ndarray = _CENTRED, from_xy: np.ndarray | None = None) -> None:
         """Observations ``sel`` (of one view, their tracks' first in the view of ``head_u8``)
         registered on these images, by the windows centred ``offsets[k]`` pixels (of the
-        warped images) from their points: ``out_xy[k]`` and ``out_residual[k]`` (+ ``rank``)
+        warped images) from their points (``offsets`` (k, 2); or (k, every observation, 2):
+        each observation its own): ``out_xy[k]`` and ``out_residual[k]`` (+ ``rank``)
         where it succeeds. LK starts from ``from_xy`` (view v's pixels; default: the
         keypoints)."""
         h, wd = head_u8.shape
@@ -421,8 +424,9 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
         start = cv2.perspectiveTransform(begin.reshape(-1, 1, 2), np.linalg.inv(H))
         # Every offset's windows in one call: OpenCV builds the images' pyramids and gradients
         # once per call, over the whole images.
-        d = np.asarray(offsets, np.float64)[:, None, None, :]  # (k, 1, 1, 2)
-        centre = (obs.xy[head[sel]][None] + d[:, 0]).reshape(-1, 2)  # (k n, 2) in head's pixels
+        d = np.asarray(offsets, np.float64)
+        d = d[:, None, None, :] if d.ndim == 2 else d[:, sel, None, :]  # (k, 1 or n, 1, 2)
+        centre = (obs.xy[head[sel]][None] + d[:, :, 0]).reshape(-1, 2)  # (k n, 2), head's pixels
         found, status, _ = cv2.calcOpticalFlowPyrLK(
             head_u8, warped, centre.astype(np.float32).reshape(-1, 1, 2),
             (start[None] + d).astype(np.float32).reshape(-1, 1, 2),
@@ -547,6 +551,40 @@ _BESIDE_LOST = 1000.0
 BESIDE_MIN_VIEWS = 3
 
 
+# A track's window (centred or beside) is first compared on at most BESIDE_PROBES of its
+# observations besides the first (its probes, in a fixed pseudo-random order of views: no date
+# preferred); the BESIDE_FINALISTS windows of the least sums there are registered on its other
+# observations too, and the least sum over all of them wins. Sixteen windows on every
+# observation made the registration grow as views x track length, with the square of the
+# views. tools/bench_ba.py --views 5 20 --seeds 0 --bias 50 --mode sparse (1000 px): 20 views
+# over 5 from 4.85 to 3.32 (the registration 20 views 2.5 s against 4.6 s before). Worst view
+# after the gauge, sparse stage alone (docs/measurements.md, forty-seventh session): 10-view
+# stacks seeds 0-5 mean 0.0232 -> 0.0229 px, one view per date, 10 views, 0.0287 -> 0.0285,
+# 33.45 S stacks 0.0276 -> 0.0272, 20 views 0.0303 / 0.0238 -> 0.0331 / 0.0237; stacks of 6
+# views or fewer as before (every observation a probe). The probes' choice alone (no
+# finalists) left one view per date, 10 views, seeds 0 and 5 at 0.052 and 0.054 px.
+BESIDE_PROBES = 5
+BESIDE_FINALISTS = 2
+
+
+def beside_probes(point_index: np.ndarray, view: np.ndarray, per_track: int) -> np.ndarray:
+    """Per observation (grouped by point, each track's first observation first), whether it is
+    one of its track's probes: the first and up to ``per_track`` others, in a fixed pseudo-
+    random order of (point, view)."""
+    n = len(point_index)
+    if n == 0:
+        return np.zeros(0, bool)
+    first = np.r_[True, point_index[1:] != point_index[:-1]]
+    n_views = int(np.max(view)) + 1
+    key = _scrambled(np.asarray(point_index, np.int64) * n_views + view)
+    key[first] = 0  # the first observation leads its track
+    order = np.lexsort((~first, key, point_index))
+    start = np.searchsorted(point_index[order], point_index[order], side="left")
+    probe = np.zeros(n, bool)
+    probe[order[(np.arange(n) - start) <= per_track]] = True
+    return probe
+
+
 def _beside_windows(obs: Observations, first: np.ndarray, pairs, xy: np.ndarray,
                     residual: np.ndarray, register, grey, contrast_of, homography,
                     offsets: np.ndarray, threads: int, on_contrast: set
@@ -555,44 +593,76 @@ def _beside_windows(obs: Observations, first: np.ndarray, pairs, xy: np.ndarray,
     point, each observation on the images its centred window used (grey levels, or local
     contrast for those ranked after CONTRAST_RANK; one the centred window lost, its pair's), and
     each track of BESIDE_MIN_VIEWS views or more given the window (centred or beside) of the
-    least sum of residuals over its observations. Returns (xy, residual, the window's index
+    least sum of residuals over its observations: the windows are compared over its probes
+    (:func:`beside_probes`), and the BESIDE_FINALISTS best there are registered on its other
+    observations too and compared over all of them. Returns (xy, residual, the window's index
     per point: 0 centred)."""
     n = len(obs.xy)
     point_index = np.cumsum(first) - 1
     n_points = int(point_index[-1]) + 1
     views_per_point = np.bincount(point_index, minlength=n_points)
     long_enough = views_per_point[point_index] >= BESIDE_MIN_VIEWS
+    probe = beside_probes(point_index, obs.view, BESIDE_PROBES)
     out_xy = np.repeat(xy[None], len(offsets), axis=0)
     out_residual = np.full((len(offsets), n), np.inf)
     out_residual[:, first] = 0.0
-    grey_jobs, contrast_jobs = [], []
-    for w, v, pair in pairs:
-        pair = pair[long_enough[pair]]
-        on_grey = np.where(np.isfinite(residual[pair]), residual[pair] < CONTRAST_RANK,
-                           (w, v) not in on_contrast)
-        if on_grey.any():
-            grey_jobs.append((w, v, pair[on_grey]))
-        if (~on_grey).any():
-            contrast_jobs.append((w, v, pair[~on_grey]))
 
-    def run(images_u8, rank):  # LK starts from where the centred window ended
-        return lambda job: register(images_u8[job[0]], images_u8[job[1]], homography[job[:2]],
-                                    job[2], rank, out_xy, out_residual, offsets=offsets,
-                                    from_xy=xy)
+    def jobs_of(mask):  # per pair, its observations in mask on grey levels and on contrast
+        grey_jobs, contrast_jobs = [], []
+        for w, v, pair in pairs:
+            pair = pair[mask[pair]]
+            on_grey = np.where(np.isfinite(residual[pair]), residual[pair] < CONTRAST_RANK,
+                               (w, v) not in on_contrast)
+            if on_grey.any():
+                grey_jobs.append((w, v, pair[on_grey]))
+            if (~on_grey).any():
+                contrast_jobs.append((w, v, pair[~on_grey]))
+        return grey_jobs, contrast_jobs
 
-    map_in_threads(run(grey, 0.0), grey_jobs, max_threads=threads, name="register")
-    if contrast_jobs:
-        map_in_threads(run(contrast_of(contrast_jobs), CONTRAST_RANK), contrast_jobs,
-                       max_threads=threads, name="register")
+    def run_all(mask, offs, o_xy, o_residual):  # LK starts from where the centred window ended
+        grey_jobs, contrast_jobs = jobs_of(mask)
+
+        def run(images_u8, rank):
+            return lambda job: register(images_u8[job[0]], images_u8[job[1]],
+                                        homography[job[:2]], job[2], rank, o_xy, o_residual,
+                                        offsets=offs, from_xy=xy)
+
+        map_in_threads(run(grey, 0.0), grey_jobs, max_threads=threads, name="register")
+        if contrast_jobs:
+            map_in_threads(run(contrast_of(contrast_jobs), CONTRAST_RANK), contrast_jobs,
+                           max_threads=threads, name="register")
+
+    run_all(long_enough & probe, offsets, out_xy, out_residual)
     every_xy = np.concatenate([xy[None], out_xy])
     every_residual = np.concatenate([residual[None], out_residual])
     cost = np.zeros((len(every_residual), n_points))
     for k, res in enumerate(every_residual):
-        np.add.at(cost[k], point_index, np.where(np.isfinite(res), res, _BESIDE_LOST))
+        np.add.at(cost[k], point_index[probe], np.where(np.isfinite(res), res, _BESIDE_LOST)[probe])
     cost[1:, views_per_point < BESIDE_MIN_VIEWS] = np.inf
-    best = np.argmin(cost, axis=0)  # (ties: the first, the centred window first of all)
+    # The windows of the BESIDE_FINALISTS least sums over the probes are registered on the
+    # track's other observations too, and the least sum over all its observations wins.
+    finalists = np.argsort(cost, axis=0, kind="stable")[:BESIDE_FINALISTS]  # (m, points)
+    rest = ~probe & long_enough
     rows = np.arange(n)
-    return every_xy[best[point_index], rows], every_residual[best[point_index], rows], best
+    cand_xy = np.empty((len(finalists), n, 2))
+    cand_residual = np.empty((len(finalists), n))
+    total = np.zeros((len(finalists), n_points))
+    for m, k in enumerate(finalists):
+        window = k[point_index]
+        cand_xy[m], cand_residual[m] = every_xy[window, rows], every_residual[window, rows]
+        need = rest & (window > 0)
+        if need.any():
+            per_obs = np.zeros((1, n, 2))
+            per_obs[0, need] = offsets[window[need] - 1]
+            rest_xy, rest_residual = xy[None].copy(), np.full((1, n), np.inf)
+            run_all(need, per_obs, rest_xy, rest_residual)
+            cand_xy[m, need], cand_residual[m, need] = rest_xy[0, need], rest_residual[0, need]
+        np.add.at(total[m], point_index,
+                  np.where(np.isfinite(cand_residual[m]), cand_residual[m], _BESIDE_LOST))
+        total[m, ~np.isfinite(cost[k, np.arange(n_points)])] = np.inf
+    pick = np.argmin(total, axis=0)  # ties: the better over the probes
+    best = finalists[pick, np.arange(n_points)]
+    return cand_xy[pick[point_index], rows], cand_residual[pick[point_index], rows], best
 
 
 def best_registered(obs: Observations, residual: np.ndarray, keep_fraction: float,

@@ -184,12 +184,18 @@ def _step_tracks(n_views: int):
                                       xy=xy.reshape(-1, 2), n_points=n)
 
 
-@pytest.mark.parametrize("beside_px", [0.0, 6.0])
-def test_a_tie_point_on_an_edge_is_registered_by_a_window_beside_it(beside_px):
+@pytest.mark.parametrize("beside_px, probes, finalists",
+                         [(0.0, 5, 2), (6.0, 5, 2), (6.0, 1, 2), (6.0, 1, 1)])
+def test_a_tie_point_on_an_edge_is_registered_by_a_window_beside_it(beside_px, probes,
+                                                                    finalists, monkeypatch):
     """Tracks of three views on the edge between two surfaces: the centred window straddles
     both and registers neither surface's move; windows 6 px beside lie over one, and each track
     takes one of the two surfaces' moves in both other views. Points inside the left surface
-    get its move either way."""
+    get its move either way. With one probe per track (BESIDE_PROBES), the windows are compared
+    on one other view and the third is registered by the BESIDE_FINALISTS best of them (one:
+    by the best alone): each track on one surface in both views all the same."""
+    monkeypatch.setattr(sparse_tracks, "BESIDE_PROBES", probes)
+    monkeypatch.setattr(sparse_tracks, "BESIDE_FINALISTS", finalists)
     images, cams = _step()
     obs = _step_tracks(3)
     choice = {}
@@ -405,6 +411,25 @@ def test_thin_points_against_a_loop_over_the_views(per_view):
     np.testing.assert_array_equal(np.bincount(thin.point), length[kept_points])
     if per_view >= had.max():
         assert thin.view.shape == obs.view.shape
+
+
+@pytest.mark.parametrize("per_track", [0, 1, 3, 8])
+def test_beside_probes_against_a_loop_over_the_points(per_track):
+    """Each track's first observation and up to per_track others, in the fixed pseudo-random
+    order of (point, view) (checked by a plain loop)."""
+    rng = np.random.default_rng(5)
+    V = 9
+    obs = _random_tracks(rng, 300, V)
+    probe = sparse_tracks.beside_probes(obs.point, obs.view, per_track)
+    expected = np.zeros(len(obs.view), bool)
+    for p in range(obs.n_points):
+        mine = np.flatnonzero(obs.point == p)
+        others = sorted(mine[1:], key=lambda i: (int(p) * V + int(obs.view[i])) * 2654435761 % 2**32)
+        expected[mine[:1]] = True
+        expected[others[:per_track]] = True
+    np.testing.assert_array_equal(probe, expected)
+    per = np.bincount(obs.point[probe], minlength=obs.n_points)
+    assert (per == np.minimum(np.bincount(obs.point, minlength=obs.n_points), per_track + 1)).all()
 
 
 def test_thin_points_prefers_long_tracks_and_zero_keeps_all():
