@@ -407,6 +407,18 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     residual = np.full(len(xy), np.inf)
     residual[first] = 0.0
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, _LK_ITERATIONS, _LK_EPS_PX)
+    floats: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def as_float(image: np.ndarray) -> np.ndarray:
+        """``image`` as float32 for the sub-pixel step, converted once per registration: a
+        view's image serves every pair and pass it is in (on 19 views of 1700 px, converting
+        it on every call took 2.9 of the registration's 16 s). Threads may both convert it:
+        the same values either way."""
+        held = floats.get(id(image))
+        if held is None or held[0] is not image:
+            held = floats[id(image)] = (image, np.asarray(image, np.float32))
+        return held[1]
+
 
     def register(head_u8: np.ndarray, other_u8: np.ndarray, H: np.ndarray, sel: np.ndarray,
                  rank: float, out_xy: np.ndarray, out_residual: np.ndarray,
@@ -437,8 +449,8 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
         # position and residual replace LK's, and a window that fails there fails.
         lk = status.ravel() == 1
         found = found.astype(np.float64).reshape(-1, 2)
-        q, sub_residual, sub_ok = refine_translations(head_u8, other_u8, H, centre[lk],
-                                                      found[lk], window_px)
+        q, sub_residual, sub_ok = refine_translations(as_float(head_u8), as_float(other_u8), H,
+                                                      centre[lk], found[lk], window_px)
         err = np.full(len(found), np.inf)
         err[np.flatnonzero(lk)[sub_ok]] = sub_residual[sub_ok]
         found[lk] = q
