@@ -38,9 +38,10 @@ pairs' overlaps and the altitude range stay the AOI's:
    number of views), each also in the views that did not match it (at its projection, up to
    ``extend_points_per_view`` per view: SIFT matches few points between dates, whose patches are
    seen all the same; the tracks so extended thinned again to give each view at least that
-   many observations, so that the registration's work too stays linear in the views), registered to a fraction of a pixel (Lucas-Kanade after a ground-plane
-   warp; on local contrast in pairs of views whose grey levels differ, as another date's do; of
-   each pair of views the best registered ``refine_keep_fraction``), then the principal-point bundle
+   many observations, so that the registration's work too stays linear in the views),
+   registered to a fraction of a pixel (Lucas-Kanade after a ground-plane warp; on local
+   contrast in pairs of views whose grey levels differ, as another date's do; of each pair of
+   views the best registered ``refine_keep_fraction``), then the principal-point bundle
    adjustment with the anchor regulariser (0.01 px^2/m^2) and a robust loss whose quadratic
    zone ends at 0.3 px (once the tracks are extended, a Cauchy loss from 0.1 px:
    ``extended_loss``, ``extended_loss_scale_px``), its
@@ -119,6 +120,7 @@ from satsweep.sparse.tracks import (
     extend_tracks,
     observations_from_tracks,
     register_observations,
+    thin_mask,
     thin_points,
 )
 from satsweep.sparse.triangulation import project, projection_stack, triangulate_observations
@@ -672,15 +674,18 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         if o.refine_window_px:
             t0 = time.perf_counter()
             if extended:
-                before = len(chosen.view)
-                chosen = extend_tracks(chosen, projection_stack(local_fine),
-                                       [(c.height, c.width) for c in local_fine],
-                                       margin_px=o.refine_window_px + o.refine_max_shift_px,
-                                       per_view=o.extend_points_per_view)
+                own = np.bincount(chosen.point, minlength=chosen.n_points)
+                grown = extend_tracks(chosen, projection_stack(local_fine),
+                                      [(c.height, c.width) for c in local_fine],
+                                      margin_px=o.refine_window_px + o.refine_max_shift_px,
+                                      per_view=o.extend_points_per_view)
                 # Extended, most tracks reach most views: every point chosen above would bring
                 # an observation in nearly every view, and a stack of V views V times those.
-                chosen = thin_points(chosen, o.extend_points_per_view)
-                n_extended = len(chosen.view) - before
+                keep = thin_mask(grown, o.extend_points_per_view)
+                chosen = grown.subset(keep)
+                # (each point's own observations come first, the added ones after them)
+                rank = np.arange(len(grown.point)) - np.searchsorted(grown.point, grown.point)
+                n_extended = int(np.sum(keep & (rank >= own[grown.point])))
             registered, residual, n_refine_dropped = register_observations(
                 chosen, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
                 max_shift_px=o.refine_max_shift_px, keep_fraction=o.refine_keep_fraction,

@@ -169,6 +169,14 @@ def thin_points(obs: Observations, per_view: int) -> Observations:
     """
     if per_view <= 0 or obs.xy.shape[0] == 0:
         return obs
+    return obs.subset(thin_mask(obs, per_view))
+
+
+def thin_mask(obs: Observations, per_view: int) -> np.ndarray:
+    """The observations (bool, per observation) that :func:`thin_points` keeps: whole tracks,
+    each of two observations or more."""
+    if per_view <= 0 or obs.xy.shape[0] == 0:
+        return np.ones(obs.xy.shape[0], dtype=bool)
     length = np.bincount(obs.point, minlength=obs.n_points)
     order = np.lexsort((_scrambled(obs.point), -length[obs.point], obs.view))  # by view, best first
     view_sorted = obs.view[order]
@@ -176,7 +184,7 @@ def thin_points(obs: Observations, per_view: int) -> Observations:
     rank = np.arange(len(order)) - start
     chosen = np.zeros(obs.n_points, dtype=bool)
     chosen[obs.point[order[rank < per_view]]] = True
-    return obs.subset(chosen[obs.point])
+    return chosen[obs.point]
 
 
 def extend_tracks(obs: Observations, P: np.ndarray, shapes: Sequence[tuple[int, int]], *,

@@ -401,6 +401,8 @@ def test_thin_points_against_a_loop_over_the_views(per_view):
         mine = sorted(obs.point[obs.view == v].tolist(), key=lambda p: (-length[p], scramble[p]))
         wanted.update(mine[:per_view])
     expected = obs.subset(np.isin(obs.point, sorted(wanted)))
+    np.testing.assert_array_equal(sparse_tracks.thin_mask(obs, per_view),
+                                  np.isin(obs.point, sorted(wanted)))
     np.testing.assert_array_equal(thin.view, expected.view)
     np.testing.assert_array_equal(thin.xy, expected.xy)
     np.testing.assert_array_equal(thin.point, expected.point)
