@@ -20,6 +20,12 @@ class SparseOptions(Options):
     feature_scale: float = 0.5  # SIFT runs on the views resampled by this factor; 1: as they are
     feature_scale_min_px: int = 512  # views whose smaller side (px) is below this: full resolution
     refine_window_px: int = 9  # side (px) of the Lucas-Kanade window registering tie points; 0: none
+    refine_window_m: float = 3.9  # ... and at least this much of the ground (m) at the finest
+    # view's GSD: stacks of a finer GSD register on more pixels (the nearest odd count, up to
+    # 63), those of 0.43 m or more on refine_window_px. On 0.3 m stacks in the form
+    # (19 views, seeds 11-13), 9 -> 13 px: worst view after the gauge 0.029 / 0.032 / 0.014 ->
+    # 0.019 / 0.020 / 0.012 px, DFC MAE 1.081 / 0.697 / 0.912 -> 1.046 / 0.650 / 0.884 m (at
+    # 0.5 m, 11 px lost on the multi-date stacks; docs/measurements.md); 0: refine_window_px
     refine_max_shift_px: float = 2.0  # a tie point the registration moves farther (px) is dropped
     refine_keep_fraction: float = 0.5  # share of each pair's registered tie points kept (best first)
     refine_beside_px: float = 6.0  # each tie point is also registered by 16 windows centred
@@ -73,7 +79,7 @@ class SparseOptions(Options):
     # heights: a roof across the AOI's edge may have its only features outside it
 
     ADVANCED = ("feature_scale", "feature_scale_min_px", "refine_window_px",
-                "refine_max_shift_px", "refine_keep_fraction", "refine_beside_px",
+                "refine_window_m", "refine_max_shift_px", "refine_keep_fraction", "refine_beside_px",
                 "fine_points_per_view",
                 "extend_points_per_view",
                 "contrast_threshold", "ratio", "repair_ratio",
@@ -92,6 +98,8 @@ class SparseOptions(Options):
         self._require(self.feature_scale_min_px >= 0, "feature_scale_min_px", "must be >= 0")
         self._require(self.refine_window_px == 0 or 5 <= self.refine_window_px <= 63,
                       "refine_window_px", "must be 0 (no refinement) or in [5, 63] pixels")
+        self._require(math.isfinite(self.refine_window_m) and self.refine_window_m >= 0.0,
+                      "refine_window_m", "must be >= 0 metres (0: refine_window_px alone)")
         self._require(math.isfinite(self.refine_beside_px)
                       and 0.0 <= self.refine_beside_px <= max(self.refine_window_px, 1),
                       "refine_beside_px", "must be in [0, refine_window_px] pixels (0: the "

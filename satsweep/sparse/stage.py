@@ -290,6 +290,28 @@ def feature_budgets(views: Sequence[Any], aoi: Any, alt: Any, options: SparseOpt
     return out
 
 
+def ground_sample_m(camera: Any) -> float:
+    """The ground size (m) of one of ``camera``'s pixels at the ENU origin on the plane u = 0:
+    the square root of the area a pixel covers there (``camera.P``, 3x4, ENU metres to
+    pixels)."""
+    H = np.asarray(camera.P, np.float64)[:, [0, 1, 3]]  # (e, n, 1) -> pixel
+    x0 = H[:2, 2] / H[2, 2]
+    J = (H[:2, :2] - np.outer(x0, H[2, :2])) / H[2, 2]  # d(pixel) / d(e, n) at the origin
+    return float(1.0 / np.sqrt(abs(np.linalg.det(J))))
+
+
+def registration_window_px(cameras: Sequence[Any], options: SparseOptions) -> int:
+    """The tie points' registration window (px): ``refine_window_px``, or the nearest odd
+    count of pixels that ``refine_window_m`` spans at the finest of ``cameras``' ground samples
+    (:func:`ground_sample_m`) where that is more (at most 63)."""
+    w = options.refine_window_px
+    if w == 0 or options.refine_window_m <= 0.0 or not len(cameras):
+        return w
+    span = options.refine_window_m / min(ground_sample_m(c) for c in cameras)
+    odd = 2 * int(round((span - 1.0) / 2.0)) + 1
+    return int(min(max(w, odd), 63))
+
+
 def _camera_error(cam: Any) -> float:
     """The camera's largest approximation error over the AOI (px), 0 when not known."""
     err = getattr(cam, "error", None)
@@ -671,13 +693,14 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         chosen = thin_points(coarse.obs, o.fine_points_per_view)
         registered, residual = chosen, np.zeros(len(chosen.view))
         extended = bool(o.refine_window_px and o.extend_points_per_view and len(kept) >= 3)
+        window_px = registration_window_px(local_fine, o)
         if o.refine_window_px:
             t0 = time.perf_counter()
             if extended:
                 own = np.bincount(chosen.point, minlength=chosen.n_points)
                 grown = extend_tracks(chosen, projection_stack(local_fine),
                                       [(c.height, c.width) for c in local_fine],
-                                      margin_px=o.refine_window_px + o.refine_max_shift_px,
+                                      margin_px=window_px + o.refine_max_shift_px,
                                       per_view=o.extend_points_per_view)
                 # Extended, most tracks reach most views: every point chosen above would bring
                 # an observation in nearly every view, and a stack of V views V times those.
@@ -687,10 +710,11 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
                 rank = np.arange(len(grown.point)) - np.searchsorted(grown.point, grown.point)
                 n_extended = int(np.sum(keep & (rank >= own[grown.point])))
             registered, residual, n_refine_dropped = register_observations(
-                chosen, [images[v] for v in kept], local_fine, window_px=o.refine_window_px,
+                chosen, [images[v] for v in kept], local_fine, window_px=window_px,
                 max_shift_px=o.refine_max_shift_px, keep_fraction=o.refine_keep_fraction,
                 at_least=_MIN_BEST_REGISTERED, threads=SPARSE_THREADS_MAX,
                 beside_px=o.refine_beside_px, choice=refine_choice)
+            refine_choice["window_px"] = window_px
             n_refine_contrast = int(np.sum(residual >= CONTRAST_RANK))
             seconds["refinement"] = seconds.get("refinement", 0.0) + time.perf_counter() - t0
         fine_obs = best_registered(registered, residual, o.refine_keep_fraction,
@@ -940,6 +964,7 @@ class SparseResult:
             # tie points registered by a window beside them ([sparse] refine_beside_px), of all
             "refine_beside_points": t.refine_choice.get("beside_points"),
             "refine_points": t.refine_choice.get("points"),
+            "refine_window_px": t.refine_choice.get("window_px"),
             "extended_observations": t.n_extended,
             "coarse": figures(coarse),
             "fine": figures(fine),

@@ -731,3 +731,35 @@ def test_parallel_rays_give_no_point():
     keep = point != 2
     assert np.abs(pts[[0, 1, 3]] - X[[0, 1, 3]]).max() < EXACT_POINT_TOL_M
     assert err[keep].max() < EXACT_PIXEL_TOL_PX and front[[0, 1, 3]].all()
+
+
+class _Camera:
+    def __init__(self, P):
+        self.P = P
+
+
+def _nadir_camera(focal_px: float, height_m: float = 6.0e5) -> _Camera:
+    """A pinhole looking straight down from ``height_m`` over the ENU origin: its ground sample
+    there is height / focal (m per pixel) exactly."""
+    K = np.array([[focal_px, 0.0, 500.0], [0.0, focal_px, 400.0], [0.0, 0.0, 1.0]])
+    R = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # x east, y south, depth down
+    C = np.array([0.0, 0.0, height_m])
+    return _Camera(K @ np.hstack([R, -(R @ C)[:, None]]))
+
+
+@pytest.mark.parametrize("gsd, window", [(0.5, 9), (0.45, 9), (0.3, 13), (0.2, 19), (0.01, 63)])
+def test_registration_window_spans_refine_window_m_at_the_finest_gsd(gsd, window):
+    """The window is refine_window_px (9), or the nearest odd count of pixels spanning
+    refine_window_m (3.9 m) at the finest view's ground sample where that is more (at most
+    63); the ground sample of a nadir pinhole is its height over its focal length."""
+    from satsweep.sparse.stage import ground_sample_m, registration_window_px
+
+    cams = [_nadir_camera(6.0e5 / gsd), _nadir_camera(6.0e5 / (1.4 * gsd))]
+    assert ground_sample_m(cams[0]) == pytest.approx(gsd, rel=1e-9)
+    o = options.SparseOptions()
+    assert (o.refine_window_px, o.refine_window_m) == (9, 3.9)
+    assert registration_window_px(cams, o) == window
+    assert registration_window_px(cams, o.replace(refine_window_m=0.0)) == 9
+    assert registration_window_px(cams, o.replace(refine_window_px=0, refine_beside_px=0.0)) == 0
+    with pytest.raises(OptionsError, match="refine_window_m"):
+        options.SparseOptions(refine_window_m=-1.0)
