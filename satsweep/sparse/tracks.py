@@ -660,26 +660,25 @@ def _beside_windows(obs: Observations, first: np.ndarray, pairs, xy: np.ndarray,
         np.add.at(cost[k], point_index[probe], np.where(np.isfinite(res), res, _BESIDE_LOST)[probe])
     cost[1:, views_per_point < BESIDE_MIN_VIEWS] = np.inf
     # The windows of the BESIDE_FINALISTS least sums over the probes are registered on the
-    # track's other observations too, and the least sum over all its observations wins.
+    # track's other observations too (every finalist in one pass: each pair's images warped
+    # once), and the least sum over all its observations wins.
     finalists = np.argsort(cost, axis=0, kind="stable")[:BESIDE_FINALISTS]  # (m, points)
-    rest = ~probe & long_enough
+    window = finalists[:, point_index]  # (m, n): each observation's finalists
     rows = np.arange(n)
-    cand_xy = np.empty((len(finalists), n, 2))
-    cand_residual = np.empty((len(finalists), n))
+    cand_xy, cand_residual = every_xy[window, rows], every_residual[window, rows]
+    need = (~probe & long_enough)[None] & (window > 0)
+    if need.any():
+        per_obs = np.zeros((len(finalists), n, 2))
+        per_obs[need] = offsets[window[need] - 1]
+        rest_xy = np.repeat(xy[None], len(finalists), axis=0)
+        rest_residual = np.full((len(finalists), n), np.inf)
+        run_all(need.any(axis=0), per_obs, rest_xy, rest_residual)
+        cand_xy[need], cand_residual[need] = rest_xy[need], rest_residual[need]
     total = np.zeros((len(finalists), n_points))
-    for m, k in enumerate(finalists):
-        window = k[point_index]
-        cand_xy[m], cand_residual[m] = every_xy[window, rows], every_residual[window, rows]
-        need = rest & (window > 0)
-        if need.any():
-            per_obs = np.zeros((1, n, 2))
-            per_obs[0, need] = offsets[window[need] - 1]
-            rest_xy, rest_residual = xy[None].copy(), np.full((1, n), np.inf)
-            run_all(need, per_obs, rest_xy, rest_residual)
-            cand_xy[m, need], cand_residual[m, need] = rest_xy[0, need], rest_residual[0, need]
+    for m in range(len(finalists)):
         np.add.at(total[m], point_index,
                   np.where(np.isfinite(cand_residual[m]), cand_residual[m], _BESIDE_LOST))
-        total[m, ~np.isfinite(cost[k, np.arange(n_points)])] = np.inf
+    total[~np.isfinite(np.take_along_axis(cost, finalists, axis=0))] = np.inf
     pick = np.argmin(total, axis=0)  # ties: the better over the probes
     best = finalists[pick, np.arange(n_points)]
     return cand_xy[pick[point_index], rows], cand_residual[pick[point_index], rows], best
