@@ -14,7 +14,13 @@ import pytest
 
 from satsweep.io.images import tonemap
 from satsweep.sparse.stage import corrected_projections, sparse_stage, tie_point_confirmer
-from satsweep.sparse.verify import MIN_OTHER_VIEWS, _parallax_px_per_m, point_evidence
+from satsweep.sparse.verify import (
+    CONFIRM_OVER_CONTRADICT,
+    MIN_OTHER_VIEWS,
+    PointEvidence,
+    _parallax_px_per_m,
+    point_evidence,
+)
 from tests.sparse.test_stage import SIZE_PX, _motion, _views
 
 # A right point: within this of the true surface (m): keypoints at full resolution on 0.5 m
@@ -52,6 +58,21 @@ def _moved(P_ref: np.ndarray, X: np.ndarray, dz: float) -> np.ndarray:
     ``P_ref`` (3x4) through it: that view sees the same pixel."""
     ray = X - (-np.linalg.solve(P_ref[:, :3], P_ref[:, 3]))
     return X + ray * (dz / ray[2])
+
+
+@pytest.mark.parametrize("confirming,contradicting,confirmed", [
+    ((2, 3), (), True),  # two views outside the track, none against
+    ((2,), (), False),  # one view outside is chance
+    ((0, 1, 2), (), False),  # the track's own views do not count
+    ((2, 3), (4,), False),  # two against one: both such points of the 41 stacks were wrong
+    ((2, 3, 5), (4,), True),
+    ((2, 3, 5, 6), (4, 7), False),
+])
+def test_the_rule_counts_views_outside_the_track_against_those_that_contradict(
+        confirming, contradicting, confirmed):
+    evidence = PointEvidence(track=(0, 1), confirming=confirming, contradicting=contradicting)
+    assert evidence.confirmed is confirmed
+    assert MIN_OTHER_VIEWS == 2 and CONFIRM_OVER_CONTRADICT == 2  # the cases above assume these
 
 
 def test_right_points_are_confirmed_and_moved_ones_are_not(six_views):
