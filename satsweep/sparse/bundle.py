@@ -89,6 +89,7 @@ __all__ = [
     "shift_uncertainty",
     "ShiftUncertainty",
     "TooFewObservations",
+    "track_median_errors",
 ]
 
 
@@ -507,6 +508,25 @@ def adjust_observations(cameras: Sequence[Any], obs: Observations, options: Bund
     after = _errors(P, obs, X, shifts)
     return BundleSolution(shifts=shifts, points=X, anchors=anchors, obs=obs, errors_before=before,
                           errors_after=after, evaluations=tuple(evaluations))
+
+
+def track_median_errors(solution: BundleSolution) -> np.ndarray:
+    """(N,) per point of ``solution``: the median of its observations' reprojection errors after
+    the adjustment (``errors_after``, px; the mean of the two middle ones for an even count)."""
+    point, err = solution.obs.point, np.asarray(solution.errors_after, np.float64)
+    n = int(solution.obs.n_points)
+    if err.shape != point.shape:
+        raise ValueError(f"track_median_errors: {err.size} errors for {point.size} observations")
+    if n == 0:
+        return np.zeros(0)
+    order = np.lexsort((err, point))  # by point, then by error
+    count = np.bincount(point, minlength=n)
+    start = np.r_[0, np.cumsum(count)[:-1]]
+    lo, hi = start + (count - 1) // 2, start + count // 2
+    ranked = err[order]
+    with np.errstate(invalid="ignore"):
+        return np.where(count > 0, 0.5 * (ranked[np.minimum(lo, err.size - 1)]
+                                          + ranked[np.minimum(hi, err.size - 1)]), np.nan)
 
 
 # -- the coarse adjustment: pointing errors of any size -------------------------------------------

@@ -106,6 +106,7 @@ from satsweep.sparse.bundle import (
     in_gauge,
     shift_principal_point,
     shift_uncertainty,
+    track_median_errors,
 )
 from satsweep.sparse.features import detect_features, feature_scale_for
 from satsweep.sparse.graph import PairGraph, aoi_samples, build_pair_graph, repair_pairs
@@ -170,6 +171,26 @@ _WEAK_LINK_FACTOR = 3
 # gained within 1 m (seeds 36, 40, 42: +2.7, +0.9, +0.3 points; DFC MAE -0.07, -0.15, +0.15 m;
 # seed 36's 1812-cell hole between tall buildings gone).
 REPAIR_ANY_MIN_VIEWS = 8
+# TRACK_SCREEN_NOTE. Where the tracks were extended to every view (``extend_points_per_view``)
+# and at least TRACK_SCREEN_MIN_VIEWS views are tied, the tie points whose observations' median
+# reprojection error after the fine adjustment exceeds TRACK_SCREEN_MEDIAN_PX are left out and
+# the fine adjustment runs again (``_screened``), where every view keeps [bundle]
+# min_observations. The robust loss weighs each observation alone; a tie point registered on a
+# facade (one side's views see it, each foreshortened its own way) or across a moving shadow is
+# off in most of its views together, by a few tenths of a pixel, where the loss still lends it
+# weight, and such points pull each date's views coherently. On the 1700 px stack of 19 dates
+# at 0.3 m (tools/bench_multidate.py --size 1700 --gsd 0.3 --dates 19 --seeds 22) the tracks of
+# 4-13 views left a median error of 0.5-0.6 px (those of 13 or more 0.15), and view 3 was off
+# by 0.077 px along its rows; with the screen (594 of 939 tie points left out) 0.038 px. Worst
+# view after the gauge, sparse stage alone, means over seeds (docs/measurements.md,
+# forty-eighth session): 10-view stacks seeds 0-9 0.0205 -> 0.0191 px, one view per date 10
+# views 0.0285 -> 0.0255, 33.45 S 0.0272 -> 0.0233, 20 views 0.0284 -> 0.0268. On 5 views of one
+# date each it lost (seed 0 0.0515 -> 0.0615 px: 175 tie points, a third of them left out) and
+# on 3-5 views of passes it moved nothing beyond noise: smaller stacks keep every tie point. Twice
+# the median error as the bound instead of 0.3 px: 0.0197, 0.0254, 0.0223, 0.0275 and 0.045 px
+# on the 1700 px stack.
+TRACK_SCREEN_MEDIAN_PX = 0.3
+TRACK_SCREEN_MIN_VIEWS = 6
 # FEWER_OBSERVATIONS_NOTE. A view is dropped when fewer than [bundle] min_observations of its tie
 # points agree with the other views, except where that would leave fewer than
 # MIN_VIEWS_FOR_HEIGHT views tied and keeping those of [sparse] min_matches agreeing tie points
@@ -243,6 +264,8 @@ class TiedViews:
     refine_choice: dict  # register_observations' choice of the contrast's scale, and its
     # tie points registered by a window beside them
     n_extended: int  # observations added where a view had not matched a tie point (extend_tracks)
+    n_screened: int | None  # tie points left out by the fine adjustment's screen (_screened);
+    # None where it did not run
     coarse: BundleSolution | None
     fine: BundleSolution | None
     seconds: dict[str, float]
@@ -508,6 +531,25 @@ def _global(obs: Observations, kept: Sequence[int]) -> Observations:
     return dataclasses.replace(obs, view=np.asarray(kept, dtype=np.int64)[obs.view])
 
 
+def _screened(cameras: Sequence[Any], fine: BundleSolution, options: BundleOptions,
+              names: Sequence[str]) -> tuple[BundleSolution, int]:
+    """The fine adjustment again without the tie points whose median reprojection error in
+    ``fine`` exceeds TRACK_SCREEN_MEDIAN_PX (``track_median_errors``), and how many were left
+    out; ``fine`` itself (and 0) when none exceeds it, or when some view would keep fewer than
+    ``options.min_observations`` observations, or when the second adjustment leaves one so."""
+    bad = track_median_errors(fine) > TRACK_SCREEN_MEDIAN_PX
+    if not bad.any():
+        return fine, 0
+    keep = ~bad[fine.obs.point]
+    if np.bincount(fine.obs.view[keep], minlength=len(cameras)).min() < options.min_observations:
+        return fine, 0
+    try:
+        return (adjust_observations(cameras, fine.obs.subset(keep), options, names=names),
+                int(bad.sum()))
+    except TooFewObservations:
+        return fine, 0
+
+
 def _worst_error(obs: Observations, errors: np.ndarray) -> np.ndarray:
     """(N,) the largest of each point's observation errors."""
     worst = np.zeros(obs.n_points)
@@ -627,6 +669,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     tied = False
     tracks: list = []
     n_refine_dropped = n_refine_contrast = n_extended = 0
+    n_screened: int | None = None  # tie points the fine adjustment's screen left out
     refine_choice: dict = {}
     fine_cams = list(cameras)
     shifts = np.full((V, 2), np.nan)
@@ -720,6 +763,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         fine_obs = best_registered(registered, residual, o.refine_keep_fraction,
                                    at_least=_MIN_BEST_REGISTERED)
         t0 = time.perf_counter()
+        n_screened = None
         try:
             fine_options = (b.replace(loss_scale_px=b.extended_loss_scale_px,
                                       loss=b.extended_loss) if extended else b)
@@ -727,6 +771,9 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
                 fine_options = fine_options.replace(min_observations=need)
             fine = adjust_observations(local_fine, fine_obs, fine_options,
                                        names=[names[v] for v in kept])
+            if extended and len(kept) >= TRACK_SCREEN_MIN_VIEWS:
+                fine, n_screened = _screened(local_fine, fine, fine_options,
+                                             [names[v] for v in kept])
         except TooFewObservations as exc:
             for k, c in zip(exc.views, exc.counts):
                 dropped[kept[k]] = (f"only {c} tie points left after the fine adjustment (need "
@@ -823,7 +870,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         n_features=n_features, n_tracks=len(tracks),
         track_length_histogram={int(k): int(c) for k, c in enumerate(lengths) if c > 0},
         n_refine_dropped=n_refine_dropped, n_refine_contrast=n_refine_contrast,
-        refine_choice=dict(refine_choice), n_extended=n_extended, coarse=coarse,
+        refine_choice=dict(refine_choice), n_extended=n_extended, n_screened=n_screened,
+        coarse=coarse,
         fine=fine, seconds=seconds, weak_links=tuple(p for p in links if p[0] in kept and p[1] in kept))
 
 
@@ -966,6 +1014,9 @@ class SparseResult:
             "refine_points": t.refine_choice.get("points"),
             "refine_window_px": t.refine_choice.get("window_px"),
             "extended_observations": t.n_extended,
+            # tie points whose median error after the fine adjustment exceeded
+            # TRACK_SCREEN_MEDIAN_PX, left out of it (None: the screen did not run)
+            "screened_tie_points": t.n_screened,
             "coarse": figures(coarse),
             "fine": figures(fine),
             "prior_range": [self.prior_range.min, self.prior_range.max],
