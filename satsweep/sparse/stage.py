@@ -185,7 +185,7 @@ REPAIR_ANY_MIN_VIEWS = 8
 # view after the gauge, sparse stage alone, means over seeds (docs/measurements.md,
 # forty-eighth session): 10-view stacks seeds 0-9 0.0205 -> 0.0191 px, one view per date 10
 # views 0.0285 -> 0.0255, 33.45 S 0.0272 -> 0.0233, 20 views 0.0284 -> 0.0268. On 5 views of one
-# date each it lost (seed 0 0.0515 -> 0.0615 px: 175 tie points, a third of them left out) and
+# date each it lost (seed 0 0.0515 -> 0.0615 px: 48 of its 175 tie points left out) and
 # on 3-5 views of passes it moved nothing beyond noise: smaller stacks keep every tie point. Twice
 # the median error as the bound instead of 0.3 px: 0.0197, 0.0254, 0.0223, 0.0275 and 0.045 px
 # on the 1700 px stack.

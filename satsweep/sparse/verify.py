@@ -26,8 +26,9 @@ A view *contradicts* the point when its patch correlates as well (``min_ncc`` or
 another altitude, at least ``PEAK_EXCLUSION_PX`` pixels of parallax away: it sees the
 reference's patch elsewhere. The point is confirmed when at least ``MIN_OTHER_VIEWS`` views
 outside its track confirm it and more than ``CONFIRM_OVER_CONTRADICT`` times as many confirm it
-as contradict it. Without that second condition a 19-view stack of 0.3 m, 8-bit multi-date views (``satsweep synth --views 19
---acquisitions 13 --gsd 0.3 --product rgb8``, seed 7) raised its altitude range's top to 222 m
+as contradict it. Without that second condition (more confirming than contradicting, first) a
+19-view stack of 0.3 m, 8-bit multi-date views (``satsweep synth --views 19 --acquisitions 13
+--gsd 0.3 --product rgb8``, seed 7) raised its altitude range's top to 222 m
 (the truth's top: 154 m, the supported top 159 m): a two-view match 68 m above the roofs, in a
 patch of smooth shading whose broad correlation curves peaked by chance near the point in three
 views (0.70-0.73), while three others correlated at 0.82-0.95 elsewhere. Over the 43 points
