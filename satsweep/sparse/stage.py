@@ -180,7 +180,7 @@ REPAIR_ANY_MIN_VIEWS = 8
 # off in most of its views together, by a few tenths of a pixel, where the loss still lends it
 # weight, and such points pull each date's views coherently. On the 1700 px stack of 19 dates
 # at 0.3 m (tools/bench_multidate.py --size 1700 --gsd 0.3 --dates 19 --seeds 22) the tracks of
-# 4-13 views left a median error of 0.5-0.6 px (those of 13 or more 0.15), and view 3 was off
+# 4-13 views left a median error of 0.48-0.60 px (those of 13 or more 0.15), and view 3 was off
 # by 0.077 px along its rows; with the screen (594 of 939 tie points left out) 0.038 px. Worst
 # view after the gauge, sparse stage alone, means over seeds (docs/measurements.md,
 # forty-eighth session): 10-view stacks seeds 0-9 0.0205 -> 0.0191 px, one view per date 10
@@ -313,24 +313,18 @@ def feature_budgets(views: Sequence[Any], aoi: Any, alt: Any, options: SparseOpt
     return out
 
 
-def ground_sample_m(camera: Any) -> float:
-    """The ground size (m) of one of ``camera``'s pixels at the ENU origin on the plane u = 0:
-    the square root of the area a pixel covers there (``camera.P``, 3x4, ENU metres to
-    pixels)."""
-    H = np.asarray(camera.P, np.float64)[:, [0, 1, 3]]  # (e, n, 1) -> pixel
-    x0 = H[:2, 2] / H[2, 2]
-    J = (H[:2, :2] - np.outer(x0, H[2, :2])) / H[2, 2]  # d(pixel) / d(e, n) at the origin
-    return float(1.0 / np.sqrt(abs(np.linalg.det(J))))
-
-
 def registration_window_px(cameras: Sequence[Any], options: SparseOptions) -> int:
     """The tie points' registration window (px): ``refine_window_px``, or the nearest odd
     count of pixels that ``refine_window_m`` spans at the finest of ``cameras``' ground samples
-    (:func:`ground_sample_m`) where that is more (at most 63)."""
+    (``geometry.camera.ground_sample_distance`` at the ENU origin) where that is more (at most
+    63)."""
+    from satsweep.geometry.camera import ground_sample_distance
+
     w = options.refine_window_px
     if w == 0 or options.refine_window_m <= 0.0 or not len(cameras):
         return w
-    span = options.refine_window_m / min(ground_sample_m(c) for c in cameras)
+    finest = min(ground_sample_distance(c.P, np.zeros(3)) for c in cameras)
+    span = options.refine_window_m / finest
     odd = 2 * int(round((span - 1.0) / 2.0)) + 1
     return int(min(max(w, odd), 63))
 
@@ -540,12 +534,9 @@ def _screened(cameras: Sequence[Any], fine: BundleSolution, options: BundleOptio
     bad = track_median_errors(fine) > TRACK_SCREEN_MEDIAN_PX
     if not bad.any():
         return fine, 0
-    keep = ~bad[fine.obs.point]
-    if np.bincount(fine.obs.view[keep], minlength=len(cameras)).min() < options.min_observations:
-        return fine, 0
-    try:
-        return (adjust_observations(cameras, fine.obs.subset(keep), options, names=names),
-                int(bad.sum()))
+    try:  # (the adjustment checks every view's count before it solves)
+        return (adjust_observations(cameras, fine.obs.subset(~bad[fine.obs.point]), options,
+                                    names=names), int(bad.sum()))
     except TooFewObservations:
         return fine, 0
 

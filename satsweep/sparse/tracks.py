@@ -427,7 +427,6 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
             held = floats[id(image)] = (image, np.asarray(image, np.float32))
         return held[1]
 
-
     def register(head_u8: np.ndarray, other_u8: np.ndarray, H: np.ndarray, sel: np.ndarray,
                  rank: float, out_xy: np.ndarray, out_residual: np.ndarray,
                  offsets: np.ndarray = _CENTRED, from_xy: np.ndarray | None = None) -> None:

@@ -752,10 +752,11 @@ def test_registration_window_spans_refine_window_m_at_the_finest_gsd(gsd, window
     """The window is refine_window_px (9), or the nearest odd count of pixels spanning
     refine_window_m (3.9 m) at the finest view's ground sample where that is more (at most
     63); the ground sample of a nadir pinhole is its height over its focal length."""
-    from satsweep.sparse.stage import ground_sample_m, registration_window_px
+    from satsweep.geometry.camera import ground_sample_distance
+    from satsweep.sparse.stage import registration_window_px
 
     cams = [_nadir_camera(6.0e5 / gsd), _nadir_camera(6.0e5 / (1.4 * gsd))]
-    assert ground_sample_m(cams[0]) == pytest.approx(gsd, rel=1e-9)
+    assert ground_sample_distance(cams[0].P, np.zeros(3)) == pytest.approx(gsd, rel=1e-9)
     o = options.SparseOptions()
     assert (o.refine_window_px, o.refine_window_m) == (9, 3.9)
     assert registration_window_px(cams, o) == window
