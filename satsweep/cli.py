@@ -355,6 +355,11 @@ def _add_synth(sub) -> None:
     p.add_argument("--product", choices=("dn16", "rgb8"), default=None,
                    help="the views' images: dn16, 12-bit numbers in uint16 (default), or rgb8, 8-bit RGB "
                    "stretched per image as pansharpened deliveries (WorldView-3, Pleiades) are")
+    p.add_argument("--rpc-height-scale", type=float, default=None, metavar="M",
+                   help="fit each RPC over this many metres of heights above and below the scene's "
+                   "middle (its HEIGHT_SCALE), as real deliveries' span about 500 m (WorldView, "
+                   "Pleiades): a reconstruction without --alt-range or --dem then crops whole views, "
+                   "as it does on real ones (default 0: the scene's own heights, about 70 m)")
     p.add_argument("--overwrite", action="store_true", help="replace the scene in a non-empty --out folder")
     p.set_defaults(handler=_cmd_synth)
 
@@ -368,7 +373,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     given = {"seed": args.seed, "n_views": views, "size_px": args.size, "gsd_m": args.gsd,
              "bias_px": args.bias, "acquisitions": args.acquisitions, "large_bias_px": args.large_bias,
              "start_date": args.start_date, "write_metadata": False if args.no_metadata else None,
-             "product": args.product}
+             "product": args.product, "rpc_height_scale_m": args.rpc_height_scale}
     if args.location is not None:
         given["location"] = parse_location(args.location)
     if args.gsd is not None:

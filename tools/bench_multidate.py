@@ -69,8 +69,11 @@ TARGET_GAIN_POINTS = 5.0
 
 def scene_options(seed: int, n_views: int, size: int, bias: float, large_bias: float,
                   metadata: bool, product: str = "dn16", dates: int | None = None,
-                  gsd: float = 0.5, location: tuple[float, float] | None = None) -> SynthOptions:
+                  gsd: float = 0.5, location: tuple[float, float] | None = None,
+                  rpc_height_scale: float = 0.0) -> SynthOptions:
     extra = {} if location is None else {"location": location}
+    if rpc_height_scale:
+        extra["rpc_height_scale_m"] = rpc_height_scale
     return SynthOptions(seed=seed, n_views=n_views, size_px=size, gsd_m=gsd, bias_px=bias,
                         acquisitions=dates or max(1, n_views // 2), large_bias_px=large_bias,
                         write_metadata=metadata, product=product,
@@ -86,7 +89,8 @@ def get_scene(cache: Path, options: SynthOptions, log) -> Scene:
                else f"_d{options.acquisitions}")
             + ("" if options.gsd_m == 0.5 else f"_g{options.gsd_m:g}")
             + ("" if options.location == SynthOptions.location
-               else f"_at{options.location[0]:g},{options.location[1]:g}"))
+               else f"_at{options.location[0]:g},{options.location[1]:g}")
+            + ("" if not options.rpc_height_scale_m else f"_h{options.rpc_height_scale_m:g}"))
     folder = cache / name
     if (folder / "scene.json").is_file():
         return Scene.load(folder)
@@ -199,6 +203,11 @@ def main(argv=None) -> int:
     p.add_argument("--dates", type=int, default=None,
                    help="acquisition dates of the scene (default: half its views, in passes of 1-3 "
                    "views); as many as views: one view per date, as most real stacks are")
+    p.add_argument("--rpc-height-scale", type=float, default=0.0, metavar="M",
+                   help="fit the views' RPCs over this many metres above and below the scene "
+                   "(satsweep synth --rpc-height-scale; real deliveries: about 500), so that a run "
+                   "without an altitude range crops whole views as on real data (default 0: the "
+                   "scene's own heights)")
     p.add_argument("--given-range", action="store_true",
                    help="give the truth's altitude range (widened by 5 m) instead of none")
     p.add_argument("--no-pairs", action="store_true", help="skip the same-date pairs")
@@ -235,7 +244,7 @@ def main(argv=None) -> int:
             scene = get_scene(cache, scene_options(seed, max(args.views), args.size, args.bias,
                                                    args.large_bias, not args.no_metadata,
                                                    args.product, args.dates, args.gsd,
-                                                   location), log)
+                                                   location, args.rpc_height_scale), log)
             for k in args.views:
                 views = subset(len(scene.views), k)
                 row = run(scene, views, Path(tmp) / f"s{seed}_k{k}", args, config)

@@ -117,6 +117,10 @@ DN_PER_RADIANCE = 4000.0
 DN_MAX = 4095
 # Sampling of the RPC fit over the ground cube (lon x lat x alt) and of its check.
 RPC_FIT_GRID = (15, 15, 7)
+# Largest SynthOptions.rpc_height_scale_m: Planet's and SkySat's RPCs span 2.5-10 km, but a cubic
+# fitted over more than a few kilometres of a pushbroom's heights would no longer be exact
+# within the scene (the fit's residual, reported per view, is what tells).
+RPC_HEIGHT_SCALE_MAX_M = 2000.0
 RPC_CHECK_POINTS = 2000
 # Sub-samples per DSM cell side for the per-cell maximum (odd: the centre is one of them).
 DSM_SUBSAMPLES = 5
@@ -194,6 +198,13 @@ class SynthOptions(Options):
     # radiometry); "rgb8", an 8-bit RGB delivery as pansharpened products are, each image
     # stretched to its own range (satsweep.synth.scene.to_rgb8)
     product: str = "dn16"
+    # Half the span of altitudes (m) each view's RPC is fitted over, about the middle of the
+    # scene's nominal heights: its HEIGHT_SCALE. Real deliveries' span a kilometre or more
+    # (WorldView-2/3, Pleiades: HEIGHT_SCALE 500 m), so a reconstruction given neither
+    # --alt-range nor --dem crops whole views and fits its first cameras over that span; 0: the
+    # scene's own heights (ground relief to the tallest roof, about 70 m: the benchmarks' scenes
+    # until the forty-ninth session, docs/measurements.md)
+    rpc_height_scale_m: float = 0.0
 
     def check(self) -> None:
         self._require(self.n_views >= 1, "n_views", "need at least one view")
@@ -228,6 +239,10 @@ class SynthOptions(Options):
         self._require(self.cell_m <= self.gsd_m / 2.0 + 1e-12, "cell_m",
                       f"must be at most half the GSD ({self.gsd_m / 2:g} m)")
         self._require(0.1 <= self.dsm_resolution_m <= 10.0, "dsm_resolution_m", "must lie in 0.1 .. 10 m")
+        self._require(math.isfinite(self.rpc_height_scale_m)
+                      and 0.0 <= self.rpc_height_scale_m <= RPC_HEIGHT_SCALE_MAX_M,
+                      "rpc_height_scale_m", f"must lie in 0 .. {RPC_HEIGHT_SCALE_MAX_M:g} m (0: the "
+                      "scene's own heights)")
         self._check_multidate()
 
     def _check_multidate(self) -> None:
@@ -776,6 +791,10 @@ def generate_scene(out_dir: str | os.PathLike, options: SynthOptions | None = No
     lon_range = (float(lon_w.min()), float(lon_w.max()))
     lat_range = (float(lat_w.min()), float(lat_w.max()))
     alt_cube = (frame.alt0 + design.z_range[0], frame.alt0 + design.z_range[1])
+    if options.rpc_height_scale_m > 0.0:  # as real RPCs, a span of heights about the scene's
+        mid = 0.5 * (alt_cube[0] + alt_cube[1])
+        alt_cube = (min(alt_cube[0], mid - options.rpc_height_scale_m),
+                    max(alt_cube[1], mid + options.rpc_height_scale_m))
 
     out_dir.mkdir(parents=True, exist_ok=True)
     biases = options.view_biases()

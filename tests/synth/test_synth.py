@@ -75,6 +75,9 @@ DSM_DENSE_TOL_M = 0.015
 # Noise: the standard deviation of DN noise over many pixels matches noise_dn to 5% (sampling
 # error of 40000 samples is 0.4%; rounding to integers adds 1/12 DN^2).
 NOISE_REL_TOL = 0.05
+# An RPC fitted over a kilometre of heights against its exact pushbroom camera: the fit's
+# residual is a few 1e-9 px (scene.json's rpc_fit); this leaves room for float rounding only.
+RPC_FIT_TOL_PX = 1e-4
 
 SMALL = SynthOptions(seed=3, n_views=3, size_px=128, gsd_m=1.0, bias_px=1.5,
                      location=(55.45, -21.05), ground_alt_m=480.0)
@@ -395,6 +398,35 @@ def test_cli_samples_the_surface_finely_enough_for_a_fine_gsd(tmp_path, capsys):
     capsys.readouterr()
     doc = json.loads((out / SCENE_FILE).read_text())
     assert doc["options"]["gsd_m"] == 0.3 and doc["options"]["cell_m"] == pytest.approx(0.15)
+
+
+def test_cli_fits_the_rpcs_over_a_real_deliverys_span_of_heights(tmp_path, capsys):
+    """--rpc-height-scale 500: each RPC's HEIGHT_SCALE spans 500 m about the scene's middle, as
+    WorldView's and Pleiades' do, and it still is the exact camera shifted by the bias wherever
+    in that span (RPC_FIT_TOL_PX: the fit's residual over a kilometre of a pushbroom's heights,
+    measured 6e-9 px); the images are the same as without it."""
+    out, plain = tmp_path / "wide", tmp_path / "plain"
+    args = ["synth", "--seed", "4", "--views", "2", "--size", "64", "--gsd", "1.0", "--bias", "1.0"]
+    assert cli_main(args + ["--out", str(out), "--rpc-height-scale", "500"]) == 0
+    assert cli_main(args + ["--out", str(plain)]) == 0
+    capsys.readouterr()
+    scene, other = Scene.load(out), Scene.load(plain)
+    rng = np.random.default_rng(2)
+    for view, same in zip(scene.views, other.views):
+        rpc = view.rpc()
+        assert abs(rpc.alt_scale) >= 500.0 and abs(same.rpc().alt_scale) < 100.0
+        assert rpc.alt_offset == pytest.approx(same.rpc().alt_offset)  # the scene's middle
+        u = rng.uniform(rpc.alt_offset - 450.0, rpc.alt_offset + 450.0, 200) - scene.frame.alt0
+        e = rng.uniform(-10.0, 10.0, 200)
+        n = rng.uniform(-10.0, 10.0, 200)
+        col, row = view.camera.project(e=e, n=n, u=u)
+        lon, lat, alt = scene.frame.to_geodetic(e=e, n=n, u=u)
+        rc, rr = rpc.projection(lon=lon, lat=lat, alt=alt)
+        err = np.hypot(rc + view.bias_px[0] - col, rr + view.bias_px[1] - row)
+        assert err.max() < RPC_FIT_TOL_PX, err.max()
+        np.testing.assert_array_equal(read_image(view.image), read_image(same.image))
+    assert cli_main(["synth", "--out", str(tmp_path / "bad"), "--rpc-height-scale", "-5"]) == 2
+    assert "rpc_height_scale_m" in capsys.readouterr().err
 
 
 # -- options and scene content -------------------------------------------------------------------
