@@ -134,6 +134,14 @@ __all__ = ["DroppedView", "SparseResult", "TiedViews", "corrected_projections", 
 # 1% and 99% quantiles widened by this margin (m). The coarse points carry the keypoints' noise
 # and the prior cameras' approximation errors (metres of height); a cube too tall only costs
 # approximation error (0.07 px over 300 m on the Pleiades pair, against 0.02 px over 80 m).
+# FINE_CUBE_NOTE. Where fewer than [sparse] altitude_min_points of them lie in the tie box (a
+# small AOI in crops that a wide prior makes whole images), all of them bound it: the prior's
+# cameras, fitted over the RPCs' kilometre of heights, are the last resort only. Their frame's
+# ground plane lies hundreds of metres under the scene, and the registration's warp through it
+# moves each other view out of the first one's image: 3 views of one date each whose RPCs span
+# 1000 m of heights as real ones do (`satsweep synth --rpc-height-scale 500`, the one-view-per-
+# date scenes of tools/bench_multidate.py, seeds 3 and 4; 100 m AOI at 0.3 m: seed 74) had every
+# view dropped; tied with all their tie points, 0.031 / 0.027 / 0.025 px off after the gauge.
 _FINE_CUBE_QUANTILE = 0.01
 _FINE_CUBE_MARGIN_M = 30.0
 # Of each pair of views, the fine adjustment keeps at least this many of the best registered tie
@@ -1046,6 +1054,26 @@ def _unlinked_reason(v: int, counts: dict[tuple[int, int], int], names: Sequence
             "place apart from the others?")
 
 
+def fine_cube_altitudes(alt: np.ndarray, inside: np.ndarray, prior: Any,
+                        min_points: int) -> tuple[float, float] | None:
+    """The altitudes (lo, hi) over which the fine cameras are fitted: the _FINE_CUBE_QUANTILE and
+    1 - _FINE_CUBE_QUANTILE quantiles of the coarse tie points' altitudes ``alt`` (NaN: not
+    triangulated), widened by _FINE_CUBE_MARGIN_M and cut by the ``prior`` range, of those
+    ``inside`` the tie box, or of all of them where fewer than ``min_points`` lie inside
+    (FINE_CUBE_NOTE). None where fewer than ``min_points`` are finite, or the cut leaves no
+    range: the prior's cameras then serve."""
+    alt = np.asarray(alt, np.float64)
+    use = np.asarray(inside, bool) & np.isfinite(alt)
+    if use.sum() < min_points:
+        use = np.isfinite(alt)
+    if use.sum() < min_points:
+        return None
+    lo, hi = np.quantile(alt[use], [_FINE_CUBE_QUANTILE, 1.0 - _FINE_CUBE_QUANTILE])
+    lo = max(float(lo) - _FINE_CUBE_MARGIN_M, float(prior.min))
+    hi = min(float(hi) + _FINE_CUBE_MARGIN_M, float(prior.max))
+    return (lo, hi) if lo < hi else None
+
+
 def fit_cameras(views: Sequence[Any], aoi: Any, alt: Any, grid_size: tuple[int, int, int], *,
                 only: Sequence[int] | None = None) -> tuple[Any, list[Any], dict[int, str]]:
     """Perspective cameras of the views' crops over the AOI x ``alt`` cube, one grid of
@@ -1154,21 +1182,16 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
     fine_frame = [frame]
 
     def refit(kept: Sequence[int], coarse: BundleSolution) -> list[Any]:
-        """Cameras over the tie box x the coarse tie points' altitudes (the prior's if too
-        few)."""
+        """Cameras over the tie box x the coarse tie points' altitudes
+        (:func:`fine_cube_altitudes`; the prior's cameras where they give none)."""
         lon, lat, alt = frame.to_geodetic(e=coarse.points[:, 0], n=coarse.points[:, 1],
                                           u=coarse.points[:, 2])
-        inside = tie_aoi.contains(lon=lon, lat=lat) & np.isfinite(alt)
-        if inside.sum() < options.altitude_min_points:
+        cube = fine_cube_altitudes(alt, tie_aoi.contains(lon=lon, lat=lat), prior,
+                                   options.altitude_min_points)
+        if cube is None:
             fine_frame[0] = frame
             return list(prior_cams)
-        lo, hi = np.quantile(alt[inside], [_FINE_CUBE_QUANTILE, 1.0 - _FINE_CUBE_QUANTILE])
-        lo = max(float(lo) - _FINE_CUBE_MARGIN_M, prior.min)
-        hi = min(float(hi) + _FINE_CUBE_MARGIN_M, prior.max)
-        if not lo < hi:
-            fine_frame[0] = frame
-            return list(prior_cams)
-        fine, cams, failures = fit_cameras(views, tie_aoi, AltitudeRange(lo, hi),
+        fine, cams, failures = fit_cameras(views, tie_aoi, AltitudeRange(*cube),
                                            options.camera_grid, only=kept)
         if failures:  # a view that sees too little of the AOI's cube: the prior's cameras
             fine_frame[0] = frame

@@ -24,7 +24,7 @@ from satsweep.io.views import load_views
 from satsweep.sparse.bundle import BundleOptions, gauge_jacobians
 from satsweep.sparse.options import SparseOptions
 from satsweep.sparse import tracks as sparse_tracks
-from satsweep.sparse.stage import fixed_view_indices, sparse_stage
+from satsweep.sparse.stage import fine_cube_altitudes, fixed_view_indices, sparse_stage
 
 SIZE_PX = 256  # small views: a scene in a few seconds on 2 cores
 BIAS_PX = 50.0  # the issue's largest pointing errors
@@ -313,6 +313,29 @@ def test_of_two_groups_tied_along_one_direction_the_larger_is_kept(synthetic_sce
     assert calls == [6]  # the six views' coarse solution, restricted to four for the next round
     resid, _ = _motion(result, scene)
     assert np.abs(resid).max() < MULTIDATE_SHIFT_TOL_PX, resid
+
+
+def test_the_fine_cameras_cube_takes_every_tie_point_where_few_lie_in_the_tie_box():
+    """FINE_CUBE_NOTE: the fine cameras' heights come from the tie points inside the tie box;
+    where fewer than the minimum lie there (a small AOI in the whole views that RPCs of a
+    kilometre of heights crop), from all of them; the prior's cameras only where too few are
+    triangulated at all."""
+    from satsweep.sparse import stage
+
+    q, margin = stage._FINE_CUBE_QUANTILE, stage._FINE_CUBE_MARGIN_M
+    prior = AltitudeRange(-400.0, 600.0)
+    rng = np.random.default_rng(4)
+    alt = np.r_[rng.uniform(100.0, 110.0, 30), rng.uniform(120.0, 160.0, 40), np.nan]
+    inside = np.r_[np.ones(30, bool), np.zeros(41, bool)]
+    lo, hi = np.quantile(alt[:30], [q, 1 - q])
+    assert fine_cube_altitudes(alt, inside, prior, 20) == pytest.approx((lo - margin, hi + margin))
+    few = inside & (np.arange(71) < 10)  # 10 inside: every finite point bounds it
+    lo, hi = np.quantile(alt[:70], [q, 1 - q])
+    assert fine_cube_altitudes(alt, few, prior, 20) == pytest.approx((lo - margin, hi + margin))
+    assert fine_cube_altitudes(alt, few, prior, 71) is None  # 70 finite points
+    cut = fine_cube_altitudes(alt, few, AltitudeRange(95.0, 140.0), 20)  # the prior cuts it
+    assert cut == pytest.approx((95.0, 140.0))
+    assert fine_cube_altitudes(alt, few, AltitudeRange(300.0, 400.0), 20) is None
 
 
 def test_a_coarse_solution_restricted_to_some_views():
