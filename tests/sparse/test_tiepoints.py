@@ -127,7 +127,7 @@ def test_adjusted_range_takes_a_ground_of_two_view_points_under_that_of_three():
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, off)
     assert rng.min == 120.0 - o.altitude_margin_below_m and "floor_from_fewer_views" not in record
     # a two-view ground within the margin under the three-view floor leaves it
-    near = [a + 17.0 for a in ground] + roofs + wrong  # 117-118 m against 120 m
+    near = [a + 18.5 for a in ground] + roofs + wrong  # 118.5-119.5 m against 120 m
     points, obs, err, aoi = _adjusted(near, views, [0.2] * len(near))
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
     assert rng.min == 120.0 - o.altitude_margin_below_m and "floor_from_fewer_views" not in record

@@ -65,14 +65,16 @@ def _moved(P_ref: np.ndarray, X: np.ndarray, dz: float) -> np.ndarray:
     ((2,), (), False),  # one view outside is chance
     ((0, 1, 2), (), False),  # the track's own views do not count
     ((2, 3), (4,), False),  # two against one: both such points of the 41 stacks were wrong
-    ((2, 3, 5), (4,), True),
-    ((2, 3, 5, 6), (4, 7), False),
+    ((2, 3, 5), (4,), False),  # three against one: wrong on the issue-form stack with real RPCs
+    ((2, 3, 5, 6), (4,), True),  # four against one (a right top: five against one)
+    ((2, 3, 5, 6, 8, 9), (4, 7), False),
+    ((2, 3, 5, 6, 8, 9, 10), (4, 7), True),
 ])
 def test_the_rule_counts_views_outside_the_track_against_those_that_contradict(
         confirming, contradicting, confirmed):
     evidence = PointEvidence(track=(0, 1), confirming=confirming, contradicting=contradicting)
     assert evidence.confirmed is confirmed
-    assert MIN_OTHER_VIEWS == 2 and CONFIRM_OVER_CONTRADICT == 2  # the cases above assume these
+    assert MIN_OTHER_VIEWS == 2 and CONFIRM_OVER_CONTRADICT == 3  # the cases above assume these
 
 
 def test_right_points_are_confirmed_and_moved_ones_are_not(six_views):
