@@ -357,8 +357,8 @@ def _add_synth(sub) -> None:
                    "stretched per image as pansharpened deliveries (WorldView-3, Pleiades) are")
     p.add_argument("--rpc-height-scale", type=float, default=None, metavar="M",
                    help="fit each RPC over this many metres of heights above and below the scene's "
-                   "middle (its HEIGHT_SCALE), as real deliveries' span about 500 m (WorldView, "
-                   "Pleiades): a reconstruction without --alt-range or --dem then crops whole views, "
+                   "middle (its HEIGHT_SCALE), as real deliveries' RPCs do (about 500 m for WorldView "
+                   "and Pleiades): a reconstruction without --alt-range or --dem then crops whole views, "
                    "as it does on real ones (default 0: the scene's own heights, about 70 m)")
     p.add_argument("--overwrite", action="store_true", help="replace the scene in a non-empty --out folder")
     p.set_defaults(handler=_cmd_synth)

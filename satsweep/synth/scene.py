@@ -199,7 +199,7 @@ class SynthOptions(Options):
     # stretched to its own range (satsweep.synth.scene.to_rgb8)
     product: str = "dn16"
     # Half the span of altitudes (m) each view's RPC is fitted over, about the middle of the
-    # scene's nominal heights: its HEIGHT_SCALE. Real deliveries' span a kilometre or more
+    # scene's nominal heights: its HEIGHT_SCALE. Real deliveries' RPCs span a kilometre or more
     # (WorldView-2/3, Pleiades: HEIGHT_SCALE 500 m), so a reconstruction given neither
     # --alt-range nor --dem crops whole views and fits its first cameras over that span; 0: the
     # scene's own heights (ground relief to the tallest roof, about 70 m: the benchmarks' scenes
