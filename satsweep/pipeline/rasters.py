@@ -46,6 +46,19 @@ def _enu_to_map(frame, epsg: int, points: list[tuple[np.ndarray, ...]]):
 
 
 @dataclasses.dataclass(eq=False)
+class _ViewRasters:
+    """One reference view's part of the "dsm" stage: its rasters on the area's grid and its
+    cloud (None: not made)."""
+
+    rule: str  # DSMOptions.view_raster_for's
+    raster: np.ndarray | None = None  # its heights
+    confidence: np.ndarray | None = None  # its confidence (None: the view has none)
+    ortho: np.ndarray | None = None  # the grey level of each cell's highest point
+    green: np.ndarray | None = None  # the vegetation index of each cell's highest point
+    cloud: tuple | None = None  # (x, y, z, colours) of its points on the grid
+
+
+@dataclasses.dataclass(eq=False)
 class AreaRasters:
     """One area's rasters on its grid, before hole filling, and the "dsm" stage's figures."""
 
@@ -117,6 +130,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
     from satsweep.io.images import VEGETATION_INDEX_MIN
     from satsweep.products.fusion import (
         FOOTPRINT_EDGE_PX,
+        FUSION_THREADS_MAX,
         consensus_dsms,
         cross_check_heights,
         crown_hole_tops,
@@ -132,7 +146,8 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         vertical_offsets,
         visibility_check_heights,
     )
-    from satsweep.products.ortho import match_radiometry, value_at_highest
+    from satsweep.products.ortho import match_radiometry, values_at_highest
+    from satsweep.threads import map_in_threads
     from satsweep.products.points import (
         height_map_to_enu,
         map_view_points,
@@ -146,8 +161,10 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         # Every view's pixel centres in ENU (solved once: the cross-check reads them too), one
         # polynomial ENU -> UTM map fitted over all of them; then each view's centres (the
         # cloud) and footprint sub-samples (the rasters).
-        centres = [height_map_to_enu(height, np.isfinite(height), P)
-                   for height, P in zip(heights, projections)]
+        centres = map_in_threads(lambda k: height_map_to_enu(heights[k], np.isfinite(heights[k]),
+                                                             projections[k]),
+                                 range(len(heights)), max_threads=FUSION_THREADS_MAX,
+                                 name="fusion")
         checked = [np.isfinite(h) for h in heights]
         fusion = d.fusion_for(len(per_view))
         # The consensus compares the views cell by cell: no agreement check before it, but a
@@ -199,13 +216,15 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
-        rasters, conf_rasters, orthos, clouds, view_rules, greens = [], [], [], [], [], []
-        offsets_m = leaf_cells = hole_cells = green_cells = None
-        for pv, P, centre, height, keep in zip(per_view, projections, centres, heights, checked):
+
+        def view_rasters(k: int) -> _ViewRasters:
+            """Reference view k's rasters and cloud (each view's depend on its own maps only:
+            the views run in threads, with the sequential loop's results)."""
+            pv, P, centre, height, keep = (per_view[k], projections[k], centres[k], heights[k],
+                                           checked[k])
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
                 centre, height, keep, P, to_map, subsamples=d.subsamples)
             rule = d.view_raster_for(flat_cells(x, y, grid))
-            view_rules.append(rule)
             keeps_tops = rule == "upper_quartile" and d.small_object_top
             small = None  # the pixels of small raised objects (tree crowns)
             if d.small_object_area_m2 > 0.0 and pixel.size and (d.subsamples > 1 or keeps_tops):
@@ -229,28 +248,44 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 x, y, z, pixel = (a[kept_centres] for a in (x, y, z, pixel))
                 sx, sy, sz, spix = (a[kept_samples] for a in (sx, sy, sz, spix))
             cells = flat_cells(sx, sy, grid)
+            out = _ViewRasters(rule=rule)
             if rule == "upper_quartile":
-                rasters.append(rasterise_dense_view_cells(
-                    cells, sz, grid, top=None if top is None else top.ravel()[spix]))
+                out.raster = rasterise_dense_view_cells(
+                    cells, sz, grid, top=None if top is None else top.ravel()[spix])
             else:
-                rasters.append(rasterise_max_cells(cells, sz, grid))
+                out.raster = rasterise_max_cells(cells, sz, grid)
             if pv.confidence is not None:
-                conf_rasters.append(rasterise_max_cells(cells, np.ravel(pv.confidence)[spix],
-                                                        grid))
+                out.confidence = rasterise_max_cells(cells, np.ravel(pv.confidence)[spix], grid)
+            # The grey level (orthophoto) and the vegetation index of each cell's highest point.
+            values = []
             if ortho_images is not None:
-                grey = np.ravel(ortho_images[pv.index])[spix]
-                orthos.append(value_at_highest(cells, sz, grey, grid))
+                values.append(np.ravel(ortho_images[pv.index])[spix])
             if vegetation_images is not None and fusion == "consensus":
-                greens.append(value_at_highest(
-                    cells, sz, np.ravel(vegetation_images[pv.index])[spix], grid))
+                values.append(np.ravel(vegetation_images[pv.index])[spix])
+            at_top = values_at_highest(cells, sz, values, grid)
+            if ortho_images is not None:
+                out.ortho = at_top.pop(0)
+            if vegetation_images is not None and fusion == "consensus":
+                out.green = at_top.pop(0)
             if not config.reconstruct.write_cloud:
-                continue
+                return out
             gray = np.clip(np.nan_to_num(images[pv.index]) * 255.0, 0, 255).astype(np.uint8)
             # The cloud covers the area's DSM grid, like the DSM (the crops extend beyond it).
             keep = ((x >= grid.x_min) & (x <= grid.x_min + grid.width * grid.resolution)
                     & (y <= grid.y_max) & (y >= grid.y_max - grid.height * grid.resolution))
-            clouds.append((x[keep], y[keep], z[keep],
-                           np.repeat(gray.ravel()[pixel[keep]][:, None], 3, axis=1)))
+            out.cloud = (x[keep], y[keep], z[keep],
+                         np.repeat(gray.ravel()[pixel[keep]][:, None], 3, axis=1))
+            return out
+
+        done = map_in_threads(view_rasters, range(len(per_view)), max_threads=FUSION_THREADS_MAX,
+                              name="fusion")
+        rasters = [v.raster for v in done]
+        view_rules = [v.rule for v in done]
+        conf_rasters = [v.confidence for v in done if v.confidence is not None]
+        orthos = [v.ortho for v in done if v.ortho is not None]
+        greens = [v.green for v in done if v.green is not None]
+        clouds = [v.cloud for v in done if v.cloud is not None]
+        offsets_m = leaf_cells = hole_cells = green_cells = None
         if fusion == "consensus":
             view_sets = [(pv.index, *pv.source_indices) for pv in per_view]
             # A stack of fewer distinct views than asked needs them all, not the impossible.

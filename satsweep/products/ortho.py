@@ -14,21 +14,36 @@ def value_at_highest(cells: np.ndarray, heights, values, grid: DSMGrid) -> np.nd
     point that sets the cell's height): what a true orthophoto shows, the surface seen from
     above. (grid.height, grid.width) float32, NaN where no point fell; points without a finite
     height or value are ignored; of points tied for the highest, the largest value."""
+    return values_at_highest(cells, heights, [values], grid)[0]
+
+
+def values_at_highest(cells: np.ndarray, heights, value_sets, grid: DSMGrid) -> list[np.ndarray]:
+    """:func:`value_at_highest` of each of ``value_sets`` (a sequence of per-point values) over
+    the same points: the highest point per cell is found once for value sets that are finite on
+    the same points."""
     c = np.asarray(cells, np.int64).ravel()
     z = np.asarray(heights, np.float64).ravel()
-    v = np.asarray(values, np.float64).ravel()
-    if not (c.size == z.size == v.size):
-        raise ValueError(f"value_at_highest: lengths differ ({c.size} cells, {z.size} heights, "
-                         f"{v.size} values)")
-    ok = np.isfinite(z) & np.isfinite(v) & (c >= 0)
-    c, z, v = c[ok], z[ok], v[ok]
-    top = np.full(grid.width * grid.height, -np.inf)
-    np.maximum.at(top, c, z)
-    highest = z == top[c]
-    out = np.full(grid.width * grid.height, -np.inf)
-    np.maximum.at(out, c[highest], v[highest])
-    out[np.isneginf(out)] = np.nan
-    return out.reshape(grid.shape).astype(np.float32)
+    sets = [np.asarray(v, np.float64).ravel() for v in value_sets]
+    for v in sets:
+        if not (c.size == z.size == v.size):
+            raise ValueError(f"value_at_highest: lengths differ ({c.size} cells, {z.size} "
+                             f"heights, {v.size} values)")
+    ok = np.isfinite(z) & (c >= 0)
+    outs = []
+    last = None  # (points used, which of them is its cell's highest) of the last value set
+    for v in sets:
+        use = ok & np.isfinite(v)
+        if last is None or not np.array_equal(last[0], use):
+            cu, zu = c[use], z[use]
+            top = np.full(grid.width * grid.height, -np.inf)
+            np.maximum.at(top, cu, zu)
+            last = (use, zu == top[cu])
+        highest = last[1]
+        out = np.full(grid.width * grid.height, -np.inf)
+        np.maximum.at(out, c[use][highest], v[use][highest])
+        out[np.isneginf(out)] = np.nan
+        outs.append(out.reshape(grid.shape).astype(np.float32))
+    return outs
 
 
 # Cells two views must share for match_radiometry to fit one to the other.

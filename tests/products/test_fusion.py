@@ -632,6 +632,29 @@ def test_value_at_highest_takes_each_cells_top_point():
         ortho.value_at_highest(cells, heights[:-1], values, grid)
 
 
+def test_values_at_highest_takes_each_value_sets_top_points():
+    rng = np.random.default_rng(8)
+    grid = dsm_grid.DSMGrid(epsg=32631, x_min=0.0, y_max=6.0, resolution=1.0, width=5, height=6)
+    cells = rng.integers(-1, 30, 400)
+    heights = rng.integers(0, 4, 400).astype(float)  # many ties for the highest
+    heights[::17] = np.nan
+    grey = rng.random(400)
+    green = rng.random(400)
+    green[::5] = np.nan  # another set of points: the cells' tops differ where it has no value
+    got = ortho.values_at_highest(cells, heights, [grey, grey * 2.0, green], grid)
+    for g, v in zip(got, (grey, grey * 2.0, green)):
+        # The rule cell by cell: of the points with a height and a value, those at the highest
+        # height, the largest value.
+        expected = np.full(30, np.nan, np.float32)
+        for c in range(30):
+            at = (cells == c) & np.isfinite(heights) & np.isfinite(v)
+            if at.any():
+                top = heights[at] == heights[at].max()
+                expected[c] = v[at][top].max()
+        np.testing.assert_array_equal(g, expected.reshape(6, 5))
+    assert ortho.values_at_highest(cells, heights, [], grid) == []
+
+
 def test_match_radiometry_fits_gain_and_offset_robustly():
     from satsweep.products.ortho import RADIOMETRY_MIN_CELLS, match_radiometry
 
