@@ -41,7 +41,10 @@ class SparseOptions(Options):
     # tracks first): ties between dates on many more points; 0: none (600 until the ties between
     # dates were registered at a pixel's contrast scale: with that, 1000 took the worst view of
     # the 20-view multi-date stacks from 0.055 to 0.044 px, docs/measurements.md)
-    contrast_threshold: float = 0.02  # SIFT contrast threshold (OpenCV units)
+    contrast_threshold: float = 0.01  # SIFT contrast threshold (OpenCV units); 0.02 before the
+    # fiftieth session: more keypoints match between dates (3 views of one date each, RPCs
+    # like real ones, worst view after the gauge, seeds 0-5: 0.0615 -> 0.0368 px; 7 views of
+    # 10, 28 stacks: 0.0671 -> 0.0557 px at worst; docs/measurements.md)
     ratio: float = 0.8  # Lowe's ratio test: nearest / second-nearest descriptor distance below this
     repair_ratio: float = 0.9  # the ratio of a second matching of the pairs into a group of views
     # that would be dropped as untied (other dates under another sun: too few matches pass

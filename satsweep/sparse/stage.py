@@ -1106,16 +1106,17 @@ def corrected_projections(tied: TiedViews) -> dict[int, np.ndarray]:
 
 
 def tie_point_confirmer(tied: TiedViews, images: Sequence[np.ndarray]):
-    """A function of a point index of ``tied.points``: whether views outside its track see it
-    where the track puts it (:mod:`satsweep.sparse.verify`), with the corrected cameras of
-    ``tied`` and the views' tonemapped ``images``."""
-    from satsweep.sparse.verify import point_evidence
+    """A function of a point index of ``tied.points`` and a depth (m, ``point_evidence``'s
+    ``below_m``: how far under the point the views are searched): whether views outside its
+    track see it where the track puts it (:mod:`satsweep.sparse.verify`), with the corrected
+    cameras of ``tied`` and the views' tonemapped ``images``."""
+    from satsweep.sparse.verify import SEARCH_HALF_M, point_evidence
 
     P = corrected_projections(tied)
 
-    def confirm(i: int) -> bool:
+    def confirm(i: int, below_m: float = SEARCH_HALF_M) -> bool:
         track = tied.obs.view[tied.obs.point == i]
-        return point_evidence(tied.points[i], track, images, P).confirmed
+        return point_evidence(tied.points[i], track, images, P, below_m=below_m).confirmed
 
     return confirm
 

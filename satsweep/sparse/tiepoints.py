@@ -136,7 +136,7 @@ def _duplicates(points: np.ndarray) -> np.ndarray:
 
 def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray, frame, aoi: AOI,
                                options, *, within: AltitudeRange | None = None,
-                               confirm: Callable[[int], bool] | None = None
+                               confirm: Callable[[int, float], bool] | None = None
                                ) -> tuple[AltitudeRange | None, dict]:
     """The altitude range of adjusted tie points (the sparse stage's), and a record of it.
 
@@ -154,10 +154,11 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     (:func:`supported_extremes`), the highest's within ``altitude_support_radius_m`` of it
     horizontally too (:func:`highest_supported_near`: the points of one roof; two-view wrong
     matches share a height by chance anywhere: a 20-view stack's two at 163 and 161 m, 45 m
-    apart, over a town whose top is at 126 m); ``confirm(i)``, when given, is asked about the
-    points above that top, highest first (at most ``MAX_CONFIRM_CANDIDATES``), and the first it
-    accepts raises the top to its altitude (the sparse stage asks the views,
-    :mod:`satsweep.sparse.verify`); both ends widened by ``altitude_margin_below_m`` and
+    apart, over a town whose top is at 126 m); ``confirm(i, below_m)``, when given, is asked
+    about the points above that top, highest first (at most ``MAX_CONFIRM_CANDIDATES``), with
+    ``below_m`` their height above the floor, and the first it accepts raises the top to its
+    altitude (the sparse stage asks the views, :mod:`satsweep.sparse.verify`, down to the
+    floor); both ends widened by ``altitude_margin_below_m`` and
     ``altitude_margin_above_m``, the margins kept ``within`` the prior range when they overlap
     it (an extreme past the prior is kept: :func:`_within_prior`).
 
@@ -237,7 +238,7 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
             # a top held by one set of views stands where the views outside it confirm it
             # (satsweep.sparse.verify; without them, as before)
             i = int(np.flatnonzero(use & (alt == hi))[0])
-            held = confirm is None or confirm(i)
+            held = confirm is None or confirm(i, float(hi - lo))
             record["one_view_set_top"] = {"altitude_m": hi, "confirmed": bool(held)}
             if not held:
                 hi = two
@@ -250,7 +251,7 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
         above = above[np.argsort(-alt[above])][:MAX_CONFIRM_CANDIDATES]
         tried = 0
         for tried, i in enumerate(above, start=1):
-            if confirm(int(i)):
+            if confirm(int(i), float(alt[i] - lo)):
                 hi = float(alt[i])
                 record["confirmed_top_m"] = hi
                 break

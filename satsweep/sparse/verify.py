@@ -24,7 +24,14 @@ A three-view stack has one view outside a two-view track: its top is never raise
 
 A view *contradicts* the point when its patch correlates as well (``min_ncc`` or more) at
 another altitude, at least ``PEAK_EXCLUSION_PX`` pixels of parallax away: it sees the
-reference's patch elsewhere. The point is confirmed when at least ``MIN_OTHER_VIEWS`` views
+reference's patch elsewhere. The heights tried span ``SEARCH_HALF_M`` about the point and, below
+it, down to the range's supported floor (``point_evidence``'s ``below_m``): a wrong match far
+above the roofs has the surface under it out of reach of the search about it, where no view can
+see it elsewhere. Down there a view outside the track contradicts the point where it correlates
+``min_ncc`` or more and does not see the point (under ``min_ncc`` within ``tolerance_m``); a view
+that sees the point keeps its judgement about it, since the many heights below give chance peaks
+to smooth patches (issue-form seed 11 with RPCs over 1000 m: a two-view point 40 m above its roofs,
+confirmed by three views, is contradicted by 12 of 16; docs/measurements.md, fiftieth session). The point is confirmed when at least ``MIN_OTHER_VIEWS`` views
 outside its track confirm it and more than ``CONFIRM_OVER_CONTRADICT`` times as many confirm it
 as contradict it. Without that second condition (more confirming than contradicting, first) a
 19-view stack of 0.3 m, 8-bit multi-date views (``satsweep synth --views 19 --acquisitions 13
@@ -108,18 +115,19 @@ def _parallax_px_per_m(P_ref: np.ndarray, P_v: np.ndarray, X: np.ndarray) -> flo
     return float(np.hypot(*(J[0] @ ray)))
 
 
-def _sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray | None:
-    """Bilinear samples of ``image`` at pixels ``xy`` (K, 2); None when one falls outside."""
+def _sample(image: np.ndarray, xy: np.ndarray, rows: int) -> np.ndarray:
+    """Bilinear samples of ``image`` at pixels ``xy`` (K, 2), as ``rows`` rows of K / rows
+    (OpenCV's remap takes fewer than 32767 of each), NaN where one falls outside."""
     h, w = image.shape[:2]
-    if (xy[:, 0].min() < 0 or xy[:, 1].min() < 0 or xy[:, 0].max() > w - 1
-            or xy[:, 1].max() > h - 1):
-        return None
-    maps = xy.astype(np.float32).reshape(1, -1, 2)
-    return cv2.remap(np.asarray(image, np.float32), maps, None, cv2.INTER_LINEAR).ravel()
+    inside = ((xy[:, 0] >= 0) & (xy[:, 1] >= 0) & (xy[:, 0] <= w - 1) & (xy[:, 1] <= h - 1))
+    maps = xy.astype(np.float32).reshape(rows, -1, 2)
+    values = cv2.remap(np.asarray(image, np.float32), maps, None, cv2.INTER_LINEAR).ravel()
+    return np.where(inside, values, np.nan)
 
 
 def _ncc(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Normalised cross-correlation of rows of ``a`` and ``b`` (H, S); NaN without texture."""
+    """Normalised cross-correlation of rows of ``a`` and ``b`` (H, S); NaN without texture or
+    where a row holds NaN."""
     a = a - a.mean(axis=1, keepdims=True)
     b = b - b.mean(axis=1, keepdims=True)
     sa, sb = np.sqrt((a * a).mean(axis=1)), np.sqrt((b * b).mean(axis=1))
@@ -150,15 +158,19 @@ class PointEvidence:
 
 
 def point_evidence(X: np.ndarray, track_views: Sequence[int], images: Sequence[np.ndarray],
-                   P: dict[int, np.ndarray]) -> PointEvidence:
+                   P: dict[int, np.ndarray], *, below_m: float = SEARCH_HALF_M) -> PointEvidence:
     """The views that confirm and contradict ENU point ``X`` (module docstring).
 
     ``images``: the views' tonemapped images (indexed as the views); ``P``: per view tried, its
     corrected 3x4 camera (ENU -> that image's pixels). The track's first view is the reference.
+    The heights tried reach ``below_m`` metres under the point (SEARCH_HALF_M at least) and
+    SEARCH_HALF_M over it.
     """
     track = tuple(int(t) for t in track_views)
     ref = track[0]
-    heights = np.arange(-SEARCH_HALF_M, SEARCH_HALF_M + 0.5 * SEARCH_STEP_M, SEARCH_STEP_M)
+    depth = max(SEARCH_HALF_M, float(below_m)) if np.isfinite(below_m) else SEARCH_HALF_M
+    heights = np.arange(-SEARCH_STEP_M * np.floor(depth / SEARCH_STEP_M),
+                        SEARCH_HALF_M + 0.5 * SEARCH_STEP_M, SEARCH_STEP_M)
     offsets = _ground_patch(P[ref], X)
     S = offsets.shape[0]
     grid = np.empty((heights.size * S, 3))
@@ -167,15 +179,22 @@ def point_evidence(X: np.ndarray, track_views: Sequence[int], images: Sequence[n
     grid[:, 2] = X[2] + np.repeat(heights, S)
 
     def patches(v: int) -> np.ndarray | None:
+        """(heights, S) samples of view v; a height with a sample outside the image is NaN."""
         xy, depth = project(P[v][None], np.zeros(len(grid), np.int64), grid)
         if not np.all(depth > 0):
             return None
-        values = _sample(images[v], xy)
-        return None if values is None else values.reshape(heights.size, S)
+        values = _sample(images[v], xy, heights.size).reshape(heights.size, S)
+        values[~np.all(np.isfinite(values), axis=1)] = np.nan
+        return values
 
     reference = patches(ref)
-    if reference is None:
+    at_point = int(np.argmin(np.abs(heights)))
+    if reference is None or not np.isfinite(reference[at_point]).all():
         return PointEvidence(track=track, confirming=(), contradicting=())
+    # The heights within SEARCH_HALF_M of the point (the ones each view is judged on), and
+    # those within TOLERANCE_M (a view's correlation there: how well it sees the point).
+    about = np.abs(heights) <= SEARCH_HALF_M + 1e-9
+    at = np.abs(heights) <= TOLERANCE_M + 1e-9
     confirming, contradicting = [], []
     for v in sorted(P):
         if v == ref:
@@ -186,13 +205,25 @@ def point_evidence(X: np.ndarray, track_views: Sequence[int], images: Sequence[n
         score = _ncc(reference, other)
         if not np.isfinite(score).any():
             continue
-        best = int(np.nanargmax(score))
-        if score[best] < MIN_NCC:
+        near = np.where(about, score, np.nan)
+        if np.isfinite(near).any():
+            best = int(np.nanargmax(near))
+            if score[best] >= MIN_NCC:
+                if abs(heights[best]) <= TOLERANCE_M:
+                    confirming.append(v)
+                    continue
+                if (v not in track and abs(heights[best]) * _parallax_px_per_m(P[ref], P[v], X)
+                        >= PEAK_EXCLUSION_PX):
+                    contradicting.append(v)
+                    continue
+        # Deeper (below_m): a view outside the track that does not see the patch at the point
+        # (under MIN_NCC within TOLERANCE_M) and sees it down there contradicts; one that sees it
+        # at the point keeps its judgement above, whatever chance peak the deeper heights hold.
+        deep = np.where(about, np.nan, score)
+        if v in track or not np.isfinite(deep).any() or np.nanmax(deep) < MIN_NCC:
             continue
-        if abs(heights[best]) <= TOLERANCE_M:
-            confirming.append(v)
-        elif (v not in track
-              and abs(heights[best]) * _parallax_px_per_m(P[ref], P[v], X) >= PEAK_EXCLUSION_PX):
+        seen_at_point = np.isfinite(score[at]).any() and np.nanmax(score[at]) >= MIN_NCC
+        if not seen_at_point:
             contradicting.append(v)
     return PointEvidence(track=track, confirming=tuple(confirming),
                          contradicting=tuple(contradicting))

@@ -224,7 +224,7 @@ def test_a_top_of_one_set_of_views_needs_the_views_confirmation():
     o = SparseOptions()
     asked = []
 
-    def deny(i):
+    def deny(i, below_m):
         asked.append(i)
         return False
 
@@ -234,7 +234,7 @@ def test_a_top_of_one_set_of_views_needs_the_views_confirmation():
     assert asked[0] == len(alts) - 2  # the pattern's top point, asked first
     assert record["one_view_set_top"] == {"altitude_m": 379.0, "confirmed": False}
     rng, record = altitude_range_from_points(points, _observed(tracks), err, _Frame, aoi, o,
-                                             confirm=lambda i: True)
+                                             confirm=lambda i, below_m: True)
     assert record["supported_extremes_m"][1] == 379.0
     # Without views to ask (confirm None): as before.
     rng, record = altitude_range_from_points(points, _observed(tracks), err, _Frame, aoi, o)
@@ -242,13 +242,13 @@ def test_a_top_of_one_set_of_views_needs_the_views_confirmation():
     # The roof held by one pair too, nothing confirmed: the ground's top (two sets of views).
     roof_one_pair = [t if i != n_ground + 1 else [0, 1] for i, t in enumerate(tracks)]
     rng, record = altitude_range_from_points(points, _observed(roof_one_pair), err, _Frame,
-                                             aoi, o, confirm=lambda i: False)
+                                             aoi, o, confirm=lambda i, below_m: False)
     assert record["supported_extremes_m"][1] == alts[n_ground - 1]
     # Fewer views tied: one pair's support is enough, as before (a small stack's roofs).
     fewer = [[v for v in t if v < m - 2] for t in tracks]
     fewer = [t if len(t) >= 2 else [0, 1] for t in fewer]
     rng, record = altitude_range_from_points(points, _observed(fewer), err, _Frame, aoi, o,
-                                             confirm=lambda i: False)
+                                             confirm=lambda i, below_m: False)
     assert record["supported_extremes_m"][1] == 379.0
 
 

@@ -17,6 +17,7 @@ from satsweep.sparse.stage import corrected_projections, sparse_stage, tie_point
 from satsweep.sparse.verify import (
     CONFIRM_OVER_CONTRADICT,
     MIN_OTHER_VIEWS,
+    SEARCH_HALF_M,
     PointEvidence,
     _parallax_px_per_m,
     point_evidence,
@@ -97,6 +98,33 @@ def test_right_points_are_confirmed_and_moved_ones_are_not(six_views):
             assert not evidence.confirmed
 
 
+# A wrong match far above the surface (m of altitude along its reference's line of sight), as
+# the two-view point 40 m over issue-form seed 11's roofs that three views confirmed by chance
+# (docs/measurements.md, fiftieth session): the surface under it lies outside SEARCH_HALF_M.
+FAR_MOVE_M = 30.0
+
+
+def test_a_point_far_above_the_surface_is_contradicted_where_the_search_reaches_it(six_views):
+    """point_evidence with ``below_m`` reaching the surface under a point moved FAR_MOVE_M up:
+    views outside its track correlate best down there and contradict it, which the search of
+    SEARCH_HALF_M about the point cannot see; none of those points is confirmed."""
+    scene, result, images = six_views
+    tied = result.tied
+    P = corrected_projections(tied)
+    near, deep = 0, 0
+    right = _right_points(scene, result)
+    for i in right:
+        track = tied.obs.view[tied.obs.point == i]
+        moved = _moved(P[int(track[0])], tied.points[i], FAR_MOVE_M)
+        narrow = point_evidence(moved, track, images, P)
+        reaching = point_evidence(moved, track, images, P, below_m=FAR_MOVE_M + SEARCH_HALF_M)
+        assert not reaching.confirmed
+        near += len(narrow.contradicting)
+        deep += len(reaching.contradicting)
+    # Most moved points are contradicted by some view when the search reaches the surface.
+    assert deep >= 0.5 * right.size and deep > near, (deep, near, right.size)
+
+
 def test_a_lone_point_above_the_supported_top_raises_it_only_when_confirmed(six_views):
     """altitude_range_from_points: the highest point is moved up along its reference's line of
     sight, alone above the others: it does not raise the top; a confirmer that accepts
@@ -114,7 +142,7 @@ def test_a_lone_point_above_the_supported_top_raises_it_only_when_confirmed(six_
     plain, _ = altitude_range_from_points(*args)
     checked, record = altitude_range_from_points(*args, confirm=tie_point_confirmer(
         _replace_points(tied, points), images))
-    accepted, record_all = altitude_range_from_points(*args, confirm=lambda i: True)
+    accepted, record_all = altitude_range_from_points(*args, confirm=lambda i, below_m: True)
     assert checked.max == pytest.approx(plain.max)
     assert record["unsupported_points_tried"] >= 1 and "confirmed_top_m" not in record
     assert accepted.max > plain.max + 10.0 and record_all["confirmed_top_m"] > plain.max
