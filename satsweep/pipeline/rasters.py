@@ -147,12 +147,12 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         visibility_check_heights,
     )
     from satsweep.products.ortho import match_radiometry, values_at_highest
-    from satsweep.threads import map_in_threads
     from satsweep.products.points import (
         height_map_to_enu,
         map_view_points,
         spread_to_footprint_edges,
     )
+    from satsweep.threads import map_in_threads
 
     d = config.dsm
     with rep.stage("dsm"):

@@ -30,8 +30,11 @@ above the roofs has the surface under it out of reach of the search about it, wh
 see it elsewhere. Down there a view outside the track contradicts the point where it correlates
 ``min_ncc`` or more and does not see the point (under ``min_ncc`` within ``tolerance_m``); a view
 that sees the point keeps its judgement about it, since the many heights below give chance peaks
-to smooth patches (issue-form seed 11 with RPCs over 1000 m: a two-view point 40 m above its roofs,
-confirmed by three views, is contradicted by 12 of 16; docs/measurements.md, fiftieth session). The point is confirmed when at least ``MIN_OTHER_VIEWS`` views
+to smooth patches (issue-form seed 11 with RPCs over 1000 m: a two-view point 40 m above its
+roofs, confirmed by three views, is contradicted by 12 of 16; docs/measurements.md, fiftieth
+session).
+
+The point is confirmed when at least ``MIN_OTHER_VIEWS`` views
 outside its track confirm it and more than ``CONFIRM_OVER_CONTRADICT`` times as many confirm it
 as contradict it. Without that second condition (more confirming than contradicting, first) a
 19-view stack of 0.3 m, 8-bit multi-date views (``satsweep synth --views 19 --acquisitions 13
@@ -168,8 +171,8 @@ def point_evidence(X: np.ndarray, track_views: Sequence[int], images: Sequence[n
     """
     track = tuple(int(t) for t in track_views)
     ref = track[0]
-    depth = max(SEARCH_HALF_M, float(below_m)) if np.isfinite(below_m) else SEARCH_HALF_M
-    heights = np.arange(-SEARCH_STEP_M * np.floor(depth / SEARCH_STEP_M),
+    reach = max(SEARCH_HALF_M, float(below_m)) if np.isfinite(below_m) else SEARCH_HALF_M
+    heights = np.arange(-SEARCH_STEP_M * np.floor(reach / SEARCH_STEP_M),
                         SEARCH_HALF_M + 0.5 * SEARCH_STEP_M, SEARCH_STEP_M)
     offsets = _ground_patch(P[ref], X)
     S = offsets.shape[0]
