@@ -216,6 +216,8 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             centres = [tuple(a[keep.ravel()[c[3]]] for a in c)
                        for c, keep in zip(centres, checked)]
         to_map = _enu_to_map(cameras.frame, grid.epsg, centres)
+        # The green crowns' rule reads the vegetation index at each cell's top (consensus only).
+        green_images = vegetation_images if fusion == "consensus" else None
 
         def view_rasters(k: int) -> _ViewRasters:
             """Reference view k's rasters and cloud (each view's depend on its own maps only:
@@ -257,16 +259,12 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             if pv.confidence is not None:
                 out.confidence = rasterise_max_cells(cells, np.ravel(pv.confidence)[spix], grid)
             # The grey level (orthophoto) and the vegetation index of each cell's highest point.
-            values = []
-            if ortho_images is not None:
-                values.append(np.ravel(ortho_images[pv.index])[spix])
-            if vegetation_images is not None and fusion == "consensus":
-                values.append(np.ravel(vegetation_images[pv.index])[spix])
-            at_top = values_at_highest(cells, sz, values, grid)
-            if ortho_images is not None:
-                out.ortho = at_top.pop(0)
-            if vegetation_images is not None and fusion == "consensus":
-                out.green = at_top.pop(0)
+            wanted = {name: np.ravel(image[pv.index])[spix]
+                      for name, image in (("ortho", ortho_images), ("green", green_images))
+                      if image is not None}
+            for name, at_top in zip(wanted, values_at_highest(cells, sz, list(wanted.values()),
+                                                              grid)):
+                setattr(out, name, at_top)
             if not config.reconstruct.write_cloud:
                 return out
             gray = np.clip(np.nan_to_num(images[pv.index]) * 255.0, 0, 255).astype(np.uint8)

@@ -30,17 +30,18 @@ def values_at_highest(cells: np.ndarray, heights, value_sets, grid: DSMGrid) -> 
                              f"heights, {v.size} values)")
     ok = np.isfinite(z) & (c >= 0)
     outs = []
-    last = None  # (points used, which of them is its cell's highest) of the last value set
+    last = None  # (points used, the cells of those that are their cell's highest, and which)
     for v in sets:
         use = ok & np.isfinite(v)
         if last is None or not np.array_equal(last[0], use):
             cu, zu = c[use], z[use]
             top = np.full(grid.width * grid.height, -np.inf)
             np.maximum.at(top, cu, zu)
-            last = (use, zu == top[cu])
-        highest = last[1]
+            highest = zu == top[cu]
+            last = (use, cu[highest], np.flatnonzero(use)[highest])
+        _, cells_top, points_top = last
         out = np.full(grid.width * grid.height, -np.inf)
-        np.maximum.at(out, c[use][highest], v[use][highest])
+        np.maximum.at(out, cells_top, v[points_top])
         out[np.isneginf(out)] = np.nan
         outs.append(out.reshape(grid.shape).astype(np.float32))
     return outs
