@@ -52,7 +52,7 @@ class _ViewRasters:
 
     rule: str  # DSMOptions.view_raster_for's
     raster: np.ndarray | None = None  # its heights
-    confidence: np.ndarray | None = None  # its confidence (None: the view has none)
+    confidence: np.ndarray | None = None  # its confidence (the largest of its points' per cell)
     ortho: np.ndarray | None = None  # the grey level of each cell's highest point
     green: np.ndarray | None = None  # the vegetation index of each cell's highest point
     cloud: tuple | None = None  # (x, y, z, colours) of its points on the grid
@@ -240,8 +240,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                     (x, y, z, pixel), (sx, sy, sz, spix), small.ravel(), d.subsamples,
                     FOOTPRINT_EDGE_PX)
             top = small if keeps_tops else None
-            if (rule == "upper_quartile" and d.edge_min_confidence > 0.0
-                    and pv.confidence is not None):
+            if rule == "upper_quartile" and d.edge_min_confidence > 0.0:
                 # Pixels finer than the cells: those on the high side of a step that matched
                 # poorly are edges and facades at the roof's height (points in the air).
                 drop = dropped_edge_pixels(height, pv.confidence, d.edge_min_confidence,
@@ -256,8 +255,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                     cells, sz, grid, top=None if top is None else top.ravel()[spix])
             else:
                 out.raster = rasterise_max_cells(cells, sz, grid)
-            if pv.confidence is not None:
-                out.confidence = rasterise_max_cells(cells, np.ravel(pv.confidence)[spix], grid)
+            out.confidence = rasterise_max_cells(cells, np.ravel(pv.confidence)[spix], grid)
             # The grey level (orthophoto) and the vegetation index of each cell's highest point.
             wanted = {name: np.ravel(image[pv.index])[spix]
                       for name, image in (("ortho", ortho_images), ("green", green_images))
@@ -279,10 +277,12 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                               name="fusion")
         rasters = [v.raster for v in done]
         view_rules = [v.rule for v in done]
-        conf_rasters = [v.confidence for v in done if v.confidence is not None]
-        orthos = [v.ortho for v in done if v.ortho is not None]
-        greens = [v.green for v in done if v.green is not None]
-        clouds = [v.cloud for v in done if v.cloud is not None]
+        # One per view, in the views' order (zipped with the consensus's members and offsets):
+        # each view has every one that was asked for, none those that were not.
+        conf_rasters = [v.confidence for v in done]
+        orthos = [v.ortho for v in done] if ortho_images is not None else []
+        greens = [v.green for v in done] if green_images is not None else []
+        clouds = [v.cloud for v in done] if config.reconstruct.write_cloud else []
         offsets_m = leaf_cells = hole_cells = green_cells = None
         if fusion == "consensus":
             view_sets = [(pv.index, *pv.source_indices) for pv in per_view]
