@@ -15,6 +15,7 @@
  *                     number of fields and the slot of each (wta.cl);
  *   SWEEP_VEC, WTA_VEC, GF_COLS_VEC  pixels per work-item of the vector kernels (sweep.cl, wta.cl,
  *                     guided_filter.cl);
+ *   SWEEP_BAND_PLANES  planes per bit of the split sweep kernels' band sets (sweep.cl);
  *   SGM_MAX_LABELS, SGM_SCAN_GUARD  most labels of an SGM volume, +inf guards of sgm_scan
  *                     (sgm.cl). */
 #if !defined(SATSWEEP_INVALID) || !defined(WTA_BIG) || !defined(WTA_NSTATE)
@@ -24,8 +25,8 @@
     || !defined(WTA_S_M2) || !defined(WTA_S_PREV) || !defined(WTA_S_PREV2) || !defined(WTA_S_MAX)
 #error "the slots WTA_S_M1 .. WTA_S_MAX must be defined (satsweep/opencl/constants.py)"
 #endif
-#if !defined(SWEEP_VEC) || !defined(WTA_VEC) || !defined(GF_COLS_VEC)
-#error "SWEEP_VEC, WTA_VEC and GF_COLS_VEC must be defined (satsweep/opencl/constants.py)"
+#if !defined(SWEEP_VEC) || !defined(WTA_VEC) || !defined(GF_COLS_VEC) || !defined(SWEEP_BAND_PLANES)
+#error "SWEEP_VEC, WTA_VEC, GF_COLS_VEC and SWEEP_BAND_PLANES must be defined (satsweep/opencl/constants.py)"
 #endif
 #if !defined(SGM_MAX_LABELS) || !defined(SGM_SCAN_GUARD)
 #error "SGM_MAX_LABELS and SGM_SCAN_GUARD must be defined (satsweep/opencl/constants.py)"

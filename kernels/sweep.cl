@@ -307,6 +307,14 @@ inline void warp_position(__global const float *img, const int sw, const int sh,
     seen[k] = (uchar)(ok && u >= 0.0f && u <= (float)(sw - 1) && v >= 0.0f && v <= (float)(sh - 1));
 }
 
+/* Whether group g's band set (band_words 32-bit words per group; bit k: planes
+ * [k SWEEP_BAND_PLANES, (k + 1) SWEEP_BAND_PLANES) of the whole sweep) holds plane p. */
+inline int in_band(__global const uint *bands, const int g, const int band_words, const int p)
+{
+    const int k = p / SWEEP_BAND_PLANES;
+    return (int)((bands[(size_t)g * band_words + (k >> 5)] >> (k & 31)) & 1u);
+}
+
 /* sweep_warp handles SWEEP_VEC (8) adjacent positions of a row per work-item in vector types
  * (the homography and the bilinear weights in float8; the taps are gathered lane by lane), with
  * the same float32 operations as warp_position, so the samples are the same values. */
@@ -330,7 +338,8 @@ __kernel void sweep_warp(__global const float *src_img, __global const long *src
                          __global const int *src_size, __global const float *homography,
                          const int tw, const int th, const int tx0, const int ty0,
                          const int ref_w, const int ref_h, const int plane0,
-                         __global const int *warp_window,
+                         __global const int *warp_window, __global const uint *warp_bands,
+                         const int band_words, const int band_base,
                          __global float *warped, __global uchar *seen)
 {
     const int pw = tw + 2 * CENSUS_RX, ph = th + 2 * CENSUS_RY;
@@ -342,6 +351,7 @@ __kernel void sweep_warp(__global const float *src_img, __global const long *src
     const int g = py * ((pw + SWEEP_VEC - 1) / SWEEP_VEC) + (int)get_global_id(0);
     const int first = warp_window[2 * g];
     if ((uint)(plane0 + b - first) >= (uint)(warp_window[2 * g + 1] - first)) return;
+    if (band_words > 0 && !in_band(warp_bands, g, band_words, band_base + plane0 + b)) return;
     __global const float *H = homography + ((plane0 + b) * NSRC + s) * 9;
     __global const float *img = src_img + src_offset[s];
     const int ry = clamp_index(ty0 - CENSUS_RY + py, ref_h) - ty0;
@@ -430,7 +440,8 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const uch
                                 const int tw, const int th, const int tx0, const int ty0,
                                 const int ref_w, const int ref_h, const int slot0,
                                 const int plane0, __global const int *cost_window,
-                                __global float *cost)
+                                __global const uint *cost_bands, const int band_words,
+                                const int band_base, __global float *cost)
 {
     const int x0 = get_global_id(0) * SWEEP_VEC, y = get_global_id(1), b = get_global_id(2);
     if (x0 >= tw || y >= th) return;
@@ -438,7 +449,8 @@ __kernel void sweep_warped_cost(__global const float *warped, __global const uch
     /* planes [first, end) of this group of pixels (plane windows): others get the worst cost */
     const int g = y * ((tw + SWEEP_VEC - 1) / SWEEP_VEC) + (int)get_global_id(0);
     const int first = cost_window[2 * g];
-    if ((uint)(plane0 + b - first) >= (uint)(cost_window[2 * g + 1] - first)) {
+    if ((uint)(plane0 + b - first) >= (uint)(cost_window[2 * g + 1] - first)
+        || (band_words > 0 && !in_band(cost_bands, g, band_words, band_base + plane0 + b))) {
         for (int i = 0; x0 + i < tw && i < SWEEP_VEC; ++i) out[i] = INVALID_COST;
         return;
     }

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from satsweep.dense.sweep import PlaneWindows
+from satsweep.dense.sweep import BAND_PLANES, PlaneWindows, band_words
 
 # Fewest planes, and smallest image side (pixels), for which a coarse pass is worth its cost.
 MIN_PLANES = 24
@@ -73,9 +73,25 @@ def fill_from_nearest(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     return np.asarray(values)[known][label - 1]
 
 
+def _bands(index: np.ndarray, n_planes: int, halo: np.ndarray, margin: int) -> np.ndarray:
+    """(words, H, W) uint32: each pixel's band set, bit k set where some index i of ``index``
+    within the ``halo`` structuring element has floor(i) - margin .. ceil(i) + margin (within
+    the planes) meet planes [k BAND_PLANES, (k + 1) BAND_PLANES)."""
+    import cv2  # noqa: PLC0415
+
+    lo = (np.clip(np.floor(index) - margin, 0, n_planes - 1) // BAND_PLANES).astype(np.int32)
+    hi = (np.clip(np.ceil(index) + margin, 0, n_planes - 1) // BAND_PLANES).astype(np.int32)
+    out = np.zeros((band_words(n_planes),) + index.shape, np.uint32)
+    for k in range(int(lo.min()), int(hi.max()) + 1):
+        near = ((lo <= k) & (hi >= k)).view(np.uint8)
+        held = cv2.dilate(near, halo, borderType=cv2.BORDER_REPLICATE)
+        out[k >> 5] |= held.astype(np.uint32) << np.uint32(k & 31)
+    return out
+
+
 def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: int,
-                  margin: int, max_fraction: float,
-                  pixel_fallback: bool = False) -> PlaneWindows | None:
+                  margin: int, max_fraction: float, pixel_fallback: bool = False,
+                  bands: bool = False) -> PlaneWindows | None:
     """Per-block plane windows from a full-resolution map of (fractional) plane indices.
 
     ``plane_index``: (H, W), NaN where the coarse pass found nothing (filled from the nearest
@@ -86,7 +102,10 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
     ``sgm.sgm_refine``, so that the pipeline builds its program ahead). When the blocks would
     sweep more than ``max_fraction`` of the planes on average, windows of one pixel each if
     ``pixel_fallback`` and they sweep no more; else (or when nothing is known) None: sweep
-    every plane.
+    every plane. With ``bands``, windows of one pixel also get their band sets
+    (``PlaneWindows.bands``): the bands of BAND_PLANES planes that hold floor(i) - margin ..
+    ceil(i) + margin of an index i within the halo (within the planes); the planes between a
+    roof's and the ground's indices beside it are left out.
     """
     import cv2  # noqa: PLC0415
 
@@ -115,5 +134,7 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
         hi = np.clip(np.ceil(hi) + margin, 0, n_planes - 1).astype(np.int64)
         count = hi - lo + 1
         if count.mean() <= max_fraction * n_planes:
-            return PlaneWindows(block=side, first=lo, n_planes=int(count.max()), count=count)
+            return PlaneWindows(block=side, first=lo, n_planes=int(count.max()), count=count,
+                                bands=_bands(idx, n_planes, kernel, margin)
+                                if bands and side == 1 else None)
     return None

@@ -164,7 +164,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
                                    block=sweep.window_block_px, halo=sweep.window_halo_px,
                                    margin=sweep.window_margin_planes,
                                    max_fraction=sweep.window_max_fraction,
-                                   pixel_fallback=sweep.window_pixel_fallback)
+                                   pixel_fallback=sweep.window_pixel_fallback,
+                                   bands=sweep.window_bands)
         tile_ref, r = ref[ty0:ty1, tx0:tx1], None
         if with_wta:
             r, volume = engine.height_map_with_cost_volume(tile_ref, tile_srcs, tile_hom, hts,
@@ -178,7 +179,7 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
         tile_px = (ty1 - ty0) * (tx1 - tx0)
         total += tile_px * hts.size
         swept += tile_px * hts.size if planes is None \
-            else int(planes.counts((ty1 - ty0, tx1 - tx0)).sum())
+            else int(planes.swept((ty1 - ty0, tx1 - tx0)).sum())
         initial = None if not with_wta else \
             np.clip(np.rint(r.plane_index), 0, hts.size - 1).astype(np.int32)
         with volume:  # a device volume is freed here

@@ -39,6 +39,8 @@ SWEEP_VEC = 8
 WTA_VEC = 8
 # Columns per work-item of guided_filter.cl's column kernels.
 GF_COLS_VEC = 8
+# Planes per bit of the band sets of sweep.cl's split kernels (satsweep.dense.sweep.group_bands).
+SWEEP_BAND_PLANES = 4
 
 # -- semi-global matching (sgm.cl) --------------------------------------------------------------
 # Most labels (planes) of an SGM volume: sgm_path's work-group form keeps one float per label in
@@ -57,6 +59,7 @@ SHARED_DEFINES: Mapping[str, object] = MappingProxyType({
     "SWEEP_VEC": SWEEP_VEC,
     "WTA_VEC": WTA_VEC,
     "GF_COLS_VEC": GF_COLS_VEC,
+    "SWEEP_BAND_PLANES": SWEEP_BAND_PLANES,
     "SGM_MAX_LABELS": SGM_MAX_LABELS,
     "SGM_SCAN_GUARD": SGM_SCAN_GUARD,
 })

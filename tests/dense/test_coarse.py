@@ -140,3 +140,39 @@ def test_fill_from_nearly_the_nearest_known_pixel():
                                                   ((20, 300), 64, False)])
 def test_worth_a_coarse_pass(shape, planes, worth):
     assert coarse.worth_a_coarse_pass(shape, planes) is worth
+
+
+def test_pixel_bands_hold_the_coarse_planes_within_the_halo():
+    """block = 1: bit k of a pixel's bands is set exactly when some coarse index i within
+    ``halo`` px of it (the image's pixels only) has floor(i) - margin .. ceil(i) + margin
+    (within the planes) meet planes [4 k, 4 k + 4) (brute force); every band set meets the
+    pixel's window, and a step's two plateaus leave the planes between them out."""
+    from satsweep.dense.sweep import BAND_PLANES
+
+    rng = np.random.default_rng(3)
+    idx = rng.integers(0, 12, (17, 23)).astype(np.float64) * 4.0
+    idx[5:9, 3:20] += rng.uniform(0.0, 1.0, (4, 17))  # fractional indices
+    idx[:, 15:] += 70.0  # a step: no index between ~48 and 70 next to it
+    n, halo, margin = 130, 2, 3
+    win = coarse.plane_windows(idx, n, block=1, halo=halo, margin=margin, max_fraction=1.0,
+                               bands=True)
+    assert win is not None and win.bands is not None
+    lo = np.clip(np.floor(idx) - margin, 0, n - 1) // BAND_PLANES
+    hi = np.clip(np.ceil(idx) + margin, 0, n - 1) // BAND_PLANES
+    h, w = idx.shape
+    for y in range(h):
+        for x in range(w):
+            ys, xs = slice(max(y - halo, 0), y + halo + 1), slice(max(x - halo, 0), x + halo + 1)
+            want = set()
+            for a, b in zip(lo[ys, xs].ravel(), hi[ys, xs].ravel()):
+                want.update(range(int(a), int(b) + 1))
+            got = {k for k in range(-(-n // BAND_PLANES))
+                   if (int(win.bands[k >> 5, y, x]) >> (k & 31)) & 1}
+            assert got == want, (y, x)
+            first, count = int(win.first[y, x]), int(win.count[y, x])
+            assert all(first < BAND_PLANES * (k + 1) and BAND_PLANES * k < first + count
+                       for k in got)
+    # next to the step a window spans both plateaus, its bands the planes near each only
+    k_mid = 60 // BAND_PLANES
+    assert win.first[10, 14] < 60 < win.first[10, 14] + win.count[10, 14]
+    assert not (int(win.bands[k_mid >> 5, 10, 14]) >> (k_mid & 31)) & 1

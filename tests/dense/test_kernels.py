@@ -119,16 +119,17 @@ def _sweep_dev(dev, ref_img, srcs, hom, rx, ry, k, mode="warped_census", wg=(16,
         every = (np.zeros((th, tw), np.int64), np.full((th, tw), n_planes, np.int64))
         warp_window, cost_window = (_buf(dev, a) for a in group_windows(
             SweepOptions(census_window=(2 * ry + 1, 2 * rx + 1)), *every))
+        no_bands = _buf(dev, np.zeros(1, np.uint32))  # band_words 0: the windows alone
         for p0 in range(0, n_planes, chunk):
             nb = min(chunk, n_planes - p0)
             launch(cl.Kernel(prg, "sweep_warp"), dev.queue, (-(-pw // SWEEP_VEC), ph, nb * n_src),
                    *bufs[:4], i32(tw), i32(th), i32(tx0), i32(ty0), i32(w), i32(h),
-                   i32(p0), warp_window, warped, seen)
+                   i32(p0), warp_window, no_bands, i32(0), i32(0), warped, seen)
             launch(cl.Kernel(prg, "sweep_warped_cost"), dev.queue, (-(-tw // SWEEP_VEC), th, nb),
                    warped, seen,
                    bufs[4], bufs[5], i32(tw), i32(th), i32(tx0),
                    i32(ty0), i32(w), i32(h), i32(p0), i32(p0),
-                   cost_window, out)
+                   cost_window, no_bands, i32(0), i32(0), out)
     elif mode == "warped_census":
         data = source_image(srcs)
         gx = -(-tw // wg[0]) * wg[0]

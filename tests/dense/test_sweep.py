@@ -17,6 +17,8 @@ from satsweep.dense.sweep import (
     PlaneWindows,
     SweepOptions,
     census_ring_defines,
+    BAND_PLANES,
+    group_bands,
     group_windows,
     lr_consistent,
     plan_tiles,
@@ -664,6 +666,53 @@ def test_group_windows_match_brute_force(window, shape, filt):
     np.testing.assert_array_equal(warp, want_warp)
 
 
+def _band_reference(bands: np.ndarray, rx: int, ry: int, reach: int, vec: int):
+    """group_bands by brute force, as _window_reference with sets of bits for windows."""
+    words, th, tw = bands.shape
+    bits = lambda y, x: {k for k in range(32 * words)  # noqa: E731
+                         if (int(bands[k >> 5, y, x]) >> (k & 31)) & 1}
+    pixels = [(y, x) for y in range(th) for x in range(tw)]
+    need = {(y, x): set().union(*(bits(v, u) for v, u in pixels
+                                  if abs(v - y) <= reach and abs(u - x) <= reach))
+            for y, x in pixels}
+    group, cost = {}, []
+    for y in range(th):
+        for g in range(0, tw, vec):
+            s = set().union(*(need[y, x] for x in range(g, min(g + vec, tw))))
+            cost.append(s)
+            group.update({(y, x): s for x in range(g, min(g + vec, tw))})
+    pw, ph = tw + 2 * rx, th + 2 * ry
+    warp = []
+    for py in range(ph):
+        for g in range(0, pw, vec):
+            warp.append(set().union(*(group[y, x] for y, x in pixels
+                                      if any(abs(y + ry - py) <= ry and abs(x + rx - px) <= rx
+                                             for px in range(g, min(g + vec, pw))))))
+
+    def packed(sets):
+        out = np.zeros((len(sets), words), np.uint32)
+        for i, s in enumerate(sets):
+            for k in s:
+                out[i, k >> 5] |= np.uint32(1 << (k & 31))
+        return out.ravel()
+    return packed(warp), packed(cost)
+
+
+@pytest.mark.parametrize("window,shape,filt", [((5, 5), (7, 19), {"gf_radius": 0}),
+                                               ((3, 7), (5, 16), {"gf_radius": 1}),
+                                               ((1, 3), (4, 9), {"cost_filter": "box"})])
+def test_group_bands_match_brute_force(window, shape, filt):
+    rng = np.random.default_rng(sum(shape) + 1)
+    bands = (rng.random((2,) + shape) < 0.05) * rng.integers(1, 2**32, (2,) + shape)
+    bands = bands.astype(np.uint32)
+    opts = SweepOptions(census_window=window, **filt)
+    rx, ry = opts.census_radii
+    warp, cost = group_bands(opts, bands)
+    want_warp, want_cost = _band_reference(bands, rx, ry, opts.tile_margin, 8)
+    np.testing.assert_array_equal(cost, want_cost)
+    np.testing.assert_array_equal(warp, want_warp)
+
+
 # The guided filter's float32 box sums run over the whole tile: with windows, the costs of planes
 # outside a pixel's reach enter them as the worst cost instead of their own, which changes the
 # rounding of its neighbours' sums (not their terms): 8e-6 bits of cost measured (costs up to
@@ -710,6 +759,53 @@ def test_pixel_windows_hold_the_full_sweeps_costs_of_each_pixels_planes(cl_devic
     with pytest.raises(InputError, match="plane_windows"):
         engine.height_map_with_cost_volume(ref_img, [src], hom, heights, windows=windows,
                                            on_device=True)
+
+
+@pytest.mark.parametrize("budget,filt", [
+    (None, {"gf_radius": 0}),
+    (700_000, {"cost_filter": "box", "ad_weight": 0.0, "grad_weight": 0.0})])
+def test_pixel_bands_hold_the_full_sweeps_costs_of_their_planes(cl_device, budget, filt):
+    """Windows of one pixel with bands (``PlaneWindows.bands``): in each pixel's window the
+    planes of its bands hold the full sweep's costs bit for bit (without a filter, and with a
+    box filter of integer costs: the split kernels compute every plane a band within the
+    filter's reach holds); without a filter the others hold either those costs (a plane of
+    another pixel's bands in the same group of 8) or the worst cost, in one tile or several."""
+    ref_img, src, heights, hom = _rolled_pair(4, (70, 90), 3, 0.4, 15.0, 40)
+    opts = SweepOptions(memory_budget_bytes=budget, **filt)
+    engine = PlaneSweep(cl_device, opts)
+    with PlaneSweep(cl_device, opts.replace(memory_budget_bytes=None)).cost_volume_on_device(
+            ref_img, [src], hom, heights) as full:
+        whole = full.data.get()  # (H, W, planes)
+    rng = np.random.default_rng(6)
+    count = rng.integers(4, 20, ref_img.shape)
+    first = rng.integers(0, heights.size - count + 1)
+    n_bands = -(-heights.size // BAND_PLANES)
+    bands = np.zeros((1,) + ref_img.shape, np.uint32)
+    held = np.zeros(ref_img.shape + (heights.size,), bool)
+    for (y, x), c in np.ndenumerate(count):
+        ks = np.arange(first[y, x] // BAND_PLANES, (first[y, x] + c - 1) // BAND_PLANES + 1)
+        ks = ks[rng.random(ks.size) < 0.5] if ks.size > 1 else ks
+        ks = ks if ks.size else np.array([first[y, x] // BAND_PLANES])
+        for k in ks:
+            bands[0, y, x] |= np.uint32(1 << int(k))
+            held[y, x, BAND_PLANES * k:BAND_PLANES * (k + 1)] = True
+    assert n_bands <= 32
+    windows = PlaneWindows(block=1, first=first, n_planes=int(count.max()), count=count,
+                           bands=bands)
+    with engine.cost_volume_on_device(ref_img, [src], hom, heights, windows=windows) as part:
+        flat = part.data.get()
+    assert (engine.last_split.n_tiles > 1) == (budget is not None)
+    skipped = 0
+    for (y, x), c in np.ndenumerate(count):
+        at, f = int(part.label_offset[y, x]), int(first[y, x])
+        got, want, mine = flat[at:at + c], whole[y, x, f:f + c], held[y, x, f:f + c]
+        assert mine.any()
+        np.testing.assert_array_equal(got[mine], want[mine])
+        if opts.slice_filter == "none":
+            worst = got[~mine] == np.float32(opts.max_cost)
+            np.testing.assert_array_equal(got[~mine][~worst], want[~mine][~worst])
+            skipped += int(worst.sum())
+    assert opts.slice_filter != "none" or skipped > 0
 
 
 def test_volume_without_winner_take_all(cl_device):
