@@ -283,16 +283,20 @@ void sweep_census_cost(__global const float *src_img, __global const long *src_o
  *   [g SWEEP_VEC, (g + 1) SWEEP_VEC) (clipped to pw) of row py, if plane plane0 + b is in that
  *   group's window: warp_window[2 (py ceil(pw / SWEEP_VEC) + g) + {0, 1}] = [first, end) planes
  *   (counted like plane0; [0, planes) warps every plane; plane windows of a coarse-to-fine
- *   sweep skip the rest, whose positions keep what they held).
+ *   sweep skip the rest, whose positions keep what they held), and, with band_words > 0, in that
+ *   group's band set warp_bands[group band_words + {0 .. band_words - 1}] (bit k: planes
+ *   [k SWEEP_BAND_PLANES, (k + 1) SWEEP_BAND_PLANES), counted from band_base: plane
+ *   band_base + plane0 + b; band_words = 0: the window alone, warp_bands not read).
  * sweep_warped_cost: the census of the warped sources (sweep_warp's output for the same planes,
  *   with its validity) against the reference codes, plus the AD and gradient terms, aggregated
  *   over the sources like sweep_census_cost, into cost[(slot0 + b) th tw + y tw + x].
  *   Work size: global = (ceil(tw / SWEEP_VEC), th, nb), the first two rounded up to any multiple;
  *   local = any. Work-item (g, y, b) writes pixels [g SWEEP_VEC, (g + 1) SWEEP_VEC) (clipped to
  *   tw) of row y for slot b, if plane plane0 + b (the plane of sweep_warp's slot b) is in that
- *   group's window cost_window[2 (y ceil(tw / SWEEP_VEC) + g) + {0, 1}] (as warp_window; the
- *   positions a computed group reads must have been warped for that plane), else the worst
- *   cost INVALID_COST there (a cost filter may read it).
+ *   group's window cost_window[2 (y ceil(tw / SWEEP_VEC) + g) + {0, 1}] and band set
+ *   cost_bands (as warp_window and warp_bands; the positions a computed group reads must have
+ *   been warped for that plane), else the worst cost INVALID_COST there (a cost filter may read
+ *   it).
  */
 /* sweep_warp's per-position form: the sample and validity at warped-buffer index k of the
  * tile-local reference pixel (rx, ry) (the reference form of the vector path, and the path of the

@@ -9,7 +9,9 @@ a margin of planes on each side. The full-resolution sweep and SGM evaluate only
 pixel's own window, so that a block across a cliff does not widen the others', kernels/sgm.cl).
 Where every block would hold most of the planes (a city at 0.3 m: each 64 px block holds a roof
 and the ground), each pixel may get its own window instead (``block`` = 1), over the coarse
-indices within the halo of it.
+indices within the halo of it; such a window spans a roof's planes, the ground's and all the
+facade's between them, and with bands (``[sweep] window_bands``) the sweep evaluates only the
+bands of planes around the halo's coarse indices (``PlaneWindows.bands``).
 
 Conventions: a half-resolution pixel (i, j) is the mean of full-resolution pixels (2i, 2j) to
 (2i + 1, 2j + 1), so its centre lies at full-resolution (2j + 0.5, 2i + 0.5) (pixel (0, 0) = the

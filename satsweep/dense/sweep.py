@@ -448,22 +448,28 @@ class PlaneWindows:
                                        f"{want_bands} with windows of one pixel, got "
                                        f"{bands.dtype} {bands.shape} (block {self.block})")
 
-    def swept(self, shape: tuple[int, int]) -> np.ndarray:
+    def swept(self, shape: tuple[int, int], step: int = 1) -> np.ndarray:
         """(H, W) int: the planes each pixel sweeps: its window's, or those of its bands within
-        its window."""
-        count = self.counts(shape)
+        its window (the bands between the window's first and last, whole, less the parts of
+        those two outside it); of every ``step``-th row and column only."""
+        count = self.counts(shape)[::step, ::step]
         if self.bands is None:
             return count
-        first = self.per_pixel(shape).astype(np.int64)
+        first = self.per_pixel(shape)[::step, ::step]
         end = first + count
-        out = np.zeros(shape, np.int64)
-        for k in range(32 * self.bands.shape[0]):
-            lo, hi = k * BAND_PLANES, (k + 1) * BAND_PLANES
-            if lo >= int(end.max()):
-                break
-            held = (self.bands[k >> 5] >> np.uint32(k & 31)) & np.uint32(1)
-            out += held * np.clip(np.minimum(end, hi) - np.maximum(first, lo), 0, None)
-        return out
+        k_first, k_last = first // BAND_PLANES, (end - 1) // BAND_PLANES
+        bands = self.bands[:, ::step, ::step]
+        held = np.zeros(bands.shape[1:], np.int32)
+        for word in range(bands.shape[0]):
+            lo = np.clip(k_first - 32 * word, 0, 32)
+            hi = np.clip(k_last - 32 * word + 1, 0, 32)
+            held += _popcount32(bands[word] & _BIT_RANGES[lo, hi])
+
+        def bit(k: np.ndarray) -> np.ndarray:
+            words = np.take_along_axis(bands, (k >> 5)[None].astype(np.intp), axis=0)[0]
+            return ((words >> (k & 31).astype(np.uint32)) & np.uint32(1)).astype(np.int32)
+        return (BAND_PLANES * held - bit(k_first) * (first - BAND_PLANES * k_first)
+                - bit(k_last) * (BAND_PLANES * (k_last + 1) - end))
 
     def per_pixel(self, shape: tuple[int, int]) -> np.ndarray:
         """(H, W) int32: the first plane of every pixel's window."""
@@ -675,6 +681,18 @@ def every_plane_windows(options: SweepOptions, tile_dims: tuple[int, int],
 
 # Planes per bit of the windows' band sets (PlaneWindows.bands), as kernels/sweep.cl reads them.
 BAND_PLANES = SWEEP_BAND_PLANES
+
+
+def _popcount32(x: np.ndarray) -> np.ndarray:
+    """Set bits of each uint32 of ``x``, int32 (a 16-bit table: numpy before 2.0 has no
+    bitwise_count)."""
+    return (_POPCOUNT16[x & np.uint32(0xFFFF)] + _POPCOUNT16[x >> np.uint32(16)]).astype(np.int32)
+
+
+# Set bits of every 16-bit value; and the 32-bit masks of bits [lo, hi) (zero where hi <= lo).
+_POPCOUNT16 = np.array([bin(v).count("1") for v in range(1 << 16)], np.uint8)
+_BIT_RANGES = np.array([[((1 << hi) - (1 << lo)) if hi > lo else 0 for hi in range(33)]
+                        for lo in range(33)], np.uint64).astype(np.uint32)
 
 
 def band_words(n_planes: int) -> int:

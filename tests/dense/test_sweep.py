@@ -808,6 +808,28 @@ def test_pixel_bands_hold_the_full_sweeps_costs_of_their_planes(cl_device, budge
     assert opts.slice_filter != "none" or skipped > 0
 
 
+def test_swept_counts_the_planes_of_the_bands_within_each_window():
+    """PlaneWindows.swept: per pixel, the planes of its window that its bands hold (brute
+    force), or its window's count without bands."""
+    rng = np.random.default_rng(9)
+    shape, n = (6, 7), 150
+    count = rng.integers(1, 60, shape)
+    first = rng.integers(0, n - count + 1)
+    words = -(-(-(-n // BAND_PLANES)) // 32)
+    bands = rng.integers(0, 2**32, (words,) + shape, dtype=np.uint64).astype(np.uint32)
+    win = PlaneWindows(block=1, first=first, n_planes=int(count.max()), count=count, bands=bands)
+    win.check(shape, n)
+    want = np.zeros(shape, np.int64)
+    for (y, x), c in np.ndenumerate(count):
+        want[y, x] = sum(1 for p in range(first[y, x], first[y, x] + c)
+                         if (int(bands[(p // BAND_PLANES) >> 5, y, x])
+                             >> ((p // BAND_PLANES) & 31)) & 1)
+    np.testing.assert_array_equal(win.swept(shape), want)
+    np.testing.assert_array_equal(win.swept(shape, step=2), want[::2, ::2])
+    np.testing.assert_array_equal(PlaneWindows(block=1, first=first, n_planes=int(count.max()),
+                                               count=count).swept(shape), count)
+
+
 def test_volume_without_winner_take_all(cl_device):
     """cost_volume_on_device (SGM's path) returns the same volume as the sweep that also runs
     the winner-take-all. Its guided filter writes the pixel-major volume itself
