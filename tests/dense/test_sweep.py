@@ -617,22 +617,16 @@ def test_filters_of_radius_zero_are_not_run(cl_device):
         PlaneSweep(cl_device, zero).cost_volume(ref_img, [src], hom, heights).data, plain)
 
 
-def _window_reference(first: np.ndarray, end: np.ndarray, rx: int, ry: int, reach: int,
-                      vec: int):
-    """group_windows by brute force: a pixel's raw costs are needed for the planes that the
-    pixels within ``reach`` need; each group of sweep_warped_cost (``vec`` pixels of a row)
-    computes the union of what its pixels need; each group of sweep_warp's positions warps the
-    union of what the groups of the pixels whose census window holds one of them compute."""
-    th, tw = first.shape
-    big, none = np.iinfo(np.int32).max, 0
-
-    def union(windows):
-        windows = list(windows)
-        return (min((w[0] for w in windows), default=big),
-                max((w[1] for w in windows), default=none))
-
+def _grouped_reference(own, union, shape: tuple[int, int], rx: int, ry: int, reach: int,
+                       vec: int) -> tuple[list, list]:
+    """The split kernels' groups by brute force: a pixel's raw costs are needed for what
+    (``union``) the pixels within ``reach`` need (``own(y, x)``); each group of
+    sweep_warped_cost (``vec`` pixels of a row) computes the union of what its pixels need;
+    each group of sweep_warp's positions warps the union of what the groups of the pixels whose
+    census window holds one of them compute. (warp groups, cost groups), in the kernels' order."""
+    th, tw = shape
     pixels = [(y, x) for y in range(th) for x in range(tw)]
-    need = {(y, x): union((first[v, u], end[v, u]) for v, u in pixels
+    need = {(y, x): union(own(v, u) for v, u in pixels
                           if abs(v - y) <= reach and abs(u - x) <= reach) for y, x in pixels}
     group = {}
     cost = []
@@ -648,6 +642,21 @@ def _window_reference(first: np.ndarray, end: np.ndarray, rx: int, ry: int, reac
             warp.append(union(group[y, x] for y, x in pixels
                               if any(abs(y + ry - py) <= ry and abs(x + rx - px) <= rx
                                      for px in range(g, min(g + vec, pw)))))
+    return warp, cost
+
+
+def _window_reference(first: np.ndarray, end: np.ndarray, rx: int, ry: int, reach: int,
+                      vec: int):
+    """group_windows by brute force (``_grouped_reference`` of windows)."""
+    big, none = np.iinfo(np.int32).max, 0
+
+    def union(windows):
+        windows = list(windows)
+        return (min((w[0] for w in windows), default=big),
+                max((w[1] for w in windows), default=none))
+
+    warp, cost = _grouped_reference(lambda y, x: (first[y, x], end[y, x]), union, first.shape,
+                                    rx, ry, reach, vec)
     return np.array(warp, np.int32).ravel(), np.array(cost, np.int32).ravel()
 
 
@@ -667,27 +676,12 @@ def test_group_windows_match_brute_force(window, shape, filt):
 
 
 def _band_reference(bands: np.ndarray, rx: int, ry: int, reach: int, vec: int):
-    """group_bands by brute force, as _window_reference with sets of bits for windows."""
-    words, th, tw = bands.shape
+    """group_bands by brute force (``_grouped_reference`` of sets of bits)."""
+    words = bands.shape[0]
     bits = lambda y, x: {k for k in range(32 * words)  # noqa: E731
                          if (int(bands[k >> 5, y, x]) >> (k & 31)) & 1}
-    pixels = [(y, x) for y in range(th) for x in range(tw)]
-    need = {(y, x): set().union(*(bits(v, u) for v, u in pixels
-                                  if abs(v - y) <= reach and abs(u - x) <= reach))
-            for y, x in pixels}
-    group, cost = {}, []
-    for y in range(th):
-        for g in range(0, tw, vec):
-            s = set().union(*(need[y, x] for x in range(g, min(g + vec, tw))))
-            cost.append(s)
-            group.update({(y, x): s for x in range(g, min(g + vec, tw))})
-    pw, ph = tw + 2 * rx, th + 2 * ry
-    warp = []
-    for py in range(ph):
-        for g in range(0, pw, vec):
-            warp.append(set().union(*(group[y, x] for y, x in pixels
-                                      if any(abs(y + ry - py) <= ry and abs(x + rx - px) <= rx
-                                             for px in range(g, min(g + vec, pw))))))
+    warp, cost = _grouped_reference(bits, lambda sets: set().union(*sets), bands.shape[1:],
+                                    rx, ry, reach, vec)
 
     def packed(sets):
         out = np.zeros((len(sets), words), np.uint32)
@@ -720,6 +714,16 @@ def test_group_bands_match_brute_force(window, shape, filt):
 WINDOWED_GUIDED_ATOL = 1e-4
 
 
+def _pixel_window_case(cl_device, opts: SweepOptions):
+    """The windows-of-one-pixel tests' case: an engine of ``opts``, their rolled pair (ref,
+    src, heights, hom) and its full sweep's volume (H, W, planes), in one tile."""
+    ref_img, src, heights, hom = _rolled_pair(4, (70, 90), 3, 0.4, 15.0, 40)
+    with PlaneSweep(cl_device, opts.replace(memory_budget_bytes=None)).cost_volume_on_device(
+            ref_img, [src], hom, heights) as full:
+        whole = full.data.get()
+    return PlaneSweep(cl_device, opts), (ref_img, src, heights, hom), whole
+
+
 @pytest.mark.parametrize("budget,filt", [
     (None, {"gf_radius": 0}), (700_000, {"gf_radius": 0}),
     (700_000, {"cost_filter": "box", "ad_weight": 0.0, "grad_weight": 0.0}),
@@ -731,12 +735,8 @@ def test_pixel_windows_hold_the_full_sweeps_costs_of_each_pixels_planes(cl_devic
     filter, and with a box filter of integer costs (exact sums), bit for bit: the same kernels,
     the split kernels skipping what no window within the filter's reach holds; with the guided
     filter within WINDOWED_GUIDED_ATOL."""
-    ref_img, src, heights, hom = _rolled_pair(4, (70, 90), 3, 0.4, 15.0, 40)
     opts = SweepOptions(memory_budget_bytes=budget, **filt)
-    engine = PlaneSweep(cl_device, opts)
-    with PlaneSweep(cl_device, opts.replace(memory_budget_bytes=None)).cost_volume_on_device(
-            ref_img, [src], hom, heights) as full:
-        whole = full.data.get()  # (H, W, planes)
+    engine, (ref_img, src, heights, hom), whole = _pixel_window_case(cl_device, opts)
     rng = np.random.default_rng(5)
     count = rng.integers(1, 10, ref_img.shape)
     first = rng.integers(0, heights.size - count + 1)
@@ -770,12 +770,8 @@ def test_pixel_bands_hold_the_full_sweeps_costs_of_their_planes(cl_device, budge
     box filter of integer costs: the split kernels compute every plane a band within the
     filter's reach holds); without a filter the others hold either those costs (a plane of
     another pixel's bands in the same group of 8) or the worst cost, in one tile or several."""
-    ref_img, src, heights, hom = _rolled_pair(4, (70, 90), 3, 0.4, 15.0, 40)
     opts = SweepOptions(memory_budget_bytes=budget, **filt)
-    engine = PlaneSweep(cl_device, opts)
-    with PlaneSweep(cl_device, opts.replace(memory_budget_bytes=None)).cost_volume_on_device(
-            ref_img, [src], hom, heights) as full:
-        whole = full.data.get()  # (H, W, planes)
+    engine, (ref_img, src, heights, hom), whole = _pixel_window_case(cl_device, opts)
     rng = np.random.default_rng(6)
     count = rng.integers(4, 20, ref_img.shape)
     first = rng.integers(0, heights.size - count + 1)
