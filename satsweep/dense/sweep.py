@@ -451,7 +451,8 @@ class PlaneWindows:
     def swept(self, shape: tuple[int, int], step: int = 1) -> np.ndarray:
         """(H, W) int: the planes each pixel sweeps: its window's, or those of its bands within
         its window (the bands between the window's first and last, whole, less the parts of
-        those two outside it); of every ``step``-th row and column only."""
+        those two outside it); with ``step``, of every step-th row and column only
+        (ceil(H / step), ceil(W / step))."""
         count = self.counts(shape)[::step, ::step]
         if self.bands is None:
             return count
@@ -690,7 +691,8 @@ def _popcount32(x: np.ndarray) -> np.ndarray:
 
 
 # Set bits of every 16-bit value; and the 32-bit masks of bits [lo, hi) (zero where hi <= lo).
-_POPCOUNT16 = np.array([bin(v).count("1") for v in range(1 << 16)], np.uint8)
+_POPCOUNT16 = np.unpackbits(np.arange(1 << 16, dtype=">u2").view(np.uint8)).reshape(
+    -1, 16).sum(axis=1).astype(np.uint8)
 _BIT_RANGES = np.array([[((1 << hi) - (1 << lo)) if hi > lo else 0 for hi in range(33)]
                         for lo in range(33)], np.uint64).astype(np.uint32)
 
