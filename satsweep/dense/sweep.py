@@ -699,7 +699,7 @@ _BIT_RANGES = np.array([[((1 << hi) - (1 << lo)) if hi > lo else 0 for hi in ran
 
 def band_words(n_planes: int) -> int:
     """32-bit words of a band set over ``n_planes`` planes."""
-    return -(-(-(-n_planes // BAND_PLANES)) // 32)
+    return _ceil_div(_ceil_div(n_planes, BAND_PLANES), 32)
 
 
 def group_bands(options: SweepOptions, bands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

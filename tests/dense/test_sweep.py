@@ -18,6 +18,7 @@ from satsweep.dense.sweep import (
     SweepOptions,
     census_ring_defines,
     BAND_PLANES,
+    band_words,
     group_bands,
     group_windows,
     lr_consistent,
@@ -811,7 +812,7 @@ def test_swept_counts_the_planes_of_the_bands_within_each_window():
     shape, n = (6, 7), 150
     count = rng.integers(1, 60, shape)
     first = rng.integers(0, n - count + 1)
-    words = -(-(-(-n // BAND_PLANES)) // 32)
+    words = band_words(n)
     bands = rng.integers(0, 2**32, (words,) + shape, dtype=np.uint64).astype(np.uint32)
     win = PlaneWindows(block=1, first=first, n_planes=int(count.max()), count=count, bands=bands)
     win.check(shape, n)
