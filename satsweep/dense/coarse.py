@@ -93,7 +93,7 @@ def _bands(index: np.ndarray, n_planes: int, halo: np.ndarray, margin: int) -> n
 
 def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: int,
                   margin: int, max_fraction: float, pixel_fallback: bool = False,
-                  bands: bool = False) -> PlaneWindows | None:
+                  bands: bool = False, band_halo: int | None = None) -> PlaneWindows | None:
     """Per-block plane windows from a full-resolution map of (fractional) plane indices.
 
     ``plane_index``: (H, W), NaN where the coarse pass found nothing (filled from the nearest
@@ -106,8 +106,9 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
     ``pixel_fallback`` and they sweep no more; else (or when nothing is known) None: sweep
     every plane. With ``bands``, windows of one pixel also get their band sets
     (``PlaneWindows.bands``): the bands of BAND_PLANES planes that hold floor(i) - margin ..
-    ceil(i) + margin of an index i within the halo (within the planes); the planes between a
-    roof's and the ground's indices beside it are left out.
+    ceil(i) + margin of an index i within ``band_halo`` pixels (default and at most: ``halo``;
+    within the planes); the planes between a roof's and the ground's indices beside it are left
+    out.
     """
     import cv2  # noqa: PLC0415
 
@@ -136,7 +137,10 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
         hi = np.clip(np.ceil(hi) + margin, 0, n_planes - 1).astype(np.int64)
         count = hi - lo + 1
         if count.mean() <= max_fraction * n_planes:
+            reach = halo if band_halo is None else min(band_halo, halo)
             return PlaneWindows(block=side, first=lo, n_planes=int(count.max()), count=count,
-                                bands=_bands(idx, n_planes, kernel, margin)
+                                bands=_bands(idx, n_planes,
+                                             np.ones((2 * reach + 1, 2 * reach + 1), np.uint8),
+                                             margin)
                                 if bands and side == 1 else None)
     return None

@@ -165,7 +165,8 @@ def sweep_refine_tiled(device, ref_image, src_images: Sequence, homographies, he
                                    margin=sweep.window_margin_planes,
                                    max_fraction=sweep.window_max_fraction,
                                    pixel_fallback=sweep.window_pixel_fallback,
-                                   bands=sweep.window_bands)
+                                   bands=sweep.window_bands,
+                                   band_halo=sweep.window_band_halo_px)
         tile_ref, r = ref[ty0:ty1, tx0:tx1], None
         if with_wta:
             r, volume = engine.height_map_with_cost_volume(tile_ref, tile_srcs, tile_hom, hts,

@@ -142,20 +142,23 @@ def test_worth_a_coarse_pass(shape, planes, worth):
     assert coarse.worth_a_coarse_pass(shape, planes) is worth
 
 
-def test_pixel_bands_hold_the_coarse_planes_within_the_halo():
+@pytest.mark.parametrize("band_halo", [None, 1, 0, 5])
+def test_pixel_bands_hold_the_coarse_planes_within_the_halo(band_halo):
     """block = 1: bit k of a pixel's bands is set exactly when some coarse index i within
-    ``halo`` px of it (the image's pixels only) has floor(i) - margin .. ceil(i) + margin
-    (within the planes) meet planes [4 k, 4 k + 4) (brute force); every band set meets the
-    pixel's window, and a step's two plateaus leave the planes between them out."""
+    the bands' halo of it (``band_halo``, at most and by default the window's ``halo``; the
+    image's pixels only) has floor(i) - margin .. ceil(i) + margin (within the planes) meet
+    planes [4 k, 4 k + 4) (brute force); every band set meets the pixel's window, and a step's
+    two plateaus leave the planes between them out."""
     from satsweep.dense.sweep import BAND_PLANES
 
     rng = np.random.default_rng(3)
     idx = rng.integers(0, 12, (17, 23)).astype(np.float64) * 4.0
     idx[5:9, 3:20] += rng.uniform(0.0, 1.0, (4, 17))  # fractional indices
     idx[:, 15:] += 70.0  # a step: no index between ~48 and 70 next to it
-    n, halo, margin = 130, 2, 3
-    win = coarse.plane_windows(idx, n, block=1, halo=halo, margin=margin, max_fraction=1.0,
-                               bands=True)
+    n, window_halo, margin = 130, 2, 3
+    halo = window_halo if band_halo is None else min(band_halo, window_halo)
+    win = coarse.plane_windows(idx, n, block=1, halo=window_halo, margin=margin,
+                               max_fraction=1.0, bands=True, band_halo=band_halo)
     assert win is not None and win.bands is not None
     lo = np.clip(np.floor(idx) - margin, 0, n - 1) // BAND_PLANES
     hi = np.clip(np.ceil(idx) + margin, 0, n - 1) // BAND_PLANES
