@@ -161,7 +161,7 @@ class SweepOptions(Options):
     # window spans). 8 (the window's) before: the 1700 px stack with RPCs over 1000 m, two
     # pairs one run after the other, 127.4 / 127.4 -> 121.4 / 116.5 s (sweep 70.7 / 71.0 ->
     # 62.9 / 59.5 s), DFC MAE 1.005 -> 0.997 m; ten issue-form runs (seeds 11-17 with RPCs over
-    # 1000 m, 11-13 with the scenes' heights) 0.0 m on average, each within +-0.05 m; 2 px:
+    # 1000 m, 11-13 with the scenes' heights) +0.003 m on average, each within 0.05 m; 2 px:
     # seed 11 1.054 -> 1.161 m (docs/measurements.md, fifty-second session)
     window_pixel_fallback: bool = False  # coarse_to_fine: where the blocks' windows would hold
     # more than window_max_fraction, each pixel its own window if those hold no more, before

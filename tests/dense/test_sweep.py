@@ -90,6 +90,7 @@ def _errors(res, truth):
                                          ("n_best_sources", 0), ("memory_fraction", 1.5),
                                          ("cost_filter", "median"), ("work_group", (64, 64)),
                                          ("prefilter_sigma_px", -0.5),
+                                         ("window_band_halo_px", -1),
                                          ("prefilter_sigma_px", float("nan")),
                                          ("consensus_grad_weight", -1.0),
                                          ("consensus_grad_weight", 65.0),
