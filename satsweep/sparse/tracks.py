@@ -240,6 +240,131 @@ def extend_tracks(obs: Observations, P: np.ndarray, shapes: Sequence[tuple[int, 
 _LK_LEVELS = 1
 _LK_ITERATIONS = 30
 _LK_EPS_PX = 1e-3
+# Lucas-Kanade runs on patches of the two images around the windows rather than on the whole
+# images (lucas_kanade_in_patches): a patch holds every pixel that Lucas-Kanade reads for a
+# window that ends within _LK_MOTION_PX (or 3 x the registration's shift limit, if more) of
+# where it started, so those windows register as on the whole images; those that move farther
+# are dropped by the shift limit anyway (a kept window ends within the limit of its keypoint,
+# and starts there or within the limit of it, in view v's pixels, which the warp scales). The
+# patches' corners lie on even pixels, so the pyramid's level above (_LK_LEVELS = 1) holds the
+# same values as the whole image's.
+_LK_MOTION_PX = 12
+# The patches take the place of the whole images where they hold at most this share of an
+# image's pixels: a patch costs several times a whole image's pixel (a warp and a copy each,
+# from Python), and single-threaded on the captured registrations of the 1700 px and the 850 px
+# issue-form stacks (docs/measurements.md, fifty-third session) the warps and Lucas-Kanade took
+# 14.8 -> 5.6 s and 4.6 -> 3.6 s with 0.2 (the best choice each: 5.1 s and 3.5 s).
+_PATCH_SHARE_MAX = 0.2
+
+
+def _lk_reach_px(window_px: int) -> int:
+    """Pixels (full resolution) around a window's centre that pyramidal Lucas-Kanade reads: at
+    each level half the window, one more for bilinear sampling and one for the derivatives,
+    scaled to full resolution, and two per level for the pyramid's 5-tap filter."""
+    scale = 2 ** _LK_LEVELS
+    return scale * (window_px // 2 + 2) + 2 * (scale - 1)
+
+
+def _patch(source: np.ndarray, x0: int, y0: int, side: int, shape: tuple[int, int],
+           homography: np.ndarray | None = None) -> np.ndarray:
+    """The ``side`` x ``side`` patch at (x0, y0) of an image of ``shape`` (h, w): ``source``
+    itself (``homography`` None) or ``source`` warped into that image's pixels (bilinear, by the
+    homography from its pixels to ``source``'s, as ``cv2.warpPerspective`` with
+    ``WARP_INVERSE_MAP``), its pixels outside the image reflected as Lucas-Kanade's pyramid
+    reflects them (BORDER_REFLECT_101)."""
+    import cv2
+
+    h, w = shape
+    cx0, cy0 = max(x0, 0), max(y0, 0)
+    cx1, cy1 = min(x0 + side, w), min(y0 + side, h)
+    if cx1 <= cx0 or cy1 <= cy0:  # wholly outside the image: Lucas-Kanade fails there
+        return np.zeros((side, side), np.uint8)
+    if homography is None:
+        inner = source[cy0:cy1, cx0:cx1]
+    else:
+        shift = np.array([[1.0, 0.0, cx0], [0.0, 1.0, cy0], [0.0, 0.0, 1.0]])
+        inner = cv2.warpPerspective(source, homography @ shift, (cx1 - cx0, cy1 - cy0),
+                                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    if (cx0, cy0, cx1, cy1) == (x0, y0, x0 + side, y0 + side):
+        return inner
+    return cv2.copyMakeBorder(np.ascontiguousarray(inner), cy0 - y0, y0 + side - cy1,
+                              cx0 - x0, x0 + side - cx1, cv2.BORDER_REFLECT_101)
+
+
+def lucas_kanade_in_patches(head_u8: np.ndarray, other_u8: np.ndarray, homography: np.ndarray,
+                            centre: np.ndarray, start: np.ndarray, window_px: int,
+                            criteria: tuple, motion_px: float = _LK_MOTION_PX
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's pyramidal Lucas-Kanade (translation, ``window_px`` windows, _LK_LEVELS) of
+    ``head_u8``'s windows at ``centre`` (k, n, 2: window j of observation i, head's pixels) in
+    ``other_u8`` warped into head's pixels by ``homography`` (head's pixels -> other's),
+    starting from ``start`` (k, n, 2, the warped image's pixels): as on the whole images
+    (``cv2.calcOpticalFlowPyrLK`` of ``head_u8`` and the whole warp), but each observation's k
+    windows on patches of both images that cover them (to ``motion_px`` from their starts),
+    laid side by side in one image each (on the whole images where the patches would hold more
+    than _PATCH_SHARE_MAX of an image's pixels). On 19 views of 1700 px, a pair's patches hold
+    about a tenth of an image's pixels. Returns (found (k n, 2) float64 in the warped image's pixels, status (k n,) bool)."""
+    import cv2
+
+    k, n = centre.shape[:2]
+    found = np.full((k * n, 2), np.nan)
+    status = np.zeros(k * n, bool)
+    good = np.isfinite(centre).all(axis=(0, 2)) & np.isfinite(start).all(axis=(0, 2))
+    if not good.any():
+        return found, status
+    obs = np.flatnonzero(good)
+    reach = _lk_reach_px(window_px)
+    # Each observation's patch corners (even pixels) in head's image and in the warped one.
+    head_lo = 2 * np.floor((centre[:, obs].min(axis=0) - reach) / 2).astype(np.int64)
+    head_hi = np.ceil(centre[:, obs].max(axis=0) + reach).astype(np.int64)
+    warp_lo = 2 * np.floor((start[:, obs].min(axis=0) - reach - motion_px) / 2).astype(np.int64)
+    warp_hi = np.ceil(start[:, obs].max(axis=0) + reach + motion_px).astype(np.int64)
+    side = int(max((head_hi - head_lo).max(), (warp_hi - warp_lo).max()))
+    side += side % 2 + 2  # even, and one more pixel each side
+    shape = head_u8.shape
+    if len(obs) * side * side > _PATCH_SHARE_MAX * shape[0] * shape[1]:  # on the whole images
+        warped = cv2.warpPerspective(other_u8, homography, shape[::-1],
+                                     flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        got, ok, _ = cv2.calcOpticalFlowPyrLK(
+            head_u8, warped, centre[:, obs].astype(np.float32).reshape(-1, 1, 2),
+            start[:, obs].astype(np.float32).reshape(-1, 1, 2), winSize=(window_px, window_px),
+            maxLevel=_LK_LEVELS, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        index = (np.arange(k)[:, None] * n + obs[None]).ravel()
+        found[index], status[index] = got.reshape(-1, 2), ok.ravel() == 1
+        return found, status
+    cols = int(np.ceil(np.sqrt(len(obs))))
+    rows = -(-len(obs) // cols)
+    slot = side * np.c_[np.arange(len(obs)) % cols, np.arange(len(obs)) // cols]  # (m, 2) x, y
+    head_tiles = np.zeros((rows * side, cols * side), np.uint8)
+    warp_tiles = np.zeros_like(head_tiles)
+    for m in range(len(obs)):
+        (sx, sy), (hx, hy), (wx, wy) = slot[m], head_lo[m], warp_lo[m]
+        head_tiles[sy:sy + side, sx:sx + side] = _patch(head_u8, int(hx), int(hy), side, shape)
+        warp_tiles[sy:sy + side, sx:sx + side] = _patch(other_u8, int(wx), int(wy), side, shape,
+                                                        homography)
+    prev = (centre[:, obs] - head_lo[None] + slot[None]).astype(np.float32).reshape(-1, 1, 2)
+    init = (start[:, obs] - warp_lo[None] + slot[None]).astype(np.float32).reshape(-1, 1, 2)
+    got, ok, _ = cv2.calcOpticalFlowPyrLK(head_tiles, warp_tiles, prev, init,
+                                          winSize=(window_px, window_px), maxLevel=_LK_LEVELS,
+                                          criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    index = (np.arange(k)[:, None] * n + obs[None]).ravel()
+    found[index] = (got.reshape(k, -1, 2).astype(np.float64) - slot[None]
+                    + warp_lo[None]).reshape(-1, 2)
+    # OpenCV fails a window whose top-left corner lies more than a window outside the image or
+    # past its far edges (both images have head's size): the same bounds here, where the
+    # patches would go on over their neighbours.
+    half = 0.5 * (window_px - 1)
+    bounds = np.array(shape[::-1], np.float64)
+
+    def within(xy: np.ndarray) -> np.ndarray:
+        with np.errstate(invalid="ignore"):
+            return np.all((xy >= half - window_px) & (xy < bounds + half), axis=-1)
+
+    status[index] = ((ok.ravel() == 1) & within(centre[:, obs].reshape(-1, 2))
+                     & within(found[index]))
+    return found, status
+
+
 # Lucas-Kanade assumes the two windows' grey levels equal; views of other dates differ in gain,
 # offset and gamma (and SIFT does not mind), and a translation then absorbs part of the
 # difference: registered on the grey levels, the tie points between dates of the multi-date
@@ -359,8 +484,9 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
     view v's image is first warped into view w's pixels by the homography the cameras induce
     through the ENU frame's plane u = 0 (rotation, scale and shear between the views removed;
     what remains near a tie point is a translation: its parallax and the pointing errors), then
-    OpenCV's pyramidal Lucas-Kanade (translation only) starts from k's keypoint mapped into the
-    warped image; its result is then registered again to a fraction of a pixel on the two
+    OpenCV's pyramidal Lucas-Kanade (translation only; on patches of the two images around the
+    windows, :func:`lucas_kanade_in_patches`) starts from k's keypoint mapped into the warped
+    image; its result is then registered again to a fraction of a pixel on the two
     images themselves (:func:`satsweep.sparse.subpixel.refine_translations`: Lanczos samples
     where the homography maps the window, no 8-bit warp, whose interpolation errors would not
     average out over a pair's tie points), and mapped back into view v. First observations
@@ -436,32 +562,25 @@ def register_observations(obs: Observations, images: Sequence[np.ndarray], camer
         each observation its own): ``out_xy[k]`` and ``out_residual[k]`` (+ ``rank``)
         where it succeeds. LK starts from ``from_xy`` (view v's pixels; default: the
         keypoints)."""
-        h, wd = head_u8.shape
-        warped = cv2.warpPerspective(other_u8, H, (wd, h),
-                                     flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
         begin = obs.xy[sel] if from_xy is None else from_xy[sel]
-        start = cv2.perspectiveTransform(begin.reshape(-1, 1, 2), np.linalg.inv(H))
-        # Every offset's windows in one call: OpenCV builds the images' pyramids and gradients
-        # once per call, over the whole images.
+        start = cv2.perspectiveTransform(begin.reshape(-1, 1, 2), np.linalg.inv(H))[:, 0]
+        # Every offset's windows in one call, on patches of the two images around them.
         d = np.asarray(offsets, np.float64)
-        d = d[:, None, None, :] if d.ndim == 2 else d[:, sel, None, :]  # (k, 1 or n, 1, 2)
-        centre = (obs.xy[head[sel]][None] + d[:, :, 0]).reshape(-1, 2)  # (k n, 2), head's pixels
-        found, status, _ = cv2.calcOpticalFlowPyrLK(
-            head_u8, warped, centre.astype(np.float32).reshape(-1, 1, 2),
-            (start[None] + d).astype(np.float32).reshape(-1, 1, 2),
-            winSize=(window_px, window_px), maxLevel=_LK_LEVELS, criteria=criteria,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        d = d[:, None, :] if d.ndim == 2 else d[:, sel, :]  # (k, 1 or n, 2)
+        centre = obs.xy[head[sel]][None] + d  # (k, n, 2), head's pixels
+        found, lk = lucas_kanade_in_patches(head_u8, other_u8, H, centre, start[None] + d,
+                                            window_px, criteria,
+                                            max(_LK_MOTION_PX, 3.0 * max_shift_px))
+        centre = centre.reshape(-1, 2)
         # Each window LK registered is registered again to a fraction of a pixel on the images
         # themselves (satsweep.sparse.subpixel: no 8-bit warp, one Lanczos interpolation): its
         # position and residual replace LK's, and a window that fails there fails.
-        lk = status.ravel() == 1
-        found = found.astype(np.float64).reshape(-1, 2)
         q, sub_residual, sub_ok = refine_translations(as_float(head_u8), as_float(other_u8), H,
                                                       centre[lk], found[lk], window_px)
         err = np.full(len(found), np.inf)
         err[np.flatnonzero(lk)[sub_ok]] = sub_residual[sub_ok]
         found[lk] = q
-        found = found.reshape(len(d), -1, 1, 2) - d
+        found = found.reshape(len(d), -1, 2) - d
         back = cv2.perspectiveTransform(found.reshape(-1, 1, 2), H).reshape(len(d), -1, 2)
         shift = np.hypot(back[..., 0] - obs.xy[sel, 0], back[..., 1] - obs.xy[sel, 1])
         err = err.reshape(len(d), -1)

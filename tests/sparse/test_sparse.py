@@ -140,6 +140,113 @@ def test_refinement_registers_tie_points_across_rotated_views():
     assert err.max() < REGISTRATION_TOL_PX, err.max()
 
 
+# lucas_kanade_in_patches against OpenCV's Lucas-Kanade on the whole images: away from the
+# images' borders the patches hold every pixel it reads, so a window ends where it ends on the
+# whole images up to float32's rounding of its positions (the patches give them in smaller
+# coordinates), which can end its iterations a step earlier or later: within a few of
+# Lucas-Kanade's last steps (below _LK_EPS_PX, 0.001 px; measured 0.0035 px at most here).
+PATCH_LK_TOL_PX = 10 * sparse_tracks._LK_EPS_PX
+
+
+def _patch_lk_case(n_points=20, seed=3):
+    """A smooth 8-bit texture (head, 1000 x 960 px) and the view it becomes under a homography
+    (other; head's pixels -> other's: rotated 20 degrees about the centre, scaled, moved and
+    tilted), and ``n_points`` points."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    texture = cv2.GaussianBlur(rng.random((960, 1000)).astype(np.float32), (0, 0), 2.0)
+    head = np.clip((texture - texture.min()) / np.ptp(texture) * 255, 0, 255).astype(np.uint8)
+    a = np.deg2rad(20.0)
+    to_origin, rotate, back = np.eye(3), np.eye(3), np.eye(3)
+    to_origin[:2, 2] = [-500.0, -480.0]
+    rotate[:2, :2] = 1.03 * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    back[:2, 2], back[2, :2] = [503.3, 477.6], [6e-6, -3e-6]
+    H = back @ rotate @ to_origin
+    other = cv2.warpPerspective(head, H, (1000, 960), flags=cv2.INTER_CUBIC)
+    xy = np.c_[rng.uniform(0.0, 999.0, n_points), rng.uniform(0.0, 959.0, n_points)]
+    return head, other, H, xy, rng
+
+
+def _whole_image_lk(head, other, H, centre, start, window_px):
+    """OpenCV's Lucas-Kanade on head and the whole of other warped into head's pixels."""
+    import cv2
+
+    h, w = head.shape
+    warped = cv2.warpPerspective(other, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    found, status, _ = cv2.calcOpticalFlowPyrLK(
+        head, warped, centre.astype(np.float32).reshape(-1, 1, 2),
+        start.astype(np.float32).reshape(-1, 1, 2), winSize=(window_px, window_px),
+        maxLevel=sparse_tracks._LK_LEVELS, criteria=_LK_CRITERIA,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    return found.reshape(-1, 2).astype(np.float64), status.ravel() == 1
+
+
+_LK_CRITERIA = (3, sparse_tracks._LK_ITERATIONS, sparse_tracks._LK_EPS_PX)  # COUNT | EPS
+
+
+@pytest.mark.parametrize("n_points,per_observation,on_patches", [(20, False, True),
+                                                                 (20, True, True),
+                                                                 (150, False, False)])
+def test_lucas_kanade_in_patches_matches_the_whole_images(monkeypatch, n_points, per_observation,
+                                                          on_patches):
+    """Windows at 4 offsets from each point (or each observation its own 4 offsets), their
+    starts 0-1.2 px off: away from the borders, every window that converges on the whole images
+    within _LK_MOTION_PX of its start converges on the patches too, to the same place, and most
+    of them to their true places (the warped texture is head itself). 150 points' patches would
+    hold more than _PATCH_SHARE_MAX of the image's pixels: those run on the whole images."""
+    import cv2
+
+    head, other, H, xy, rng = _patch_lk_case(n_points)
+    offsets = np.array([[0.0, 0.0], [6.0, 0.0], [-6.0, 6.0], [8.0, 8.0]])[:, None, :]
+    if per_observation:
+        offsets = offsets + rng.integers(-3, 4, (4, len(xy), 2))
+    centre = xy[None] + offsets  # (k, n, 2)
+    start = centre + rng.uniform(-1.2, 1.2, centre.shape)
+    window = 13
+    warps = []  # the sizes warped: the patches or the whole image
+
+    def warp(image, M, size, **kwargs):
+        warps.append(tuple(size))
+        return warp_perspective(image, M, size, **kwargs)
+
+    warp_perspective = cv2.warpPerspective
+    monkeypatch.setattr(cv2, "warpPerspective", warp)
+    found, status = sparse_tracks.lucas_kanade_in_patches(head, other, H, centre, start, window,
+                                                          _LK_CRITERIA)
+    monkeypatch.undo()
+    assert ((1000, 960) not in warps) == on_patches
+    whole, whole_status = _whole_image_lk(head, other, H, centre, start, window)
+    c, s = centre.reshape(-1, 2), start.reshape(-1, 2)
+    margin = sparse_tracks._lk_reach_px(window) + sparse_tracks._LK_MOTION_PX
+    inner = ((c >= margin) & (c < np.array([1000, 960]) - margin)).all(axis=1)
+    converged = whole_status & (np.hypot(*(whole - s).T) < sparse_tracks._LK_MOTION_PX) & inner
+    assert converged.sum() > 0.5 * len(c)  # the interior's windows are most of them
+    assert status[converged].all()
+    np.testing.assert_allclose(found[converged], whole[converged], atol=PATCH_LK_TOL_PX)
+    # And they are where the texture is: Lucas-Kanade alone (before the sub-pixel step) leaves
+    # most within a tenth of a pixel of it (a few of these windows find another minimum).
+    err = np.hypot(*(found[converged] - c[converged]).T)
+    assert np.median(err) < REGISTRATION_TOL_PX, np.median(err)
+
+
+def test_lucas_kanade_in_patches_fails_windows_outside_the_image():
+    """A window centred more than OpenCV's bound outside the image (its top-left corner more
+    than a window out) fails as it does on the whole images, and so does one whose start is not
+    finite; the others of the call are unaffected."""
+    head, other, H, xy, _ = _patch_lk_case()
+    centre = np.array([[[150.2, 160.7], [-9.0, 100.0], [120.0, 970.0], [100.0, 100.0]]])
+    start = centre + 0.4
+    start[0, 3] = np.nan
+    found, status = sparse_tracks.lucas_kanade_in_patches(head, other, H, centre, start, 13,
+                                                          _LK_CRITERIA)
+    whole, whole_status = _whole_image_lk(head, other, H, centre[:, :3], start[:, :3], 13)
+    np.testing.assert_array_equal(status, [True, False, False, False])
+    np.testing.assert_array_equal(whole_status, [True, False, False])
+    np.testing.assert_allclose(found[0], whole[0], atol=PATCH_LK_TOL_PX)
+    assert np.isnan(found[3]).all()
+
+
 def _step(seed=3):
     """Two surfaces whose parallax differs, meeting at column 100 of view 0: view k sees the
     left one moved by STEP_LEFT_MOVES[k] and the right one (raised: its edge moves with it) by
