@@ -303,7 +303,8 @@ def lucas_kanade_in_patches(head_u8: np.ndarray, other_u8: np.ndarray, homograph
     windows on patches of both images that cover them (to ``motion_px`` from their starts),
     laid side by side in one image each (on the whole images where the patches would hold more
     than _PATCH_SHARE_MAX of an image's pixels). On 19 views of 1700 px, a pair's patches hold
-    about a tenth of an image's pixels. Returns (found (k n, 2) float64 in the warped image's pixels, status (k n,) bool)."""
+    about a tenth of an image's pixels. Returns (found (k n, 2) float64 in the warped image's
+    pixels, status (k n,) bool)."""
     import cv2
 
     k, n = centre.shape[:2]
