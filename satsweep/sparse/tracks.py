@@ -323,14 +323,15 @@ def lucas_kanade_in_patches(head_u8: np.ndarray, other_u8: np.ndarray, homograph
     side = int(max((head_hi - head_lo).max(), (warp_hi - warp_lo).max()))
     side += side % 2 + 2  # even, and one more pixel each side
     shape = head_u8.shape
+    index = (np.arange(k)[:, None] * n + obs[None]).ravel()  # the windows' rows in found
+    lk = dict(winSize=(window_px, window_px), maxLevel=_LK_LEVELS, criteria=criteria,
+              flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     if len(obs) * side * side > _PATCH_SHARE_MAX * shape[0] * shape[1]:  # on the whole images
         warped = cv2.warpPerspective(other_u8, homography, shape[::-1],
                                      flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
         got, ok, _ = cv2.calcOpticalFlowPyrLK(
             head_u8, warped, centre[:, obs].astype(np.float32).reshape(-1, 1, 2),
-            start[:, obs].astype(np.float32).reshape(-1, 1, 2), winSize=(window_px, window_px),
-            maxLevel=_LK_LEVELS, criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        index = (np.arange(k)[:, None] * n + obs[None]).ravel()
+            start[:, obs].astype(np.float32).reshape(-1, 1, 2), **lk)
         found[index], status[index] = got.reshape(-1, 2), ok.ravel() == 1
         return found, status
     cols = int(np.ceil(np.sqrt(len(obs))))
@@ -345,10 +346,7 @@ def lucas_kanade_in_patches(head_u8: np.ndarray, other_u8: np.ndarray, homograph
                                                         homography)
     prev = (centre[:, obs] - head_lo[None] + slot[None]).astype(np.float32).reshape(-1, 1, 2)
     init = (start[:, obs] - warp_lo[None] + slot[None]).astype(np.float32).reshape(-1, 1, 2)
-    got, ok, _ = cv2.calcOpticalFlowPyrLK(head_tiles, warp_tiles, prev, init,
-                                          winSize=(window_px, window_px), maxLevel=_LK_LEVELS,
-                                          criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-    index = (np.arange(k)[:, None] * n + obs[None]).ravel()
+    got, ok, _ = cv2.calcOpticalFlowPyrLK(head_tiles, warp_tiles, prev, init, **lk)
     found[index] = (got.reshape(k, -1, 2).astype(np.float64) - slot[None]
                     + warp_lo[None]).reshape(-1, 2)
     # OpenCV fails a window whose top-left corner lies more than a window outside the image or
