@@ -8,6 +8,7 @@ fitting grid (approximation error), and an independent float64 ray-plane interse
 from __future__ import annotations
 
 import functools
+import math
 import types
 
 import numpy as np
@@ -323,6 +324,41 @@ def test_skew_correction_image(skew):
     assert np.allclose(warped[..., 1][interior], 2.0 * warped[..., 0][interior], rtol=IMAGE_REL_TOL)
     outside = (src_col < -EDGE_TOL_PX) | (src_col > cols - 1 + EDGE_TOL_PX)
     assert np.all(np.isnan(warped[..., 0][outside])) and not np.any(np.isnan(warped[..., 0][~outside]))
+
+
+def _shear_reference(image: np.ndarray, shift: np.ndarray, out_width: int) -> np.ndarray:
+    """``shear_rows`` pixel by pixel in float64: Keys taps at floor(x) - 1 .. floor(x) + 2 of
+    ``x = c + shift[r]``, each index clamped to the row, NaN where x lies outside [0, cols - 1]."""
+    rows, cols = image.shape[:2]
+    out = np.full((rows, out_width) + image.shape[2:], np.nan)
+    for r in range(rows):
+        for c in range(out_width):
+            x = c + shift[r]
+            if x < 0.0 or x > cols - 1:
+                continue
+            base = math.floor(x)
+            w = skew_mod._keys_weights(np.array(x - base))
+            taps = [image[r, min(max(base + k - 1, 0), cols - 1)].astype(np.float64) for k in range(4)]
+            out[r, c] = sum(w[k] * taps[k] for k in range(4))
+    return out
+
+
+@pytest.mark.parametrize("bands", [0, 3])
+def test_shear_rows_resamples_each_row_with_its_shift(bands):
+    """Any shifts (a shear's runs of equal whole parts, one per row, beyond either edge)."""
+    rng = np.random.default_rng(4)
+    rows, cols, out_width = 40, 13, 17
+    shape = (rows, cols, bands) if bands else (rows, cols)
+    image = rng.integers(0, 4000, shape).astype(np.uint16)
+    shift = np.concatenate([np.linspace(-2.3, 4.6, 15),  # a shear: runs of rows
+                            rng.uniform(-25.0, 25.0, 16),  # a different window on every row
+                            [-40.0, -19.5, -15.5, 12.25, 30.0, 11.999, -16.0, 0.0, 3.5]])  # edges
+    got = skew_mod.shear_rows(image, shift, out_width)
+    expect = _shear_reference(image, shift, out_width)
+    assert got.shape == expect.shape and got.dtype == np.float32
+    assert np.array_equal(np.isnan(got), np.isnan(expect))
+    inside = ~np.isnan(expect)
+    assert np.max(np.abs(got[inside] - expect[inside]) / np.abs(expect[inside]).clip(1.0)) < IMAGE_REL_TOL
 
 
 # -- plane plus parallax -------------------------------------------------------------------------
