@@ -43,6 +43,7 @@ from satsweep.synth.town import (
     build_surface,
     cast_rays,
     sun_vector,
+    value_noise,
 )
 
 # The issue: RPC projection + recorded bias must land where the renderer's ray for that pixel
@@ -78,6 +79,8 @@ NOISE_REL_TOL = 0.05
 # An RPC fitted over a kilometre of heights against its exact pushbroom camera: the fit's
 # residual is a few 1e-9 px (scene.json's rpc_fit); this leaves room for float rounding only.
 RPC_FIT_TOL_PX = 1e-4
+# Bilinear interpolation of unit-variance lattice values in float64, summed in another order.
+NOISE_ROUND_TOL = 1e-12
 
 SMALL = SynthOptions(seed=3, n_views=3, size_px=128, gsd_m=1.0, bias_px=1.5,
                      location=(55.45, -21.05), ground_alt_m=480.0)
@@ -474,6 +477,25 @@ def test_noise_has_the_requested_sigma():
     dn = to_dn(radiance, noise_dn=6.0, rng=np.random.default_rng(0)).astype(float)
     assert dn.mean() == pytest.approx(0.3 * 4000.0, abs=0.2)
     assert dn.std() == pytest.approx(math.sqrt(6.0 ** 2 + 1.0 / 12.0), rel=NOISE_REL_TOL)
+
+
+@pytest.mark.parametrize("shape,scale", [((37, 53), 4.5), ((20, 9), 1.0), ((3, 40), 17.0)])
+def test_value_noise_interpolates_its_lattice_bilinearly(shape, scale):
+    """Each cell from its lattice square's four corners (the lattice drawn from the same
+    generator state), one cell at a time."""
+    ny, nx = shape
+    gy, gx = math.ceil(ny / scale) + 2, math.ceil(nx / scale) + 2
+    lattice = np.random.default_rng(5).standard_normal((gy, gx))
+    got = value_noise(np.random.default_rng(5), shape, scale)
+    expect = np.empty(shape)
+    for j in range(ny):
+        for i in range(nx):
+            y, x = j / scale, i / scale
+            y0, x0 = math.floor(y), math.floor(x)
+            fy, fx = y - y0, x - x0
+            expect[j, i] = ((1 - fy) * ((1 - fx) * lattice[y0, x0] + fx * lattice[y0, x0 + 1])
+                            + fy * ((1 - fx) * lattice[y0 + 1, x0] + fx * lattice[y0 + 1, x0 + 1]))
+    assert np.max(np.abs(got - expect)) < NOISE_ROUND_TOL
 
 
 def test_rays_parallel_to_the_grid_axes_are_cast_exactly():
