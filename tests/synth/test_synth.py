@@ -513,6 +513,21 @@ def test_rays_parallel_to_the_grid_axes_are_cast_exactly():
     assert np.all(_min_clearance(grid, p, -d, grid.max_height() + 0.1) > 0.0)
 
 
+@pytest.mark.parametrize("heading", [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)])
+def test_a_ray_that_leaves_the_grid_without_a_hit_is_an_error(heading):
+    """Rays 1 m inside each edge, falling 1 mm per metre towards it, leave the grid above the
+    ground (the rays inside the walk stay cast)."""
+    grid = build_surface(seed=1, e_min=-30.0, n_min=-30.0, e_max=30.0, n_max=30.0, cell_m=0.25,
+                         aoi_half_m=10.0)
+    de, dn = heading
+    top = grid.max_height() + 1.0
+    start = np.array([[29.0 * de, 29.0 * dn, top], [0.0, 0.0, top]])
+    direction = np.array([[de, dn, -1e-3], [0.0, 0.0, -1.0]])
+    with pytest.raises(RuntimeError, match="1 ray\\(s\\) left the"):
+        cast_rays(grid, start, direction)
+    assert cast_rays(grid, start[1:], direction[1:]).face[0] == FACE_TOP
+
+
 def test_parse_location():
     from satsweep.synth.scene import parse_location
 
