@@ -728,7 +728,8 @@ class _Walk:
             self.live = np.ones(keep.size, bool)
 
     def check_inside(self, i: np.ndarray, j: np.ndarray, nx: int, ny: int, what: str) -> None:
-        # As unsigned integers the negative indices are beyond any size: two comparisons.
+        # The walks' int64 indices as unsigned integers: the negative ones are beyond any size,
+        # so two comparisons check both bounds.
         inside = (i.view(np.uint64) < nx) & (j.view(np.uint64) < ny)
         if not inside.all():
             out = int(np.count_nonzero(~inside & self.live))

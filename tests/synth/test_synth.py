@@ -515,8 +515,9 @@ def test_rays_parallel_to_the_grid_axes_are_cast_exactly():
 
 @pytest.mark.parametrize("heading", [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)])
 def test_a_ray_that_leaves_the_grid_without_a_hit_is_an_error(heading):
-    """Rays 1 m inside each edge, falling 1 mm per metre towards it, leave the grid above the
-    ground (the rays inside the walk stay cast)."""
+    """A ray 1 m inside an edge, falling 1 mm per metre towards it, leaves the grid above the
+    ground: the error counts that ray alone (a nadir ray cast with it hits the ground when cast
+    without it)."""
     grid = build_surface(seed=1, e_min=-30.0, n_min=-30.0, e_max=30.0, n_max=30.0, cell_m=0.25,
                          aoi_half_m=10.0)
     de, dn = heading
