@@ -75,6 +75,11 @@ def fill_from_nearest(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     return np.asarray(values)[known][label - 1]
 
 
+def _square(radius: int) -> np.ndarray:
+    """The (2 radius + 1)^2 square structuring element of OpenCV's erode and dilate."""
+    return np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+
+
 def _bands(index: np.ndarray, n_planes: int, halo: np.ndarray, margin: int) -> np.ndarray:
     """(words, H, W) uint32: each pixel's band set, bit k set where some index i of ``index``
     within the ``halo`` structuring element has floor(i) - margin .. ceil(i) + margin (within
@@ -118,8 +123,7 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
         return None
     if not known.all():
         idx = fill_from_nearest(idx, known)
-    size = 2 * halo + 1
-    kernel = np.ones((size, size), np.uint8)
+    kernel = _square(halo)
     # Min / max over the window, pixels outside the image ignored (= scipy's mode "nearest").
     lo_px = cv2.erode(idx, kernel, borderType=cv2.BORDER_REPLICATE)
     hi_px = cv2.dilate(idx, kernel, borderType=cv2.BORDER_REPLICATE)
@@ -137,10 +141,10 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
         hi = np.clip(np.ceil(hi) + margin, 0, n_planes - 1).astype(np.int64)
         count = hi - lo + 1
         if count.mean() <= max_fraction * n_planes:
-            reach = halo if band_halo is None else min(band_halo, halo)
+            pixel_bands = None
+            if bands and side == 1:
+                reach = halo if band_halo is None else min(band_halo, halo)
+                pixel_bands = _bands(idx, n_planes, _square(reach), margin)
             return PlaneWindows(block=side, first=lo, n_planes=int(count.max()), count=count,
-                                bands=_bands(idx, n_planes,
-                                             np.ones((2 * reach + 1, 2 * reach + 1), np.uint8),
-                                             margin)
-                                if bands and side == 1 else None)
+                                bands=pixel_bands)
     return None
