@@ -80,20 +80,43 @@ def _square(radius: int) -> np.ndarray:
     return np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
 
 
-def _bands(index: np.ndarray, n_planes: int, halo: np.ndarray, margin: int) -> np.ndarray:
-    """(words, H, W) uint32: each pixel's band set, bit k set where some index i of ``index``
-    within the ``halo`` structuring element has floor(i) - margin .. ceil(i) + margin (within
-    the planes) meet planes [k BAND_PLANES, (k + 1) BAND_PLANES)."""
-    import cv2  # noqa: PLC0415
+# _LOW_BITS[k]: the k lowest bits of a 32-bit word set (k = 0 .. 32).
+_LOW_BITS = np.array([(1 << k) - 1 for k in range(33)], np.uint32)
 
-    lo = (np.clip(np.floor(index) - margin, 0, n_planes - 1) // BAND_PLANES).astype(np.int32)
-    hi = (np.clip(np.ceil(index) + margin, 0, n_planes - 1) // BAND_PLANES).astype(np.int32)
-    out = np.zeros((band_words(n_planes),) + index.shape, np.uint32)
-    for k in range(int(lo.min()), int(hi.max()) + 1):
-        near = ((lo <= k) & (hi >= k)).view(np.uint8)
-        held = cv2.dilate(near, halo, borderType=cv2.BORDER_REPLICATE)
-        out[k >> 5] |= held.astype(np.uint32) << np.uint32(k & 31)
+
+def _or_within(words: np.ndarray, radius: int) -> np.ndarray:
+    """(..., H, W) unsigned bit sets: each pixel's OR over the pixels within ``radius`` (a
+    square) of it, those outside the image ignored (the bitwise form of OpenCV's dilation with
+    ``_square(radius)`` and replicated borders, which adds nothing outside either), in two
+    separable passes of shifted ORs."""
+    rows = words.copy()
+    for d in range(1, radius + 1):
+        rows[..., d:] |= words[..., :-d]
+        rows[..., :-d] |= words[..., d:]
+    out = rows.copy()
+    for d in range(1, radius + 1):
+        out[..., d:, :] |= rows[..., :-d, :]
+        out[..., :-d, :] |= rows[..., d:, :]
     return out
+
+
+def _bands(index: np.ndarray, n_planes: int, radius: int, margin: int) -> np.ndarray:
+    """(words, H, W) uint32: each pixel's band set, bit k set where some index i of ``index``
+    within ``radius`` pixels of it (a square) has floor(i) - margin .. ceil(i) + margin (within
+    the planes) meet planes [k BAND_PLANES, (k + 1) BAND_PLANES). Each pixel's own bands are
+    one run of bits per word, [lo, hi], then ORed over the square (``_or_within``): one pass
+    per word instead of a dilation per band (a 1088 px tile of 240 planes, 60 bands: 0.12 ->
+    0.04 s)."""
+    # (the planes as whole numbers before the division: a float's floor division is slower)
+    lo = np.clip(np.floor(index) - margin, 0, n_planes - 1).astype(np.int32) // BAND_PLANES
+    hi = np.clip(np.ceil(index) + margin, 0, n_planes - 1).astype(np.int32) // BAND_PLANES
+    own = np.empty((band_words(n_planes),) + index.shape, np.uint32)
+    for w in range(own.shape[0]):
+        # bits [first, end) of word w (none where first >= end)
+        first = np.clip(lo - 32 * w, 0, 32)
+        end = np.clip(hi + 1 - 32 * w, 0, 32)
+        own[w] = _LOW_BITS[end] & ~_LOW_BITS[first]
+    return _or_within(own, radius)
 
 
 def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: int,
@@ -144,7 +167,7 @@ def plane_windows(plane_index: np.ndarray, n_planes: int, *, block: int, halo: i
             pixel_bands = None
             if bands and side == 1:
                 reach = halo if band_halo is None else min(band_halo, halo)
-                pixel_bands = _bands(idx, n_planes, _square(reach), margin)
+                pixel_bands = _bands(idx, n_planes, reach, margin)
             return PlaneWindows(block=side, first=lo, n_planes=int(count.max()), count=count,
                                 bands=pixel_bands)
     return None

@@ -179,3 +179,30 @@ def test_pixel_bands_hold_the_coarse_planes_within_the_halo(band_halo):
     k_mid = 60 // BAND_PLANES
     assert win.first[10, 14] < 60 < win.first[10, 14] + win.count[10, 14]
     assert not (int(win.bands[k_mid >> 5, 10, 14]) >> (k_mid & 31)) & 1
+
+
+@pytest.mark.parametrize("shape, radius", [((3, 2), 6), ((9, 14), 4), ((1, 30), 3)])
+def test_band_sets_by_brute_force(shape, radius):
+    """``_bands`` (runs of bits per word, ORed over the square) against each pixel's set of
+    bands built by brute force: images narrower than the square, three words of bands (300
+    planes), indices below and above the planes (clipped)."""
+    from satsweep.dense.sweep import BAND_PLANES
+
+    rng = np.random.default_rng(11)
+    n, margin = 300, 2
+    idx = rng.uniform(-5.0, n + 5.0, shape)
+    idx[0, 0] = 31.0 * BAND_PLANES  # a run that ends at a word's last bit
+    got = coarse._bands(idx, n, radius, margin)
+    assert got.shape == (-(-(-(-n // BAND_PLANES)) // 32),) + shape and got.dtype == np.uint32
+    lo = np.clip(np.floor(idx) - margin, 0, n - 1) // BAND_PLANES
+    hi = np.clip(np.ceil(idx) + margin, 0, n - 1) // BAND_PLANES
+    h, w = shape
+    for y in range(h):
+        for x in range(w):
+            ys = slice(max(y - radius, 0), y + radius + 1)
+            xs = slice(max(x - radius, 0), x + radius + 1)
+            want = set()
+            for a, b in zip(lo[ys, xs].ravel(), hi[ys, xs].ravel()):
+                want.update(range(int(a), int(b) + 1))
+            have = {k for k in range(32 * got.shape[0]) if (int(got[k >> 5, y, x]) >> (k & 31)) & 1}
+            assert have == want, (y, x)
