@@ -186,14 +186,14 @@ def test_band_sets_by_brute_force(shape, radius):
     """``_bands`` (runs of bits per word, ORed over the square) against each pixel's set of
     bands built by brute force: images narrower than the square, three words of bands (300
     planes), indices below and above the planes (clipped)."""
-    from satsweep.dense.sweep import BAND_PLANES
+    from satsweep.dense.sweep import BAND_PLANES, band_words
 
     rng = np.random.default_rng(11)
     n, margin = 300, 2
     idx = rng.uniform(-5.0, n + 5.0, shape)
     idx[0, 0] = 31.0 * BAND_PLANES  # a run that ends at a word's last bit
     got = coarse._bands(idx, n, radius, margin)
-    assert got.shape == (-(-(-(-n // BAND_PLANES)) // 32),) + shape and got.dtype == np.uint32
+    assert got.shape == (band_words(n),) + shape == (3,) + shape and got.dtype == np.uint32
     lo = np.clip(np.floor(idx) - margin, 0, n - 1) // BAND_PLANES
     hi = np.clip(np.ceil(idx) + margin, 0, n - 1) // BAND_PLANES
     h, w = shape
@@ -204,5 +204,6 @@ def test_band_sets_by_brute_force(shape, radius):
             want = set()
             for a, b in zip(lo[ys, xs].ravel(), hi[ys, xs].ravel()):
                 want.update(range(int(a), int(b) + 1))
-            have = {k for k in range(32 * got.shape[0]) if (int(got[k >> 5, y, x]) >> (k & 31)) & 1}
+            have = {k for k in range(32 * got.shape[0])
+                    if (int(got[k >> 5, y, x]) >> (k & 31)) & 1}
             assert have == want, (y, x)
