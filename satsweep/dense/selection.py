@@ -11,7 +11,9 @@ the vertical.
 
 Rules (documented in the report):
 - every view may be a reference (with 2 views, each is the reference once); at most
-  ``max_references`` are kept, lowest incidence first;
+  ``max_references`` are kept, lowest incidence first; beyond ``BUDGET_FREE_REFERENCES`` of
+  them, only as many as keep the references' crops within ``reference_megapixels`` (each
+  reference costs a sweep of its crop: small crops take more references, large ones fewer);
 - a reference's sources are the other views whose B/H with it lies in the useful range, ranked by
   closeness to ``target_b_over_h`` and then incidence; at most ``max_sources``;
 - when no view lies in the useful range, the pair closest to it is used and a warning is recorded;
@@ -101,13 +103,25 @@ SIDES_DEG = (0.0, 90.0, 180.0, 270.0)
 # A view's date counts as in leaf from this similarity.leaf_season on (late May to mid October
 # in the northern temperate zone).
 LEAF_ON_SEASON = 0.75
+# References that ``reference_megapixels`` never takes away (fewer only where max_references
+# asks for fewer). Each reference is a sweep of its crop, so the sweep stage's time grows with
+# the references' pixels; a 19-view stack of 850 px crops at 0.3 m (the issue-form stacks,
+# 0.72 Mpx each) takes 12 references within 10 Mpx, one of 1700 px crops (2.9 Mpx each) 8.
+# Issue-form stacks, seeds 11-20, DFC MAE 8 -> 12 references: mean 0.884 -> 0.834 m (8 of 10
+# lower), within 1 m higher on all ten, 22-29 s -> 28-38 s (docs/measurements.md, fifty-sixth
+# session); 10-view stacks of 384 px at 0.5 m (all 10 references): mean 0.542 -> 0.538 m;
+# 20 views of 384 px, seeds 0-1: 1.020 / 0.882 -> 1.019 / 0.849 m.
+BUDGET_FREE_REFERENCES = 8
 
 
 @dataclasses.dataclass(frozen=True)
 class ViewSelectionOptions(Options):
     """Options of the choice of reference views and of their sources."""
 
-    max_references: int = 8  # reference views swept (each costs a sweep)
+    max_references: int = 12  # reference views swept at most (each costs a sweep)
+    reference_megapixels: float = 10.0  # beyond BUDGET_FREE_REFERENCES (8) references, only
+    # as many as keep the references' crops within this many megapixels in all (the median
+    # crop's pixels each); 0: max_references alone
     max_sources: int = 4  # source views per reference
     min_b_over_h: float = 0.1  # least base-to-height ratio of a reference-source pair
     max_b_over_h: float = 0.5  # largest base-to-height ratio of a reference-source pair
@@ -133,9 +147,9 @@ class ViewSelectionOptions(Options):
     # pixels (similarity.leaf_state_from_vegetation; measured in docs/measurements.md,
     # twenty-sixth session); false: unknown without dates
 
-    ADVANCED = ("min_b_over_h", "max_b_over_h", "target_b_over_h", "min_overlap",
-                "similarity_weight", "min_similarity", "side_coverage", "leaf_on_references",
-                "leaf_state_weight", "leaf_from_colour")
+    ADVANCED = ("reference_megapixels", "min_b_over_h", "max_b_over_h", "target_b_over_h",
+                "min_overlap", "similarity_weight", "min_similarity", "side_coverage",
+                "leaf_on_references", "leaf_state_weight", "leaf_from_colour")
 
     def check(self) -> None:
         self._require(0 <= self.min_b_over_h < self.max_b_over_h, "min_b_over_h",
@@ -143,6 +157,8 @@ class ViewSelectionOptions(Options):
         self._require(self.target_b_over_h > 0, "target_b_over_h", "must be > 0")
         self._require(self.max_sources >= 1, "max_sources", "must be >= 1")
         self._require(self.max_references >= 1, "max_references", "must be >= 1")
+        self._require(math.isfinite(self.reference_megapixels) and self.reference_megapixels >= 0,
+                      "reference_megapixels", "must be >= 0 megapixels (0: no such limit)")
         self._require(0 <= self.min_overlap <= 1, "min_overlap", "must be in [0, 1]")
         self._require(0 <= self.similarity_weight <= 100, "similarity_weight",
                       "must be in [0, 100]")
@@ -168,7 +184,8 @@ class ViewGeometry:
 # The rules of ``select_views``, as report.json states them.
 RULES = [
     "references: lowest incidence plus 30 degrees x (1 - mean similarity of their best sources) "
-    "first, at most max_references",
+    f"first, at most max_references; beyond {BUDGET_FREE_REFERENCES}, only as many as keep "
+    "their crops (the median crop's pixels each) within reference_megapixels",
     f"side coverage: the last references come from the best views of the sides (N, E, S, W; "
     f"azimuth within {SIDE_HALF_ANGLE_DEG:g} degrees, or incidence under {NADIR_DEG:g}) that "
     "some view sees and fewer than side_coverage references do",
@@ -210,6 +227,8 @@ class Selection:
     # trees are in leaf (None: unknown date)
     leaf_season_from: str | None = None  # where leaf_season came from: "metadata" (the
     # dates) or "colour" (similarity.leaf_state_from_vegetation); None: unknown
+    reference_limit: int | None = None  # the most references the options allowed for these
+    # crops (reference_limit); None: not known
 
     def to_dict(self, names: Sequence[str] | None = None) -> dict:
         n = len(self.geometry)
@@ -221,6 +240,7 @@ class Selection:
                 for i, g in enumerate(self.geometry)
             ],
             "leaf_season_from": self.leaf_season_from,
+            "reference_limit": self.reference_limit,
             "pairs": [
                 {"a": names[i], "b": names[j], "b_over_h": float(self.b_over_h[i, j]),
                  "overlap": float(min(self.overlap[i, j], self.overlap[j, i]))}
@@ -352,10 +372,11 @@ def select_views(cameras: Sequence, *, mid_height: float,
                       for side in SIDES_DEG] for g in geometry])
     references: list[int] = []
     sources: dict[int, tuple[int, ...]] = {}
-    leaf_on_wanted = math.ceil(o.leaf_on_references * min(o.max_references, n))
-    while remaining and len(references) < o.max_references:
+    limit = reference_limit(o, [c.width * c.height for c in cameras])
+    leaf_on_wanted = math.ceil(o.leaf_on_references * min(limit, n))
+    while remaining and len(references) < limit:
         r = remaining[0]
-        slots = o.max_references - len(references)
+        slots = limit - len(references)
         # Season: once the slots left are no more than the references still wanted from dates
         # in leaf, the next one must be such a view (one that sees a side still wanted first),
         # unless the side coverage below needs the slot (then a view in leaf of such a side
@@ -413,7 +434,20 @@ def select_views(cameras: Sequence, *, mid_height: float,
                      geometry=geometry, warnings=tuple(warnings),
                      similarity=None if similarity is None else sim,
                      similarity_source=similarity_source, leaf_season=seasons,
-                     leaf_season_from=None if seasons is None else leaf_season_from)
+                     leaf_season_from=None if seasons is None else leaf_season_from,
+                     reference_limit=limit)
+
+
+def reference_limit(options: ViewSelectionOptions, crop_pixels: Sequence[int]) -> int:
+    """The most references ``options`` allow for views of ``crop_pixels`` pixels each:
+    ``max_references``, but beyond BUDGET_FREE_REFERENCES only as many as keep that many crops
+    of the median's pixels within ``reference_megapixels`` (0: no such limit)."""
+    limit = options.max_references
+    if options.reference_megapixels > 0 and len(crop_pixels):
+        each = max(float(np.median(crop_pixels)), 1.0) / 1e6
+        fit = int(options.reference_megapixels / each)
+        limit = min(limit, max(BUDGET_FREE_REFERENCES, fit))
+    return limit
 
 
 def _range_distance(value: float, o: ViewSelectionOptions) -> float:

@@ -273,3 +273,55 @@ def test_leaf_options_are_checked():
         ViewSelectionOptions(leaf_on_references=1.5)
     with pytest.raises(OptionsError, match="leaf_state_weight"):
         ViewSelectionOptions(leaf_state_weight=-1.0)
+
+
+def _ring_stack(size: int, n: int = 14):
+    """``n`` views of ``size`` px crops around the AOI, incidences 6-24 degrees, azimuths all
+    around: every view has sources in the useful B/H range."""
+    cams = []
+    for k in range(n):
+        cam = satellite(6.0 + 18.0 * k / (n - 1), (k * 137.5) % 360.0)
+        cams.append(dataclasses.replace(cam, width=size, height=size))
+    return cams
+
+
+@pytest.mark.parametrize("size, expected", [
+    (400, 12),  # 0.16 Mpx each: max_references
+    (1000, 10),  # 1 Mpx each: 10 of them fill the 10 Mpx
+    (1300, 8),  # 1.69 Mpx: 5 would fill them, but BUDGET_FREE_REFERENCES stay
+    (1700, 8),
+])
+def test_the_references_crops_keep_within_their_megapixels(size, expected):
+    from satsweep.dense.selection import BUDGET_FREE_REFERENCES
+
+    options = ViewSelectionOptions()
+    assert (options.max_references, options.reference_megapixels) == (12, 10.0)
+    assert BUDGET_FREE_REFERENCES == 8
+    sel = select_views(_ring_stack(size), mid_height=0.0)
+    assert len(sel.references) == sel.reference_limit == expected
+    assert sel.to_dict()["reference_limit"] == expected
+    # Without the limit, max_references alone; a smaller max_references is never raised.
+    free = select_views(_ring_stack(size), mid_height=0.0,
+                        options=ViewSelectionOptions(reference_megapixels=0.0))
+    assert len(free.references) == 12
+    assert free.references[:expected] == sel.references
+    few = select_views(_ring_stack(size), mid_height=0.0,
+                       options=ViewSelectionOptions(max_references=5))
+    assert len(few.references) == 5
+
+
+def test_the_median_crop_sets_the_references_pixels():
+    """Crops of unequal sizes: the median's pixels count for each."""
+    from satsweep.dense.selection import reference_limit
+
+    options = ViewSelectionOptions()
+    assert reference_limit(options, [250_000] * 7 + [4_000_000] * 6) == 12  # median 0.25 Mpx
+    assert reference_limit(options, [250_000] * 6 + [1_000_000] * 7) == 10  # median 1 Mpx
+    assert reference_limit(options, []) == 12
+    assert reference_limit(ViewSelectionOptions(reference_megapixels=2.5), [250_000] * 3) == 10
+
+
+@pytest.mark.parametrize("value", [-1.0, float("nan"), float("inf")])
+def test_reference_megapixels_is_checked(value):
+    with pytest.raises(OptionsError, match="reference_megapixels"):
+        ViewSelectionOptions(reference_megapixels=value)
