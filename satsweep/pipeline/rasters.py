@@ -204,10 +204,13 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 slack_min_confidence=d.visibility_slack_confidence,
                 trusted_far_m=d.visibility_leaf_on_far_m, trusted_views=trusted,
                 bare_far_m=d.visibility_bare_far_m if green is not None else 0.0,
-                bare_views=bare, green=green)
+                bare_views=bare, green=green,
+                voter_min_confidence=d.visibility_voter_confidence, voter_views=fine)
             check = {"check": "free space", "tolerance_m": d.consensus_tolerance_m,
                      "far_m": d.visibility_far_m, "slack_px": d.visibility_slack_px,
                      "slack_min_confidence": d.visibility_slack_confidence,
+                     "voter_min_confidence": d.visibility_voter_confidence,
+                     "voter_views": [bool(f) for f in fine],
                      "leaf_on_far_m": d.visibility_leaf_on_far_m,
                      "leaf_on_fine": [bool(t) for t in trusted],
                      "bare_far_m": d.visibility_bare_far_m if green is not None else 0.0,

@@ -112,6 +112,19 @@ COREGISTER_MIN_CELLS = 100
 # 0.603; the issue-form 0.3 m stacks (seeds 7-13) DFC MAE 0.928 -> 0.925 m on average.
 VISIBILITY_SLACK_PX = 1
 VISIBILITY_SLACK_CONFIDENCE = 0.3
+# The free-space check's voters ([dsm] visibility_voter_confidence): a view whose pixels are
+# finer than the cells (fine_pixels) sees past a point only from its pixels whose matching
+# confidence (SGM's margin between its two lowest minima) is at least this. A height of two
+# near-equal minima is no evidence that the space above it is empty: a roof in another tower's
+# moving shadow, matched low by the views of the dates that shadow it, outvoted the views that
+# matched it (twelve references on issue-form seed 11: a 135-cell patch of a 39 m roof emptied
+# and filled from the ground). Issue-form stacks (seeds 11-20, 12 references), DFC MAE mean
+# 0.834 -> 0.805 m at 0.01 (lower on 8 of 10, seed 11 1.117 -> 1.045 m); at 0.02 0.799 m
+# (seed 11 1.068), at 0.05 / 0.15 seeds 11 and 16 1.131 / 1.282 and 0.853 / 0.989 m
+# (docs/measurements.md, fifty-sixth session). Views of pixels as wide as the cells vote as
+# before: on the 0.5 m stacks of 10 views (v10 seeds 0-5) every view voting so at 0.02 took
+# the mean 0.538 -> 0.556 m (seed 1 0.782 -> 0.874).
+VISIBILITY_VOTER_CONFIDENCE = 0.01
 MAX_VISIBILITY_SLACK_PX = 8
 # Small raised objects' whole footprints ([dsm] small_object_area_m2): the DSM holds each
 # cell's highest point (as the lidar truths do), and a pixel's sub-samples (+-0.25 px with 2 per
@@ -227,6 +240,10 @@ class DSMOptions(Options):
     # (occlusion edges a pixel off: crowns one view erodes); 0: the nearest pixel only
     visibility_slack_confidence: float = VISIBILITY_SLACK_CONFIDENCE  # ... confident: a
     # pixel's matching confidence at least this (facades matched at the roof's height are not)
+    visibility_voter_confidence: float = VISIBILITY_VOTER_CONFIDENCE  # a view whose pixels are
+    # finer than the cells sees past a point (or far past) only from its pixels of at least
+    # this matching confidence (two near-equal cost minima are no evidence of free space); 0:
+    # from every pixel
     small_object_area_m2: float = 150.0  # the pixels of a view's raised regions (2 m above the
     # ground around them) of at most this area splat to their footprints' edges: a crown's rim
     # reaches the cells it overhangs (SMALL_OBJECT_MIN_HEIGHT_M); 0: none (subsamples 1:
@@ -262,7 +279,8 @@ class DSMOptions(Options):
                 "consensus_min_share", "consensus_min_distinct_views", "coregister",
                 "visibility_check", "visibility_far_m", "visibility_leaf_on_far_m",
                 "visibility_bare_far_m", "visibility_slack_px",
-                "visibility_slack_confidence", "small_object_area_m2", "small_object_top",
+                "visibility_slack_confidence", "visibility_voter_confidence",
+                "small_object_area_m2", "small_object_top",
                 "leaf_on_crowns", "crown_holes", "green_crowns",
                 "view_raster", "edge_min_confidence")
 
@@ -291,6 +309,10 @@ class DSMOptions(Options):
         self._require(math.isfinite(self.visibility_slack_confidence)
                       and 0.0 <= self.visibility_slack_confidence <= 1.0,
                       "visibility_slack_confidence", "must be a confidence in [0, 1]")
+        self._require(math.isfinite(self.visibility_voter_confidence)
+                      and 0.0 <= self.visibility_voter_confidence <= 1.0,
+                      "visibility_voter_confidence", "must be a confidence in [0, 1] (0: every "
+                      "pixel votes)")
         self._require(math.isfinite(self.small_object_area_m2) and self.small_object_area_m2 >= 0.0,
                       "small_object_area_m2", "must be >= 0 square metres (0: none)")
         self._require(math.isfinite(self.consensus_tolerance_m) and self.consensus_tolerance_m > 0,
@@ -350,7 +372,9 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
                              trusted_views: Sequence[bool] | None = None,
                              bare_far_m: float = 0.0,
                              bare_views: Sequence[bool] | None = None,
-                             green: Sequence[np.ndarray | None] | None = None
+                             green: Sequence[np.ndarray | None] | None = None,
+                             voter_min_confidence: float = 0.0,
+                             voter_views: Sequence[bool] | None = None
                              ) -> list[np.ndarray]:
     """Free-space check of several reference views' height maps.
 
@@ -375,6 +399,12 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
     ``points[k]`` (required with ``bare_far_m``), the points that k's image shows green. Only
     crowns are seen through, and only on leafless dates.
 
+    The views that ``voter_views`` marks (None: none) see past a point, or far past it, only
+    from their pixels whose confidence (``confidences[j]``; None: no pixel of j) is at least
+    ``voter_min_confidence`` (when > 0): a height of two near-equal cost minima (a roof in
+    another building's shadow of that date) is no evidence of empty space above it. Their
+    heights still agree.
+
     With ``slack_px`` > 0, a pixel of view k whose confidence (``confidences[k]``, (H_k, W_k),
     None: no pixel of k counts as confident) is at least ``slack_min_confidence`` is seen past by
     j only where j's heights at the pixel and at its neighbours within ``slack_px`` pixels (a
@@ -390,9 +420,15 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
     if not (math.isfinite(slack_min_confidence) and 0.0 <= slack_min_confidence <= 1.0):
         raise OptionsError(f"slack_min_confidence = {slack_min_confidence!r}: must be a "
                            "confidence in [0, 1]")
+    if not (math.isfinite(voter_min_confidence) and 0.0 <= voter_min_confidence <= 1.0):
+        raise OptionsError(f"voter_min_confidence = {voter_min_confidence!r}: must be a "
+                           "confidence in [0, 1]")
     if confidences is not None and len(confidences) != len(heights):
         raise ValueError(f"visibility_check_heights: {len(heights)} height maps, "
                          f"{len(confidences)} confidence maps")
+    if voter_views is not None and len(voter_views) != len(heights):
+        raise ValueError(f"visibility_check_heights: {len(heights)} height maps, "
+                         f"{len(voter_views)} voter_views flags")
     for depth_name, depth, flags_name, flags in (
             ("trusted_far_m", trusted_far_m, "trusted_views", trusted_views),
             ("bare_far_m", bare_far_m, "bare_views", bare_views)):
@@ -430,9 +466,22 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
     if slack_px > 0 and confidences is not None:
         slack = [None if c is None else np.asarray(c, np.float64) >= slack_min_confidence
                  for c in confidences]
+    # Per view, the pixels from which it may see past (None: all of them).
+    voters = None
+    if voter_min_confidence > 0.0 and voter_views is not None and any(voter_views):
+        if confidences is None:
+            confidences = [None] * len(heights)
+        voters = [None if not flag else
+                  np.zeros(np.size(h), bool) if c is None else
+                  (np.asarray(c, np.float64) >= voter_min_confidence).ravel()
+                  for flag, c, h in zip(voter_views, confidences, heights)]
+        for j, (v, h) in enumerate(zip(voters, heights)):
+            if v is not None and v.size != np.size(h):
+                raise ValueError(f"visibility_check_heights: view {j}'s confidence map is "
+                                 f"{np.shape(confidences[j])}, its height map {np.shape(h)}")
     # A view that never sees far past adds nothing to ``far``: 2 far <= agree always holds.
     return _heights_seen_by_others(
-        heights, projections, tolerance_m, points, "visibility_check_heights",
+        heights, projections, tolerance_m, points, "visibility_check_heights", voters=voters,
         far_from=far_from, slack_px=slack_px, slack=slack,
         far_bare=far_bare if use_bare else None, bare_points=not_green,
         reduce=lambda known, agree, past, far: known & (past <= agree) & (2 * far <= agree))
@@ -474,6 +523,7 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
                             far_from: Sequence[float | None] | None = None, slack_px: int = 0,
                             slack=None, *,
                             reduce: Callable[..., np.ndarray],
+                            voters: Sequence[np.ndarray | None] | None = None,
                             far_bare: Sequence[float | None] | None = None,
                             bare_points: Sequence[np.ndarray | None] | None = None
                             ) -> list[np.ndarray]:
@@ -487,7 +537,9 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
     (per view, an (H_k, W_k) bool map or None) marks the pixels whose "past" reads the highest of
     the other view's heights within ``slack_px`` pixels instead of the nearest one. The views run
     in up to FUSION_THREADS_MAX threads (each view's maps depend on the others' heights only: the
-    sequential loop's results). See :func:`cross_check_heights` for the other arguments."""
+    sequential loop's results). ``voters`` (per view j, a flat bool per pixel or None: all)
+    marks the pixels of j that may count as past or far. See :func:`cross_check_heights` for
+    the other arguments."""
     maps = [np.ascontiguousarray(h, dtype=np.float64) for h in heights]
     if len(maps) != len(projections):
         raise ValueError(f"{caller}: {len(maps)} height maps, {len(projections)} projections")
@@ -548,15 +600,17 @@ def _heights_seen_by_others(heights, projections, tolerance_m: float, points, ca
                 below = other
                 if slack_k is not None:
                     below = np.where(slack_k[b] & inside, high_j[at], other)
+                # Whether j's pixel may see past (its points outside read pixel 0: NaN there).
+                vote = True if voters is None or voters[j] is None else voters[j][at]
                 with np.errstate(invalid="ignore"):
                     agree[b] += np.abs(other - ub) <= tolerance_m
-                    past[b] += below < ub - tolerance_m
+                    past[b] += (below < ub - tolerance_m) & vote
                     if bare_j is not None:
                         depth = np.where(bare_k[b], bare_j,
                                          math.inf if far_j is None else far_j)
-                        far[b] += other < ub - depth
+                        far[b] += (other < ub - depth) & vote
                     elif far_j is not None:
-                        far[b] += other < ub - far_j
+                        far[b] += (other < ub - far_j) & vote
         agree_map[rows, cols] = agree
         past_map[rows, cols] = past
         far_map[rows, cols] = far

@@ -949,19 +949,18 @@ def test_fine_pixels_are_two_footprints_per_cell():
         fine_pixels(0.0, 0.5)
 
 
-def test_visibility_slack_keeps_a_rim_that_other_views_erode_by_a_pixel():
-    """Three near-nadir views of the block; views 1 and 2 erode it by a pixel on each side (their
-    edge pixels see the ground), view 0 does not. Its edge pixels then land on the others'
-    eroded pixels: two views see past, none agrees, and the strict check drops the rim. With a
-    one-pixel slack each of them has the block's height a pixel away, so the rim stays, when
-    view 0 matched it confidently; an unconfident rim (a facade's pattern) keeps the strict
-    test, and the far rule, which reads the nearest pixel, still applies."""
-    width = 60
-    slopes = (0.1, -0.1, 0.05)
-    truth = [_true_heights(a, width)[0] for a in slopes]
-    heights = [t.copy() for t in truth]
+_ERODED_SLOPES = (0.1, -0.1, 0.05)
+
+
+def _eroded_rim_scene(width: int = 60):
+    """The slack test's three near-nadir views: views 1 and 2 erode the block by a pixel on each
+    side. Returns (heights, projections, view 0's rim columns, per view j in (1, 2) the columns
+    where view 0's rim points land: on its ground)."""
+    slopes = _ERODED_SLOPES
+    heights = [_true_heights(a, width)[0] for a in slopes]
     roof0 = np.flatnonzero(heights[0][0] == _BLOCK[2])
     rim0 = [roof0[0], roof0[-1]]
+    landing = {}
     for j in (1, 2):  # where view 0's rim points land in view j (pixel centres at integers)
         west, east = np.floor(np.array(rim0) - (slopes[0] - slopes[j]) * _BLOCK[2]
                               + 0.5).astype(int)
@@ -970,7 +969,66 @@ def test_visibility_slack_keeps_a_rim_that_other_views_erode_by_a_pixel():
         heights[j][:, roof[0]:west + 1] = 0.0
         heights[j][:, east:roof[-1] + 1] = 0.0
         assert heights[j][0, west + 1] == heights[j][0, east - 1] == _BLOCK[2]
-    projections = [_affine(a) for a in slopes]
+        landing[j] = [west, east]
+        assert (heights[j][:, landing[j]] == 0.0).all()
+    return heights, [_affine(a) for a in slopes], rim0, landing
+
+
+def test_unconfident_pixels_of_voter_views_do_not_see_past():
+    """View 0's rim points land on pixels that views 1 and 2 put on the ground: two views see
+    past, none agrees, and the rim is dropped. Where those ground heights are unconfident
+    (two near-equal minima) in views marked as voters, they no longer count as seeing past (or
+    far past), and the rim stays; one confident view seeing past still drops it."""
+    heights, projections, rim0, landing = _eroded_rim_scene()
+    sure = [np.ones(h.shape) for h in heights]
+    unsure = [c.copy() for c in sure]
+    for j in (1, 2):
+        unsure[j][:, landing[j]] = 0.01
+    run = functools.partial(dsm.visibility_check_heights, heights, projections, tolerance_m=2.0)
+    assert not run()[0][:, rim0].any()
+    voters = [True, True, True]
+    kept = run(confidences=unsure, voter_min_confidence=0.02, voter_views=voters)
+    assert kept[0][:, rim0].all()
+    # The far rule counts the same voters: nothing sees far past the rim either.
+    far = run(confidences=unsure, voter_min_confidence=0.02, voter_views=voters, far_m=5.0)
+    assert far[0][:, rim0].all()
+    # The rest is as without the rule: the rim is all that changes in view 0.
+    strict = run()
+    assert (kept[0] == (strict[0] | _columns(kept[0].shape, rim0))).all()
+    # One view still confident on its ground there sees past: dropped.
+    one = [unsure[0], unsure[1], sure[2]]
+    assert not run(confidences=one, voter_min_confidence=0.02,
+                   voter_views=voters)[0][:, rim0].any()
+    # Views not marked, a threshold of 0, or confidences under it nowhere: as before.
+    for kwargs in (dict(voter_views=[True, False, False]), dict(voter_views=None),
+                   dict(voter_views=voters, voter_min_confidence=0.0),
+                   dict(voter_views=voters, voter_min_confidence=0.005)):
+        kwargs.setdefault("voter_min_confidence", 0.02)
+        assert not run(confidences=unsure, **kwargs)[0][:, rim0].any(), kwargs
+    # A voter view without confidences never sees past.
+    none = run(confidences=[None, None, None], voter_min_confidence=0.02, voter_views=voters)
+    assert none[0][:, rim0].all()
+    with pytest.raises(OptionsError, match="voter_min_confidence"):
+        run(voter_min_confidence=1.5)
+    with pytest.raises(ValueError, match="voter_views"):
+        run(confidences=unsure, voter_min_confidence=0.02, voter_views=[True, True])
+
+
+def _columns(shape, cols) -> np.ndarray:
+    out = np.zeros(shape, bool)
+    out[:, cols] = True
+    return out
+
+
+def test_visibility_slack_keeps_a_rim_that_other_views_erode_by_a_pixel():
+    """Three near-nadir views of the block; views 1 and 2 erode it by a pixel on each side (their
+    edge pixels see the ground), view 0 does not. Its edge pixels then land on the others'
+    eroded pixels: two views see past, none agrees, and the strict check drops the rim. With a
+    one-pixel slack each of them has the block's height a pixel away, so the rim stays, when
+    view 0 matched it confidently; an unconfident rim (a facade's pattern) keeps the strict
+    test, and the far rule, which reads the nearest pixel, still applies."""
+    heights, projections, rim0, _ = _eroded_rim_scene()
+    truth = [_true_heights(a, heights[0].shape[1])[0] for a in _ERODED_SLOPES]
     sure = [np.ones(h.shape) for h in heights]
     strict = dsm.visibility_check_heights(heights, projections, tolerance_m=2.0)
     assert not strict[0][:, rim0].any()
@@ -1008,8 +1066,9 @@ def test_visibility_slack_keeps_a_rim_that_other_views_erode_by_a_pixel():
                                      confidences=sure[:2])
 
 
+@pytest.mark.parametrize("with_voters", [False, True])
 @pytest.mark.parametrize("block", [dsm.SEEN_BLOCK, 7])
-def test_seen_by_others_counts_match_a_plain_loop(block, monkeypatch):
+def test_seen_by_others_counts_match_a_plain_loop(block, with_voters, monkeypatch):
     """The counts behind the cross- and free-space checks (agree, past with and without the
     slack, far), against a loop over every point and every other view: maps of several sizes
     with unknown pixels, views shifted so that some points fall outside the others' maps; the
@@ -1029,9 +1088,15 @@ def test_seen_by_others_counts_match_a_plain_loop(block, monkeypatch):
     slack[1] = None
     far_from = [4.0, None, 6.0]
     tol, slack_px = 1.0, 1
+    # Per view, the pixels that may see past (voters; None: all).
+    voters = [None, None, None]
+    if with_voters:
+        voters = [rng.random(int(np.prod(shape))) < 0.6 for shape in shapes]
+        voters[1] = None
     got = dsm._heights_seen_by_others(
         heights, projections, tol, None, "test", far_from=far_from, slack_px=slack_px,
-        slack=slack, reduce=lambda known, agree, past, far: (known, agree, past, far))
+        slack=slack, voters=voters if with_voters else None,
+        reduce=lambda known, agree, past, far: (known, agree, past, far))
     highest = [dsm._highest_within(h, slack_px) for h in heights]
     for k, (h, P) in enumerate(zip(heights, projections)):
         known, agree, past, far = got[k]
@@ -1049,9 +1114,10 @@ def test_seen_by_others_counts_match_a_plain_loop(block, monkeypatch):
                     continue
                 other = hj[ir, ic]
                 below = highest[j][ir, ic] if slack[k] is not None and slack[k][r, c] else other
+                vote = voters[j] is None or bool(voters[j][ir * hj.shape[1] + ic])
                 want[0, r, c] += abs(other - u) <= tol
-                want[1, r, c] += below < u - tol
-                want[2, r, c] += far_from[j] is not None and other < u - far_from[j]
+                want[1, r, c] += vote and below < u - tol
+                want[2, r, c] += vote and far_from[j] is not None and other < u - far_from[j]
         assert want.sum() > 0 and (want[0] < 2).any()
         np.testing.assert_array_equal(agree, want[0])
         np.testing.assert_array_equal(past, want[1])
@@ -1063,6 +1129,8 @@ def test_visibility_slack_options_are_checked():
         dsm.DSMOptions(visibility_slack_px=-1)
     with pytest.raises(OptionsError, match="DSMOptions.visibility_slack_confidence"):
         dsm.DSMOptions(visibility_slack_confidence=float("nan"))
+    with pytest.raises(OptionsError, match="DSMOptions.visibility_voter_confidence"):
+        dsm.DSMOptions(visibility_voter_confidence=-0.1)
 
 
 def test_step_edge_pixels_are_the_high_side_of_steps():
