@@ -105,8 +105,9 @@ SIDES_DEG = (0.0, 90.0, 180.0, 270.0)
 LEAF_ON_SEASON = 0.75
 # References that ``reference_megapixels`` never takes away (fewer only where max_references
 # asks for fewer). Each reference is a sweep of its crop, so the sweep stage's time grows with
-# the references' pixels; a 19-view stack of 850 px crops at 0.3 m (the issue-form stacks,
-# 0.72 Mpx each) takes 12 references within 10 Mpx, one of 1700 px crops (2.9 Mpx each) 8.
+# the references' pixels; a 19-view stack of 850 px views at 0.3 m (the issue-form stacks,
+# crops of about 0.54 Mpx) takes 12 references within 10 Mpx, views of 1000 px at 0.5 m (1 Mpx)
+# 10, one of 1700 px views (crops of about 2.6 Mpx) 8.
 # Issue-form stacks, seeds 11-20, DFC MAE 8 -> 12 references: mean 0.884 -> 0.834 m (8 of 10
 # lower), within 1 m higher on all ten, 22-29 s -> 28-38 s (docs/measurements.md, fifty-sixth
 # session); 10-view stacks of 384 px at 0.5 m (all 10 references): mean 0.542 -> 0.538 m;
