@@ -469,16 +469,16 @@ def visibility_check_heights(heights: Sequence[np.ndarray], projections: Sequenc
     # Per view, the pixels from which it may see past (None: all of them).
     voters = None
     if voter_min_confidence > 0.0 and voter_views is not None and any(voter_views):
-        if confidences is None:
-            confidences = [None] * len(heights)
-        voters = [None if not flag else
-                  np.zeros(np.size(h), bool) if c is None else
-                  (np.asarray(c, np.float64) >= voter_min_confidence).ravel()
-                  for flag, c, h in zip(voter_views, confidences, heights)]
-        for j, (v, h) in enumerate(zip(voters, heights)):
-            if v is not None and v.size != np.size(h):
+        voters = []
+        for j, (flag, h) in enumerate(zip(voter_views, heights)):
+            c = None if confidences is None else confidences[j]
+            if not flag or c is None:  # all its pixels, or none of them without confidences
+                voters.append(None if not flag else np.zeros(np.size(h), bool))
+                continue
+            if np.shape(c) != np.shape(h):
                 raise ValueError(f"visibility_check_heights: view {j}'s confidence map is "
-                                 f"{np.shape(confidences[j])}, its height map {np.shape(h)}")
+                                 f"{np.shape(c)}, its height map {np.shape(h)}")
+            voters.append((np.asarray(c, np.float64) >= voter_min_confidence).ravel())
     # A view that never sees far past adds nothing to ``far``: 2 far <= agree always holds.
     return _heights_seen_by_others(
         heights, projections, tolerance_m, points, "visibility_check_heights", voters=voters,
