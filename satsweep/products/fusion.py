@@ -123,7 +123,9 @@ VISIBILITY_SLACK_CONFIDENCE = 0.3
 # (seed 11 1.068), at 0.05 / 0.15 seeds 11 and 16 1.131 / 1.282 and 0.853 / 0.989 m
 # (docs/measurements.md, fifty-sixth session). Views of pixels as wide as the cells vote as
 # before: on the 0.5 m stacks of 10 views (v10 seeds 0-5) every view voting so at 0.02 took
-# the mean 0.538 -> 0.556 m (seed 1 0.782 -> 0.874).
+# the mean 0.538 -> 0.556 m (seed 1 0.782 -> 0.874). Not confirmed on held-out stacks: issue-
+# form seeds 23-32 (made after the choice) 0.880 -> 0.901 m, worse on 7 of 10; the 1700 px
+# stack 1.003 -> 0.930 m; over those 21 stacks 0.864 -> 0.857 m (fifty-seventh session).
 VISIBILITY_VOTER_CONFIDENCE = 0.01
 MAX_VISIBILITY_SLACK_PX = 8
 # Small raised objects' whole footprints ([dsm] small_object_area_m2): the DSM holds each
