@@ -6,12 +6,12 @@ DFC protocol (``satsweep evaluate --protocol dfc``), and its aligned error is sp
 "gaps" of the truth: ground cells that a closing of the raised cells (RAISED_M above the lowest
 cell within RAISED_WINDOW_M) by GAP_WIDTH_M fills (alleys, courtyards, inner corners). Each gap
 cell's floor is tested for visibility from every view (a march from the floor towards the view's
-satellite through the truth DSM); the table gives the gaps' share of the cells and of the
-absolute error, how many views see their floors, how much the MAE would fall were the gap cells
-that N views see (and that come out more than 1 m high) right, and, from the run's report, how
-many of its reference views see those floors and have a source that sees them too. Last, the
-protocol's mean vertical offset: where it leaves the correct cells (within 1 m), and the MAE at
-the median offset instead (what the blunders' imbalance costs).
+satellite through the truth DSM); the table gives the gaps' share of the cells and of the absolute
+error (also by the gaps' widths, WIDTH_CLASSES_M), how many views see their floors, how much the
+MAE would fall were the gap cells that N views see (and that come out more than 1 m high) right,
+and, from the run's report, how many of its reference views see those floors and have a source
+that sees them too. Last, the protocol's mean vertical offset: where it leaves the correct cells
+(within 1 m), and the MAE at the median offset instead (what the blunders' imbalance costs).
 
     python tools/diag_gaps.py SCENE_DIR RUN_DIR/dsm.tif [--report RUN_DIR/report.json]
 """
@@ -46,18 +46,40 @@ MARCH_SLACK_M = 0.1
 SEEN_BY = (3, 5, 8)
 # Correct cells: aligned error within this (m), the completeness's threshold.
 CORRECT_M = EvaluateOptions().threshold_m
+# The gaps by width: those that a closing by a square of each of these sides (m) fills, each
+# class holding the narrower ones (at 0.5 m cells: 3, 5, 7, 9 and 13 cells; a square of k cells
+# fills the gaps of up to k - 1 cells across).
+WIDTH_CLASSES_M = (1.0, 2.0, 3.0, 4.0, 6.0)
 
 
-def gap_cells(truth: np.ndarray, resolution: float) -> tuple[np.ndarray, np.ndarray]:
-    """(raised, gap) masks of a truth DSM (NaN: no data) on cells of ``resolution`` m."""
+def gap_cells(truth: np.ndarray, resolution: float,
+              width_m: float = GAP_WIDTH_M) -> tuple[np.ndarray, np.ndarray]:
+    """(raised, gap) masks of a truth DSM (NaN: no data) on cells of ``resolution`` m: the gaps
+    are what a closing of the raised cells by a square of ``width_m`` adds."""
     from scipy.ndimage import binary_closing, minimum_filter
 
     window = 2 * int(round(RAISED_WINDOW_M / resolution)) + 1
     ground = minimum_filter(np.nan_to_num(truth, nan=np.inf), window)
     raised = truth - ground > RAISED_M
-    side = 2 * int(round(GAP_WIDTH_M / 2.0 / resolution)) + 1
+    side = 2 * int(round(width_m / 2.0 / resolution)) + 1
     closed = binary_closing(raised, structure=np.ones((side, side), bool))
     return raised, closed & ~raised & np.isfinite(truth)
+
+
+def gap_width_shares(truth: np.ndarray, error: np.ndarray, resolution: float) -> list[dict]:
+    """Per width of WIDTH_CLASSES_M, the gaps that a closing by a square that wide fills: their
+    share of ``error``'s valid cells and of its absolute error (``error``: on the truth's grid,
+    NaN where not compared)."""
+    valid = np.isfinite(error)
+    total = float(np.abs(error[valid]).sum())
+    rows = []
+    for width in WIDTH_CLASSES_M:
+        g = gap_cells(truth, resolution, width)[1] & valid
+        rows.append({"closing_m": width,
+                     "cell_share": round(float(g.sum() / max(1, valid.sum())), 4),
+                     "error_share": round(float(np.abs(error[g]).sum() / total), 4)
+                     if total > 0 else 0.0})
+    return rows
 
 
 def floor_visibility(scene: Scene, truth: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -101,6 +123,7 @@ def diagnose(scene_dir: str, dsm: str, report: str | None) -> dict:
     out.update(gap_share=round(float(g.sum() / n), 4),
                gap_error_share=round(float(np.abs(error[g]).sum() / total), 4),
                gap_high_share=round(float(np.mean(error[g] > CORRECT_M)), 4))
+    out["gap_widths"] = gap_width_shares(truth, error, scene.dsm_grid.resolution)
     rows, cols = np.nonzero(g)
     seen = floor_visibility(scene, truth, rows, cols)
     count = seen.sum(axis=1)

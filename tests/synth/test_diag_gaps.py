@@ -10,7 +10,7 @@ import pytest
 
 from satsweep.products.evaluate import read_dsm
 from satsweep.products.grid import write_dsm_geotiff
-from tools.diag_gaps import diagnose, floor_visibility, gap_cells
+from tools.diag_gaps import WIDTH_CLASSES_M, diagnose, floor_visibility, gap_cells, gap_width_shares
 
 # Height (m) the test adds to every gap cell of the truth: a DSM whose alleys are filled.
 FILL_M = 5.0
@@ -36,6 +36,34 @@ def test_floor_visibility_of_a_wall():
     clear = np.abs(distance - shadow) > res  # the march's steps and the raster's interpolation
     np.testing.assert_array_equal(seen[clear, 0], distance[clear] >= shadow)
     assert seen[:, 1].all()
+
+
+def test_gap_width_shares_of_two_alleys():
+    """Two blocks 10 m high with an alley of 2 cells (1 m) between them and one of 6 cells (3 m)
+    beyond: the alleys are in the classes whose square spans more cells than they do (3 and 7
+    cells at 0.5 m), and each class's shares are its alleys' cells and their absolute error (5 m
+    in the alleys, 1 m elsewhere)."""
+    res = 0.5
+    # (the blocks 10 cells from the borders: the widest square's closing reaches 6 past them)
+    truth = np.zeros((50, 80))
+    truth[10:41, 10:25] = 10.0
+    truth[10:41, 27:45] = 10.0  # the narrow alley: columns 25-26
+    truth[10:41, 51:60] = 10.0  # the wide one: columns 45-50
+    narrow = np.zeros(truth.shape, bool)
+    narrow[10:41, 25:27] = True
+    wide = np.zeros(truth.shape, bool)
+    wide[10:41, 45:51] = True
+    error = np.where(narrow | wide, 5.0, 1.0)
+    error[0, :] = np.nan  # not compared: counted nowhere
+    valid = np.isfinite(error)
+    total = np.abs(error[valid]).sum()
+    rows = gap_width_shares(truth, error, res)
+    assert [r["closing_m"] for r in rows] == list(WIDTH_CLASSES_M)
+    for r in rows:
+        side = 2 * int(round(r["closing_m"] / 2.0 / res)) + 1
+        g = (narrow if side > 2 else np.zeros_like(narrow)) | (wide if side > 6 else False)
+        assert r["cell_share"] == pytest.approx(g.sum() / valid.sum(), abs=ROUNDED)
+        assert r["error_share"] == pytest.approx(np.abs(error[g]).sum() / total, abs=ROUNDED)
 
 
 @pytest.fixture(scope="module")
