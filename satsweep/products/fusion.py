@@ -189,6 +189,28 @@ LEAF_TOP_RISE_M = 1.0
 # 0.910) but raised crowns' rims and grass beside them (8, 11, 15 worse by 0.018-0.055).
 GREEN_TOP_RISE_M = 1.0
 GREEN_MIN_VIEWS = 2
+# Raised cells that few reference views agree on, in thin regions ([dsm] thin_raised_max_share).
+# The floors of narrow gaps between tall buildings (alleys, courtyards, inner corners) are seen
+# by few views, and the references match them at their walls' heights: on issue-form seed 34,
+# of the reference pixels that see such a floor, 15% come within 1 m (12-71% per reference
+# where all four of its sources see it too; 9% with the winner-take-all of unfiltered costs
+# over every plane). The consensus there is a few views agreeing on a wall's height (a median
+# of 5 of 12 on seeds 11, 25, 29 and 34, where correct roofs gather 9-10), and the gaps up to
+# 3 m across hold 28-36% of the error of the issue-form stacks over 1 m (tools/diag_gaps.py).
+# Such a cell, more than THIN_RAISED_RISE_M above the lowest consensus cell within
+# THIN_RAISED_GROUND_M, is left to the hole filling (its rim's lowest: the gap's ground where it
+# opens onto a street), unless it lies in a region of such cells and empty ones that holds a
+# square THIN_RAISED_SIDE_M wide (a roof in a tower's shadow, speckled with holes, keeps its
+# heights: without that, and with a rise of 2.5 m, seed 11 lost 0.35 m). Lower raised cells keep
+# theirs (crowns and low roofs: with a rise of 2.5 m the 30 stacks below lost on 13, seed 20 by
+# 0.14 m). Issue-form stacks (12 references), DFC MAE mean over seeds 11-20 / 23-32 / 33-42:
+# 0.805 / 0.901 / 0.975 -> 0.812 / 0.837 / 0.912 m, lower on 20 of 30 (seven over 1 m before and
+# after); seeds 43-52, made while choosing and after, 0.909 -> 0.839 m (lower on 5 of 10); the
+# 1700 px stack (8 references) 0.930 -> 0.962 m; the 0.5 m stacks of 10 views (v10 seeds 0-5)
+# 0.538 -> 0.535 m (docs/measurements.md, fifty-eighth session).
+THIN_RAISED_RISE_M = 15.0
+THIN_RAISED_GROUND_M = 15.0
+THIN_RAISED_SIDE_M = 2.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -268,6 +290,11 @@ class DSMOptions(Options):
     consensus_min_distinct_views: int = 3  # consensus: the agreeing height maps must be matched
     # from at least this many distinct views in all (A against B and B against A are one pair;
     # at most the views there are)
+    thin_raised_max_share: float = 0.25  # consensus: a cell more than THIN_RAISED_RISE_M above the
+    # ground around it that at most this share of the reference views agree on, in a thin
+    # region (no square of THIN_RAISED_SIDE_M fits in it with the empty cells around), is left
+    # to the hole filling: the floors of narrow gaps between tall buildings, which the
+    # references match at their walls' heights (THIN_RAISED_RISE_M's comment); 0: none
     edge_min_confidence: float = 0.15  # a dense view's pixels (those view_raster = auto
     # rasterises by the quartile) on the high side of a height step (EDGE_STEP_M) are dropped
     # below this confidence: edges and facades matched at the roof's height; 0: none
@@ -278,7 +305,8 @@ class DSMOptions(Options):
 
     ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
                 "fill_method", "fill_border_holes", "consensus_tolerance_m", "consensus_min_views",
-                "consensus_min_share", "consensus_min_distinct_views", "coregister",
+                "consensus_min_share", "consensus_min_distinct_views", "thin_raised_max_share",
+                "coregister",
                 "visibility_check", "visibility_far_m", "visibility_leaf_on_far_m",
                 "visibility_bare_far_m", "visibility_slack_px",
                 "visibility_slack_confidence", "visibility_voter_confidence",
@@ -322,6 +350,9 @@ class DSMOptions(Options):
         self._require(self.consensus_min_views >= 1, "consensus_min_views", "must be >= 1")
         self._require(math.isfinite(self.consensus_min_share)
                       and 0.0 <= self.consensus_min_share <= 1.0, "consensus_min_share",
+                      "must be a fraction in [0, 1] (0: no such rule)")
+        self._require(math.isfinite(self.thin_raised_max_share)
+                      and 0.0 <= self.thin_raised_max_share <= 1.0, "thin_raised_max_share",
                       "must be a fraction in [0, 1] (0: no such rule)")
 
     def view_raster_for(self, centre_cells: np.ndarray) -> str:
@@ -928,6 +959,31 @@ def consensus_dsms(dsms: Sequence[np.ndarray], *, tolerance_m: float, min_views:
         count[block] = np.where(ok, c, 0).astype(np.uint8)
         members[:, block] = inside
     return fused, count, members
+
+
+def thin_raised_minority(fused: np.ndarray, count: np.ndarray, n_views: int, *,
+                         max_share: float, resolution_m: float) -> np.ndarray:
+    """(H, W) bool: the consensus cells (``fused``, NaN: empty; ``count``: the views agreeing
+    there, of ``n_views`` reference views) to leave to the hole filling: more than
+    THIN_RAISED_RISE_M above the lowest cell within THIN_RAISED_GROUND_M, agreed on by at most
+    ``max_share`` of the views (rounded down; none below one view), and outside every square of
+    THIN_RAISED_SIDE_M that such cells and empty ones fill (see THIN_RAISED_RISE_M)."""
+    from scipy.ndimage import binary_opening, minimum_filter
+
+    if not (math.isfinite(max_share) and 0.0 <= max_share <= 1.0):
+        raise OptionsError(f"max_share = {max_share!r}: must be a fraction in [0, 1]")
+    f = np.asarray(fused, dtype=np.float64)
+    finite = np.isfinite(f)
+    limit = math.floor(max_share * n_views + 1e-9)
+    if limit < 1 or not finite.any():
+        return np.zeros(f.shape, dtype=bool)
+    window = 2 * int(round(THIN_RAISED_GROUND_M / resolution_m)) + 1
+    ground = minimum_filter(np.where(finite, f, np.inf), window)
+    with np.errstate(invalid="ignore"):
+        few = finite & (f - ground > THIN_RAISED_RISE_M) & (np.asarray(count) <= limit)
+    side = max(1, int(round(THIN_RAISED_SIDE_M / resolution_m)))
+    wide = binary_opening(few | ~finite, structure=np.ones((side, side), dtype=bool))
+    return few & ~wide
 
 
 def vertical_offsets(dsms: Sequence[np.ndarray], reference: np.ndarray) -> np.ndarray:

@@ -793,6 +793,15 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
         return visibility(heights, projections, **kwargs)
 
     monkeypatch.setattr(fusion, "visibility_check_heights", record_visibility)
+    thin_minority = fusion.thin_raised_minority
+
+    def record_thin(fused, count, n_views, **kwargs):
+        out = thin_minority(fused, count, n_views, **kwargs)
+        calls.setdefault("thin_raised_minority", []).append((n_views, kwargs["max_share"],
+                                                             int(out.sum())))
+        return out
+
+    monkeypatch.setattr(fusion, "thin_raised_minority", record_thin)
     config = PipelineConfig().override("dsm", leaf_on_crowns=crown_rules,
                                        crown_holes=crown_rules)
     res = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
@@ -804,6 +813,10 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     (far_m, trusted, bare_far_m, bare, green), = calls.pop("visibility")
     seasons = {v["name"]: v["leaf_season"] for v in rep["view_selection"]["views"]}
     refs = [r["reference"] for r in rep["view_selection"]["references"]]
+    # The thin raised cells' rule runs once on the consensus, over every reference.
+    (n, share, thin), = calls.pop("thin_raised_minority")
+    assert n == len(refs) and share == config.dsm.thin_raised_max_share > 0.0
+    assert rep["dsm"]["thin_raised_cells"] == thin
     assert far_m == config.dsm.visibility_leaf_on_far_m > 0.0
     assert trusted == [seasons[r] is not None and seasons[r] >= LEAF_ON_SEASON for r in refs]
     assert any(trusted) and not all(trusted)

@@ -748,6 +748,82 @@ def test_consensus_needs_half_of_the_cells_heights_with_min_share():
         consensus_dsms(five, tolerance_m=1.0, min_views=2, min_share=1.5)
 
 
+# -- thin raised cells that few views agree on --------------------------------------------------
+# A 0.5 m grid over ground at 100 m: two towers (count 12 of 12) with an alley of 2 cells between
+# them that the consensus put at a wall's height by THIN_ALLEY_COUNT views; a roof in a shadow,
+# its cells alternately empty and agreed on by 2 views; a low wall and a high narrow roof.
+THIN_VIEWS = 12
+THIN_ALLEY_COUNT = 3
+
+
+def _thin_scene():
+    fused = np.full((90, 90), 100.0, np.float32)
+    count = np.full(fused.shape, THIN_VIEWS, np.uint8)
+    fused[10:60, 10:30] = 160.0  # tower
+    fused[10:60, 32:50] = 160.0  # tower
+    alley = np.zeros(fused.shape, bool)
+    alley[10:60, 30:32] = True
+    fused[alley] = 140.0
+    count[alley] = THIN_ALLEY_COUNT
+    roof = np.zeros(fused.shape, bool)
+    roof[65:85, 10:30] = True  # 10 m x 10 m, speckled
+    fused[roof] = 130.0
+    count[roof] = 2
+    speckle = roof & ((np.indices(fused.shape).sum(axis=0) % 2) == 0)
+    fused[speckle] = np.nan
+    count[speckle] = 0
+    fused[65:85, 60:62] = 110.0  # a low wall (10 m: under THIN_RAISED_RISE_M)
+    count[65:85, 60:62] = 2
+    fused[10:60, 70:72] = 160.0  # a narrow high roof that many views agree on
+    count[10:60, 70:72] = 6
+    return fused, count, alley
+
+
+def test_thin_raised_minority_takes_the_alley_only():
+    """Of the scene above, only the alley's cells: the speckled roof with its empty cells holds
+    squares of THIN_RAISED_SIDE_M, the wall rises less than THIN_RAISED_RISE_M, the narrow roof
+    has more views than a quarter of 12."""
+    fused, count, alley = _thin_scene()
+    assert dsm.THIN_RAISED_RISE_M < 140.0 - 100.0 and 110.0 - 100.0 < dsm.THIN_RAISED_RISE_M
+    assert dsm.THIN_RAISED_SIDE_M / 0.5 > 2  # wider than the alley, narrower than the roof
+    thin = dsm.thin_raised_minority(fused, count, THIN_VIEWS, max_share=0.25, resolution_m=0.5)
+    np.testing.assert_array_equal(thin, alley)
+
+
+def test_thin_raised_minority_share_rounds_down():
+    """A share of 0.2 of 12 views allows 2 (the alley's 3 agree: kept); 0 allows none; a share
+    outside [0, 1] is refused."""
+    fused, count, alley = _thin_scene()
+    for share in (0.2, 0.0):
+        thin = dsm.thin_raised_minority(fused, count, THIN_VIEWS, max_share=share,
+                                        resolution_m=0.5)
+        assert not thin.any()
+    count[alley] = 2
+    thin = dsm.thin_raised_minority(fused, count, THIN_VIEWS, max_share=0.2, resolution_m=0.5)
+    np.testing.assert_array_equal(thin, alley)
+    with pytest.raises(OptionsError, match="max_share"):
+        dsm.thin_raised_minority(fused, count, THIN_VIEWS, max_share=1.5, resolution_m=0.5)
+
+
+def test_thin_raised_minority_ground_is_local():
+    """The ground is the lowest cell within THIN_RAISED_GROUND_M: the scene on a terrace 50 m up
+    that runs on past it that far before the low ground gives the alley alone again (from the
+    low ground, the terrace's low wall would rise 60 m)."""
+    fused, count, alley = _thin_scene()
+    far = int(dsm.THIN_RAISED_GROUND_M / 0.5) + 1
+    w = fused.shape[1]
+    lifted = np.full((fused.shape[0], w + far + 20), 100.0, np.float32)
+    lifted[:, :w + far] = 150.0
+    lifted[:, :w] = fused + 50.0
+    lifted_count = np.full(lifted.shape, THIN_VIEWS, np.uint8)
+    lifted_count[:, :w] = count
+    want = np.zeros(lifted.shape, bool)
+    want[:, :w] = alley
+    thin = dsm.thin_raised_minority(lifted, lifted_count, THIN_VIEWS, max_share=0.25,
+                                    resolution_m=0.5)
+    np.testing.assert_array_equal(thin, want)
+
+
 def test_consensus_ties_go_to_the_lower_group():
     """Two equally large groups: the lower wins (a roof height smeared beside a building
     must not beat the ground on a tie)."""
