@@ -52,18 +52,30 @@ CORRECT_M = EvaluateOptions().threshold_m
 WIDTH_CLASSES_M = (1.0, 2.0, 3.0, 4.0, 6.0)
 
 
+def raised_cells(truth: np.ndarray, resolution: float) -> np.ndarray:
+    """The cells of a truth DSM (NaN: no data) RAISED_M above its lowest within RAISED_WINDOW_M."""
+    from scipy.ndimage import minimum_filter
+
+    window = 2 * int(round(RAISED_WINDOW_M / resolution)) + 1
+    ground = minimum_filter(np.nan_to_num(truth, nan=np.inf), window)
+    return truth - ground > RAISED_M
+
+
+def _gaps(raised: np.ndarray, truth: np.ndarray, resolution: float, width_m: float) -> np.ndarray:
+    """What a closing of ``raised`` by a square of ``width_m`` adds, on the truth's cells."""
+    from scipy.ndimage import binary_closing
+
+    side = 2 * int(round(width_m / 2.0 / resolution)) + 1
+    closed = binary_closing(raised, structure=np.ones((side, side), bool))
+    return closed & ~raised & np.isfinite(truth)
+
+
 def gap_cells(truth: np.ndarray, resolution: float,
               width_m: float = GAP_WIDTH_M) -> tuple[np.ndarray, np.ndarray]:
     """(raised, gap) masks of a truth DSM (NaN: no data) on cells of ``resolution`` m: the gaps
     are what a closing of the raised cells by a square of ``width_m`` adds."""
-    from scipy.ndimage import binary_closing, minimum_filter
-
-    window = 2 * int(round(RAISED_WINDOW_M / resolution)) + 1
-    ground = minimum_filter(np.nan_to_num(truth, nan=np.inf), window)
-    raised = truth - ground > RAISED_M
-    side = 2 * int(round(width_m / 2.0 / resolution)) + 1
-    closed = binary_closing(raised, structure=np.ones((side, side), bool))
-    return raised, closed & ~raised & np.isfinite(truth)
+    raised = raised_cells(truth, resolution)
+    return raised, _gaps(raised, truth, resolution, width_m)
 
 
 def gap_width_shares(truth: np.ndarray, error: np.ndarray, resolution: float) -> list[dict]:
@@ -72,9 +84,10 @@ def gap_width_shares(truth: np.ndarray, error: np.ndarray, resolution: float) ->
     NaN where not compared)."""
     valid = np.isfinite(error)
     total = float(np.abs(error[valid]).sum())
+    raised = raised_cells(truth, resolution)
     rows = []
     for width in WIDTH_CLASSES_M:
-        g = gap_cells(truth, resolution, width)[1] & valid
+        g = _gaps(raised, truth, resolution, width) & valid
         rows.append({"closing_m": width,
                      "cell_share": round(float(g.sum() / max(1, valid.sum())), 4),
                      "error_share": round(float(np.abs(error[g]).sum() / total), 4)

@@ -968,7 +968,7 @@ def thin_raised_minority(fused: np.ndarray, count: np.ndarray, n_views: int, *,
     THIN_RAISED_RISE_M above the lowest cell within THIN_RAISED_GROUND_M, agreed on by at most
     ``max_share`` of the views (rounded down; none below one view), and outside every square of
     THIN_RAISED_SIDE_M that such cells and empty ones fill (see THIN_RAISED_RISE_M)."""
-    from scipy.ndimage import binary_opening, minimum_filter
+    from scipy.ndimage import binary_opening
 
     if not (math.isfinite(max_share) and 0.0 <= max_share <= 1.0):
         raise OptionsError(f"max_share = {max_share!r}: must be a fraction in [0, 1]")
@@ -977,8 +977,8 @@ def thin_raised_minority(fused: np.ndarray, count: np.ndarray, n_views: int, *,
     limit = math.floor(max_share * n_views + 1e-9)
     if limit < 1 or not finite.any():
         return np.zeros(f.shape, dtype=bool)
-    window = 2 * int(round(THIN_RAISED_GROUND_M / resolution_m)) + 1
-    ground = minimum_filter(np.where(finite, f, np.inf), window)
+    radius = int(round(THIN_RAISED_GROUND_M / resolution_m))
+    ground = _min_within(np.where(finite, f, np.inf), radius)
     with np.errstate(invalid="ignore"):
         few = finite & (f - ground > THIN_RAISED_RISE_M) & (np.asarray(count) <= limit)
     side = max(1, int(round(THIN_RAISED_SIDE_M / resolution_m)))
