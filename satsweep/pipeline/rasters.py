@@ -82,6 +82,8 @@ class AreaRasters:
     # leaves there ([dsm] green_crowns); None: the rule did not run (no colour images)
     thin_raised_cells: int | None = None  # consensus cells left to the hole filling ([dsm]
     # thin_raised_max_share); None: the rule did not run (median fusion, or a share of 0)
+    valley_cells: int | None = None  # consensus cells in valleys of its counts left to the hole
+    # filling besides those ([dsm] valley_min_share); None: neither rule ran
 
     def to_report(self) -> dict:
         return {"fusion": self.fusion, "cross_check": self.cross_check,
@@ -92,6 +94,7 @@ class AreaRasters:
                 "crown_hole_cells": self.crown_hole_cells,
                 "green_crown_cells": self.green_crown_cells,
                 "thin_raised_cells": self.thin_raised_cells,
+                "valley_cells": self.valley_cells,
                 "enu_to_map": self.enu_to_map}
 
 
@@ -146,6 +149,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         rasterise_dense_view_cells,
         rasterise_max_cells,
         small_raised_pixels,
+        raised_count_valleys,
         thin_raised_minority,
         vertical_offsets,
         visibility_check_heights,
@@ -290,7 +294,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         orthos = [v.ortho for v in done] if ortho_images is not None else []
         greens = [v.green for v in done] if green_images is not None else []
         clouds = [v.cloud for v in done] if config.reconstruct.write_cloud else []
-        offsets_m = leaf_cells = hole_cells = green_cells = thin_cells = None
+        offsets_m = leaf_cells = hole_cells = green_cells = thin_cells = valley_cells = None
         if fusion == "consensus":
             view_sets = [(pv.index, *pv.source_indices) for pv in per_view]
             # A stack of fewer distinct views than asked needs them all, not the impossible.
@@ -305,15 +309,19 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 rasters = [r - np.float32(o) for r, o in zip(rasters, offsets)]
                 clouds = [(x, y, z - o, c) for (x, y, z, c), o in zip(clouds, offsets)]
             fused, count, members = consensus(rasters)
-            if d.thin_raised_max_share > 0.0:
+            if d.thin_raised_max_share > 0.0 or d.valley_min_share > 0.0:
                 # Narrow gaps' floors matched at their walls' heights go to the hole filling.
                 thin = thin_raised_minority(fused, count, len(rasters),
                                             max_share=d.thin_raised_max_share,
                                             resolution_m=grid.resolution)
+                valley = raised_count_valleys(fused, count, len(rasters),
+                                              min_share=d.valley_min_share,
+                                              resolution_m=grid.resolution)
+                thin_cells, valley_cells = int(thin.sum()), int((valley & ~thin).sum())
+                thin |= valley
                 fused = np.where(thin, np.float32(np.nan), fused)
                 count = np.where(thin, 0, count).astype(count.dtype)
                 members = members & ~thin[None]
-                thin_cells = int(thin.sum())
             view_passes = [None if passes is None else passes[pv.index] for pv in per_view]
             in_leaf = [k for k, pv in enumerate(per_view)
                        if view_passes[k] is not None and leaf_season is not None
@@ -369,5 +377,6 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                        per_view_raster=view_rules, vertical_offsets_m=offsets_m,
                        leaf_on_crown_cells=leaf_cells, crown_hole_cells=hole_cells,
                        green_crown_cells=green_cells, thin_raised_cells=thin_cells,
+                       valley_cells=valley_cells,
                        enu_to_map={"polynomial": to_map.accurate,
                                    "max_error_m": to_map.max_error_m})

@@ -211,6 +211,18 @@ GREEN_MIN_VIEWS = 2
 THIN_RAISED_RISE_M = 15.0
 THIN_RAISED_GROUND_M = 15.0
 THIN_RAISED_SIDE_M = 2.5
+# Raised cells in a valley of the consensus's counts ([dsm] valley_min_share). A gap's floor
+# matched at its walls' heights is agreed on by fewer views than the roofs on either side of it
+# (a median of 5 of 12 against 9-10: THIN_RAISED_RISE_M's comment), whatever the width of the
+# region of such cells. A cell raised as THIN_RAISED_RISE_M says whose count lies, along a row,
+# a column or a diagonal, at least valley_min_share of the reference views (rounded up) under
+# the highest count of the raised cells within VALLEY_REACH_M on each side is left to the hole
+# filling too. Chosen on replays of the DSM stage over issue-form seeds 11-20 and 23-57 (12
+# references, so 4 views: a reach of 1.5 / 2 / 2.5 / 3 m, 3-5 views, with or without a share
+# limit or a square; docs/measurements.md, fifty-ninth session); DFC MAE mean 0.830 -> 0.795 m
+# there, and on 25 held-out stacks made before the choice was tried on them (seeds 58-82)
+# 0.854 -> 0.818 m, lower on 15 and higher on 10.
+VALLEY_REACH_M = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -295,6 +307,11 @@ class DSMOptions(Options):
     # region (no square of THIN_RAISED_SIDE_M fits in it with the empty cells around), is left
     # to the hole filling: the floors of narrow gaps between tall buildings, which the
     # references match at their walls' heights (THIN_RAISED_RISE_M's comment); 0: none
+    valley_min_share: float = 0.33  # consensus: a cell raised as above whose views agreeing
+    # lie, along a row, column or diagonal, at least this share of the reference views (rounded
+    # up) under those of the raised cells within VALLEY_REACH_M on each side, is left to the
+    # hole filling: a gap's floor matched at its walls' heights, with the roofs around it
+    # agreed on by more views (VALLEY_REACH_M's comment); 0: none
     edge_min_confidence: float = 0.15  # a dense view's pixels (those view_raster = auto
     # rasterises by the quartile) on the high side of a height step (EDGE_STEP_M) are dropped
     # below this confidence: edges and facades matched at the roof's height; 0: none
@@ -306,6 +323,7 @@ class DSMOptions(Options):
     ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
                 "fill_method", "fill_border_holes", "consensus_tolerance_m", "consensus_min_views",
                 "consensus_min_share", "consensus_min_distinct_views", "thin_raised_max_share",
+                "valley_min_share",
                 "coregister",
                 "visibility_check", "visibility_far_m", "visibility_leaf_on_far_m",
                 "visibility_bare_far_m", "visibility_slack_px",
@@ -353,6 +371,9 @@ class DSMOptions(Options):
                       "must be a fraction in [0, 1] (0: no such rule)")
         self._require(math.isfinite(self.thin_raised_max_share)
                       and 0.0 <= self.thin_raised_max_share <= 1.0, "thin_raised_max_share",
+                      "must be a fraction in [0, 1] (0: no such rule)")
+        self._require(math.isfinite(self.valley_min_share)
+                      and 0.0 <= self.valley_min_share <= 1.0, "valley_min_share",
                       "must be a fraction in [0, 1] (0: no such rule)")
 
     def view_raster_for(self, centre_cells: np.ndarray) -> str:
@@ -984,6 +1005,49 @@ def thin_raised_minority(fused: np.ndarray, count: np.ndarray, n_views: int, *,
     side = max(1, int(round(THIN_RAISED_SIDE_M / resolution_m)))
     wide = binary_opening(few | ~finite, structure=np.ones((side, side), dtype=bool))
     return few & ~wide
+
+
+def _max_along(values: np.ndarray, dy: int, dx: int, reach: int) -> np.ndarray:
+    """(H, W): per cell, the largest of ``values`` (integers, -1: none) at the cells 1..``reach``
+    steps of (``dy``, ``dx``) away; -1 where all of them lie outside the grid."""
+    h, w = values.shape
+    out = np.full(values.shape, -1, dtype=np.int32)
+    for k in range(1, reach + 1):
+        oy, ox = dy * k, dx * k
+        if abs(oy) >= h or abs(ox) >= w:
+            break
+        dst = out[max(0, -oy):h - max(0, oy), max(0, -ox):w - max(0, ox)]
+        np.maximum(dst, values[max(0, oy):h - max(0, -oy), max(0, ox):w - max(0, -ox)], out=dst)
+    return out
+
+
+def raised_count_valleys(fused: np.ndarray, count: np.ndarray, n_views: int, *,
+                         min_share: float, resolution_m: float) -> np.ndarray:
+    """(H, W) bool: the consensus cells (``fused``, NaN: empty; ``count``: the views agreeing
+    there, of ``n_views`` reference views) more than THIN_RAISED_RISE_M above the lowest cell
+    within THIN_RAISED_GROUND_M whose count lies at least ``min_share`` of the views (rounded
+    up; none below one view) under the highest count of such raised cells within
+    VALLEY_REACH_M on both sides along a row, a column or a diagonal (see VALLEY_REACH_M)."""
+    if not (math.isfinite(min_share) and 0.0 <= min_share <= 1.0):
+        raise OptionsError(f"min_share = {min_share!r}: must be a fraction in [0, 1]")
+    f = np.asarray(fused, dtype=np.float64)
+    finite = np.isfinite(f)
+    if min_share == 0.0 or not finite.any():
+        return np.zeros(f.shape, dtype=bool)
+    drop = max(1, math.ceil(min_share * n_views - 1e-9))
+    radius = int(round(THIN_RAISED_GROUND_M / resolution_m))
+    ground = _min_within(np.where(finite, f, np.inf), radius)
+    with np.errstate(invalid="ignore"):
+        raised = finite & (f - ground > THIN_RAISED_RISE_M)
+    c = np.asarray(count).astype(np.int32)
+    flanks = np.where(raised, c, -1).astype(np.int32)
+    reach = max(1, int(round(VALLEY_REACH_M / resolution_m)))
+    valley = np.zeros(f.shape, dtype=bool)
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        lower_side = np.minimum(_max_along(flanks, dy, dx, reach),
+                                _max_along(flanks, -dy, -dx, reach))
+        valley |= lower_side >= c + drop
+    return raised & valley
 
 
 def vertical_offsets(dsms: Sequence[np.ndarray], reference: np.ndarray) -> np.ndarray:

@@ -799,9 +799,18 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
         out = thin_minority(fused, count, n_views, **kwargs)
         calls.setdefault("thin_raised_minority", []).append((n_views, kwargs["max_share"],
                                                              int(out.sum())))
+        calls["thin_mask"] = out
         return out
 
     monkeypatch.setattr(fusion, "thin_raised_minority", record_thin)
+    count_valleys = fusion.raised_count_valleys
+
+    def record_valleys(fused, count, n_views, **kwargs):
+        out = count_valleys(fused, count, n_views, **kwargs)
+        calls.setdefault("raised_count_valleys", []).append((n_views, kwargs["min_share"], out))
+        return out
+
+    monkeypatch.setattr(fusion, "raised_count_valleys", record_valleys)
     config = PipelineConfig().override("dsm", leaf_on_crowns=crown_rules,
                                        crown_holes=crown_rules)
     res = reconstruct([v.image for v in scene.views], scene.aoi, tmp_path / "out",
@@ -817,6 +826,10 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
     (n, share, thin), = calls.pop("thin_raised_minority")
     assert n == len(refs) and share == config.dsm.thin_raised_max_share > 0.0
     assert rep["dsm"]["thin_raised_cells"] == thin
+    # ... and so does the rule of the counts' valleys; the report counts the cells it adds.
+    (n, share, valleys), = calls.pop("raised_count_valleys")
+    assert n == len(refs) and share == config.dsm.valley_min_share > 0.0
+    assert rep["dsm"]["valley_cells"] == int((valleys & ~calls.pop("thin_mask")).sum())
     assert far_m == config.dsm.visibility_leaf_on_far_m > 0.0
     assert trusted == [seasons[r] is not None and seasons[r] >= LEAF_ON_SEASON for r in refs]
     assert any(trusted) and not all(trusted)

@@ -824,6 +824,94 @@ def test_thin_raised_minority_ground_is_local():
     np.testing.assert_array_equal(thin, want)
 
 
+def _valley_scene(alley_cells: int, alley_count: int):
+    """Two towers 60 m over the ground that 10 of 12 views agree on, an alley of
+    ``alley_cells`` (0.5 m cells) between them at a tower's height that ``alley_count`` agree
+    on, and beside them a roof 30 m up in a tower's shadow that 2 views agree on throughout."""
+    fused = np.full((60, 80), 100.0, np.float32)
+    count = np.full(fused.shape, THIN_VIEWS, np.uint8)
+    fused[10:50, 10:30] = 160.0
+    count[10:50, 10:30] = 10
+    fused[10:50, 30 + alley_cells:50 + alley_cells] = 160.0
+    count[10:50, 30 + alley_cells:50 + alley_cells] = 10
+    alley = np.zeros(fused.shape, bool)
+    alley[10:50, 30:30 + alley_cells] = True
+    fused[alley] = 160.0
+    count[alley] = alley_count
+    fused[20:40, 60 + alley_cells - 5:75] = 130.0  # the roof in shadow
+    count[20:40, 60 + alley_cells - 5:75] = 2
+    return fused, count, alley
+
+
+def _valleys_by_loops(fused, count, n_views, min_share, resolution_m):
+    """raised_count_valleys written cell by cell, as its docstring reads."""
+    h, w = fused.shape
+    radius = int(round(dsm.THIN_RAISED_GROUND_M / resolution_m))
+    reach = max(1, int(round(dsm.VALLEY_REACH_M / resolution_m)))
+    drop = max(1, math.ceil(min_share * n_views - 1e-9))
+    raised = np.zeros((h, w), bool)
+    for y in range(h):
+        for x in range(w):
+            if np.isfinite(fused[y, x]):
+                window = fused[max(0, y - radius):y + radius + 1, max(0, x - radius):x + radius + 1]
+                raised[y, x] = fused[y, x] - np.nanmin(window) > dsm.THIN_RAISED_RISE_M
+    out = np.zeros((h, w), bool)
+    for y, x in zip(*np.nonzero(raised)):
+        for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            sides = []
+            for sign in (1, -1):
+                best = -1
+                for k in range(1, reach + 1):
+                    yy, xx = y + sign * dy * k, x + sign * dx * k
+                    if 0 <= yy < h and 0 <= xx < w and raised[yy, xx]:
+                        best = max(best, int(count[yy, xx]))
+                sides.append(best)
+            if min(sides) >= int(count[y, x]) + drop:
+                out[y, x] = True
+    return out
+
+
+def test_raised_count_valleys_take_the_alley_not_the_shadowed_roof():
+    """An alley 1.5 m across that 6 views agree on between towers that 10 do (a share of 0.33
+    of 12 rounds up to 4 views): the alley goes, the roof in shadow that 2 views agree on
+    everywhere stays (no valley: its neighbours agree as little), and so does an alley that 7
+    agree on (3 under the towers) and one 10 m across (its middle is more than VALLEY_REACH_M
+    from either tower)."""
+    fused, count, alley = _valley_scene(3, 6)
+    assert 3 * 0.5 <= dsm.VALLEY_REACH_M < 10.0 / 2
+    got = dsm.raised_count_valleys(fused, count, THIN_VIEWS, min_share=0.33, resolution_m=0.5)
+    np.testing.assert_array_equal(got, alley)
+    fused, count, alley = _valley_scene(3, 7)
+    assert not dsm.raised_count_valleys(fused, count, THIN_VIEWS, min_share=0.33,
+                                        resolution_m=0.5).any()
+    fused, count, alley = _valley_scene(20, 6)
+    got = dsm.raised_count_valleys(fused, count, THIN_VIEWS, min_share=0.33, resolution_m=0.5)
+    reach = int(round(dsm.VALLEY_REACH_M / 0.5))
+    assert not got[:, 30 + 20 - reach:30 + reach].any() and not got[~alley].any()
+
+
+def test_raised_count_valleys_match_a_loop_reference():
+    """Random consensus rasters (holes, low walls, towers, counts 1-12) against the rule written
+    cell by cell, at two resolutions and three shares; 0 takes nothing, a share outside [0, 1]
+    is refused."""
+    rng = np.random.default_rng(5)
+    for trial in range(6):
+        h, w = rng.integers(5, 40, size=2)
+        fused = (100.0 + rng.choice([0.0, 8.0, 30.0, 60.0], size=(h, w))
+                 + rng.normal(0.0, 1.0, size=(h, w))).astype(np.float32)
+        fused[rng.random((h, w)) < 0.15] = np.nan
+        count = rng.integers(1, THIN_VIEWS + 1, size=(h, w)).astype(np.uint8)
+        for share, res in ((0.33, 0.5), (0.2, 0.5), (0.5, 1.0)):
+            got = dsm.raised_count_valleys(fused, count, THIN_VIEWS, min_share=share,
+                                           resolution_m=res)
+            want = _valleys_by_loops(fused, count, THIN_VIEWS, share, res)
+            np.testing.assert_array_equal(got, want, err_msg=f"trial {trial}, share {share}")
+    assert not dsm.raised_count_valleys(fused, count, THIN_VIEWS, min_share=0.0,
+                                        resolution_m=0.5).any()
+    with pytest.raises(OptionsError, match="min_share"):
+        dsm.raised_count_valleys(fused, count, THIN_VIEWS, min_share=-0.1, resolution_m=0.5)
+
+
 def test_consensus_ties_go_to_the_lower_group():
     """Two equally large groups: the lower wins (a roof height smeared beside a building
     must not beat the ground on a tie)."""
