@@ -15,7 +15,7 @@ from satsweep.sparse.tiepoints import (
     altitude_range_from_points,
     highest_supported_near,
     supported_extremes,
-    view_set_labels,
+    view_members,
 )
 
 
@@ -199,12 +199,17 @@ def _observed(view_lists):
                         n_points=len(view_lists))
 
 
-def test_view_set_labels_name_each_set_of_views_once():
-    obs = _observed([[0, 1], [1, 0], [0, 2], [2, 1, 0], [0, 1, 2], [3, 4]])
-    labels = view_set_labels(obs, 6)
-    assert labels[0] == labels[1] and labels[3] == labels[4]
-    assert len({labels[0], labels[2], labels[3], labels[5]}) == 4
-    assert view_set_labels(_observed([[0, 1]]), 0).size == 0
+def test_view_members_mark_each_point_s_views():
+    obs = _observed([[0, 1], [1, 0], [0, 2], [2, 1, 0], [3, 4]])
+    want = np.zeros((5, 5), bool)
+    for i, v in enumerate([[0, 1], [1, 0], [0, 2], [2, 1, 0], [3, 4]]):
+        want[i, v] = True
+    np.testing.assert_array_equal(view_members(obs, 5), want)
+    from satsweep.sparse.tracks import Observations
+
+    none = Observations(point=np.zeros(0, int), view=np.zeros(0, int), xy=np.zeros((0, 2)),
+                        n_points=0)
+    assert view_members(none, 0).shape == (0, 0)
 
 
 def test_a_top_of_one_set_of_views_needs_the_views_confirmation():
@@ -216,7 +221,7 @@ def test_a_top_of_one_set_of_views_needs_the_views_confirmation():
     alts = [100.0 + 0.1 * k for k in range(n_ground)] + [126.0, 125.5] + [379.0, 378.2]
     m = TOP_VIEW_SETS_MIN_VIEWS  # views tied
     tracks = ([list(range(m)), list(range(m - 1))] * (n_ground // 2)
-              + [[0, 1], [1, 2]]  # the roof: two pairs
+              + [[0, 1], [4, 5]]  # the roof: two pairs
               + [[2, 3], [3, 2]])  # the pattern: one pair
     points = np.column_stack([np.full(len(alts), 0.5), np.full(len(alts), 0.5), alts])
     err = np.full(len(alts), 0.2)
@@ -252,11 +257,60 @@ def test_a_top_of_one_set_of_views_needs_the_views_confirmation():
     assert record["supported_extremes_m"][1] == 379.0
 
 
-def test_highest_supported_near_with_view_sets():
+def test_a_top_of_two_pairs_with_a_view_in_common_needs_the_views_confirmation():
+    """Two pairs that share a view are not two sets of views for the top (a 19-view stack, seed
+    75: points of views 9-12 and 9-13 held a top 68 m over the roofs): the top needs the views'
+    confirmation as one pair's would; a track of three views beside a pair with a view in
+    common counts as a second set."""
+    n_ground = 30
+    alts = [100.0 + 0.1 * k for k in range(n_ground)] + [126.0, 125.5] + [228.0, 225.6]
+    m = TOP_VIEW_SETS_MIN_VIEWS
+    ground = [list(range(m)), list(range(m - 1))] * (n_ground // 2)
+    points = np.column_stack([np.full(len(alts), 0.5), np.full(len(alts), 0.5), alts])
+    err = np.full(len(alts), 0.2)
+    aoi = _adjusted([0.0], [1], [0.0])[3]
+    o = SparseOptions()
+    for roof, wrong, want in (([[0, 1], [4, 5]], [[2, 3], [2, 4]], 126.0),
+                              ([[0, 1], [4, 5]], [[2, 3], [2, 3, 4]], 228.0),
+                              ([[0, 1], [1, 5]], [[2, 3], [2, 4]], alts[n_ground - 1])):
+        asked = []
+
+        def deny(i, below_m):
+            asked.append(i)
+            return False
+
+        rng, record = altitude_range_from_points(points, _observed(ground + roof + wrong), err,
+                                                 _Frame, aoi, o, confirm=deny)
+        assert record["supported_extremes_m"][1] == want, (roof, wrong)
+        if want != 228.0:
+            assert asked[0] == len(alts) - 2
+            assert record["one_view_set_top"] == {"altitude_m": 228.0, "confirmed": False}
+
+
+def test_highest_supported_near_with_view_members():
+    """Two sets of views count where they have no view in common, or where they differ and one
+    holds three views or more."""
     alt = np.array([100.0, 100.5, 126.0, 125.5, 379.0, 378.2])
     xy = np.zeros((6, 2))
-    sets = np.array([0, 0, 1, 2, 3, 3])
-    assert highest_supported_near(alt, xy, 2, 3.0, 10.0, view_sets=sets) == 379.0
-    assert highest_supported_near(alt, xy, 2, 3.0, 10.0, view_sets=sets, min_view_sets=2) == 126.0
-    assert highest_supported_near(alt[:2], xy[:2], 2, 3.0, 10.0, view_sets=sets[:2],
-                                  min_view_sets=2) is None
+
+    def members(view_lists):
+        out = np.zeros((len(view_lists), 8), bool)
+        for i, v in enumerate(view_lists):
+            out[i, v] = True
+        return out
+
+    ground = [[0, 1, 2], [0, 1, 2, 3]]
+    for roof, wrong, want in (([0, 1], [4, 5]), ([2, 3], [2, 4]), 126.0), \
+                              (([0, 1], [4, 5]), ([2, 3], [2, 3, 4]), 379.0), \
+                              (([0, 1], [1, 5]), ([2, 3], [2, 4]), 100.5), \
+                              (([0, 1], [1, 5]), ([2, 3], [3, 2]), 100.5):
+        got = highest_supported_near(alt, xy, 2, 3.0, 10.0, min_view_sets=2,
+                                     view_members=members(ground + list(roof) + list(wrong)))
+        assert got == want, (roof, wrong)
+    assert highest_supported_near(alt, xy, 2, 3.0, 10.0, view_members=members(
+        ground + [[0, 1], [0, 1], [2, 3], [2, 3]])) == 379.0  # one set is enough
+    with pytest.raises(ValueError, match="min_view_sets"):
+        highest_supported_near(alt, xy, 2, 3.0, 10.0, min_view_sets=3,
+                               view_members=members(ground * 3))
+    with pytest.raises(ValueError, match="needs view_members"):
+        highest_supported_near(alt, xy, 2, 3.0, 10.0, min_view_sets=2)
