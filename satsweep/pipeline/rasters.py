@@ -318,10 +318,10 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                                               min_share=d.valley_min_share,
                                               resolution_m=grid.resolution)
                 thin_cells, valley_cells = int(thin.sum()), int((valley & ~thin).sum())
-                thin |= valley
-                fused = np.where(thin, np.float32(np.nan), fused)
-                count = np.where(thin, 0, count).astype(count.dtype)
-                members = members & ~thin[None]
+                emptied = thin | valley
+                fused = np.where(emptied, np.float32(np.nan), fused)
+                count = np.where(emptied, 0, count).astype(count.dtype)
+                members = members & ~emptied[None]
             view_passes = [None if passes is None else passes[pv.index] for pv in per_view]
             in_leaf = [k for k, pv in enumerate(per_view)
                        if view_passes[k] is not None and leaf_season is not None

@@ -799,7 +799,7 @@ def test_the_consensus_takes_crowns_tops_from_views_of_dates(tmp_path, monkeypat
         out = thin_minority(fused, count, n_views, **kwargs)
         calls.setdefault("thin_raised_minority", []).append((n_views, kwargs["max_share"],
                                                              int(out.sum())))
-        calls["thin_mask"] = out
+        calls["thin_mask"] = out.copy()
         return out
 
     monkeypatch.setattr(fusion, "thin_raised_minority", record_thin)
