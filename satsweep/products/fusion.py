@@ -982,6 +982,15 @@ def consensus_dsms(dsms: Sequence[np.ndarray], *, tolerance_m: float, min_views:
     return fused, count, members
 
 
+def _raised_cells(f: np.ndarray, finite: np.ndarray, resolution_m: float) -> np.ndarray:
+    """(H, W) bool: the cells of ``f`` (``finite``: those with a height) more than
+    THIN_RAISED_RISE_M above the lowest within THIN_RAISED_GROUND_M."""
+    radius = int(round(THIN_RAISED_GROUND_M / resolution_m))
+    ground = _min_within(np.where(finite, f, np.inf), radius)
+    with np.errstate(invalid="ignore"):
+        return finite & (f - ground > THIN_RAISED_RISE_M)
+
+
 def thin_raised_minority(fused: np.ndarray, count: np.ndarray, n_views: int, *,
                          max_share: float, resolution_m: float) -> np.ndarray:
     """(H, W) bool: the consensus cells (``fused``, NaN: empty; ``count``: the views agreeing
@@ -998,10 +1007,7 @@ def thin_raised_minority(fused: np.ndarray, count: np.ndarray, n_views: int, *,
     limit = math.floor(max_share * n_views + 1e-9)
     if limit < 1 or not finite.any():
         return np.zeros(f.shape, dtype=bool)
-    radius = int(round(THIN_RAISED_GROUND_M / resolution_m))
-    ground = _min_within(np.where(finite, f, np.inf), radius)
-    with np.errstate(invalid="ignore"):
-        few = finite & (f - ground > THIN_RAISED_RISE_M) & (np.asarray(count) <= limit)
+    few = _raised_cells(f, finite, resolution_m) & (np.asarray(count) <= limit)
     side = max(1, int(round(THIN_RAISED_SIDE_M / resolution_m)))
     wide = binary_opening(few | ~finite, structure=np.ones((side, side), dtype=bool))
     return few & ~wide
@@ -1035,10 +1041,7 @@ def raised_count_valleys(fused: np.ndarray, count: np.ndarray, n_views: int, *,
     if min_share == 0.0 or not finite.any():
         return np.zeros(f.shape, dtype=bool)
     drop = max(1, math.ceil(min_share * n_views - 1e-9))
-    radius = int(round(THIN_RAISED_GROUND_M / resolution_m))
-    ground = _min_within(np.where(finite, f, np.inf), radius)
-    with np.errstate(invalid="ignore"):
-        raised = finite & (f - ground > THIN_RAISED_RISE_M)
+    raised = _raised_cells(f, finite, resolution_m)
     c = np.asarray(count).astype(np.int32)
     flanks = np.where(raised, c, -1).astype(np.int32)
     reach = max(1, int(round(VALLEY_REACH_M / resolution_m)))
