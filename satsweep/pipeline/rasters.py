@@ -71,7 +71,7 @@ class AreaRasters:
     cross_check: dict | None  # tolerance, views and kept fraction per view; None: no check
     per_view_filled_fraction: list[float]
     enu_to_map: dict  # whether the polynomial ENU -> map fit was used, and its error
-    per_view_raster: list[str] = dataclasses.field(default_factory=list)  # max, upper_quartile
+    per_view_raster: list[str] = dataclasses.field(default_factory=list)  # max, quantile
     vertical_offsets_m: list[float] | None = None  # per reference view, the offset removed from
     # its raster before the consensus ([dsm] coregister); None: not co-registered
     leaf_on_crown_cells: int | None = None  # cells given the crowns' tops of the views of dates
@@ -238,7 +238,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             (x, y, z, pixel), (sx, sy, sz, spix) = map_view_points(
                 centre, height, keep, P, to_map, subsamples=d.subsamples)
             rule = d.view_raster_for(flat_cells(x, y, grid))
-            keeps_tops = rule == "upper_quartile" and d.small_object_top
+            keeps_tops = rule == "quantile" and d.small_object_top
             small = None  # the pixels of small raised objects (tree crowns)
             if d.small_object_area_m2 > 0.0 and pixel.size and (d.subsamples > 1 or keeps_tops):
                 # Their regions are found on the map before the check, which would split
@@ -251,7 +251,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                     (x, y, z, pixel), (sx, sy, sz, spix), small.ravel(), d.subsamples,
                     FOOTPRINT_EDGE_PX)
             top = small if keeps_tops else None
-            if rule == "upper_quartile" and d.edge_min_confidence > 0.0:
+            if rule == "quantile" and d.edge_min_confidence > 0.0:
                 # Pixels finer than the cells: those on the high side of a step that matched
                 # poorly are edges and facades at the roof's height (points in the air).
                 drop = dropped_edge_pixels(height, pv.confidence, d.edge_min_confidence,
@@ -261,7 +261,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 sx, sy, sz, spix = (a[kept_samples] for a in (sx, sy, sz, spix))
             cells = flat_cells(sx, sy, grid)
             out = _ViewRasters(rule=rule)
-            if rule == "upper_quartile":
+            if rule == "quantile":
                 out.raster = rasterise_dense_view_cells(
                     cells, sz, grid, top=None if top is None else top.ravel()[spix])
             else:

@@ -42,7 +42,7 @@ NARROW_FILTER_MIN_REFERENCES = 6
 # In such an area a reference whose pixels are finer than the DSM's cells (at least
 # DENSE_CENTRES_PER_CELL pixel centres per cell at its ground sample distance, as WorldView-3's
 # 0.3 m on 0.5 m cells) sweeps with ``mrf.sgm_dense_consensus_gf_radius`` (0: no filter):
-# each of its cells already pools about three pixels (the upper quartile of their points,
+# each of its cells already pools about three pixels (a high quantile of their points,
 # ``DSMOptions.view_raster``), and even a radius of 1 px averages a crown's costs over texture
 # that each date redraws (the issue-form seed 11: crown cells within 1 m 30.2 -> 37.3%, their
 # MAE 4.29 -> 3.50 m; the ground beside roofs, at the roof's height as often, 8.08 -> 7.23 m

@@ -55,19 +55,25 @@ CONSENSUS_MIN_REFERENCES = 4
 # views instead: MAE 1.075 m on the 0.3 m stacks but one 0.5 m stack 3.1 points lower within 1 m
 # (docs/measurements.md).
 CONSENSUS_MIN_SHARE = 0.5
-# A view with at least this many pixel centres per cell it fills (the mean) is rasterised by
-# the upper quartile of its points in each cell rather than their highest ([dsm] view_raster =
-# auto). With about one pixel per cell (0.5 m pixels on 0.5 m cells) the highest of the
-# footprint sub-samples reaching a cell is the surface's top there, as the truth's highest
-# point per cell; with several (0.3 m pixels: about 2.8 per cell) it is the most fattened or
-# wrong of them. Nine synthetic multi-date stacks at 0.3 m (docs/measurements.md): DFC MAE
-# 1.224 -> 1.091 m on average (lower on 8 of 9), within 1 m 89.06 -> 89.00%; the median
-# instead: 1.055 m but 88.75%, and one stack 0.27 m worse. At 0.5 m either loses (v10 seeds
-# 0-5, median: 92.66 -> 91.55% within 1 m; upper quartile 92.04%).
+# A view with at least this many pixel centres per cell it fills (the mean) is rasterised by a high
+# quantile of its points in each cell (VIEW_RASTER_QUANTILE) rather than their highest ([dsm]
+# view_raster = auto). With about one pixel per cell (0.5 m pixels on 0.5 m cells) the highest of
+# the footprint sub-samples reaching a cell is the surface's top there, as the truth's highest point
+# per cell; with several (0.3 m pixels: about 2.8 per cell) it is the most fattened or wrong of
+# them. Nine synthetic multi-date stacks at 0.3 m (docs/measurements.md): DFC MAE 1.224 -> 1.091 m
+# on average (lower on 8 of 9), within 1 m 89.06 -> 89.00%; the median instead: 1.055 m but 88.75%,
+# and one stack 0.27 m worse. At 0.5 m either loses (v10 seeds 0-5, median: 92.66 -> 91.55% within
+# 1 m; upper quartile 92.04%).
 DENSE_CENTRES_PER_CELL = 2.0
-# The quantile of a dense view's points that makes its height in a cell (0.75: the upper
-# quartile, the ``round(0.75 (n - 1))``-th of n values in ascending order).
-VIEW_RASTER_QUANTILE = 0.75
+# The quantile of a dense view's points that makes its height in a cell: the
+# ``floor(q (n - 1) + 0.5)``-th of n values in ascending order. 0.3 m pixels on 0.5 m cells with
+# 2 x 2 sub-samples a pixel (``subsamples``) put about 11 points in a cell: 0.85 takes the second
+# highest of 11, the upper quartile (0.75, before the sixtieth session) the third. Issue-form
+# stacks (19 views at 0.3 m), the DSM stage replayed on their runs' height maps: DFC MAE 0.7952
+# -> 0.7882 m on seeds 11-20 and 23-57 (lower on 30 of 45), 0.8425 -> 0.8386 m on seeds 58-98
+# (held out: lower on 23 of 41); 0.625 0.8301 m and 0.5 0.8668 m (higher on 36 and 38 of 45),
+# the highest 0.8040 m (higher on 23).
+VIEW_RASTER_QUANTILE = 0.85
 # A pixel of a height map lies on the high side of a step when one of its 8 neighbours is more
 # than this many metres lower (``step_edge_pixels``): where edges and facades matched at the
 # roof's height put their points in the air. On the 0.3 m issue-form stacks 11-17% of each
@@ -145,17 +151,17 @@ SMALL_OBJECT_MIN_HEIGHT_M = 2.0
 SMALL_OBJECT_GROUND_WINDOW_M = 20.0
 SMALL_OBJECT_SMOOTH_PX = 5
 FOOTPRINT_EDGE_PX = 0.49
-# Crowns in the views rasterised by the quartile ([dsm] small_object_top): a crown's rim is a
-# step, matched poorly where the leaves' fine texture differs between dates, so the edge rule
-# (edge_min_confidence) dropped it, and the quartile of a rim cell's points is the ground's
-# wherever fewer than a quarter of them are the crown's: the issue-form 0.3 m stack seed 11
-# (19 dates) had its crowns' outer cells (within 0.75 m of the rim) 4.7 m too low (median) and
-# 74% more than 1 m too low. Keeping the small raised objects' step pixels and giving each cell
-# the highest of their points, issue-form stacks (19 views, 0.3 m; docs/measurements.md) DFC
-# MAE m, seeds 11 13 14 15 16 17 18: 1.117 1.112 0.834 1.024 1.190 0.457 0.837 -> 1.090 1.080
-# 0.764 1.029 1.162 0.454 0.826 (mean 0.939 -> 0.915), crowns within 1 m higher on all seven;
-# the step pixels kept alone: 1.103 and 1.178 m on seeds 11 and 16. Views of a pixel per cell
-# (their highest point per cell already) are left as they were.
+# Crowns in the views rasterised by the quantile ([dsm] small_object_top): a crown's rim is a step,
+# matched poorly where the leaves' fine texture differs between dates, so the edge rule
+# (edge_min_confidence) dropped it, and the quantile of a rim cell's points is the ground's wherever
+# fewer than a quarter of them are the crown's (measured with the upper quartile): the issue-form
+# 0.3 m stack seed 11 (19 dates) had its crowns' outer cells (within 0.75 m of the rim) 4.7 m too
+# low (median) and 74% more than 1 m too low. Keeping the small raised objects' step pixels and
+# giving each cell the highest of their points, issue-form stacks (19 views, 0.3 m;
+# docs/measurements.md) DFC MAE m, seeds 11 13 14 15 16 17 18: 1.117 1.112 0.834 1.024 1.190 0.457
+# 0.837 -> 1.090 1.080 0.764 1.029 1.162 0.454 0.826 (mean 0.939 -> 0.915), crowns within 1 m higher
+# on all seven; the step pixels kept alone: 1.103 and 1.178 m on seeds 11 and 16. Views of a pixel
+# per cell (their highest point per cell already) are left as they were.
 SMALL_OBJECT_TOP = True
 # Crowns' tops from the views of dates in leaf ([dsm] leaf_on_crowns): in winter a deciduous
 # crown shows the ground through its branches, and the consensus of all dates puts a crown's
@@ -284,10 +290,10 @@ class DSMOptions(Options):
     # ground around them) of at most this area splat to their footprints' edges: a crown's rim
     # reaches the cells it overhangs (SMALL_OBJECT_MIN_HEIGHT_M); 0: none (subsamples 1:
     # nothing to spread)
-    small_object_top: bool = SMALL_OBJECT_TOP  # in a view rasterised by the quartile
+    small_object_top: bool = SMALL_OBJECT_TOP  # in a view rasterised by the quantile
     # (view_raster), the pixels of those small raised objects keep their step pixels
     # (edge_min_confidence) and each cell takes the highest of their points where that lies
-    # above the quartile: a tree crown's top, as the truth's highest point per cell
+    # above the quantile: a tree crown's top, as the truth's highest point per cell
     leaf_on_crowns: bool = True  # consensus: where two reference views of dates in leaf (the
     # metadata's date; of two passes) agree on a small raised object's top above the cell's
     # consensus height, the cell takes it (leafless crowns show the ground below them); views
@@ -313,12 +319,13 @@ class DSMOptions(Options):
     # hole filling: a gap's floor matched at its walls' heights, with the roofs around it
     # agreed on by more views (VALLEY_REACH_M's comment); 0: none
     edge_min_confidence: float = 0.15  # a dense view's pixels (those view_raster = auto
-    # rasterises by the quartile) on the high side of a height step (EDGE_STEP_M) are dropped
+    # rasterises by the quantile) on the high side of a height step (EDGE_STEP_M) are dropped
     # below this confidence: edges and facades matched at the roof's height; 0: none
-    view_raster: Literal["auto", "max", "upper_quartile"] = "auto"  # a reference view's height
-    # in a cell: the highest of its points there, or their upper quartile; auto = the quartile
-    # where the view has 2 pixel centres per filled cell or more (DENSE_CENTRES_PER_CELL: finer
-    # pixels than cells, as WorldView-3's 0.3 m on 0.5 m cells), else the highest
+    view_raster: Literal["auto", "max", "quantile"] = "auto"  # a reference view's height in a
+    # cell: the highest of its points there, or their VIEW_RASTER_QUANTILE (0.85); auto = the
+    # quantile where the view has 2 pixel centres per filled cell or more
+    # (DENSE_CENTRES_PER_CELL: finer pixels than cells, as WorldView-3's 0.3 m on 0.5 m
+    # cells), else the highest
 
     ADVANCED = ("subsamples", "cross_check_m", "cross_check_views", "outlier_m", "min_views",
                 "fill_method", "fill_border_holes", "consensus_tolerance_m", "consensus_min_views",
@@ -377,12 +384,12 @@ class DSMOptions(Options):
                       "must be a fraction in [0, 1] (0: no such rule)")
 
     def view_raster_for(self, centre_cells: np.ndarray) -> str:
-        """The rule (``"max"`` or ``"upper_quartile"``) of a view's raster whose pixel centres
+        """The rule (``"max"`` or ``"quantile"``) of a view's raster whose pixel centres
         fall in ``centre_cells`` (``flat_cells``, -1 outside the grid)."""
         if self.view_raster != "auto":
             return self.view_raster
         dense = centres_per_cell(centre_cells) >= DENSE_CENTRES_PER_CELL
-        return "upper_quartile" if dense else "max"
+        return "quantile" if dense else "max"
 
     def fusion_for(self, n_references: int) -> str:
         """The fusion an area with ``n_references`` reference height maps uses."""
@@ -796,8 +803,8 @@ def small_raised_pixels(height: np.ndarray, gsd_m: float, max_area_m2: float, *,
 
 def rasterise_dense_view_cells(cells: np.ndarray, values, grid: DSMGrid,
                                top: np.ndarray | None = None) -> np.ndarray:
-    """A dense view's raster (``view_raster`` "upper_quartile"): per cell the upper quartile
-    (VIEW_RASTER_QUANTILE) of its points, or the highest of its points that ``top`` marks (per
+    """A dense view's raster (``view_raster`` "quantile"): per cell the VIEW_RASTER_QUANTILE
+    of its points, or the highest of its points that ``top`` marks (per
     point: those of small raised objects, ``small_raised_pixels``) where that is higher; NaN
     where no point fell. Arguments as ``rasterise_max_cells``."""
     out = rasterise_quantile_cells(cells, values, grid)

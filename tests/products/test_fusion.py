@@ -268,7 +268,7 @@ def test_rasterise_max_cells_shares_the_cells_of_rasterise_max():
     np.testing.assert_array_equal(dsm.rasterise_max(x, y, z, grid), ref)
 
 
-@pytest.mark.parametrize("quantile", [0.0, 0.5, 0.75, 1.0])
+@pytest.mark.parametrize("quantile", [0.0, 0.5, 0.75, dsm.VIEW_RASTER_QUANTILE, 1.0])
 def test_rasterise_quantile_cells_matches_a_python_loop(quantile):
     """Per cell the round(quantile (n - 1))-th of its n values in ascending order (halves
     rounded up), points outside the grid and NaN values ignored, NaN where a cell holds none;
@@ -324,7 +324,7 @@ def test_rasterise_quantile_cells_values_closer_than_float32(quantile):
 
 
 def test_view_raster_rule_follows_the_pixels_per_cell():
-    """auto: the upper quartile where a view puts DENSE_CENTRES_PER_CELL pixel centres or more
+    """auto: the quantile where a view puts DENSE_CENTRES_PER_CELL pixel centres or more
     in the cells it fills (a 0.3 m view on 0.5 m cells), the highest point where fewer (0.5 m)."""
     grid = dsm_grid.DSMGrid(epsg=32740, x_min=0.0, y_max=50.0, resolution=0.5, width=100, height=100)
 
@@ -339,10 +339,10 @@ def test_view_raster_rule_follows_the_pixels_per_cell():
     assert dsm.centres_per_cell(np.array([-1, -1])) == 0.0
     auto = dsm.DSMOptions()
     assert auto.view_raster == "auto"
-    assert auto.view_raster_for(fine) == "upper_quartile"
+    assert auto.view_raster_for(fine) == "quantile"
     assert auto.view_raster_for(coarse) == "max"
     assert dsm.DSMOptions(view_raster="max").view_raster_for(fine) == "max"
-    assert dsm.DSMOptions(view_raster="upper_quartile").view_raster_for(coarse) == "upper_quartile"
+    assert dsm.DSMOptions(view_raster="quantile").view_raster_for(coarse) == "quantile"
     with pytest.raises(OptionsError, match="view_raster"):
         dsm.DSMOptions(view_raster="median")
 
@@ -1314,11 +1314,11 @@ def test_step_edge_pixels_are_the_high_side_of_steps():
     assert dsm.step_edge_pixels(h, step_m=0.5)[:, 0].all()
 
 
-def test_dense_view_raster_takes_a_crowns_top_over_the_quartile():
-    """Per cell the upper quartile of its points (rasterise_quantile_cells), or the highest of
-    its flagged points (a crown's) where that is higher: a rim cell with one crown point among
-    seven ground points takes the crown's height, a cell whose flagged point lies below the
-    quartile keeps the quartile, unflagged cells and no flags at all keep the quartile."""
+def test_dense_view_raster_takes_a_crowns_top_over_the_quantile():
+    """Per cell the VIEW_RASTER_QUANTILE of its points (rasterise_quantile_cells), or the
+    highest of its flagged points (a crown's) where that is higher: a rim cell with one crown
+    point among seven ground points takes the crown's height, a cell whose flagged point lies
+    below the quantile keeps the quantile, unflagged cells and no flags at all keep it."""
     grid = dsm_grid.DSMGrid(epsg=32740, x_min=100.0, y_max=50.0, resolution=0.5, width=30, height=20)
     rng = np.random.default_rng(5)
     x, y = rng.uniform(100.0, 115.0, 3000), rng.uniform(40.0, 50.0, 3000)
