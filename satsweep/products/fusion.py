@@ -154,10 +154,10 @@ FOOTPRINT_EDGE_PX = 0.49
 # Crowns in the views rasterised by the quantile ([dsm] small_object_top): a crown's rim is a step,
 # matched poorly where the leaves' fine texture differs between dates, so the edge rule
 # (edge_min_confidence) dropped it, and the quantile of a rim cell's points is the ground's wherever
-# fewer than a quarter of them are the crown's (measured with the upper quartile): the issue-form
-# 0.3 m stack seed 11 (19 dates) had its crowns' outer cells (within 0.75 m of the rim) 4.7 m too
-# low (median) and 74% more than 1 m too low. Keeping the small raised objects' step pixels and
-# giving each cell the highest of their points, issue-form stacks (19 views, 0.3 m;
+# fewer than 15% of them are the crown's (a quarter with the upper quartile, measured): the
+# issue-form 0.3 m stack seed 11 (19 dates) had its crowns' outer cells (within 0.75 m of the rim)
+# 4.7 m too low (median) and 74% more than 1 m too low. Keeping the small raised objects' step
+# pixels and giving each cell the highest of their points, issue-form stacks (19 views, 0.3 m;
 # docs/measurements.md) DFC MAE m, seeds 11 13 14 15 16 17 18: 1.117 1.112 0.834 1.024 1.190 0.457
 # 0.837 -> 1.090 1.080 0.764 1.029 1.162 0.454 0.826 (mean 0.939 -> 0.915), crowns within 1 m higher
 # on all seven; the step pixels kept alone: 1.103 and 1.178 m on seeds 11 and 16. Views of a pixel
