@@ -71,8 +71,8 @@ DENSE_CENTRES_PER_CELL = 2.0
 # highest of 11, the upper quartile (0.75, before the sixtieth session) the third. Issue-form
 # stacks (19 views at 0.3 m), the DSM stage replayed on their runs' height maps: DFC MAE 0.7952
 # -> 0.7882 m on seeds 11-20 and 23-57 (lower on 30 of 45), 0.8425 -> 0.8386 m on seeds 58-98
-# (held out: lower on 23 of 41); 0.625 0.8301 m and 0.5 0.8668 m (higher on 36 and 38 of 45),
-# the highest 0.8040 m (higher on 23).
+# (held out: lower on 23 of 41); 0.8 and 0.9 0.7905 and 0.7909 m, 0.625 0.8301 m and 0.5 0.8668 m
+# (higher on 36 and 38 of 45), the highest 0.8040 m (higher on 23).
 VIEW_RASTER_QUANTILE = 0.85
 # A pixel of a height map lies on the high side of a step when one of its 8 neighbours is more
 # than this many metres lower (``step_edge_pixels``): where edges and facades matched at the
