@@ -145,6 +145,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         flat_cells,
         fuse_dsms,
         green_crown_tops,
+        green_raised_pixels,
         leaf_on_crown_tops,
         rasterise_dense_view_cells,
         rasterise_max_cells,
@@ -251,6 +252,10 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                     (x, y, z, pixel), (sx, sy, sz, spix), small.ravel(), d.subsamples,
                     FOOTPRINT_EDGE_PX)
             top = small if keeps_tops else None
+            if top is not None and d.green_top and vegetation_images is not None:
+                # Crowns in clumps or against walls: raised regions larger than small ones.
+                top = top | green_raised_pixels(height, vegetation_images[pv.index],
+                                                _view_gsd(P, centre))
             if rule == "quantile" and d.edge_min_confidence > 0.0:
                 # Pixels finer than the cells: those on the high side of a step that matched
                 # poorly are edges and facades at the roof's height (points in the air).

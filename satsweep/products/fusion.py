@@ -163,6 +163,27 @@ FOOTPRINT_EDGE_PX = 0.49
 # on all seven; the step pixels kept alone: 1.103 and 1.178 m on seeds 11 and 16. Views of a pixel
 # per cell (their highest point per cell already) are left as they were.
 SMALL_OBJECT_TOP = True
+# Crowns that join larger raised regions ([dsm] green_top): a clump of crowns, or a crown against
+# a wall, is one raised region of more than small_object_area_m2, so small_object_top left its
+# rims to the edge rule. On 15 issue-form stacks (the DSM stage replayed, the error by the truth's
+# class, the ground far from objects as zero) the crowns' inner cells were 1.2-4.7 m too low on
+# average (medians 0.4-3.1 m), their rim cells 1.0-2.5 m, the roofs' inner cells' medians within
+# 0.05 m; with no edge rule at all (edge_min_confidence 0) seeds 11-20, 23-57 went 0.7881 ->
+# 0.7931 m, lower by up to 0.14 m on some stacks, higher by as much on others. Where the views
+# have colour, the pixels of raised regions of any area that the reference image shows as
+# vegetation (green_raised_pixels) count as the small objects' do. DFC MAE mean, issue-form
+# stacks (docs/measurements.md, sixty-first session): seeds 11-20, 23-57 0.7881 -> 0.7662 m
+# (lower on 27, higher on 17; over 1 m 8 -> 6), held-out seeds 58-104 0.8379 -> 0.8295 m (23 /
+# 22), the 1700 px stack 0.907 -> 0.832 m; by class (seeds 11-20, 23-32, before the opening
+# below) the crowns' cells better on all 20 and the ground beside buildings worse on all 20.
+GREEN_TOP = True
+# Green raised pixels count only where they fill a square this wide (a morphological opening):
+# a strip of grass along a wall that a reference matched at the roof's height is one or two
+# pixels wide, a crown metres. 1 m (3 pixels of 0.3 m) against no opening: seeds 11-20, 23-57
+# 0.7674 -> 0.7662 m (lower on 27, higher on 16), held-out seeds 58-104 0.8303 -> 0.8295 m (30 /
+# 15), the 1700 px stack 0.821 -> 0.832 m; a 3-pixel cross instead of the square 0.7659 / 0.8294
+# m, a 5-pixel disc (1.5 m) 0.7689 m on seeds 11-20, 23-57.
+GREEN_TOP_MIN_WIDTH_M = 1.0
 # Crowns' tops from the views of dates in leaf ([dsm] leaf_on_crowns): in winter a deciduous
 # crown shows the ground through its branches, and the consensus of all dates puts a crown's
 # cells between the two (issue-form seed 11: crowns 2.85 m too low on average). A cell takes the
@@ -294,6 +315,9 @@ class DSMOptions(Options):
     # (view_raster), the pixels of those small raised objects keep their step pixels
     # (edge_min_confidence) and each cell takes the highest of their points where that lies
     # above the quantile: a tree crown's top, as the truth's highest point per cell
+    green_top: bool = GREEN_TOP  # with small_object_top, in views of colour images, the pixels
+    # of raised regions of any area (a clump of crowns, a crown against a wall) that the
+    # reference image shows as vegetation (VEGETATION_INDEX_MIN) count as small objects' pixels
     leaf_on_crowns: bool = True  # consensus: where two reference views of dates in leaf (the
     # metadata's date; of two passes) agree on a small raised object's top above the cell's
     # consensus height, the cell takes it (leafless crowns show the ground below them); views
@@ -335,7 +359,7 @@ class DSMOptions(Options):
                 "visibility_check", "visibility_far_m", "visibility_leaf_on_far_m",
                 "visibility_bare_far_m", "visibility_slack_px",
                 "visibility_slack_confidence", "visibility_voter_confidence",
-                "small_object_area_m2", "small_object_top",
+                "small_object_area_m2", "small_object_top", "green_top",
                 "leaf_on_crowns", "crown_holes", "green_crowns",
                 "view_raster", "edge_min_confidence")
 
@@ -801,6 +825,32 @@ def small_raised_pixels(height: np.ndarray, gsd_m: float, max_area_m2: float, *,
     return small[labels]
 
 
+def green_raised_pixels(height: np.ndarray, vegetation: np.ndarray, gsd_m: float) -> np.ndarray:
+    """(H, W) bool: the pixels of a height map (NaN: unknown) raised as ``small_raised_pixels``
+    says (SMALL_OBJECT_MIN_HEIGHT_M above the ground around them), in regions of any area, whose
+    ``vegetation`` index (``satsweep.io.images.vegetation_index`` in the same pixels) is at
+    least VEGETATION_INDEX_MIN: crowns, also where they join a building's or each other's
+    region (``[dsm] green_top``). Grass on the ground is not raised; strips of such pixels
+    narrower than GREEN_TOP_MIN_WIDTH_M (grass beside a wall matched at its roof's height) are
+    left out by a morphological opening."""
+    h = np.asarray(height)
+    veg = np.asarray(vegetation)
+    if veg.shape != h.shape:
+        raise ValueError(f"green_raised_pixels: vegetation {veg.shape} and height {h.shape} "
+                         "differ in shape")
+    import cv2  # noqa: PLC0415
+
+    with np.errstate(invalid="ignore"):
+        green = veg >= VEGETATION_INDEX_MIN
+    if not green.any():
+        return green
+    green &= small_raised_pixels(h, gsd_m, math.inf)
+    # Opened by a square GREEN_TOP_MIN_WIDTH_M wide (odd pixels, 3 at least).
+    side = 2 * int(0.5 * GREEN_TOP_MIN_WIDTH_M / gsd_m) + 1
+    kernel = np.ones((max(3, side),) * 2, np.uint8)
+    return cv2.morphologyEx(green.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
+
+
 def rasterise_dense_view_cells(cells: np.ndarray, values, grid: DSMGrid,
                                top: np.ndarray | None = None) -> np.ndarray:
     """A dense view's raster (``view_raster`` "quantile"): per cell the VIEW_RASTER_QUANTILE
@@ -824,7 +874,8 @@ def dropped_edge_pixels(height: np.ndarray, confidence: np.ndarray, min_confiden
     """(H, W) bool: the pixels of a dense view's height map that its raster leaves out
     (``DSMOptions.edge_min_confidence``): on the high side of a step (``step_edge_pixels``) and
     matched with a confidence under ``min_confidence``, except those ``keep`` marks (the small
-    raised objects' pixels with ``small_object_top``: a crown's rim is a step too)."""
+    raised objects' pixels with ``small_object_top``, and green raised ones with ``green_top``:
+    a crown's rim is a step too)."""
     drop = step_edge_pixels(height) & (np.asarray(confidence) < min_confidence)
     if keep is not None:
         drop &= ~np.asarray(keep, bool)

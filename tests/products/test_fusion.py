@@ -1395,6 +1395,50 @@ def test_small_raised_pixels_are_crowns_not_buildings():
         dsm.small_raised_pixels(h, 0.0, 150.0)
 
 
+def test_green_raised_pixels_are_crowns_in_any_region():
+    """A 0.5 m map of flat ground with a 20 x 20 m block 10 m above it, a 5.5 x 6.5 m crown 6 m
+    above the ground against its west wall (one raised region of more than 400 m^2), a lone
+    crown, lawns at ground level, and a 1 m strip of grass along the block's east wall matched
+    at its roof's height; the vegetation index is 0.33 on the crowns and 0.17 on the grass (the
+    synthetic scenes' colours), 0.02 elsewhere. The crowns' pixels are green and raised,
+    whatever their region's area; the block is raised but not green, the lawns green but not
+    raised, the strip narrower than GREEN_TOP_MIN_WIDTH_M, unknown pixels neither."""
+    gsd = 0.5
+    rows, cols = np.mgrid[0:120, 0:160]
+    h = np.zeros(rows.shape)
+    veg = np.full(rows.shape, 0.02, np.float32)
+    block = (rows >= 60) & (rows < 100) & (cols >= 80) & (cols < 120)
+    h[block] = 10.0
+    against = (rows >= 74) & (rows < 87) & (cols >= 69) & (cols < 80)
+    lone = (rows >= 20) & (rows < 33) & (cols >= 24) & (cols < 37)
+    crowns = against | lone
+    h[crowns] = 6.0
+    veg[crowns] = 0.33
+    lawn = (rows >= 10) & (rows < 50) & (cols >= 90) & (cols < 150)
+    veg[lawn] = 0.17
+    strip = (rows >= 60) & (rows < 100) & (cols >= 120) & (cols < 122)
+    h[strip] = 10.0
+    veg[strip] = 0.17
+    h[0:3, 0:3] = np.nan
+    veg[0:3, 0:3] = 0.33
+    # The opening's square (odd pixels, 3 at least) is wider than the strip (2 pixels) and no
+    # wider than the wide strip below (4).
+    side = max(3, 2 * int(0.5 * dsm.GREEN_TOP_MIN_WIDTH_M / gsd) + 1)
+    assert 2 < side <= 4
+    green = dsm.green_raised_pixels(h, veg, gsd)
+    np.testing.assert_array_equal(green, crowns)
+    # The small objects' rule (150 m^2) sees the lone crown only: the other joins the block.
+    np.testing.assert_array_equal(dsm.small_raised_pixels(h, gsd, 150.0), lone)
+    # The strip 2 m wide (4 pixels) counts.
+    wide = (rows >= 60) & (rows < 100) & (cols >= 120) & (cols < 124)
+    h[wide], veg[wide] = 10.0, 0.17
+    np.testing.assert_array_equal(dsm.green_raised_pixels(h, veg, gsd), crowns | wide)
+    # An index under the threshold everywhere: none.
+    assert not dsm.green_raised_pixels(h, np.full(h.shape, 0.05, np.float32), gsd).any()
+    with pytest.raises(ValueError, match="differ in shape"):
+        dsm.green_raised_pixels(h, veg[:-1], gsd)
+
+
 def test_spread_to_footprint_edges_moves_the_selected_pixels_sub_samples_only():
     """Pixels mapped by x = 2 col + 0.5 row, y = -3 row (a sheared footprint), z = the pixel's
     height: the selected pixel's 2 x 2 sub-samples end at +-0.49 px of its centre, the others'
