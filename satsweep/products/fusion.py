@@ -315,9 +315,10 @@ class DSMOptions(Options):
     # (view_raster), the pixels of those small raised objects keep their step pixels
     # (edge_min_confidence) and each cell takes the highest of their points where that lies
     # above the quantile: a tree crown's top, as the truth's highest point per cell
-    green_top: bool = GREEN_TOP  # with small_object_top, in views of colour images, the pixels
-    # of raised regions of any area (a clump of crowns, a crown against a wall) that the
-    # reference image shows as vegetation (VEGETATION_INDEX_MIN) count as small objects' pixels
+    green_top: bool = GREEN_TOP  # with small_object_top (and small_object_area_m2 > 0), in
+    # views of colour images, the pixels of raised regions of any area (a clump of crowns, a
+    # crown against a wall) that the reference image shows as vegetation (VEGETATION_INDEX_MIN)
+    # count as small objects' pixels there (green_raised_pixels)
     leaf_on_crowns: bool = True  # consensus: where two reference views of dates in leaf (the
     # metadata's date; of two passes) agree on a small raised object's top above the cell's
     # consensus height, the cell takes it (leafless crowns show the ground below them); views
