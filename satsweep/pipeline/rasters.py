@@ -245,7 +245,8 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 # Their regions are found on the map before the check, which would split
                 # buildings into small pieces where it drops facades (v20 seeds 0-5: 91.60% /
                 # 0.896 m against 91.48% / 0.905 m on the checked map).
-                small = small_raised_pixels(height, _view_gsd(P, centre), d.small_object_area_m2)
+                gsd = _view_gsd(P, centre)  # a median over the view's points: once
+                small = small_raised_pixels(height, gsd, d.small_object_area_m2)
             if small is not None and d.subsamples > 1:
                 # Small raised objects reach the cells they overhang.
                 sx, sy, sz, spix = spread_to_footprint_edges(
@@ -253,9 +254,9 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                     FOOTPRINT_EDGE_PX)
             top = small if keeps_tops else None
             if top is not None and d.green_top and vegetation_images is not None:
-                # Crowns in clumps or against walls: raised regions larger than small ones.
-                top = top | green_raised_pixels(height, vegetation_images[pv.index],
-                                                _view_gsd(P, centre))
+                # Crowns in clumps or against walls: raised regions larger than small ones
+                # (top is small's, so gsd is known).
+                top = top | green_raised_pixels(height, vegetation_images[pv.index], gsd)
             if rule == "quantile" and d.edge_min_confidence > 0.0:
                 # Pixels finer than the cells: those on the high side of a step that matched
                 # poorly are edges and facades at the roof's height (points in the air).
