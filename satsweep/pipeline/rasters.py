@@ -149,8 +149,9 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
         leaf_on_crown_tops,
         rasterise_dense_view_cells,
         rasterise_max_cells,
-        small_raised_pixels,
         raised_count_valleys,
+        raised_pixels,
+        small_regions,
         thin_raised_minority,
         vertical_offsets,
         visibility_check_heights,
@@ -246,7 +247,8 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 # buildings into small pieces where it drops facades (v20 seeds 0-5: 91.60% /
                 # 0.896 m against 91.48% / 0.905 m on the checked map).
                 gsd = _view_gsd(P, centre)  # a median over the view's points: once
-                small = small_raised_pixels(height, gsd, d.small_object_area_m2)
+                raised = raised_pixels(height, gsd)  # also the green rule's, below
+                small = small_regions(raised, gsd, d.small_object_area_m2)
             if small is not None and d.subsamples > 1:
                 # Small raised objects reach the cells they overhang.
                 sx, sy, sz, spix = spread_to_footprint_edges(
@@ -255,8 +257,9 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             top = small if keeps_tops else None
             if top is not None and d.green_top and vegetation_images is not None:
                 # Crowns in clumps or against walls: raised regions larger than small ones
-                # (top is small's, so gsd is known).
-                top = top | green_raised_pixels(height, vegetation_images[pv.index], gsd)
+                # (top is small's, so gsd and raised are known).
+                top = top | green_raised_pixels(height, vegetation_images[pv.index], gsd,
+                                                raised=raised)
             if rule == "quantile" and d.edge_min_confidence > 0.0:
                 # Pixels finer than the cells: those on the high side of a step that matched
                 # poorly are edges and facades at the roof's height (points in the air).

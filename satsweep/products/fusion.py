@@ -789,36 +789,38 @@ def _float32_of_order(keys: np.ndarray) -> np.ndarray:
     return np.where(positive, k & np.uint32(0x7FFFFFFF), ~k).view(np.float32)
 
 
-def small_raised_pixels(height: np.ndarray, gsd_m: float, max_area_m2: float, *,
-                        min_height_m: float = SMALL_OBJECT_MIN_HEIGHT_M,
-                        ground_window_m: float = SMALL_OBJECT_GROUND_WINDOW_M) -> np.ndarray:
-    """(H, W) bool: the pixels of a height map (NaN: unknown) that belong to small raised
-    objects (tree crowns, vehicles, sheds) rather than buildings; a box on a roof is
-    part of its building's region.
-
-    The ground under a pixel is the lowest height within ``ground_window_m`` (a square, from a
-    ``SMALL_OBJECT_SMOOTH_PX`` median of the map, which one pixel's blunder does not lower);
-    known pixels more than ``min_height_m`` above it are raised; their 8-connected regions of at
-    most ``max_area_m2`` (pixels of ``gsd_m`` metres) are small. Unknown pixels are neither
-    ground nor raised.
-    """
+def raised_pixels(height: np.ndarray, gsd_m: float, *,
+                  min_height_m: float = SMALL_OBJECT_MIN_HEIGHT_M,
+                  ground_window_m: float = SMALL_OBJECT_GROUND_WINDOW_M) -> np.ndarray:
+    """(H, W) bool: the known pixels of a height map (NaN: unknown) more than ``min_height_m``
+    above the ground under them: the lowest height within ``ground_window_m`` (a square, from a
+    ``SMALL_OBJECT_SMOOTH_PX`` median of the map, which one pixel's blunder does not lower;
+    pixels of ``gsd_m`` metres). Unknown pixels are neither ground nor raised."""
     import cv2  # noqa: PLC0415
 
     if not (math.isfinite(gsd_m) and gsd_m > 0.0):
-        raise ValueError(f"small_raised_pixels: gsd_m = {gsd_m!r} must be > 0 metres")
+        raise ValueError(f"raised_pixels: gsd_m = {gsd_m!r} must be > 0 metres")
     h = np.asarray(height, dtype=np.float64)
     known = np.isfinite(h)
-    if max_area_m2 <= 0.0 or not known.any():
-        return np.zeros(h.shape, bool)
+    if not known.any():
+        return known
     # The median in float32 (OpenCV's, edges replicated): metres to 1e-5 against a 2 m rule.
     smooth = cv2.medianBlur(np.ascontiguousarray(np.where(known, h, np.inf), dtype=np.float32),
                             SMALL_OBJECT_SMOOTH_PX).astype(np.float64)
     radius = max(1, int(round(0.5 * ground_window_m / gsd_m)))
     ground = _min_within(smooth, radius)
     with np.errstate(invalid="ignore"):
-        raised = known & (h > ground + min_height_m)
-    if not raised.any():
-        return raised
+        return known & (h > ground + min_height_m)
+
+
+def small_regions(raised: np.ndarray, gsd_m: float, max_area_m2: float) -> np.ndarray:
+    """(H, W) bool: the pixels of ``raised`` (``raised_pixels``) whose 8-connected regions cover
+    at most ``max_area_m2`` (pixels of ``gsd_m`` metres); none where ``max_area_m2`` <= 0."""
+    import cv2  # noqa: PLC0415
+
+    raised = np.asarray(raised, dtype=bool)
+    if max_area_m2 <= 0.0 or not raised.any():
+        return np.zeros(raised.shape, bool)
     _, labels, stats, _ = cv2.connectedComponentsWithStats(raised.astype(np.uint8),
                                                            connectivity=8)
     small = stats[:, cv2.CC_STAT_AREA] * gsd_m * gsd_m <= max_area_m2
@@ -826,9 +828,31 @@ def small_raised_pixels(height: np.ndarray, gsd_m: float, max_area_m2: float, *,
     return small[labels]
 
 
-def green_raised_pixels(height: np.ndarray, vegetation: np.ndarray, gsd_m: float) -> np.ndarray:
-    """(H, W) bool: the pixels of a height map (NaN: unknown) raised as ``small_raised_pixels``
-    says (SMALL_OBJECT_MIN_HEIGHT_M above the ground around them), in regions of any area, whose
+def small_raised_pixels(height: np.ndarray, gsd_m: float, max_area_m2: float, *,
+                        min_height_m: float = SMALL_OBJECT_MIN_HEIGHT_M,
+                        ground_window_m: float = SMALL_OBJECT_GROUND_WINDOW_M) -> np.ndarray:
+    """(H, W) bool: the pixels of a height map (NaN: unknown) that belong to small raised
+    objects (tree crowns, vehicles, sheds) rather than buildings; a box on a roof is
+    part of its building's region.
+
+    The pixels ``raised_pixels`` gives (more than ``min_height_m`` above the ground within
+    ``ground_window_m``) in 8-connected regions of at most ``max_area_m2`` (``small_regions``;
+    pixels of ``gsd_m`` metres).
+    """
+    if not (math.isfinite(gsd_m) and gsd_m > 0.0):
+        raise ValueError(f"small_raised_pixels: gsd_m = {gsd_m!r} must be > 0 metres")
+    if max_area_m2 <= 0.0:
+        return np.zeros(np.shape(height), bool)
+    raised = raised_pixels(height, gsd_m, min_height_m=min_height_m,
+                           ground_window_m=ground_window_m)
+    return small_regions(raised, gsd_m, max_area_m2)
+
+
+def green_raised_pixels(height: np.ndarray, vegetation: np.ndarray, gsd_m: float, *,
+                        raised: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) bool: the pixels of a height map (NaN: unknown) raised as ``raised_pixels``
+    says (SMALL_OBJECT_MIN_HEIGHT_M above the ground around them; ``raised``: that mask of this
+    map, already computed), in regions of any area, whose
     ``vegetation`` index (``satsweep.io.images.vegetation_index`` in the same pixels) is at
     least VEGETATION_INDEX_MIN: crowns, also where they join a building's or each other's
     region (``[dsm] green_top``). Grass on the ground is not raised; strips of such pixels
@@ -845,7 +869,12 @@ def green_raised_pixels(height: np.ndarray, vegetation: np.ndarray, gsd_m: float
         green = veg >= VEGETATION_INDEX_MIN
     if not green.any():
         return green
-    green &= small_raised_pixels(h, gsd_m, math.inf)
+    if raised is None:
+        raised = raised_pixels(h, gsd_m)
+    elif np.shape(raised) != h.shape:
+        raise ValueError(f"green_raised_pixels: raised {np.shape(raised)} and height {h.shape} "
+                         "differ in shape")
+    green &= raised
     # Opened by a square GREEN_TOP_MIN_WIDTH_M wide (odd pixels, 3 at least).
     side = 2 * int(0.5 * GREEN_TOP_MIN_WIDTH_M / gsd_m) + 1
     kernel = np.ones((max(3, side),) * 2, np.uint8)
@@ -1216,8 +1245,8 @@ def green_crown_tops(fused: np.ndarray, rasters: Sequence[np.ndarray],
     grass beside a building matched at its roof's height, which joins the roof's region). A
     cell that at least GREEN_MIN_VIEWS views speak for takes the highest of their heights where
     that lies more than GREEN_TOP_RISE_M above ``fused`` (or ``fused`` is empty) and
-    SMALL_OBJECT_MIN_HEIGHT_M above the ground around it (``small_raised_pixels`` of any area
-    over the fused cells with those heights). Returns (a float32 copy of ``fused``, (H, W)
+    SMALL_OBJECT_MIN_HEIGHT_M above the ground around it (``raised_pixels`` over the fused
+    cells with those heights). Returns (a float32 copy of ``fused``, (H, W)
     bool: the cells raised)."""
     if len(rasters) != len(vegetation):
         raise ValueError(f"green_crown_tops: {len(rasters)} rasters but {len(vegetation)} "
@@ -1237,7 +1266,7 @@ def green_crown_tops(fused: np.ndarray, rasters: Sequence[np.ndarray],
         raised = ((speaking >= GREEN_MIN_VIEWS)
                   & (~np.isfinite(f) | (best > f + GREEN_TOP_RISE_M)))
     if raised.any():
-        raised &= small_raised_pixels(np.where(raised, best, f), resolution_m, math.inf)
+        raised &= raised_pixels(np.where(raised, best, f), resolution_m)
     return np.where(raised, best, f).astype(np.float32), raised
 
 

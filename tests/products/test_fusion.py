@@ -1386,6 +1386,11 @@ def test_small_raised_pixels_are_crowns_not_buildings():
     h[0:5, 0:5] = np.nan
     small = dsm.small_raised_pixels(h, gsd, 150.0)
     np.testing.assert_array_equal(small, crown)
+    # The two steps apart: raised pixels of any area, then the small regions among them.
+    raised = dsm.raised_pixels(h, gsd)
+    np.testing.assert_array_equal(raised, crown | block)
+    np.testing.assert_array_equal(dsm.small_regions(raised, gsd, 150.0), crown)
+    assert not dsm.small_regions(raised, gsd, 0.0).any()
     # Larger areas take the block too; 0 m^2 none.
     assert np.array_equal(dsm.small_raised_pixels(h, gsd, 500.0), crown | block)
     assert not dsm.small_raised_pixels(h, gsd, 0.0).any()
@@ -1393,6 +1398,8 @@ def test_small_raised_pixels_are_crowns_not_buildings():
     assert np.array_equal(dsm.small_raised_pixels(h, 0.25, 100.0), crown | block)
     with pytest.raises(ValueError, match="gsd_m"):
         dsm.small_raised_pixels(h, 0.0, 150.0)
+    with pytest.raises(ValueError, match="gsd_m"):
+        dsm.raised_pixels(h, float("nan"))
 
 
 def test_green_raised_pixels_are_crowns_in_any_region():
@@ -1427,6 +1434,12 @@ def test_green_raised_pixels_are_crowns_in_any_region():
     assert 2 < side <= 4
     green = dsm.green_raised_pixels(h, veg, gsd)
     np.testing.assert_array_equal(green, crowns)
+    # The raised mask given (the small objects' rule has it) is the one used.
+    np.testing.assert_array_equal(
+        dsm.green_raised_pixels(h, veg, gsd, raised=dsm.raised_pixels(h, gsd)), crowns)
+    np.testing.assert_array_equal(dsm.green_raised_pixels(h, veg, gsd, raised=lone), lone)
+    with pytest.raises(ValueError, match="raised"):
+        dsm.green_raised_pixels(h, veg, gsd, raised=lone[:-1])
     # The small objects' rule (150 m^2) sees the lone crown only: the other joins the block.
     np.testing.assert_array_equal(dsm.small_raised_pixels(h, gsd, 150.0), lone)
     # The strip 2 m wide (4 pixels) counts.
