@@ -860,21 +860,17 @@ def green_raised_pixels(height: np.ndarray, vegetation: np.ndarray, gsd_m: float
     left out by a morphological opening."""
     h = np.asarray(height)
     veg = np.asarray(vegetation)
-    if veg.shape != h.shape:
-        raise ValueError(f"green_raised_pixels: vegetation {veg.shape} and height {h.shape} "
-                         "differ in shape")
+    for name, given in (("vegetation", veg), ("raised", raised)):
+        if given is not None and np.shape(given) != h.shape:
+            raise ValueError(f"green_raised_pixels: {name} {np.shape(given)} and height "
+                             f"{h.shape} differ in shape")
     import cv2  # noqa: PLC0415
 
     with np.errstate(invalid="ignore"):
         green = veg >= VEGETATION_INDEX_MIN
     if not green.any():
         return green
-    if raised is None:
-        raised = raised_pixels(h, gsd_m)
-    elif np.shape(raised) != h.shape:
-        raise ValueError(f"green_raised_pixels: raised {np.shape(raised)} and height {h.shape} "
-                         "differ in shape")
-    green &= raised
+    green &= raised_pixels(h, gsd_m) if raised is None else np.asarray(raised, dtype=bool)
     # Opened by a square GREEN_TOP_MIN_WIDTH_M wide (odd pixels, 3 at least).
     side = 2 * int(0.5 * GREEN_TOP_MIN_WIDTH_M / gsd_m) + 1
     kernel = np.ones((max(3, side),) * 2, np.uint8)

@@ -1440,6 +1440,8 @@ def test_green_raised_pixels_are_crowns_in_any_region():
     np.testing.assert_array_equal(dsm.green_raised_pixels(h, veg, gsd, raised=lone), lone)
     with pytest.raises(ValueError, match="raised"):
         dsm.green_raised_pixels(h, veg, gsd, raised=lone[:-1])
+    with pytest.raises(ValueError, match="raised"):  # checked whether or not any pixel is green
+        dsm.green_raised_pixels(h, np.zeros_like(veg), gsd, raised=lone[:-1])
     # The small objects' rule (150 m^2) sees the lone crown only: the other joins the block.
     np.testing.assert_array_equal(dsm.small_raised_pixels(h, gsd, 150.0), lone)
     # The strip 2 m wide (4 pixels) counts.
