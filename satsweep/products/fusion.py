@@ -789,6 +789,12 @@ def _float32_of_order(keys: np.ndarray) -> np.ndarray:
     return np.where(positive, k & np.uint32(0x7FFFFFFF), ~k).view(np.float32)
 
 
+def _check_gsd(caller: str, gsd_m: float) -> None:
+    """A map's pixel size must be a positive, finite number of metres."""
+    if not (math.isfinite(gsd_m) and gsd_m > 0.0):
+        raise ValueError(f"{caller}: gsd_m = {gsd_m!r} must be > 0 metres")
+
+
 def raised_pixels(height: np.ndarray, gsd_m: float, *,
                   min_height_m: float = SMALL_OBJECT_MIN_HEIGHT_M,
                   ground_window_m: float = SMALL_OBJECT_GROUND_WINDOW_M) -> np.ndarray:
@@ -798,8 +804,7 @@ def raised_pixels(height: np.ndarray, gsd_m: float, *,
     pixels of ``gsd_m`` metres). Unknown pixels are neither ground nor raised."""
     import cv2  # noqa: PLC0415
 
-    if not (math.isfinite(gsd_m) and gsd_m > 0.0):
-        raise ValueError(f"raised_pixels: gsd_m = {gsd_m!r} must be > 0 metres")
+    _check_gsd("raised_pixels", gsd_m)
     h = np.asarray(height, dtype=np.float64)
     known = np.isfinite(h)
     if not known.any():
@@ -839,8 +844,7 @@ def small_raised_pixels(height: np.ndarray, gsd_m: float, max_area_m2: float, *,
     ``ground_window_m``) in 8-connected regions of at most ``max_area_m2`` (``small_regions``;
     pixels of ``gsd_m`` metres).
     """
-    if not (math.isfinite(gsd_m) and gsd_m > 0.0):
-        raise ValueError(f"small_raised_pixels: gsd_m = {gsd_m!r} must be > 0 metres")
+    _check_gsd("small_raised_pixels", gsd_m)
     if max_area_m2 <= 0.0:
         return np.zeros(np.shape(height), bool)
     raised = raised_pixels(height, gsd_m, min_height_m=min_height_m,
@@ -858,6 +862,7 @@ def green_raised_pixels(height: np.ndarray, vegetation: np.ndarray, gsd_m: float
     region (``[dsm] green_top``). Grass on the ground is not raised; strips of such pixels
     narrower than GREEN_TOP_MIN_WIDTH_M (grass beside a wall matched at its roof's height) are
     left out by a morphological opening."""
+    _check_gsd("green_raised_pixels", gsd_m)  # the opening's width too, with raised given
     h = np.asarray(height)
     veg = np.asarray(vegetation)
     for name, given in (("vegetation", veg), ("raised", raised)):
