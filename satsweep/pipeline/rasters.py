@@ -241,7 +241,9 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
                 centre, height, keep, P, to_map, subsamples=d.subsamples)
             rule = d.view_raster_for(flat_cells(x, y, grid))
             keeps_tops = rule == "quantile" and d.small_object_top
-            small = None  # the pixels of small raised objects (tree crowns)
+            # The pixels of small raised objects (tree crowns), and the view's raised pixels and
+            # pixel size they come from, which the green-top rule below reads too.
+            small = raised = gsd = None
             if d.small_object_area_m2 > 0.0 and pixel.size and (d.subsamples > 1 or keeps_tops):
                 # Their regions are found on the map before the check, which would split
                 # buildings into small pieces where it drops facades (v20 seeds 0-5: 91.60% /
@@ -257,7 +259,7 @@ def area_rasters(per_view, cameras, images, grid, config: PipelineConfig, rep, *
             top = small if keeps_tops else None
             if top is not None and d.green_top and vegetation_images is not None:
                 # Crowns in clumps or against walls: raised regions larger than small ones
-                # (top is small's, so gsd and raised are known).
+                # (top is small's, so gsd and raised are set above).
                 top = top | green_raised_pixels(height, vegetation_images[pv.index], gsd,
                                                 raised=raised)
             if rule == "quantile" and d.edge_min_confidence > 0.0:
