@@ -685,9 +685,10 @@ def terminated_cause(exc: BaseException) -> Terminated | None:
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-def console_main() -> int:
-    """The ``satsweep`` command: ``main`` under the command's heap policy (see ``heap``) and
-    with single-threaded BLAS (``BLAS_THREAD_VARIABLES``; numpy is not imported yet here)."""
+def console_main(argv: Sequence[str] | None = None) -> int:
+    """The ``satsweep`` command: ``main`` (of ``argv``, default the command line) under the
+    command's heap policy (see ``heap``) and with single-threaded BLAS
+    (``BLAS_THREAD_VARIABLES``; numpy is not imported yet here)."""
     import os  # noqa: PLC0415
 
     for name in BLAS_THREAD_VARIABLES:
@@ -695,7 +696,7 @@ def console_main() -> int:
     from satsweep.heap import keep_freed_memory  # noqa: PLC0415
 
     keep_freed_memory()
-    return main()
+    return main(argv)
 
 
 if __name__ == "__main__":  # pragma: no cover
