@@ -101,7 +101,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     totals = profile.totals()
     print("\n".join(format_totals(totals)))
     if args.json is not None:
-        args.json.write_text(json.dumps({k: list(v) for k, v in totals.items()}, indent=1))
+        from satsweep.io.atomic import atomic_output  # noqa: PLC0415
+
+        with atomic_output(args.json) as tmp:  # a whole file or none
+            Path(tmp).write_text(json.dumps({k: list(v) for k, v in totals.items()}, indent=1))
     return int(status or 0)
 
 
