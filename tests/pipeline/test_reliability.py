@@ -566,6 +566,42 @@ def test_a_tower_that_a_cloud_hides_from_the_tie_points_is_swept_again(synthetic
     assert "widened" not in cut.report["altitude_range"]
 
 
+def test_range_end_fractions_count_the_floor_within_its_metres():
+    """A pixel sits at the floor within RANGE_END_PLANES planes and RANGE_FLOOR_END_M metres of
+    the lowest plane, at the top within RANGE_END_PLANES planes of the highest: planes finer than
+    that count the next plane up at the floor, coarser ones (a ground one coarse plane over the
+    floor) the lowest alone. Checked against a count of the pixels' plane heights."""
+    from satsweep.pipeline.sweeps import (
+        RANGE_END_PLANES,
+        RANGE_FLOOR_END_M,
+        range_end_fractions,
+    )
+
+    rng = np.random.default_rng(0)
+    index = rng.integers(0, 40, size=(60, 50))
+    index[:10] = 1  # a ground one plane over the floor
+    index[10:14] = 0
+    index[-5:] = 39
+    data = rng.random(index.shape) > 0.1
+    on_data = data.sum()
+    for step in (0.5 * RANGE_FLOOR_END_M, 1.7 * RANGE_FLOOR_END_M):
+        heights = 100.0 + step * np.arange(40)
+        floor, top, at_top = range_end_fractions(index, data, heights)
+        plane_h = heights[index]
+        at_floor_ref = data & (index <= RANGE_END_PLANES) & (
+            plane_h - heights[0] <= RANGE_FLOOR_END_M)
+        top_ref = data & (index >= 39 - RANGE_END_PLANES)
+        assert floor == pytest.approx(at_floor_ref.sum() / on_data)
+        assert top == pytest.approx(top_ref.sum() / on_data)
+        assert np.array_equal(at_top, top_ref)
+    # the ground at plane 1 counts at the floor of fine planes only
+    fine = range_end_fractions(index, data, 100.0 + 0.5 * RANGE_FLOOR_END_M * np.arange(40))
+    coarse = range_end_fractions(index, data, 100.0 + 1.7 * RANGE_FLOOR_END_M * np.arange(40))
+    ground = (data[:10]).sum() / on_data
+    assert fine[0] - coarse[0] >= ground
+    assert fine[1] == coarse[1]
+
+
 def test_widened_range_needs_most_references_at_one_end():
     from types import SimpleNamespace
 
