@@ -352,7 +352,8 @@ RANGE_END_LONE_MIN_REFERENCES = 3
 # view per date seed 9 four of 8 (range 95..165 m, truth 99..153 m: widened to 60 m at a half,
 # the shadows went 10-40 m under the ground, DFC MAE 3.27 m against 1.21 with 95..165); v20
 # seed 4 at 10 views (range 95..150 m, truth 99..152 m) put 3.3-4.1% at the top in all 8
-# references.
+# references. The floor's count leaves out a ground a coarse plane over the floor
+# (pipeline.sweeps.RANGE_FLOOR_END_M; sixty-fifth session).
 RANGE_WIDEN_SHARE = 0.75
 RANGE_WIDEN_FRACTION = 0.02
 RANGE_WIDEN_M = 20.0
