@@ -29,6 +29,9 @@ compares the 10-view result with: at least 5 points more completeness within 1 m
     python tools/bench_multidate.py --views 2 5 10 --size 256 --seeds 0
     python tools/bench_multidate.py --given-range --no-metadata --json out.json
     python tools/bench_multidate.py --views 10 --seeds 0 1 2 3 4 5 --product rgb8 --no-pairs
+    # a change's before and after: the same arguments, the earlier run's --json as baseline
+    python tools/bench_multidate.py --views 3 5 --dates 5 --seeds 0 1 2 --json before.json
+    python tools/bench_multidate.py --views 3 5 --dates 5 --seeds 0 1 2 --baseline before.json
     # stacks in the issue's form (WorldView-3: 0.3 m, 8-bit RGB, 19 views on 13 dates):
     python tools/bench_multidate.py --seeds 7 12 --views 19 --dates 13 --size 850 --gsd 0.3 \
         --product rgb8 --bias 3 --large-bias 36 --location=-81.66,30.32 --no-pairs
@@ -39,6 +42,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import os
 import sys
 import tempfile
@@ -58,6 +62,7 @@ from satsweep.pipeline.run import reconstruct  # noqa: E402
 from satsweep.products.evaluate import EvaluateOptions, evaluate_dsm  # noqa: E402
 from satsweep.synth.scene import Scene, SynthOptions, generate_scene, parse_location  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # (imported as tools.bench_multidate)
 from bench_ba import gauge_removed  # noqa: E402
 
 # Margin around the truth's altitude range when --given-range is asked for (m).
@@ -215,8 +220,20 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", default=os.path.join(tempfile.gettempdir(),
                                                     "satsweep-bench-multidate"))
     p.add_argument("--json", default=None, help="also write every figure to this file")
+    p.add_argument("--baseline", default=None, metavar="JSON",
+                   help="an earlier run's --json: also list the runs whose figures differ from "
+                   "it, and the means over the runs both have (a change's before and after)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
+    baseline = None
+    if args.baseline is not None:
+        try:
+            baseline = json.loads(Path(args.baseline).read_text())
+        except (OSError, ValueError) as exc:
+            p.error(f"{args.baseline}: not a JSON file of this tool's rows ({exc})")
+        if not isinstance(baseline, list) or not all(isinstance(r, dict) and "seed" in r
+                                                     for r in baseline):
+            p.error(f"{args.baseline}: not a JSON file of this tool's rows (--json)")
     location = None
     if args.location is not None:
         try:
@@ -248,7 +265,7 @@ def main(argv=None) -> int:
             for k in args.views:
                 views = subset(len(scene.views), k)
                 row = run(scene, views, Path(tmp) / f"s{seed}_k{k}", args, config)
-                row.update(seed=seed, k=k, kind="views")
+                row.update(seed=seed, k=k, kind="views", scene=scene.directory.name)
                 rows.append(row)
                 log(f"seed {seed}, {k} views: " + (row.get("error") or
                     f"{row['median_m']:.3f} m, {100 * row['completeness_1m']:.1f}% within 1 m, "
@@ -257,12 +274,93 @@ def main(argv=None) -> int:
                 for pair in same_date_pairs(scene):
                     row = run(scene, list(pair), Path(tmp) / f"s{seed}_p{pair[0]}_{pair[1]}",
                               args, config)
-                    row.update(seed=seed, k=2, kind="same-date pair")
+                    row.update(seed=seed, k=2, kind="same-date pair", scene=scene.directory.name)
                     rows.append(row)
     print_table(rows)
+    if baseline is not None:
+        print_comparison(compare_rows(baseline, rows), args.baseline)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
     return 0
+
+
+# The figures of a row that make it "changed" against a baseline (--baseline), and how far apart
+# two values may be and still be the same figure (JSON keeps a float64 to the bit; 1e-9 leaves
+# room for a file written by hand).
+COMPARED = ("error", "altitude_range", "references", "median_m", "completeness_1m", "dfc_mae_m",
+            "dfc_valid", "pointing_px")
+SAME_TOL = 1e-9
+
+
+def _row_key(row: dict) -> tuple:
+    """A run's identity across two runs of this tool, its scene's folder apart: seed, kind and
+    views."""
+    return (row["seed"], row["kind"], tuple(row["views"]))
+
+
+def _same_run(a: dict, b: dict) -> bool:
+    """Two rows of one run: the same ``_row_key`` and scene folder (a row written before rows
+    named their scene matches any)."""
+    return (_row_key(a) == _row_key(b)
+            and (a.get("scene") is None or b.get("scene") is None or a["scene"] == b["scene"]))
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return abs(a - b) <= SAME_TOL
+    return a == b
+
+
+def compare_rows(before: list[dict], after: list[dict]) -> dict:
+    """Two runs' rows matched by ``_same_run`` (the first match of each): ``changed`` (before,
+    after) pairs whose COMPARED figures differ, the rows of one run only, and over the matched
+    runs with a DSM in both: their count, mean DFC MAE (m) and how many ranges hold the truth,
+    before and after."""
+    pairs, used = [], set()
+    for b in after:
+        a = next((k for k, r in enumerate(before) if k not in used and _same_run(r, b)), None)
+        if a is not None:
+            used.add(a)
+            pairs.append((before[a], b))
+    matched = {id(b) for _, b in pairs}
+    changed = [(a, b) for a, b in pairs
+               if not all(_same(a.get(f), b.get(f)) for f in COMPARED)]
+    scored = [(a, b) for a, b in pairs if "error" not in a and "error" not in b]
+    n = len(scored)
+    return {"matched": len(pairs), "changed": changed,
+            "only_before": [r for k, r in enumerate(before) if k not in used],
+            "only_after": [r for r in after if id(r) not in matched],
+            "scored": n,
+            "mean_dfc_mae_m": ((sum(a["dfc_mae_m"] for a, _ in scored) / n,
+                                sum(b["dfc_mae_m"] for _, b in scored) / n) if n else None),
+            "ranges_holding_truth": (sum(bool(a["range_holds_truth"]) for a, _ in scored),
+                                     sum(bool(b["range_holds_truth"]) for _, b in scored))}
+
+
+def _summary(row: dict) -> str:
+    if "error" in row:
+        return "error: " + row["error"]
+    lo, hi = row["altitude_range"]
+    return (f"DFC MAE {row['dfc_mae_m']:.3f} m, {100 * row['completeness_1m']:.1f}% within 1 m, "
+            f"range {lo:.1f}..{hi:.1f}, point {_px(row.get('pointing_px'))} px")
+
+
+def print_comparison(cmp: dict, name: str) -> None:
+    print(f"\nagainst {name}: {cmp['matched']} runs in both, {len(cmp['changed'])} changed, "
+          f"{len(cmp['only_after'])} only in this run, {len(cmp['only_before'])} only in "
+          f"{name}")
+    for a, b in cmp["changed"]:
+        t_lo, t_hi = b.get("truth_range") or a.get("truth_range") or (math.nan, math.nan)
+        what = f"{b['k']} views" if b["kind"] == "views" else b["kind"]
+        print(f"  seed {b['seed']}, {what} {b['views']} (truth "
+              f"{t_lo:.1f}..{t_hi:.1f}): {_summary(a)}\n"
+              f"    -> {_summary(b)}")
+    if cmp["scored"]:
+        (m0, m1), (h0, h1) = cmp["mean_dfc_mae_m"], cmp["ranges_holding_truth"]
+        print(f"  over the {cmp['scored']} runs with a DSM in both: mean DFC MAE {m0:.3f} -> "
+              f"{m1:.3f} m; ranges holding the truth {h0} -> {h1}")
 
 
 def _px(value: float | None) -> str:
