@@ -498,7 +498,7 @@ def test_a_tie_point_range_that_cuts_the_ground_off_is_widened(small_town, tmp_p
                           truth=small_town.truth_dsm, verbose=False)
     rng = widened.report["altitude_range"]
     assert rng["source"] == "tie points"
-    assert rng["min"] <= cut.min - area.RANGE_WIDEN_M and rng["max"] == cut.max
+    assert rng["min"] <= cut.min - area.RANGE_WIDEN_FLOOR_M and rng["max"] == cut.max
     assert rng["widened"][0]["end"] == "floor"
     assert rng["widened"][0]["references_at_end"] == len(widened.report["sweep"])
     assert any("swept again over" in w["message"] for w in widened.report["warnings"])
@@ -606,6 +606,7 @@ def test_widened_range_needs_most_references_at_one_end():
     from types import SimpleNamespace
 
     from satsweep.pipeline.area import (
+        RANGE_WIDEN_FLOOR_M,
         RANGE_WIDEN_FRACTION,
         RANGE_WIDEN_M,
         RANGE_WIDEN_SHARE,
@@ -639,7 +640,7 @@ def test_widened_range_needs_most_references_at_one_end():
     assert (wider.min, wider.max) == (100.0, 140.0 + max(RANGE_WIDEN_M, 20.0))
     wide = AltitudeRange(0.0, 100.0)
     wider, end, *_ = widened_range(wide, sweeps((high, 0), (high, 0)))
-    assert end == 0 and (wider.min, wider.max) == (-max(RANGE_WIDEN_M, 50.0), 100.0)
+    assert end == 0 and (wider.min, wider.max) == (-RANGE_WIDEN_FLOOR_M, 100.0)  # the floor's
     # Half of eight or one of four (views of other dates matching their shadows at the floor),
     # or one of two: not enough at the floor; a lone reference decides alone.
     assert widened_range(rng, sweeps(*[(high, 0)] * 4 + [(low, 0)] * 4)) is None
