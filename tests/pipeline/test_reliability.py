@@ -633,14 +633,16 @@ def test_widened_range_needs_most_references_at_one_end():
         return [SimpleNamespace(at_range_ends=e, top_region_m2=region, top_regions=spots)
                 for e in ends]
 
-    # Three of four at the top: widened there, by the larger of the step and half the span.
+    # Three of four at the top: widened there, by the top's step.
     wider, end, hits, fraction, region, spot = widened_range(
         rng, sweeps((0, high), (0, high), (0, high), (0, 0)))
     assert (end, hits, fraction, region, spot) == (1, 3, RANGE_WIDEN_FRACTION, None, None)
-    assert (wider.min, wider.max) == (100.0, 140.0 + max(RANGE_WIDEN_M, 20.0))
+    assert (wider.min, wider.max) == (100.0, 140.0 + RANGE_WIDEN_M)
     wide = AltitudeRange(0.0, 100.0)
     wider, end, *_ = widened_range(wide, sweeps((high, 0), (high, 0)))
     assert end == 0 and (wider.min, wider.max) == (-RANGE_WIDEN_FLOOR_M, 100.0)  # the floor's
+    wider, end, *_ = widened_range(wide, sweeps((0, high), (0, high)))
+    assert end == 1 and (wider.min, wider.max) == (0.0, 100.0 + RANGE_WIDEN_M)  # not half the span
     # Half of eight or one of four (views of other dates matching their shadows at the floor),
     # or one of two: not enough at the floor; a lone reference decides alone.
     assert widened_range(rng, sweeps(*[(high, 0)] * 4 + [(low, 0)] * 4)) is None
@@ -653,7 +655,7 @@ def test_widened_range_needs_most_references_at_one_end():
     wider, end, hits, fraction, *_ = widened_range(
         rng, sweeps(*[(0, tower)] * 6 + [(0, none)] * 2))
     assert (end, hits, fraction) == (1, 6, RANGE_WIDEN_TOP_FRACTION)
-    assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
+    assert wider.max == 140.0 + RANGE_WIDEN_M
     assert widened_range(rng, sweeps(*[(low, tower)] * 3))[1:4] == (1, 3, RANGE_WIDEN_TOP_FRACTION)
     assert widened_range(rng, sweeps((low, tower), (low, tower))) is None  # too few to tell
     assert widened_range(rng, sweeps(*[(0, tower)] * 5 + [(0, none)] * 3)) is None
@@ -669,7 +671,7 @@ def test_widened_range_needs_most_references_at_one_end():
         rng, sweeps(*[(0, none)] * most, region=roof)
         + sweeps(*[(0, none)] * (n - most), region=speck))
     assert (end, hits, fraction, region, spot) == (1, most, None, roof, None)
-    assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
+    assert wider.max == 140.0 + RANGE_WIDEN_M
     assert widened_range(rng, sweeps(*[(0, none)] * (most - 1), region=roof)
                          + sweeps(*[(0, none)] * (n - most + 1), region=speck)) is None
     few = RANGE_WIDEN_TOP_REGION_MIN_REFERENCES - 1  # too few to tell, all of them on a roof
@@ -691,7 +693,7 @@ def test_widened_range_needs_most_references_at_one_end():
 
     wider, end, hits, fraction, region, spot = widened_range(rng, stack(near))
     assert (end, hits, fraction, region, spot) == (1, k, None, roof, RANGE_WIDEN_TOP_SPOT_M)
-    assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
+    assert wider.max == 140.0 + RANGE_WIDEN_M
     assert widened_range(rng, stack(apart)) is None
     assert widened_range(rng, stack(near[:-1] + apart[1:2])) is None
     assert widened_range(rng, stack(near, area=speck)) is None
@@ -706,7 +708,7 @@ def test_widened_range_needs_most_references_at_one_end():
     wider, end, hits, fraction, region, spot = widened_range(
         rng, stack(near[:m], area=tower_roof, refs=small))
     assert (end, hits, fraction, region, spot) == (1, m, None, tower_roof, RANGE_WIDEN_TOP_SPOT_M)
-    assert wider.max == 140.0 + max(RANGE_WIDEN_M, 20.0)
+    assert wider.max == 140.0 + RANGE_WIDEN_M
     assert widened_range(rng, stack(near[:m], area=tower_roof, refs=small + small))[2] == m
     assert widened_range(rng, stack(apart[:m], area=tower_roof, refs=small)) is None
     assert widened_range(rng, stack(near[:m], area=0.9 * tower_roof, refs=small)) is None
