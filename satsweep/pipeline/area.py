@@ -348,13 +348,13 @@ RANGE_END_LONE_MIN_REFERENCES = 3
 # matching their shadows at the floor. The top by RANGE_WIDEN_M, the floor by
 # RANGE_WIDEN_FLOOR_M, at most RANGE_WIDENINGS times in all.
 # Measured (tools/bench_multidate.py, 384 px, and the 0.3 m issue-form stacks of
-# docs/measurements.md): ranges that hold the truth put at most 0.6%
-# of any reference's pixels at an end but one reference of 8 (3.4%, v20 seed 5), and on one
-# view per date seed 9 four of 8 (range 95..165 m, truth 99..153 m: widened to 60 m at a half,
-# the shadows went 10-40 m under the ground, DFC MAE 3.27 m against 1.21 with 95..165); v20
-# seed 4 at 10 views (range 95..150 m, truth 99..152 m) put 3.3-4.1% at the top in all 8
-# references. The floor's count leaves out a ground a coarse plane over the floor
-# (pipeline.sweeps.RANGE_FLOOR_END_M; sixty-fifth session).
+# docs/measurements.md): ranges that hold the truth put at most 0.6% of any reference's pixels
+# at an end but one reference of 8 (3.4%, v20 seed 5), and on one view per date seed 9 four of 8
+# (range 95..165 m, truth 99..153 m: widened to 60 m by the half span of then, the shadows went
+# 10-40 m under the ground, DFC MAE 3.27 m against 1.21 with 95..165); v20 seed 4 at 10 views
+# (range 95..150 m, truth 99..152 m) put 3.3-4.1% at the top in all 8 references. The floor's
+# count leaves out a ground a coarse plane over the floor (pipeline.sweeps.RANGE_FLOOR_END_M;
+# sixty-fifth session).
 RANGE_WIDEN_SHARE = 0.75
 RANGE_WIDEN_FRACTION = 0.02
 RANGE_WIDEN_M = 20.0
