@@ -127,8 +127,8 @@ def range_end_fractions(index: np.ndarray, data: np.ndarray, heights: Sequence[f
     of ``heights``, the planes' heights in ascending order) and at the top (within
     RANGE_END_PLANES planes of the highest), and the mask of the pixels at the top."""
     heights = np.asarray(heights, dtype=np.float64)
-    near = heights[1:RANGE_END_PLANES + 1] - heights[0] <= RANGE_FLOOR_END_M
-    floor_planes = int(np.argmin(near)) if not near.all() else len(near)  # planes over the lowest
+    # planes over the lowest that still count (ascending heights: those within the metres)
+    floor_planes = int(np.sum(heights[1:RANGE_END_PLANES + 1] - heights[0] <= RANGE_FLOOR_END_M))
     index = np.asarray(index)
     at_top = (index >= len(heights) - 1 - RANGE_END_PLANES) & data
     on_data = max(int(data.sum()), 1)
