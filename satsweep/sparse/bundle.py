@@ -66,6 +66,7 @@ from satsweep.sparse.triangulation import (
     SYM3,
     jacobian_entries,
     observation_entries,
+    point_covariances,
     project_entries,
     projection_jacobian,
     projection_stack,
@@ -570,10 +571,22 @@ _GAUGE_STARTS = 8
 # taken as zero: the motions along them are left to the other views (one fixed view leaves the
 # motion along its line of sight).
 _FIXED_RANK_TOL = 1e-6
+# GAUGE_ALTITUDE_PRIOR_NOTE. Two motions can leave the views' shifts alike: in a stack of three
+# views of which one is tens of pixels off, the motions that zero two views' shifts each leave one
+# view tens of pixels off, and Cauchy's costs of those differ by a few tenths (bench_multidate
+# one view per date seeds 18, 39 and 40, 3 views: one wrong choice put the scene 30-60 m under
+# the RPCs' altitude range, and the DSMs 4.5-36 m off). What the images cannot tell, the prior
+# range can (the RPCs' own, a DEM's or the user's: the scene lies within it): each fitted start's
+# cost adds log(1 + (d / _GAUGE_OUTSIDE_SCALE_M)^2), d the distance (m) by which it puts the
+# scene's median tie point outside that range (0 inside; ``altitude_prior``). A scene
+# _GAUGE_OUTSIDE_SCALE_M outside weighs as much as one view 1 px off; one 15 m outside as a view
+# 3 px off, so that agreeing views still outweigh a range a little off (a DEM's, say).
+_GAUGE_OUTSIDE_SCALE_M = 5.0
 
 
 def robust_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray,
-                 fixed: Sequence[int] = ()) -> np.ndarray:
+                 fixed: Sequence[int] = (),
+                 altitude_prior: tuple[float, float] | None = None) -> np.ndarray:
     """The unobservable motion ``dX`` (m) that makes the shifts ``shifts - A_v dX`` smallest
     (a robust fit of ``A_v dX`` to ``shifts``, ``A_v`` the Jacobians at ``point``, ENU m).
 
@@ -587,8 +600,15 @@ def robust_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray,
     ``fixed``: views whose RPCs are trusted (``BundleOptions.fixed_views``): the motion zeroes
     their shifts (least squares over them), and only what they leave free (the motion along the
     line of sight of a single fixed view) is fitted to the others as above.
+
+    ``altitude_prior``: ``(lo, hi)``, the prior range's ends less the scene's height (its median
+    tie point's up, m): the fitted starts' costs add ``log(1 + (d / _GAUGE_OUTSIDE_SCALE_M)^2)``,
+    ``d`` the distance of ``dX_up`` outside ``[lo, hi]`` (where the images leave two choices
+    alike, the one that keeps the scene in the range: GAUGE_ALTITUDE_PRIOR_NOTE). Not used with
+    fixed views.
     """
-    return _gauge_motion(_jacobians_at(P, point), np.asarray(shifts, np.float64), fixed)
+    return _gauge_motion(_jacobians_at(P, point), np.asarray(shifts, np.float64), fixed,
+                         altitude_prior)
 
 
 def _jacobians_at(P: np.ndarray, point: Sequence[float]) -> np.ndarray:
@@ -597,12 +617,13 @@ def _jacobians_at(P: np.ndarray, point: Sequence[float]) -> np.ndarray:
     return projection_jacobian(P, np.arange(V), np.tile(np.asarray(point, np.float64), (V, 1)))[2]
 
 
-def _gauge_motion(A: np.ndarray, shifts: np.ndarray, fixed: Sequence[int]) -> np.ndarray:
+def _gauge_motion(A: np.ndarray, shifts: np.ndarray, fixed: Sequence[int],
+                  altitude_prior: tuple[float, float] | None = None) -> np.ndarray:
     """:func:`robust_gauge` on the Jacobians ``A`` (V, 2, 3) at its point."""
     V = A.shape[0]
     fixed = sorted(set(int(v) for v in fixed))
     if not fixed:
-        return _robust_motion(A, shifts)
+        return _robust_motion(A, shifts, altitude_prior)
     Af = A[fixed].reshape(-1, 3)
     x0 = np.linalg.lstsq(Af, shifts[fixed].ravel(), rcond=None)[0]
     _, sv, vt = np.linalg.svd(Af)
@@ -616,17 +637,20 @@ def _gauge_motion(A: np.ndarray, shifts: np.ndarray, fixed: Sequence[int]) -> np
 
 
 def in_gauge(P: np.ndarray, shifts: np.ndarray, point: np.ndarray,
-             fixed: Sequence[int] = ()) -> np.ndarray:
+             fixed: Sequence[int] = (),
+             altitude_prior: tuple[float, float] | None = None) -> np.ndarray:
     """``shifts`` moved by the motion :func:`robust_gauge` picks: ``shifts - A_v dX`` (the
     residuals, to first order, are those of the original shifts)."""
     A = _jacobians_at(P, point)
     shifts = np.asarray(shifts, np.float64)
-    return shifts - A @ _gauge_motion(A, shifts, fixed)
+    return shifts - A @ _gauge_motion(A, shifts, fixed, altitude_prior)
 
 
-def _robust_motion(A: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+def _robust_motion(A: np.ndarray, shifts: np.ndarray,
+                   altitude_prior: tuple[float, float] | None = None) -> np.ndarray:
     """The parameters ``t`` (r,) of the motion that makes ``shifts - A @ t`` smallest in
-    Cauchy's cost (``A`` (V, 2, r), ``shifts`` (V, 2)): :func:`robust_gauge`'s fit."""
+    Cauchy's cost (``A`` (V, 2, r), ``shifts`` (V, 2)): :func:`robust_gauge`'s fit;
+    ``altitude_prior`` (r = 3 only) as there."""
     V, r = A.shape[0], A.shape[2]
     M, b = A.reshape(-1, r), shifts.ravel()
 
@@ -647,7 +671,12 @@ def _robust_motion(A: np.ndarray, shifts: np.ndarray) -> np.ndarray:
 
     def cost(dX: np.ndarray) -> float:
         norm = np.hypot(*(shifts - A @ dX).T) / _GAUGE_SCALE_PX
-        return float(np.log1p(norm * norm).sum())
+        total = float(np.log1p(norm * norm).sum())
+        if altitude_prior is not None:
+            lo, hi = altitude_prior
+            d = max(lo - dX[2], dX[2] - hi, 0.0) / _GAUGE_OUTSIDE_SCALE_M
+            total += math.log1p(d * d)
+        return total
 
     starts = [reweighted(np.linalg.lstsq(M, b, rcond=None)[0], "huber")]
     if V >= 3:
@@ -668,6 +697,19 @@ def _robust_motion(A: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     return min(fitted, key=cost)
 
 
+def _scene_height(P: np.ndarray, obs: Observations, X: np.ndarray) -> float:
+    """The median up (m) of the points ``X``, each weighed by how well its views fix its height
+    (``1 / variance_up``, :func:`point_covariances`): two views along nearly one line of sight
+    triangulate their wrong and right matches alike hundreds of metres off (bench_multidate one
+    view per date seed 39, 3 views: 84 of 142 tie points of such a pair, 166 m per pixel)."""
+    w = 1.0 / point_covariances(P, obs, X)[:, 2, 2]
+    if not np.any(w > 0.0):
+        return float(np.median(X[:, 2]))
+    order = np.argsort(X[:, 2])
+    cum = np.cumsum(w[order])
+    return float(X[order[np.searchsorted(cum, 0.5 * cum[-1])], 2])
+
+
 def _sample_points(obs: Observations, per_view: int, seed: int) -> np.ndarray:
     """(N,) bool: a random sample of the points holding, for each view, ``per_view`` of the
     points it sees (all of them when it sees fewer): every view stays tied, and the sample's
@@ -682,7 +724,8 @@ def _sample_points(obs: Observations, per_view: int, seed: int) -> np.ndarray:
 
 def adjust_coarse(cameras: Sequence[Any], obs: Observations,
                   options: BundleOptions = BundleOptions(), *,
-                  fixed: Sequence[int] = ()) -> BundleSolution:
+                  fixed: Sequence[int] = (),
+                  prior_range_up: tuple[float, float] | None = None) -> BundleSolution:
     """Principal-point shifts of any size (tens of pixels) from raw tie points, robustly.
 
     Nothing here assumes the cameras are within a few pixels: the tracks are triangulated with
@@ -694,7 +737,9 @@ def adjust_coarse(cameras: Sequence[Any], obs: Observations,
     on a sample of the tracks (``_COARSE_POINTS_PER_VIEW`` per view: the shifts need a few
     hundred tie points per view, and long tracks cost the square of their length). The anchors
     weigh almost nothing (``_COARSE_REGULARISER``); the shifts are put in the gauge of smallest
-    corrections (:func:`robust_gauge`; ``fixed``: the views whose shifts it holds at zero).
+    corrections (:func:`robust_gauge`; ``fixed``: the views whose shifts it holds at zero;
+    ``prior_range_up``: the ends of the prior altitude range as up coordinates of the cameras'
+    frame, which choose between motions the images leave alike: GAUGE_ALTITUDE_PRIOR_NOTE).
     Every track is then triangulated with the corrected
     cameras, and its observations further than ``coarse_threshold_px`` are dropped: the
     solution's ``obs`` are those kept, its points their triangulation. The fine adjustment
@@ -735,7 +780,11 @@ def adjust_coarse(cameras: Sequence[Any], obs: Observations,
         final = threshold <= floor
         scale = max(options.loss_scale_px, min(scale, median))
     if sub.n_points:
-        shifts = in_gauge(P, shifts, X.mean(axis=0), fixed)
+        prior = None
+        if prior_range_up is not None:
+            height = _scene_height(_shifted(P, shifts), sub, X)
+            prior = tuple(float(u) - height for u in prior_range_up)
+        shifts = in_gauge(P, shifts, X.mean(axis=0), fixed, prior)
     # Every track, with the corrected cameras: the observations within the threshold.
     X = triangulate_observations(full, _shifted(P, shifts))[0]
     full = full.subset(_errors(P, full, X, shifts) <= floor)

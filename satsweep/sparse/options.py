@@ -65,6 +65,14 @@ class SparseOptions(Options):
     camera_grid: tuple[int, int, int] = (20, 20, 8)  # samples (east, north, up) of the sparse
     # stage's own cameras
     altitude_max_error_px: float = 1.0  # tie points reprojected farther (px) do not bound heights
+    altitude_min_bh: float = 0.01  # tie points whose views' effective base-to-height ratio
+    # (triangulation.base_to_height) is lower do not bound heights: two views along nearly one
+    # line of sight put their matches hundreds of metres off (bench_multidate one view per date
+    # seed 39, 3 views: 84 of 142 tie points at 0.004, range -45..132 m for a town of 98..158 m).
+    # No other stack measured has any under 0.019: at 0.02 seed 38's 5 views lost a pair 1.1
+    # degrees apart (107 of 328 points at 0.019; DFC MAE 1.762 -> 3.127 m), and at 0.05 the
+    # issue-form stacks of 19 views a quarter of theirs (none under 0.022; two of their DSMs
+    # moved, +0.012 / +0.018 m)
     altitude_min_points: int = 20  # fewest usable tie points that bound the heights
     altitude_floor_views: int = 3  # the lowest end comes from tie points of this many views
     altitude_floor_fewer_fraction: float = 0.05  # ... or from those of fewer views, where this
@@ -97,7 +105,7 @@ class SparseOptions(Options):
                 "mutual", "geometric_model", "ransac_threshold_px", "ransac_iterations", "seed",
                 "min_extent_m", "pair_min_overlap", "pair_bh_range", "pair_probe_features",
                 "pair_repair",
-                "camera_grid", "altitude_max_error_px", "altitude_min_points",
+                "camera_grid", "altitude_max_error_px", "altitude_min_bh", "altitude_min_points",
                 "altitude_floor_views", "altitude_floor_fewer_fraction", "altitude_support",
                 "altitude_support_fraction", "altitude_support_m", "altitude_support_radius_m",
                 "altitude_margin_below_m", "altitude_margin_above_m", "altitude_aoi_margin_m")
@@ -148,6 +156,8 @@ class SparseOptions(Options):
                       "needs at least 2 samples along each of east, north and up")
         self._require(math.isfinite(self.altitude_max_error_px) and self.altitude_max_error_px > 0.0,
                       "altitude_max_error_px", "must be a positive number of pixels")
+        self._require(math.isfinite(self.altitude_min_bh) and self.altitude_min_bh >= 0.0,
+                      "altitude_min_bh", "must be a base-to-height ratio >= 0 (0: every tie point)")
         self._require(self.altitude_min_points >= 2, "altitude_min_points", "must be at least 2")
         self._require(self.altitude_floor_views >= 2, "altitude_floor_views", "must be at least 2")
         self._require(self.altitude_support >= 1, "altitude_support", "must be at least 1")

@@ -124,7 +124,8 @@ from satsweep.sparse.tracks import (
     thin_mask,
     thin_points,
 )
-from satsweep.sparse.triangulation import project, projection_stack, triangulate_observations
+from satsweep.sparse.triangulation import (point_covariances, project, projection_stack,
+                                           triangulate_observations)
 from satsweep.threads import map_in_threads
 
 __all__ = ["DroppedView", "SparseResult", "TiedViews", "corrected_projections", "sparse_stage",
@@ -248,7 +249,8 @@ class TiedViews:
     frame and ``obs`` (views numbered as given): every tie point the coarse adjustment kept, at
     its keypoints (the fine adjustment used the best registered of them), triangulated with the
     corrected cameras; ``point_error`` (N,) px the largest reprojection error of each (inf
-    behind a camera).
+    behind a camera), ``point_covariances`` (N, 3, 3) m^2 each one's for 1 px of error
+    (:func:`satsweep.sparse.triangulation.point_covariances`).
     """
 
     names: tuple[str, ...]
@@ -261,6 +263,7 @@ class TiedViews:
     points: np.ndarray
     obs: Observations
     point_error: np.ndarray
+    point_covariances: np.ndarray
     errors_before: np.ndarray  # (M,) px, obs with the uncorrected cameras and their triangulation
     graph: PairGraph
     matches: dict[tuple[int, int], int]  # verified matches of every pair matched
@@ -561,7 +564,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
               bundle_options: BundleOptions = BundleOptions(), *,
               samples: np.ndarray | None = None, fine_cameras: Any = None,
               dropped: dict[int, str] | None = None, fixed: Sequence[int] = (),
-              max_features: Sequence[int] | None = None) -> TiedViews:
+              max_features: Sequence[int] | None = None,
+              prior_range_up: tuple[float, float] | None = None) -> TiedViews:
     """Steps 1-7 of the module docstring on tonemapped ``images`` and their ``cameras``.
 
     ``cameras``: per view a PerspectiveCamera of its image (those of the prior range);
@@ -572,7 +576,9 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     known to be unusable (camera None), with the reason; ``fixed``: views whose corrections are
     held at zero (``BundleOptions.fixed_views``; the gauge is the smallest corrections without
     them); ``max_features``: per view its SIFT budget (:func:`feature_budgets`), None for
-    ``options.max_features``. Views that cannot be tied are in the result's ``dropped``; raises
+    ``options.max_features``; ``prior_range_up``: the prior altitude range's ends as up
+    coordinates of the cameras' frame (:func:`adjust_coarse`'s), None for none. Views that cannot
+    be tied are in the result's ``dropped``; raises
     CameraError for inputs of the wrong size and for fixed views that disagree
     (``FIXED_AGREEMENT_PX``).
     """
@@ -708,7 +714,8 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
             coarse = _coarse_for(previous[1], previous[0], kept)
         else:
             coarse = adjust_coarse(local_cams, obs, b,
-                                   fixed=[k for k, v in enumerate(kept) if v in fixed])
+                                   fixed=[k for k, v in enumerate(kept) if v in fixed],
+                                   prior_range_up=prior_range_up)
         previous = None
         seconds["coarse"] = seconds.get("coarse", 0.0) + time.perf_counter() - t0
         count = np.bincount(coarse.obs.view, minlength=len(kept))
@@ -852,6 +859,7 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
         points, err, front = triangulate_observations(coarse.obs, P)
         point_error = _worst_error(coarse.obs, err)
         point_error[~front] = np.inf
+        covariances = point_covariances(P, coarse.obs, points)
         obs = _global(coarse.obs, kept)
         P0 = projection_stack(local_fine)
         X0 = triangulate_observations(fine.obs, P0)[0]
@@ -860,11 +868,13 @@ def tie_views(images: Sequence[np.ndarray], cameras: Sequence[Any], names: Seque
     else:
         obs = Observations(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)), 0)
         point_error, points, errors_before = np.zeros(0), np.zeros((0, 3)), np.zeros(0)
+        covariances = np.zeros((0, 3, 3))
     return TiedViews(
         names=tuple(names), kept=tuple(kept),
         dropped=tuple(DroppedView(v, names[v], r) for v, r in sorted(dropped.items())),
         shifts=shifts, coarse_shifts=coarse_shifts, sigma=sigma, cameras=tuple(fine_cams),
-        points=points, obs=obs, point_error=point_error, errors_before=errors_before, graph=graph,
+        points=points, obs=obs, point_error=point_error, point_covariances=covariances,
+        errors_before=errors_before, graph=graph,
         matches=matches,
         n_features=n_features, n_tracks=len(tracks),
         track_length_histogram={int(k): int(c) for k, c in enumerate(lengths) if c > 0},
@@ -1205,7 +1215,8 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
     tied = tie_views(images, prior_cams, names, options, bundle_options, samples=samples,
                      fine_cameras=refit, dropped=failed, fixed=fixed,
                      max_features=None if tie_box is None else feature_budgets(views, aoi, prior,
-                                                                               options))
+                                                                               options),
+                     prior_range_up=(prior.min - frame.alt0, prior.max - frame.alt0))
     seconds.update({k: seconds.get(k, 0.0) + v for k, v in tied.seconds.items()})
     if len(tied.kept) < 2:
         why = "; ".join(f"{paths[d.index]}: {d.reason}" for d in tied.dropped) or "no view could be tied"
@@ -1220,7 +1231,8 @@ def sparse_stage(views: Sequence[Any], aoi: Any, prior: Any,
     frame = fine_frame[0]
     altitude_range, altitude = altitude_range_from_points(
         tied.points, tied.obs, tied.point_error, frame, aoi, options, within=prior,
-        confirm=tie_point_confirmer(tied, images))
+        confirm=tie_point_confirmer(tied, images),
+        point_covariances=tied.point_covariances)
     seconds["altitude"] = time.perf_counter() - t0
     seconds["total"] = time.perf_counter() - t_all
     dropped = tuple(dataclasses.replace(d, path=paths[d.index]) for d in tied.dropped)

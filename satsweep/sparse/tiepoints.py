@@ -23,6 +23,7 @@ import numpy as np
 
 from satsweep.geometry.altitude import AltitudeRange
 from satsweep.geometry.aoi import AOI
+from satsweep.sparse.triangulation import base_to_height
 
 # Points above the supported top that are checked against the views, highest first.
 MAX_CONFIRM_CANDIDATES = 16
@@ -142,14 +143,19 @@ def _duplicates(points: np.ndarray) -> np.ndarray:
 
 def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray, frame, aoi: AOI,
                                options, *, within: AltitudeRange | None = None,
-                               confirm: Callable[[int, float], bool] | None = None
+                               confirm: Callable[[int, float], bool] | None = None,
+                               point_covariances: np.ndarray | None = None
                                ) -> tuple[AltitudeRange | None, dict]:
     """The altitude range of adjusted tie points (the sparse stage's), and a record of it.
 
     ``points`` (N, 3): ENU points (m) of ``frame``; ``obs``: their observations (to count the
     views of each); ``point_error`` (N,): each point's largest reprojection error (px) with the
-    corrected cameras; ``options``: SparseOptions. The points used lie inside the AOI grown by
-    ``altitude_aoi_margin_m`` with every error within ``altitude_max_error_px``. The range runs
+    corrected cameras; ``options``: SparseOptions; ``point_covariances`` (N, 3, 3): each point's
+    for 1 px of error (:func:`satsweep.sparse.triangulation.point_covariances`), None when not
+    known. The points used lie inside the AOI grown by ``altitude_aoi_margin_m`` with every
+    error within ``altitude_max_error_px`` and an effective base-to-height ratio
+    (:func:`satsweep.sparse.triangulation.base_to_height`) of ``altitude_min_bh`` at least.
+    The range runs
     from the lowest altitude of the points seen by ``altitude_floor_views`` views or more (all
     points when fewer than ``altitude_min_points`` are; or that of the points of fewer views,
     when it lies more than ``altitude_margin_below_m`` lower and ``altitude_floor_fewer_fraction``
@@ -186,6 +192,10 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
         alt = np.zeros(0)
         inside = np.zeros(0, dtype=bool)
     use = inside & (point_error <= o.altitude_max_error_px)
+    vague = np.zeros(len(points), dtype=bool)
+    if point_covariances is not None:
+        vague = use & ~(base_to_height(point_covariances) >= o.altitude_min_bh)
+        use &= ~vague
     twins = use & _duplicates(points)
     use &= ~twins
     floor = use & (n_views >= o.altitude_floor_views)
@@ -195,6 +205,8 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
                     "tie_points_for_the_lowest": int(floor.sum()),
                     "tie_points_near_aoi": int(inside.sum()),
                     "duplicate_tie_points": int(twins.sum()),
+                    "vague_tie_points": int(vague.sum()),
+                    "min_bh": o.altitude_min_bh,
                     "aoi_margin_m": o.altitude_aoi_margin_m,
                     "views_per_tie_point": {str(k): int(c) for k, c in
                                             enumerate(np.bincount(n_views[use])) if c},

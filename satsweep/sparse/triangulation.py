@@ -44,6 +44,43 @@ def projection_jacobian(P: np.ndarray, view: np.ndarray, X: np.ndarray) -> tuple
     return xy, w, J
 
 
+def point_covariances(P: np.ndarray, obs: Observations, X: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) m^2: each point's covariance (ENU) for independent errors of 1 px on every
+    coordinate of its observations (``obs`` of the cameras ``P``, points ``X`` (N, 3) ENU): the
+    inverse of the sum of ``J^T J`` over its observations (``J`` the 2x3 Jacobian of each). inf
+    where the observations leave the point undetermined (one view, or views along one line of
+    sight)."""
+    n = len(X)
+    out = np.full((n, 3, 3), np.inf)
+    if n == 0 or len(obs.view) == 0:
+        return out
+    J = projection_jacobian(P, obs.view, X[obs.point])[2]
+    N = np.zeros((n, 3, 3))
+    np.add.at(N, obs.point, np.einsum("mki,mkj->mij", J, J))
+    det = np.linalg.det(N)
+    scale = np.einsum("nii->n", N) ** 3  # det against the entries' size: a relative test
+    ok = det > 1e-12 * np.maximum(scale, 1e-300)
+    out[ok] = np.linalg.inv(N[ok])
+    return out
+
+
+def base_to_height(covariances: np.ndarray) -> np.ndarray:
+    """(N,) each point's effective base-to-height ratio from its :func:`point_covariances`:
+    ``2 sqrt(smallest / largest eigenvalue)``. Two views of one GSD whose lines of sight are
+    ``b`` apart (radians, small) know a point to ``GSD / sqrt(2)`` across their lines of sight
+    and to ``sqrt(2) GSD / b`` along them, whatever their incidence: the ratio gives ``b`` back,
+    whatever the GSD; more views, more. 0 where the point is undetermined."""
+    c = np.asarray(covariances, np.float64)
+    out = np.zeros(len(c))
+    ok = np.isfinite(c).all(axis=(1, 2))
+    if ok.any():
+        w = np.linalg.eigvalsh(c[ok])  # ascending
+        with np.errstate(invalid="ignore", divide="ignore"):
+            b = 2.0 * np.sqrt(np.maximum(w[:, 0], 0.0) / w[:, 2])
+        out[ok] = np.where(np.isfinite(b), b, 0.0)
+    return out
+
+
 # -- per-observation arithmetic on whole rows -----------------------------------------------------
 # The loops over observations (tens of thousands on a stack of 20 views) run on one contiguous
 # array per camera entry and per coordinate: numpy's elementwise operations on (M,) rows are

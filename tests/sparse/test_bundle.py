@@ -416,6 +416,37 @@ def test_the_gauge_of_smallest_corrections_ignores_an_outlying_view():
     assert np.abs(np.delete(shifts - A @ plain - b, 3, axis=0)).max() > 1.0
 
 
+def test_the_prior_range_chooses_between_motions_the_shifts_leave_alike():
+    """Three views, two of them along nearly one line of sight (two passes of one orbit), one of
+    those two 36 px off: the motion that zeroes views 0 and 2 and the one that zeroes views 0
+    and 1 leave one view 36 px off each, and Cauchy's costs differ by hundredths. The prior
+    range decides (GAUGE_ALTITUDE_PRIOR_NOTE): around the true motion's height, each view gets
+    its bias back; around the other's, view 2 is put 36 px off instead (so the range, not the
+    shifts, made the choice)."""
+    from tests.synthetic_cameras import satellite_camera
+
+    cams = [satellite_camera(0.25, 0.05), satellite_camera(-0.05, 0.02),
+            satellite_camera(-0.0505, 0.0202, roll=0.001)]
+    P = triangulation.projection_stack(cams)
+    A = _numeric_jacobians(cams, point=(0.0, 0.0, 0.0))
+    rng = np.random.default_rng(6)
+    b = rng.normal(0.0, 0.02, (3, 2))
+    b[1] = [36.0, -2.0]
+    m = np.array([7.0, -4.0, 55.0])
+    shifts = b - A @ m
+    # the motion that zeroes views 0 and 1 instead (least squares over their four values)
+    wrong = np.linalg.lstsq(A[[0, 1]].reshape(-1, 3), shifts[[0, 1]].ravel(), rcond=None)[0]
+    assert abs(wrong[2] + m[2]) > 40.0  # the two choices put the scene tens of metres apart
+    for centre, good in ((-m[2], True), (wrong[2], False)):
+        dX = bundle.robust_gauge(P, shifts, np.zeros(3), altitude_prior=(centre - 10.0, centre + 10.0))
+        corrected = shifts - A @ dX
+        if good:
+            assert np.abs(corrected - b).max() < 0.05
+        else:
+            # (three unknowns fitted to views 0 and 1's four values leave them a pixel or less)
+            assert np.abs(corrected[[0, 1]]).max() < 1.0 and np.hypot(*corrected[2]) > 30.0
+
+
 def test_fixed_views_take_the_gauge():
     """Two views whose RPCs are right (fixed) and four that are off alike (as if their RPCs
     shared one error of the scene's position, 30 m), through a motion of the scene: the motion

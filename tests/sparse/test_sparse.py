@@ -7,6 +7,8 @@ scipy's least_squares for the nonlinear triangulation.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -808,6 +810,65 @@ def test_triangulation_minimises_the_reprojection_error():
         ref = least_squares(res, X[i], xtol=1e-14, ftol=1e-14, gtol=1e-14).x
         assert np.abs(pts[i] - ref).max() < REFINE_TOL_M
         assert err[i] == pytest.approx(np.max(np.hypot(*res(ref).reshape(-1, 2).T)), abs=1e-6)
+
+
+# The Monte Carlo estimate of a standard deviation from n samples is itself uncertain by about
+# sigma / sqrt(2 n): 1.6% for 2000; five times that.
+SIGMA_MC_SAMPLES = 2000
+SIGMA_MC_REL_TOL = 0.08
+# base_to_height against the angle between two lines of sight: equal for small angles, the
+# ratio's 2 sin(b / 2) / cos(b / 2)-like terms leave under 1% at 0.2 rad.
+BASE_TO_HEIGHT_REL_TOL = 0.01
+
+
+def _centre(cam) -> np.ndarray:
+    return -cam.R.T @ cam.t
+
+
+def test_point_covariances_against_the_spread_of_noisy_triangulations():
+    """Each point's covariance per pixel of error, against that of its triangulations from
+    SIGMA_MC_SAMPLES draws of its views' pixels with 1 px of Gaussian noise on each coordinate
+    (the diagonal, to the estimate's noise): a pair 0.2 apart and the triplet."""
+    from tests.synthetic_cameras import satellite_camera
+
+    rng = np.random.default_rng(9)
+    X = np.array([[30.0, -50.0, 20.0], [-120.0, 80.0, 55.0]])
+    for cams in ([satellite_camera(0.0, -0.1), satellite_camera(0.0, 0.1)], three_cameras()):
+        P = triangulation.projection_stack(cams)
+        V = len(cams)
+        obs = sparse_tracks.Observations(np.repeat(np.arange(2), V), np.tile(np.arange(V), 2),
+                                         np.zeros((2 * V, 2)), 2)
+        cov = triangulation.point_covariances(P, obs, X)
+        exact = triangulation.project(P, obs.view, X[obs.point])[0]
+        points = np.empty((SIGMA_MC_SAMPLES, 2, 3))
+        for k in range(SIGMA_MC_SAMPLES):
+            noisy = dataclasses.replace(obs, xy=exact + rng.normal(0.0, 1.0, exact.shape))
+            points[k] = triangulation.triangulate_observations(noisy, P)[0]
+        np.testing.assert_allclose(np.sqrt(np.diagonal(cov, axis1=1, axis2=2)),
+                                   points.std(axis=0), rtol=SIGMA_MC_REL_TOL)
+
+
+@pytest.mark.parametrize("first,second", [((0.0, -0.1), (0.0, 0.1)),  # 0.2 rad, near nadir
+                                          ((0.25, 0.05), (0.26, 0.05)),  # oblique, 0.009 rad
+                                          ((-0.15, 0.0), (-0.1495, 0.001))])  # one orbit, twice
+def test_base_to_height_is_the_angle_between_the_lines_of_sight(first, second):
+    """Two views' effective base-to-height ratio at a point, against the angle between the rays
+    from it to their centres, whatever their incidence: a height-only measure would take an
+    oblique pair along nearly one line of sight (its uncertainty lies along that line, partly
+    across the ground) for a good one. One view twice: 0."""
+    from tests.synthetic_cameras import satellite_camera
+
+    cams = [satellite_camera(*first), satellite_camera(*second)]
+    P = triangulation.projection_stack(cams)
+    X = np.array([[30.0, -50.0, 20.0]])
+    obs = sparse_tracks.Observations(np.array([0, 0]), np.array([0, 1]), np.zeros((2, 2)), 1)
+    rays = [_centre(c) - X[0] for c in cams]
+    angle = np.arccos(np.dot(rays[0], rays[1]) / np.linalg.norm(rays[0]) / np.linalg.norm(rays[1]))
+    b = triangulation.base_to_height(triangulation.point_covariances(P, obs, X))[0]
+    assert b == pytest.approx(angle, rel=BASE_TO_HEIGHT_REL_TOL)
+    one = triangulation.projection_stack([cams[0], cams[0]])
+    cov = triangulation.point_covariances(one, obs, X)
+    assert np.isinf(cov).all() and triangulation.base_to_height(cov)[0] == 0.0
 
 
 def test_points_behind_the_cameras_are_rejected():

@@ -103,6 +103,37 @@ def test_adjusted_range_takes_its_floor_from_points_of_three_views():
     assert rng == AltitudeRange(99.0, 151.0)
 
 
+def test_tie_points_of_vague_heights_do_not_bound_the_range():
+    """Ground at 100 m and a roof at 150 m of views 0.3 and 0.1 apart (base-to-height); 40 points
+    of a pair along nearly one line of sight (0.004, as bench_multidate's one view per date seed
+    39) spread from
+    -300 to 400 m, in pairs within the support window: with their height sigmas given, they do
+    not raise the top, and the record counts them; without, the highest pair holds the top."""
+    o = SparseOptions()
+    ground = [100.0 + 0.05 * k for k in range(30)]
+    roof = [150.0, 150.5, 151.0]
+    vague = list(np.repeat(np.linspace(-300.0, 400.0, 20), 2) + np.tile([0.0, 0.5], 20))
+    alts = ground + roof + vague
+    views = [3] * 30 + [2] * 3 + [2] * len(vague)
+    points, obs, err, aoi = _adjusted(alts, views, [0.2] * len(alts))
+    # per pixel, a GSD of 0.5 m: 0.35 m across the lines of sight, 2 x 0.35 / (B/H) along them
+    # (here vertical)
+    bh = np.array([0.3] * 30 + [0.1] * 3 + [0.004] * len(vague))
+    cov = np.zeros((len(bh), 3, 3))
+    cov[:, 0, 0] = cov[:, 1, 1] = 0.35 ** 2
+    cov[:, 2, 2] = (0.7 / bh) ** 2
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o, point_covariances=cov)
+    assert rng == AltitudeRange(100.0 - o.altitude_margin_below_m, 151.0 + o.altitude_margin_above_m)
+    assert record["vague_tie_points"] == len(vague) and record["tie_points"] == 33
+    plain, _ = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert plain.max > 400.0
+    # the bound is the option's: at 0.003 they count again
+    loose = dataclasses.replace(o, altitude_min_bh=0.003)
+    again, record = altitude_range_from_points(points, obs, err, _Frame, aoi, loose,
+                                               point_covariances=cov)
+    assert again == plain and record["vague_tie_points"] == 0
+
+
 def test_adjusted_range_takes_a_ground_of_two_view_points_under_that_of_three():
     """One view per date: the ground's texture changes, so its tie points are of two views
     (60 at 100-101 m) while the roofs' are of three or more (30 at 120 m, 30 at 150 m). The
