@@ -64,6 +64,7 @@ from satsweep.sparse.options import SparseOptions
 from satsweep.sparse.tracks import Observations
 from satsweep.sparse.triangulation import (
     SYM3,
+    base_to_height,
     jacobian_entries,
     observation_entries,
     point_covariances,
@@ -125,6 +126,12 @@ class BundleOptions(Options):
     max_evaluations: int = 200  # cost evaluations allowed to each solve
     max_shift_sigma_px: float = 0.3  # a view whose correction is more uncertain (px, 1 sigma) is
     # dropped by the sparse stage
+    anchor_min_bh: float = 0.01  # points whose views' effective base-to-height ratio
+    # (triangulation.base_to_height) is lower have no anchor: triangulated along nearly one line
+    # of sight, an anchor holds the two views' relative correction along their small parallax
+    # where the anchors' cameras put it (bench_multidate one view per date seed 39, 3 views of
+    # which two 0.004 rad apart, 40 of 112 points: 0.275 px off after the gauge, 0.019 without
+    # their anchors; as 8-bit RGB at 33.45 S 1.272 -> 0.033 px). The other points fix the gauge
     fixed_views: tuple[str, ...] = ()  # views whose RPCs are trusted (file names as given, or
     # paths): their corrections are held at zero and the others are corrected to agree with
     # them (ASP's fixed cameras, S2P's reference image); (): the gauge of smallest corrections
@@ -132,7 +139,7 @@ class BundleOptions(Options):
     ADVANCED = ("loss", "loss_scale_px", "extended_loss_scale_px", "extended_loss",
                 "initial_threshold_px",
                 "coarse_threshold_px", "fine_threshold_px", "min_observations", "max_evaluations",
-                "max_shift_sigma_px")
+                "max_shift_sigma_px", "anchor_min_bh")
 
     def check(self) -> None:
         self._require(math.isfinite(self.regulariser) and self.regulariser > 0.0, "regulariser",
@@ -153,6 +160,8 @@ class BundleOptions(Options):
         self._require(self.max_evaluations >= 1, "max_evaluations", "must be at least 1")
         self._require(math.isfinite(self.max_shift_sigma_px) and self.max_shift_sigma_px > 0.0,
                       "max_shift_sigma_px", "must be a positive number of pixels")
+        self._require(math.isfinite(self.anchor_min_bh) and self.anchor_min_bh >= 0.0,
+                      "anchor_min_bh", "must be a base-to-height ratio >= 0 (0: every point)")
         self._require(all(isinstance(f, str) and f.strip() for f in self.fixed_views),
                       "fixed_views", "must be a list of file names")
         self._require(len(set(self.fixed_views)) == len(self.fixed_views), "fixed_views",
@@ -373,20 +382,24 @@ def _linearise(p: np.ndarray, obs: Observations, X: np.ndarray, s: np.ndarray) -
 
 def _solve(P: np.ndarray, obs: Observations, anchors: np.ndarray, shifts0: np.ndarray,
            points0: np.ndarray, options: BundleOptions, *, ftol: float = _LM_FTOL,
-           xtol: float = _LM_XTOL) -> tuple[np.ndarray, np.ndarray, int]:
+           xtol: float = _LM_XTOL, anchored: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray, int]:
     """One robust Levenberg-Marquardt solve from (shifts0, points0); returns (shifts, points,
     cost evaluations). Each step weights the residuals by the loss's derivative (iteratively
     reweighted least squares, whose fixed point is the robust cost's stationary point) and
-    eliminates the points (3 x 3 blocks) so that only the shifts' 2V x 2V system is solved."""
+    eliminates the points (3 x 3 blocks) so that only the shifts' 2V x 2V system is solved.
+    ``anchored`` (N,) bool: the points held by their anchors (None: all)."""
     rho, drho = _LOSSES[options.loss]
     sqrt_lambda = math.sqrt(options.regulariser)
     c2 = options.loss_scale_px ** 2
     p = observation_entries(P, obs.view)
     fill = _FillIn(P.shape[0], obs)
+    held = np.ones((obs.n_points, 1)) if anchored is None else \
+        np.asarray(anchored, np.float64).reshape(-1, 1)
 
     def evaluate(s, X):
         lin = _linearise(p, obs, X, s)
-        a = sqrt_lambda * (X - anchors)
+        a = sqrt_lambda * held * (X - anchors)
         cost = 0.5 * c2 * (rho(lin.rc * lin.rc / c2).sum() + rho(lin.rr * lin.rr / c2).sum()
                            + rho(a * a / c2).sum())
         return cost, lin, a
@@ -396,8 +409,8 @@ def _solve(P: np.ndarray, obs: Observations, anchors: np.ndarray, shifts0: np.nd
     evaluations, damping = 1, _LM_DAMPING0
     while evaluations < options.max_evaluations:
         ds, dX = _normal_step(P.shape[0], obs, lin, a, drho(lin.rc * lin.rc / c2),
-                              drho(lin.rr * lin.rr / c2), drho(a * a / c2), sqrt_lambda, damping,
-                              fill)
+                              drho(lin.rr * lin.rr / c2), held * drho(a * a / c2), sqrt_lambda,
+                              damping, fill)
         new = evaluate(s + ds, X + dX)
         evaluations += 1
         step = max(float(np.abs(ds).max(initial=0.0)), float(np.abs(dX).max(initial=0.0)))
@@ -462,6 +475,17 @@ def _anchors(P: np.ndarray, obs: Observations, threshold: float) -> tuple[Observ
         obs = obs.subset(good[obs.point])
 
 
+def _anchored(P: np.ndarray, obs: Observations, anchors: np.ndarray,
+              options: BundleOptions) -> np.ndarray | None:
+    """(N,) bool: the points that keep their anchors, those whose views' effective
+    base-to-height ratio at the anchor is ``options.anchor_min_bh`` or more; None (all) where
+    none would be (views along one line of sight: the gauge needs anchors) or the bound is 0."""
+    if options.anchor_min_bh <= 0.0 or obs.n_points == 0:
+        return None
+    keep = base_to_height(point_covariances(P, obs, anchors)) >= options.anchor_min_bh
+    return keep if keep.any() else None
+
+
 def adjust_observations(cameras: Sequence[Any], obs: Observations, options: BundleOptions = BundleOptions(),
                         *, names: Sequence[str] | None = None) -> BundleSolution:
     """Bundle-adjust principal points and points on given observations (tracks already built).
@@ -471,6 +495,8 @@ def adjust_observations(cameras: Sequence[Any], obs: Observations, options: Bund
     observations above ``coarse_threshold_px``; re-anchor and solve; drop those above
     ``fine_threshold_px``; re-anchor and solve (with a non-convex ``loss``, the two screening
     solves take soft_l1 and the last one at most _NON_CONVEX_MAX_EVALUATIONS evaluations).
+    Points whose views' effective base-to-height ratio is under ``anchor_min_bh`` have no anchor
+    (:func:`_anchored`).
     Raises CameraError naming the views left with
     fewer than ``min_observations`` observations.
     """
@@ -487,7 +513,7 @@ def adjust_observations(cameras: Sequence[Any], obs: Observations, options: Bund
     screen = options.replace(loss="soft_l1") if options.loss in _NON_CONVEX else options
     for threshold in (options.coarse_threshold_px, options.fine_threshold_px):
         shifts, X, nfev = _solve(P, obs, anchors, shifts, X, screen, ftol=_SCREEN_FTOL,
-                                 xtol=_SCREEN_XTOL)
+                                 xtol=_SCREEN_XTOL, anchored=_anchored(P, obs, anchors, options))
         evaluations.append(nfev)
         keep = _errors(P, obs, X, shifts) <= threshold
         obs = obs.subset(keep)
@@ -503,7 +529,7 @@ def adjust_observations(cameras: Sequence[Any], obs: Observations, options: Bund
         final = options.replace(max_evaluations=min(options.max_evaluations,
                                                     _NON_CONVEX_MAX_EVALUATIONS))
     shifts, X, nfev = _solve(P, obs, anchors, shifts, X, final, ftol=_FINE_FTOL,
-                             xtol=_FINE_XTOL)
+                             xtol=_FINE_XTOL, anchored=_anchored(P, obs, anchors, options))
     evaluations.append(nfev)
     before = _errors(P, obs, anchors, np.zeros((V, 2)))
     after = _errors(P, obs, X, shifts)

@@ -447,6 +447,42 @@ def test_the_prior_range_chooses_between_motions_the_shifts_leave_alike():
             assert np.abs(corrected[[0, 1]]).max() < 1.0 and np.hypot(*corrected[2]) > 30.0
 
 
+# Two views along nearly one line of sight: their tie points' heights move by GSD / 0.004 per
+# pixel, and an anchor there holds their relative correction along the parallax
+ONE_LINE_NOISE_PX = 0.05
+ONE_LINE_START_ERROR_PX = 0.6  # the starting cameras' error of view 2 along its rows and columns
+ONE_LINE_TOL_PX = 0.05  # issue 26's bound on the recovered corrections
+
+
+@pytest.mark.parametrize("free", [True, False])
+def test_points_of_views_along_one_line_of_sight_have_no_anchor(free):
+    """Three views, two of them 0.004 rad apart (two passes of one orbit): 300 tie points of
+    those two alone and 60 of all three. The starting cameras put view 2 0.6 px off: with
+    their anchors the pair's points (triangulated hundreds of metres off by it) hold that
+    error along the pair's parallax; without (``anchor_min_bh``), the three-view points
+    correct it to ONE_LINE_TOL_PX after the gauge."""
+    from tests.synthetic_cameras import satellite_camera
+
+    cams = [satellite_camera(0.25, 0.05), satellite_camera(-0.05, 0.02),
+            satellite_camera(-0.054, 0.02, roll=0.001)]
+    rng = np.random.default_rng(11)
+    X = rng.uniform([-200.0, -200.0, 0.0], [200.0, 200.0, 60.0], size=(360, 3))
+    xys = [project(c, X) + rng.normal(0.0, ONE_LINE_NOISE_PX, (len(X), 2)) for c in cams]
+    tracks = ([np.array([[1, i], [2, i]]) for i in range(300)]
+              + [np.array([[0, i], [1, i], [2, i]]) for i in range(300, 360)])
+    obs = sparse_tracks.observations_from_tracks(tracks, xys)
+    error = np.zeros((3, 2))
+    error[2] = ONE_LINE_START_ERROR_PX
+    start = [bundle.shift_principal_point(c, e) for c, e in zip(cams, error)]
+    options = bundle.BundleOptions() if free else bundle.BundleOptions(anchor_min_bh=0.0)
+    fine = bundle.adjust_observations(start, obs, options)
+    left = np.abs(_residual_after_gauge(fine.shifts, -error, _numeric_jacobians(cams))).max()
+    if free:
+        assert left < ONE_LINE_TOL_PX
+    else:
+        assert left > 4 * ONE_LINE_TOL_PX
+
+
 def test_fixed_views_take_the_gauge():
     """Two views whose RPCs are right (fixed) and four that are off alike (as if their RPCs
     shared one error of the scene's position, 30 m), through a motion of the scene: the motion
