@@ -131,7 +131,7 @@ class BundleOptions(Options):
     # of sight, an anchor holds the two views' relative correction along their small parallax
     # where the anchors' cameras put it (bench_multidate one view per date seed 39, 3 views of
     # which two 0.004 rad apart, 40 of 112 points: 0.275 px off after the gauge, 0.019 without
-    # their anchors; as 8-bit RGB at 33.45 S 1.272 -> 0.033 px). The other points fix the gauge
+    # their anchors; as 8-bit RGB at 33.45 S 1.272 -> 0.032 px). The other points fix the gauge
     fixed_views: tuple[str, ...] = ()  # views whose RPCs are trusted (file names as given, or
     # paths): their corrections are held at zero and the others are corrected to agree with
     # them (ASP's fixed cameras, S2P's reference image); (): the gauge of smallest corrections
