@@ -234,6 +234,7 @@ class BundleSolution:
     errors_before: np.ndarray  # (M,) px, original cameras and anchors
     errors_after: np.ndarray  # (M,) px, adjusted cameras and points
     evaluations: tuple[int, ...]
+    unanchored: int = 0  # points the last solve left without an anchor (anchor_min_bh)
 
 
 # The robust losses rho(z) of the squared scaled residual z = (f / loss_scale)^2 and their
@@ -528,13 +529,15 @@ def adjust_observations(cameras: Sequence[Any], obs: Observations, options: Bund
     if options.loss in _NON_CONVEX:
         final = options.replace(max_evaluations=min(options.max_evaluations,
                                                     _NON_CONVEX_MAX_EVALUATIONS))
+    anchored = _anchored(P, obs, anchors, options)
     shifts, X, nfev = _solve(P, obs, anchors, shifts, X, final, ftol=_FINE_FTOL,
-                             xtol=_FINE_XTOL, anchored=_anchored(P, obs, anchors, options))
+                             xtol=_FINE_XTOL, anchored=anchored)
     evaluations.append(nfev)
     before = _errors(P, obs, anchors, np.zeros((V, 2)))
     after = _errors(P, obs, X, shifts)
     return BundleSolution(shifts=shifts, points=X, anchors=anchors, obs=obs, errors_before=before,
-                          errors_after=after, evaluations=tuple(evaluations))
+                          errors_after=after, evaluations=tuple(evaluations),
+                          unanchored=0 if anchored is None else int((~anchored).sum()))
 
 
 def track_median_errors(solution: BundleSolution) -> np.ndarray:

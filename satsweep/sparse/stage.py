@@ -1026,6 +1026,9 @@ class SparseResult:
             # tie points whose median error after the fine adjustment exceeded
             # TRACK_SCREEN_MEDIAN_PX, left out of it (None: the screen did not run)
             "screened_tie_points": t.n_screened,
+            # tie points of views along nearly one line of sight, adjusted without an anchor
+            # ([bundle] anchor_min_bh)
+            "unanchored_tie_points": None if fine is None else fine.unanchored,
             "coarse": figures(coarse),
             "fine": figures(fine),
             "prior_range": [self.prior_range.min, self.prior_range.max],

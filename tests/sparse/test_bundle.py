@@ -478,9 +478,9 @@ def test_points_of_views_along_one_line_of_sight_have_no_anchor(free):
     fine = bundle.adjust_observations(start, obs, options)
     left = np.abs(_residual_after_gauge(fine.shifts, -error, _numeric_jacobians(cams))).max()
     if free:
-        assert left < ONE_LINE_TOL_PX
+        assert left < ONE_LINE_TOL_PX and fine.unanchored == 300
     else:
-        assert left > 4 * ONE_LINE_TOL_PX
+        assert left > 4 * ONE_LINE_TOL_PX and fine.unanchored == 0
 
 
 def test_fixed_views_take_the_gauge():
