@@ -28,7 +28,8 @@ from satsweep.sparse.triangulation import base_to_height
 # Points above the supported top that are checked against the views, highest first.
 MAX_CONFIRM_CANDIDATES = 16
 # Fewest points of fewer than altitude_floor_views views that can set the floor (with the
-# fraction altitude_floor_fewer_fraction of them): wrong two-view matches agree in twos and
+# fraction altitude_floor_fewer_fraction of them; and the fewest of all points where too few
+# are of that many views and all of them serve): wrong two-view matches agree in twos and
 # threes by chance (a 5-view multi-date stack: two of 136 within 3 m of each other at 11 m, 89 m
 # under the ground), a ground seen by two views at a time in dozens.
 FEWER_VIEWS_MIN_SUPPORT = 5
@@ -157,7 +158,8 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     (:func:`satsweep.sparse.triangulation.base_to_height`) of ``altitude_min_bh`` at least.
     The range runs
     from the lowest altitude of the points seen by ``altitude_floor_views`` views or more (all
-    points when fewer than ``altitude_min_points`` are; or that of the points of fewer views,
+    points when fewer than ``altitude_min_points`` are, with FEWER_VIEWS_MIN_SUPPORT of them
+    agreeing at least; or that of the points of fewer views,
     when it lies more than ``altitude_margin_below_m`` lower and ``altitude_floor_fewer_fraction``
     of them, and FEWER_VIEWS_MIN_SUPPORT at least, share it within ``altitude_support_m``) to
     the highest of all, each the lowest
@@ -199,8 +201,13 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     twins = use & _duplicates(points)
     use &= ~twins
     floor = use & (n_views >= o.altitude_floor_views)
+    floor_support = None  # support(n) below; FEWER_VIEWS_MIN_SUPPORT where all points serve
     if floor.sum() < o.altitude_min_points:
         floor = use
+        # mostly points of fewer views then: their wrong matches agree in twos by chance (8-bit
+        # RGB at 33.45 S, one view per date seed 35 at 5 views: 11 of 91 points of three views,
+        # two of two views at 7 m held a floor 91 m under the ground)
+        floor_support = FEWER_VIEWS_MIN_SUPPORT
     record: dict = {"source": "tie points", "tie_points": int(use.sum()),
                     "tie_points_for_the_lowest": int(floor.sum()),
                     "tie_points_near_aoi": int(inside.sum()),
@@ -222,6 +229,13 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
         return max(o.altitude_support, math.ceil(o.altitude_support_fraction * n))
 
     lo = supported_extremes(alt[floor], support(int(floor.sum())), o.altitude_support_m)[0]
+    if floor_support is not None:
+        # ... so a floor that two or three of them hold lies within altitude_support_m of the
+        # one that floor_support of them hold, or that one is taken
+        held = lowest_supported(alt[floor], max(support(int(floor.sum())), floor_support),
+                                o.altitude_support_m)
+        if held is not None and lo < held - o.altitude_support_m:
+            lo = held
     fewer = use & ~floor
     if fewer.any() and o.altitude_floor_fewer_fraction > 0.0:
         # A ground that few views tie (each date's texture differs: one view per date) leaves

@@ -177,10 +177,18 @@ def test_adjusted_range_needs_enough_points_near_the_aoi():
     points, obs, err, aoi = _adjusted(flat, [2] * 30, [0.1] * 30, lon=near)
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
     assert rng is not None and record["tie_points_near_aoi"] == 30
-    # too few points of three views: the floor comes from all of them
-    points, obs, err, aoi = _adjusted(flat[:25] + [90.0, 90.5], [2] * 27, [0.1] * 27)
+    # too few points of three views: the floor comes from all of them, where
+    # FEWER_VIEWS_MIN_SUPPORT of them agree (two wrong two-view matches do not)
+    from satsweep.sparse.tiepoints import FEWER_VIEWS_MIN_SUPPORT
+
+    low = [90.0 + 0.5 * k for k in range(FEWER_VIEWS_MIN_SUPPORT)]
+    points, obs, err, aoi = _adjusted(flat[:25] + low, [2] * (25 + len(low)), [0.1] * (25 + len(low)))
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
-    assert rng.min == 90.0 - o.altitude_margin_below_m and record["tie_points_for_the_lowest"] == 27
+    assert rng.min == 90.0 - o.altitude_margin_below_m
+    assert record["tie_points_for_the_lowest"] == 25 + len(low)
+    points, obs, err, aoi = _adjusted(flat[:25] + low[:2], [2] * 27, [0.1] * 27)
+    rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
+    assert rng.min == 100.0 - o.altitude_margin_below_m
 
 
 def test_the_top_needs_its_support_on_one_roof():
@@ -202,15 +210,16 @@ def test_the_top_needs_its_support_on_one_roof():
 
 
 def test_twin_tie_points_do_not_support_each_other():
-    """SIFT's twin keypoints (one position, two orientations) matched in two views make two
+    """SIFT's twin keypoints (one position, two orientations) matched in the views make two
     tracks at one spot: a wrong match of such twins at 69.5 m does not hold the floor of a
-    ground at 100 m by itself, while two wrong matches at two spots would."""
+    ground at 100 m by itself, while two wrong matches at two spots would (points of three
+    views, whose floor two agreeing points hold)."""
     from satsweep.sparse.tiepoints import DUPLICATE_POINT_M
 
     o = SparseOptions()
     ground = [100.0 + 0.05 * k for k in range(40)]
     alts = ground + [69.5, 69.5]
-    points, obs, err, aoi = _adjusted(alts, [2] * len(alts), [0.2] * len(alts))
+    points, obs, err, aoi = _adjusted(alts, [3] * len(alts), [0.2] * len(alts))
     points[:, 0] = np.linspace(0.1, 0.9, len(alts))  # each point at a spot of its own ...
     points[-1] = points[-2]  # ... but the twins
     rng, record = altitude_range_from_points(points, obs, err, _Frame, aoi, o)
