@@ -155,9 +155,8 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     for 1 px of error (:func:`satsweep.sparse.triangulation.point_covariances`), None when not
     known. The points used lie inside the AOI grown by ``altitude_aoi_margin_m`` with every
     error within ``altitude_max_error_px`` and an effective base-to-height ratio
-    (:func:`satsweep.sparse.triangulation.base_to_height`) of ``altitude_min_bh`` at least.
-    The range runs
-    from the lowest altitude of the points seen by ``altitude_floor_views`` views or more (all
+    (:func:`satsweep.sparse.triangulation.base_to_height`) of ``altitude_min_bh`` at least. The
+    range runs from the lowest altitude of the points seen by ``altitude_floor_views`` views or more (all
     points when fewer than ``altitude_min_points`` are, with FEWER_VIEWS_MIN_SUPPORT of them
     agreeing at least; or that of the points of fewer views,
     when it lies more than ``altitude_margin_below_m`` lower and ``altitude_floor_fewer_fraction``
@@ -201,13 +200,9 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     twins = use & _duplicates(points)
     use &= ~twins
     floor = use & (n_views >= o.altitude_floor_views)
-    floor_support = None  # support(n) below; FEWER_VIEWS_MIN_SUPPORT where all points serve
-    if floor.sum() < o.altitude_min_points:
+    all_points = bool(floor.sum() < o.altitude_min_points)
+    if all_points:
         floor = use
-        # mostly points of fewer views then: their wrong matches agree in twos by chance (8-bit
-        # RGB at 33.45 S, one view per date seed 35 at 5 views: 11 of 91 points of three views,
-        # two of two views at 7 m held a floor 91 m under the ground)
-        floor_support = FEWER_VIEWS_MIN_SUPPORT
     record: dict = {"source": "tie points", "tie_points": int(use.sum()),
                     "tie_points_for_the_lowest": int(floor.sum()),
                     "tie_points_near_aoi": int(inside.sum()),
@@ -228,11 +223,14 @@ def altitude_range_from_points(points: np.ndarray, obs, point_error: np.ndarray,
     def support(n: int) -> int:
         return max(o.altitude_support, math.ceil(o.altitude_support_fraction * n))
 
-    lo = supported_extremes(alt[floor], support(int(floor.sum())), o.altitude_support_m)[0]
-    if floor_support is not None:
-        # ... so a floor that two or three of them hold lies within altitude_support_m of the
-        # one that floor_support of them hold, or that one is taken
-        held = lowest_supported(alt[floor], max(support(int(floor.sum())), floor_support),
+    floor_need = support(int(floor.sum()))
+    lo = supported_extremes(alt[floor], floor_need, o.altitude_support_m)[0]
+    if all_points:
+        # Mostly points of fewer views then, whose wrong matches agree in twos by chance (8-bit
+        # RGB at 33.45 S, one view per date seed 35 at 5 views: 11 of 91 points of three views,
+        # two of two views at 7 m held a floor 91 m under the ground): a floor more than
+        # altitude_support_m under the lowest that FEWER_VIEWS_MIN_SUPPORT of them hold is that.
+        held = lowest_supported(alt[floor], max(floor_need, FEWER_VIEWS_MIN_SUPPORT),
                                 o.altitude_support_m)
         if held is not None and lo < held - o.altitude_support_m:
             lo = held

@@ -47,20 +47,20 @@ def projection_jacobian(P: np.ndarray, view: np.ndarray, X: np.ndarray) -> tuple
 def point_covariances(P: np.ndarray, obs: Observations, X: np.ndarray) -> np.ndarray:
     """(N, 3, 3) m^2: each point's covariance (ENU) for independent errors of 1 px on every
     coordinate of its observations (``obs`` of the cameras ``P``, points ``X`` (N, 3) ENU): the
-    inverse of the sum of ``J^T J`` over its observations (``J`` the 2x3 Jacobian of each). inf
-    where the observations leave the point undetermined (one view, or views along one line of
-    sight)."""
+    inverse of the sum of ``J^T J`` over its observations (``J`` the 2x3 Jacobian of each), on
+    the row-wise pieces below. inf where the observations leave the point undetermined (one
+    view, or views along one line of sight: the singular test of :func:`_solve_sym3`)."""
     n = len(X)
     out = np.full((n, 3, 3), np.inf)
     if n == 0 or len(obs.view) == 0:
         return out
-    J = projection_jacobian(P, obs.view, X[obs.point])[2]
-    N = np.zeros((n, 3, 3))
-    np.add.at(N, obs.point, np.einsum("mki,mkj->mij", J, J))
-    det = np.linalg.det(N)
-    scale = np.einsum("nii->n", N) ** 3  # det against the entries' size: a relative test
-    ok = det > 1e-12 * np.maximum(scale, 1e-300)
-    out[ok] = np.linalg.inv(N[ok])
+    p = observation_entries(P, obs.view)
+    ju, jv = jacobian_entries(p, *project_entries(p, X[obs.point]))
+    N = _normal_sums(ju, jv, obs.point, n)
+    det, adj = sym3_inverse(N)
+    ok = np.abs(det) > 1e-12 * np.abs(N[0] + N[3] + N[5]) ** 3
+    for (r, c), a in zip(SYM3, adj):
+        out[ok, r, c] = out[ok, c, r] = a[ok] / det[ok]
     return out
 
 
