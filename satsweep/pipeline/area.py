@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Sequence
 
 import numpy as np
 
-from satsweep.errors import SatsweepError
+from satsweep.errors import CameraError, SatsweepError
 from satsweep.geometry.altitude import AltitudeRange, enu_height_range
 from satsweep.io.metadata import with_computed_sun
 from satsweep.io.sources import report_names
@@ -50,6 +50,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from satsweep.opencl.device import Device
     from satsweep.pipeline.report import RunReport
     from satsweep.products.grid import DSMGrid
+    from satsweep.sparse.stage import SparseResult
 
 
 # With two views each is the other's only source: the appearance similarity decides nothing.
@@ -197,13 +198,14 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
         altitude = dataclasses.replace(altitude, range=rng,
                                        details={**altitude.details, "widened": list(widened)})
     _check_range_ends(dense.sweeps, altitude, job, ctx)
-    from satsweep.dense.similarity import acquisition_passes
-
-    rasters = area_rasters(dense.sweeps, dense.cameras, dense.images, job.grid, config, rep,
-                           ortho_images=dense.ortho_images,
-                           leaf_season=dense.selection.leaf_season,
-                           passes=acquisition_passes(dense.acquisitions),
-                           vegetation_images=dense.vegetation_images)
+    rasters = _rasters(dense, job, ctx)
+    refined = _surface_refined(job, ctx, tied, dense, rasters)
+    if refined is not None:  # the dense stages again, with the refined corrections
+        tied, sparse = refined, refined.sparse
+        dense = _dense_stages(job, ctx, tied, altitude.range)
+        if isinstance(dense, (Split, Wait)):
+            return dense
+        rasters = _rasters(dense, job, ctx)
     views = dense.views
     record = AreaRecord(altitude=altitude,
                         crops=[(v.path, (int(v.x0), int(v.y0), int(v.width), int(v.height)))
@@ -218,6 +220,105 @@ def run_area(job: AreaJob, ctx: RunContext) -> AreaResult | Split | Wait:
     return AreaResult(rasters=rasters, cameras=dense.cameras,
                       shifts=None if own is None else {v.path: s for v, s in zip(views, own)},
                       record=record)
+
+
+def _rasters(dense: "_Dense", job: AreaJob, ctx: RunContext) -> AreaRasters:
+    """The "dsm" stage on an area's sweeps."""
+    from satsweep.dense.similarity import acquisition_passes
+
+    return area_rasters(dense.sweeps, dense.cameras, dense.images, job.grid, ctx.config,
+                        ctx.report, ortho_images=dense.ortho_images,
+                        leaf_season=dense.selection.leaf_season,
+                        passes=acquisition_passes(dense.acquisitions),
+                        vegetation_images=dense.vegetation_images)
+
+
+def surface_ties_reason(sparse: "SparseResult | None", n_views: int,
+                        config: "PipelineConfig") -> str | None:
+    """Why the corrections are refined on a first DSM's surface (``[bundle] surface_ties``,
+    :mod:`satsweep.sparse.surface_ties`), None when they are not: the sparse stage's
+    corrections, of ``n_views`` views (MIN_VIEWS or more), with ``on``, or with ``auto`` where
+    one of them is uncertain by more than ``surface_ties_sigma_px``."""
+    from satsweep.sparse.surface_ties import MIN_VIEWS
+
+    b = config.bundle
+    if (sparse is None or b.surface_ties == "off" or config.reconstruct.adjust == "off"
+            or n_views < MIN_VIEWS):
+        return None
+    if b.surface_ties == "on":
+        return "[bundle] surface_ties = on"
+    sigma = float(np.max(sparse.correction_sigma_px[list(sparse.kept)]))
+    if sigma > b.surface_ties_sigma_px:
+        return (f"the tie points left a correction uncertain by {sigma:.3f} px (more than "
+                f"[bundle] surface_ties_sigma_px = {b.surface_ties_sigma_px:g})")
+    return None
+
+
+def _surface_refined(job: AreaJob, ctx: RunContext, tied: TiedSources, dense: "_Dense",
+                     rasters: AreaRasters) -> TiedSources | None:
+    """``tied`` with the sparse stage's corrections refined on the surface of ``rasters``' DSM
+    (:func:`surface_ties_reason`), None where they are not refined. The shifts found in the
+    skew-corrected pixels of ``dense`` are taken back to the crops' (the warp's linear part)
+    and weighed against the sparse stage's corrections (``surface_ties.blended_shifts``); with
+    fixed views, the motion no image sees is chosen to keep their corrections at zero. A
+    view the surface does not tie (a CameraError of the adjustment) leaves the sparse stage's
+    corrections as they are, with a warning."""
+    from satsweep.sparse.bundle import in_gauge
+    from satsweep.sparse.stage import SPARSE_THREADS_MAX
+    from satsweep.sparse.surface_ties import blended_shifts, surface_points, surface_ties
+    from satsweep.sparse.triangulation import projection_stack
+
+    config, rep, sparse = ctx.config, ctx.report, tied.sparse
+    views = list(dense.cameras.views)
+    reason = surface_ties_reason(sparse, len(views), config)
+    if reason is None:
+        return None
+    names = [v.name for v in dense.views]
+    with rep.stage("surface ties"):
+        points = surface_points(rasters.dsm, *job.grid.cell_centers(), job.grid.epsg,
+                                dense.cameras.frame, config.bundle.surface_ties_points)
+        try:
+            ties = surface_ties([v.camera for v in views], dense.images, points,
+                                sparse_options=config.sparse, bundle_options=config.bundle,
+                                names=names, valid=dense.masks, threads=SPARSE_THREADS_MAX)
+        except CameraError as exc:
+            rep.warn(f"pointing corrections not refined on the DSM's surface: {exc}")
+            return None
+    warps = [np.eye(2) if v.warp is None else np.asarray(v.warp, np.float64)[:2, :2]
+             for v in views]
+    found = np.array([np.linalg.solve(w, s) for w, s in zip(warps, ties.shifts)])
+    paths = [v.path for v in views]
+    index = sparse.indices_of(paths)  # (every view here was kept by the sparse stage)
+    shifts, weight = blended_shifts(found, ties.sigma, sparse.correction_sigma_px[index])
+    held = [k for k, i in enumerate(index) if i in sparse.fixed_views]
+    if held:
+        before = np.array(sparse.corrections_for(paths))
+        crop_P = projection_stack([v.camera for v in views])
+        for k, v in enumerate(views):
+            if v.warp is not None:
+                crop_P[k] = np.linalg.solve(np.asarray(v.warp, np.float64), crop_P[k])
+        total = in_gauge(crop_P, before + shifts, points.mean(axis=0), held)
+        total[held] = np.where(np.abs(total[held]) < 1e-9, 0.0, total[held])  # rounding
+        shifts = total - before
+    keys = report_names(names)
+    figures = {
+        "reason": reason,
+        "points": ties.points,
+        "registered_points": ties.registered,
+        "observations": dict(zip(keys, ties.observations)),
+        # added to the sparse stage's corrections: the shifts found on the surface, weighed
+        # against those corrections by their uncertainties (blended_shifts)
+        "shift_px": {k: [float(x) for x in s] for k, s in zip(keys, shifts)},
+        "surface_shift_px": {k: [float(x) for x in s] for k, s in zip(keys, found)},
+        "surface_weight": {k: float(x) for k, x in zip(keys, weight)},
+        "sigma_px": {k: float(x) for k, x in zip(keys, ties.sigma)},
+        "reprojection_median_px": ties.reprojection_median_px,
+        "seconds": ties.seconds,
+    }
+    rep.log(f"pointing refined on {ties.registered} points of the DSM's surface ({reason}): "
+            f"largest change {float(np.abs(shifts).max(initial=0.0)):.3f} px; the dense stages "
+            "run again")
+    return dataclasses.replace(tied, sparse=sparse.with_surface_shifts(paths, shifts, figures))
 
 
 def vegetation_share(view) -> float | None:
@@ -248,6 +349,8 @@ class _Dense:
     acquisitions: list[Any]
     selection: "Selection"
     sweeps: list[ReferenceHeights]
+    masks: list[np.ndarray | None]  # per view, its pixels holding data (None: all), in the
+    # pixels of ``images``
 
 
 def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
@@ -329,7 +432,7 @@ def _dense_stages(job: AreaJob, ctx: RunContext, tied: TiedSources,
     return _Dense(views=list(views), images=list(images), ortho_images=ortho_images,
                   vegetation_images=vegetation,
                   cameras=cameras, adjustment=adjustment, acquisitions=acquisitions,
-                  selection=selection, sweeps=list(sweeps))
+                  selection=selection, sweeps=list(sweeps), masks=list(masks))
 
 
 # More pixels than this fraction of a reference's window at an end of the altitude range means

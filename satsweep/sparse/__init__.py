@@ -10,6 +10,8 @@
   and cameras.
 - ``bundle``: the coarse and the fine adjustment of the principal points (RPC pointing errors
   are image translations); ``adjust_principal_points`` for cameras already fitted.
+- ``surface_ties``: the corrections refined on tie points of a first DSM's surface (the
+  pipeline's second pass where the sparse stage's tie points leave them uncertain).
 - ``tiepoints``: altitude ranges from tie points: the sparse stage's adjusted ones, and the
   older RPC triangulation of every pair's matches.
 """

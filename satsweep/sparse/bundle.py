@@ -135,11 +135,24 @@ class BundleOptions(Options):
     fixed_views: tuple[str, ...] = ()  # views whose RPCs are trusted (file names as given, or
     # paths): their corrections are held at zero and the others are corrected to agree with
     # them (ASP's fixed cameras, S2P's reference image); (): the gauge of smallest corrections
+    surface_ties: Literal["auto", "on", "off"] = "auto"  # once a first DSM is made, the
+    # corrections refined on tie points of its surface (satsweep.sparse.surface_ties) and the
+    # dense stages run again with them, for 3 views or more; auto: where the sparse stage left
+    # a view's correction uncertain by more than surface_ties_sigma_px (few tie points: small
+    # stacks of other dates), since it doubles the dense stages' time
+    surface_ties_sigma_px: float = 0.02  # ... that uncertainty (px, one sigma). Measured: small
+    # stacks of one view per date 0.01-0.11 px, left up to 0.11 px off after the gauge (13 of
+    # tools/bench_multidate.py's 328 runs over 0.05 px; 2 with the refinement); the issue-form
+    # stacks of 19 views 0.011-0.017 px (29 stacks; none refined), 10 views in passes under it
+    # (docs/measurements.md, sixty-seventh session)
+    surface_ties_points: int = 1000  # cells of the DSM, on a regular stride, projected and
+    # registered into every view
 
     ADVANCED = ("loss", "loss_scale_px", "extended_loss_scale_px", "extended_loss",
                 "initial_threshold_px",
                 "coarse_threshold_px", "fine_threshold_px", "min_observations", "max_evaluations",
-                "max_shift_sigma_px", "anchor_min_bh")
+                "max_shift_sigma_px", "anchor_min_bh", "surface_ties_sigma_px",
+                "surface_ties_points")
 
     def check(self) -> None:
         self._require(math.isfinite(self.regulariser) and self.regulariser > 0.0, "regulariser",
@@ -162,6 +175,9 @@ class BundleOptions(Options):
                       "max_shift_sigma_px", "must be a positive number of pixels")
         self._require(math.isfinite(self.anchor_min_bh) and self.anchor_min_bh >= 0.0,
                       "anchor_min_bh", "must be a base-to-height ratio >= 0 (0: every point)")
+        self._require(math.isfinite(self.surface_ties_sigma_px) and self.surface_ties_sigma_px >= 0.0,
+                      "surface_ties_sigma_px", "must be a number of pixels >= 0")
+        self._require(self.surface_ties_points >= 10, "surface_ties_points", "must be at least 10")
         self._require(all(isinstance(f, str) and f.strip() for f in self.fixed_views),
                       "fixed_views", "must be a list of file names")
         self._require(len(set(self.fixed_views)) == len(self.fixed_views), "fixed_views",

@@ -912,6 +912,8 @@ class SparseResult:
     fixed_absent: tuple[str, ...] = ()  # fixed views asked for that were not among the views
     tie_box: Any = None  # the AOI grown to [sparse] min_extent_m that the views were tied
     # over, None when that is the AOI
+    surface_ties: dict[str, Any] | None = None  # the refinement on a first DSM's surface
+    # (with_surface_shifts), None when it did not run
 
     @property
     def kept(self) -> tuple[int, ...]:
@@ -951,6 +953,24 @@ class SparseResult:
                 raise InputError(p, "no pointing correction: the sparse stage did not tie this view")
             out.append((float(self.corrections_px[v, 0]), float(self.corrections_px[v, 1])))
         return out
+
+    def indices_of(self, paths: Sequence[str | os.PathLike]) -> list[int | None]:
+        """Each image's index among the views given to the stage (None: not given), the
+        files compared by their real paths."""
+        return self._indices(paths)
+
+    def with_surface_shifts(self, paths: Sequence[str | os.PathLike],
+                            shifts: Sequence[Sequence[float]],
+                            figures: dict[str, Any]) -> "SparseResult":
+        """A copy whose corrections of the images ``paths`` (kept views) are moved by
+        ``shifts`` (px, per image), with ``figures`` reported as ``surface_ties``
+        (:mod:`satsweep.sparse.surface_ties`)."""
+        corrections = self.corrections_px.copy()
+        for p, v, s in zip(paths, self._indices(paths), shifts):
+            if v is None or v not in self.kept:
+                raise InputError(p, "no pointing correction: the sparse stage did not tie this view")
+            corrections[v] += np.asarray(s, np.float64)
+        return dataclasses.replace(self, corrections_px=corrections, surface_ties=dict(figures))
 
     def match_counts(self, paths: Sequence[str | os.PathLike]) -> np.ndarray:
         """(n, n) matches of each pair of the views ``paths``, an appearance similarity
@@ -1039,6 +1059,9 @@ class SparseResult:
                 "note": "the AOI was smaller than [sparse] min_extent_m: the views were tied "
                         "over this box about it; the altitude range is the AOI's"},
             "altitude_range": self.altitude,
+            # the corrections refined on a first DSM's surface (correction_px includes them;
+            # None: not refined, [bundle] surface_ties)
+            "surface_ties": self.surface_ties,
             "seconds": dict(self.seconds),
             "convention": "correction_px: the view's content of ground point X lies at RPC(X) + "
                           "correction (image pixels, col/row); it moves the principal point of "
