@@ -140,10 +140,12 @@ class BundleOptions(Options):
     # dense stages run again with them, for 3 views or more; auto: where the sparse stage left
     # a view's correction uncertain by more than surface_ties_sigma_px (few tie points: small
     # stacks of other dates), since it doubles the dense stages' time
-    surface_ties_sigma_px: float = 0.02  # ... that uncertainty (px, one sigma). Measured: small
-    # stacks of one view per date 0.01-0.11 px, left up to 0.11 px off after the gauge (13 of
-    # tools/bench_multidate.py's 328 runs over 0.05 px; 2 with the refinement); the issue-form
-    # stacks of 19 views 0.011-0.017 px (29 stacks; none refined), 10 views in passes under it
+    surface_ties_sigma_px: float = 0.035  # ... that uncertainty (px, one sigma). Measured: the
+    # runs of tools/bench_multidate.py's families left over 0.05 px after the gauge report
+    # 0.040-0.110 px (13 of 328 runs; 2 with the refinement); the issue-form stacks of 19 views
+    # of 850 px 0.011-0.017 px, the 1700 px one 0.024-0.030 px (85 s a run: refined, it would
+    # sweep twice, past issue 26's 2 minutes), 10 views in passes under 0.02 px. At 0.02 px:
+    # the same two runs over 0.05 px, each family's mean worst view 0.001-0.002 px lower
     # (docs/measurements.md, sixty-seventh session)
     surface_ties_points: int = 1000  # cells of the DSM, on a regular stride, projected and
     # registered into every view
