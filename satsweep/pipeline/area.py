@@ -289,7 +289,8 @@ def _surface_refined(job: AreaJob, ctx: RunContext, tied: TiedSources, dense: "_
     found = np.array([np.linalg.solve(w, s) for w, s in zip(warps, ties.shifts)])
     paths = [v.path for v in views]
     index = sparse.indices_of(paths)  # (every view here was kept by the sparse stage)
-    shifts, weight = blended_shifts(found, ties.sigma, sparse.correction_sigma_px[index])
+    shifts, weight = blended_shifts(found, np.hypot(ties.sigma, ties.spread),
+                                    sparse.correction_sigma_px[index])
     held = [k for k, i in enumerate(index) if i in sparse.fixed_views]
     if held:
         before = np.array(sparse.corrections_for(paths))
@@ -312,6 +313,9 @@ def _surface_refined(job: AreaJob, ctx: RunContext, tied: TiedSources, dense: "_
         "surface_shift_px": {k: [float(x) for x in s] for k, s in zip(keys, found)},
         "surface_weight": {k: float(x) for k, x in zip(keys, weight)},
         "sigma_px": {k: float(x) for k, x in zip(keys, ties.sigma)},
+        # half the largest difference between the shifts of two halves of the surface
+        # (surface_ties.half_spread), added to sigma_px in quadrature for the weights
+        "spread_px": {k: float(x) for k, x in zip(keys, ties.spread)},
         "reprojection_median_px": ties.reprojection_median_px,
         "seconds": ties.seconds,
     }

@@ -142,11 +142,11 @@ class BundleOptions(Options):
     # stacks of other dates), since it doubles the dense stages' time
     surface_ties_sigma_px: float = 0.035  # ... that uncertainty (px, one sigma). Measured: the
     # runs of tools/bench_multidate.py's families left over 0.05 px after the gauge report
-    # 0.040-0.110 px (13 of 328 runs; 2 with the refinement); the issue-form stacks of 19 views
+    # 0.040-0.110 px (13 of 328 runs; 3 with the refinement); the issue-form stacks of 19 views
     # of 850 px 0.011-0.017 px, the 1700 px one 0.024-0.030 px (85 s a run: refined, it would
-    # sweep twice, past issue 26's 2 minutes), 10 views in passes under 0.02 px. At 0.02 px:
-    # the same two runs over 0.05 px, each family's mean worst view 0.001-0.002 px lower
-    # (docs/measurements.md, sixty-seventh session)
+    # sweep twice, past issue 26's 2 minutes), 10 views in passes under 0.02 px. At 0.02 px
+    # (before the halves' spread): as many runs over 0.05 px as at 0.035, each family's mean
+    # worst view 0.001-0.002 px lower (docs/measurements.md, sixty-seventh session)
     surface_ties_points: int = 1000  # cells of the DSM, on a regular stride, projected and
     # registered into every view
 

@@ -15,15 +15,17 @@ registered kept (:func:`satsweep.sparse.tracks.best_registered`) and the princip
 adjusted on them alone (:func:`satsweep.sparse.bundle.adjust_observations`, the loss of the
 sparse stage's extended ties). The anchors hold the points where the first DSM put them, so the
 scene does not move: the shifts found are what the corrections lacked. Each view's shift is
-weighed against its sparse correction by their uncertainties (:func:`blended_shifts`,
-SURFACE_BIAS_PX), and the dense stages run again with the result
+weighed against its sparse correction by their uncertainties (:func:`blended_shifts`; the
+surface's with SURFACE_BIAS_PX and :func:`half_spread` added), and the dense stages run again
+with the result
 (:func:`satsweep.pipeline.area.run_area`).
 
 The first observation of each point cycles over the views, so that no view's pixels set every
 track. Measured on ``tools/bench_multidate.py``'s nine families (328 runs; docs/measurements.md,
-sixty-seventh session): the worst view after the gauge over 0.05 px on 13 runs before, 2 after
-(two views tied of three, which the refinement leaves; 5 views of 0.3 m pixels 0.027 -> 0.093
-px); the families' mean DFC MAE within -0.035 / +0.044 m, every range as it was.
+sixty-seventh session): the worst view after the gauge over 0.05 px on 13 runs before, 3 after
+(two views tied of three, which the refinement leaves; 0.113 -> 0.057 and 0.080 -> 0.052 px);
+30 refined runs more than 0.01 px better, 3 worse (to 0.014-0.030 px); the families' mean DFC
+MAE within -0.029 / +0.030 m, every range as it was.
 """
 
 from __future__ import annotations
@@ -55,6 +57,13 @@ MIN_VIEWS = 3
 # at most 0.068 px with the surface alone (three over 0.05), 0.053 / 0.046 / 0.052 px with 0 /
 # 0.02 / 0.03 px here (one, none, one over 0.05); the sparse stage's alone 0.113 (twelve over).
 SURFACE_BIAS_PX = 0.02
+# HALF_SPREAD_NOTE. A bias of the registrations that differs from place to place shows where
+# the shifts are adjusted on two halves of the surface apart (half_spread); half their
+# difference is added to the surface's uncertainty in quadrature before the blend. The 0.3 m,
+# 8-bit stack of one view per date, seed 56 at 5 views (the sixty-seventh session's one
+# regression): halves 0.07-0.27 px apart (0.27 and 0.16 px in the two views the surface moved
+# wrongly), its residuals' sigma 0.015 px; one view per date seed 8 at 3 views, whose surface
+# was right: 0.01-0.06 px apart.
 # Fewest registered observations per view the adjustment needs ([bundle] min_observations is
 # the sparse stage's; the surface gives hundreds per view or none where a view sees no texture).
 MIN_OBSERVATIONS = 50
@@ -67,7 +76,9 @@ class SurfaceTies:
     counts and the time."""
 
     shifts: np.ndarray  # (V, 2) (dcx, dcy) px
-    sigma: np.ndarray  # (V,) px
+    sigma: np.ndarray  # (V,) px, from the residuals
+    spread: np.ndarray  # (V,) px, half the largest difference between the shifts of two halves
+    # of the surface (half_spread)
     points: int  # surface points projected into the views
     registered: int  # points that kept two or more registered observations
     observations: tuple[int, ...]  # per view, observations the adjustment kept
@@ -162,11 +173,35 @@ def surface_ties(cameras: Sequence[Any], images: Sequence[np.ndarray], points: n
     solution = adjust_observations(cameras, kept, options, names=names)
     certainty = shift_uncertainty(cameras, solution.obs, solution.points, solution.shifts)
     return SurfaceTies(shifts=solution.shifts, sigma=np.asarray(certainty.sigma, np.float64),
+                       spread=half_spread(cameras, solution, options, names),
                        points=len(points), registered=int(kept.n_points),
                        observations=tuple(int(k) for k in np.bincount(solution.obs.view,
                                                                       minlength=V)),
                        reprojection_median_px=float(np.median(solution.errors_after)),
                        seconds=time.perf_counter() - t0)
+
+
+def half_spread(cameras: Sequence[Any], solution: Any, options: BundleOptions,
+                names: Sequence[str]) -> np.ndarray:
+    """Per view (V,), half the largest difference (px) between its shifts adjusted on the
+    points west and east of the points' median, or south and north of it (``solution``: the
+    adjustment on all of them, :func:`satsweep.sparse.bundle.adjust_observations`; a split
+    whose half leaves a view too few observations counts for nothing). What the residuals do not
+    show: a surface whose registrations between dates are biased, differently in different
+    places (moved shadows, a view's own shading), gives halves that disagree by tenths of a
+    pixel where their residuals fix each to hundredths (HALF_SPREAD_NOTE)."""
+    V = len(cameras)
+    spread = np.zeros(V)
+    X = solution.points[solution.obs.point]
+    for axis in (0, 1):  # east, north
+        first = X[:, axis] <= np.median(solution.points[:, axis])
+        try:
+            a = adjust_observations(cameras, solution.obs.subset(first), options, names=names)
+            b = adjust_observations(cameras, solution.obs.subset(~first), options, names=names)
+        except CameraError:
+            continue
+        spread = np.maximum(spread, np.hypot(*(a.shifts - b.shifts).T) / 2.0)
+    return spread
 
 
 def blended_shifts(shifts: np.ndarray, surface_sigma: np.ndarray, sparse_sigma: np.ndarray,

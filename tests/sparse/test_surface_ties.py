@@ -101,6 +101,33 @@ def test_surface_ties_recover_the_pointing_errors_of_a_plane():
     ties0 = st.surface_ties([_Camera(P) for P in true], images, points)
     assert np.abs(_gauge_free(true, ties0.shifts, np.zeros(3))).max() < SURFACE_SHIFT_TOL_PX
     assert (np.asarray(ties.sigma) < SURFACE_SHIFT_TOL_PX).all()
+    assert (np.asarray(ties.spread) < SURFACE_SHIFT_TOL_PX).all()  # the halves agree
+
+
+# A registration bias that differs between places: half of view 1's ground moved by this (px).
+PLACE_BIAS_PX = 0.3
+
+
+def test_halves_of_the_surface_that_disagree_widen_the_spread():
+    """View 1's image east of the scene's centre holds its content PLACE_BIAS_PX further along
+    its rows than west of it (a bias of the registrations there, as moved shadows give): the
+    shifts adjusted on the west and east halves of the surface disagree, and half_spread
+    reports it, at least a tenth of the bias (the part along each pair's epipolar lines goes
+    to the points' heights, and the gauge shares the rest among the views), twenty times the
+    spread of the same plane without it (test above: within SURFACE_SHIFT_TOL_PX)."""
+    true = [_pinhole(0.05, 0.3), _pinhole(0.25, 2.0), _pinhole(0.3, 4.2)]
+    images = _plane_views(true)
+    e, n = np.meshgrid(np.linspace(-40.0, 40.0, 25), np.linspace(-40.0, 40.0, 25))
+    points = np.column_stack([e.ravel(), n.ravel(), np.zeros(e.size)])
+    plain = st.surface_ties([_Camera(P) for P in true], images, points).spread
+    moved = _plane_views([true[0], _shifted(true[1], [PLACE_BIAS_PX, 0.0]), true[2]])[1]
+    H = true[1][:, [0, 1, 3]]
+    cols, rows = np.meshgrid(np.arange(240.0), np.arange(240.0))
+    g = np.linalg.solve(H, np.stack([cols.ravel(), rows.ravel(), np.ones(cols.size)]))
+    east = (g[0] / g[2]).reshape(240, 240) > 0.0
+    images[1] = np.where(east, moved, images[1])
+    spread = st.surface_ties([_Camera(P) for P in true], images, points).spread
+    assert spread.max() > PLACE_BIAS_PX / 10 and spread.max() > 20 * plain.max(), (spread, plain)
 
 
 def test_surface_ties_need_three_views_and_observations():
