@@ -140,8 +140,10 @@ class BundleOptions(Options):
     # dense stages run again with them, for 3 views or more; auto: where the sparse stage left
     # a view's correction uncertain by more than surface_ties_sigma_px (few tie points: small
     # stacks of other dates), since it doubles the dense stages' time
-    surface_ties_sigma_px: float = 0.035  # ... that uncertainty (px, one sigma). Measured: the
-    # runs of tools/bench_multidate.py's families left over 0.05 px after the gauge report
+    surface_ties_sigma_px: float = 0.035  # surface_ties = auto refines the corrections where
+    # one is uncertain by more than this (px, one sigma, the sparse stage's correction_sigma_px).
+    # Measured: the runs of tools/bench_multidate.py's families left over 0.05 px after the
+    # gauge report
     # 0.040-0.110 px (13 of 328 runs; 3 with the refinement); the issue-form stacks of 19 views
     # of 850 px 0.011-0.017 px, the 1700 px one 0.024-0.030 px (85 s a run: refined, it would
     # sweep twice, past issue 26's 2 minutes), 10 views in passes under 0.02 px. At 0.02 px
